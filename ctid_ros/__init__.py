@@ -1,0 +1,19 @@
+"""
+ctid_ros: continuous-time grey-box identification for ROS 2.
+
+The numerical core (this package without :mod:`ctid_ros.node`) imports no ROS code::
+
+    from ctid_ros import Data, Model, estimate
+
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.237}, u, ts=0.01)
+"""
+
+from ctid_ros.data import Data
+from ctid_ros.errors import (ConfigError, CtidError, DataError, EstimationError,
+                             ModelError)
+from ctid_ros.model import Model
+
+__all__ = [
+    'ConfigError', 'CtidError', 'Data', 'DataError', 'EstimationError', 'Model', 'ModelError',
+]

