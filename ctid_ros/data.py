@@ -75,6 +75,6 @@ class Data:
         return self.t0 + self.ts * np.arange(self.y.size)
 
     def segment(self, start: int, stop: Optional[int] = None) -> 'Data':
-        """Samples ``start:stop`` as new data (times kept)."""
+        """Return samples ``start:stop`` as new data (times kept)."""
         return Data(self.u[start:stop], self.y[start:stop], self.ts,
                     self.t0 + start * self.ts)
