@@ -25,3 +25,7 @@ class EstimationError(CtidError, RuntimeError):
 
 class ConfigError(CtidError, ValueError):
     """A configuration (params file, parameter update) is invalid."""
+
+
+class BagError(CtidError, OSError):
+    """A rosbag2 directory or MCAP file cannot be read, or lacks what the configuration needs."""
