@@ -15,5 +15,6 @@ from ctid_ros.errors import (BagError, ConfigError, CtidError, DataError, Estima
 from ctid_ros.model import Model
 
 __all__ = [
-    'BagError', 'ConfigError', 'CtidError', 'Data', 'DataError', 'EstimationError', 'Model', 'ModelError',
+    'BagError', 'ConfigError', 'CtidError', 'Data', 'DataError', 'EstimationError', 'Model',
+    'ModelError',
 ]
