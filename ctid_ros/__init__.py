@@ -12,9 +12,10 @@ The numerical core (this package without :mod:`ctid_ros.node`) imports no ROS co
 from ctid_ros.data import Data
 from ctid_ros.errors import (BagError, ConfigError, CtidError, DataError, EstimationError,
                              ModelError)
+from ctid_ros.estimator import Estimate, estimate
 from ctid_ros.model import Model
 
 __all__ = [
-    'BagError', 'ConfigError', 'CtidError', 'Data', 'DataError', 'EstimationError', 'Model',
-    'ModelError',
+    'BagError', 'ConfigError', 'CtidError', 'Data', 'DataError', 'Estimate', 'EstimationError',
+    'Model', 'ModelError', 'estimate',
 ]

@@ -1,0 +1,489 @@
+"""
+Projection-based iterative estimation of grey-box continuous-time models.
+
+Implements the method of Maruta & Sugie (see ``shared/docs/algorithm.md``): at the current
+estimate ``theta_k`` the output error ``e = y - G(p, theta_k) u`` is projected onto regressors
+``phi`` built by filtering ``u`` and ``y`` through ``1/D(p, theta_k)``:
+
+* the first iteration is the least-squares projection (exact in one step for noise-free affine
+  structures, from any stable start);
+* later iterations use instruments ``psi`` built from the noise-free model output, an oblique
+  projection whose fixed points are the output-error (maximum-likelihood) stationary points, so
+  the estimate is consistent under coloured measurement noise;
+* every step is controlled: the box bounds truncate it, ``D`` must stay Hurwitz and the
+  output-error cost may never increase (step halving, then Gauss-Newton and Levenberg-Marquardt
+  fallbacks).
+
+A dead time ``exp(-tau s)`` is located first by a profile over a grid of frozen ``tau`` values,
+then estimated jointly (fractional values are exact under a zero-order hold).
+"""
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+import warnings
+
+from ctid_ros.data import Data
+from ctid_ros.errors import EstimationError, ModelError
+from ctid_ros.model import Model, Structure
+from ctid_ros.sensitivity import is_stable, Linearization, SignalBank
+import numpy as np
+
+METHODS = ('iv', 'ls', 'gn')
+Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
+Initial = Union[str, None, Mapping[str, float]]
+
+_HALVINGS = 14
+_IV_CONDITION_LIMIT = 1e10
+_IDENTIFIABILITY_LIMIT = 1e10
+_SYMMETRY_RESTARTS = 3
+
+
+@dataclass
+class Iteration:
+    """One accepted update: parameters after it, cost, step length and the direction used."""
+
+    theta: np.ndarray
+    cost: float
+    step: float
+    direction: str
+
+
+@dataclass
+class Estimate:
+    """
+    Result of :func:`estimate`.
+
+    Attributes
+    ----------
+    model : Model
+        The identified structure.
+    params, std : dict
+        Estimated parameter values and their standard deviations, by name.
+    covariance : ndarray
+        Parameter covariance in ``model.parameters`` order.
+    fit : float
+        Normalised fit in percent, ``100 (1 - |y - yhat| / |y - mean(y)|)`` as MATLAB's compare.
+    converged : bool
+        True if a convergence test (not the iteration limit or a failed step) stopped it.
+    iterations : int
+        Number of accepted updates of the final iteration.
+    cost : float
+        Output-error cost ``0.5 |y - yhat|^2``.
+    stop_reason : str
+        Which stopping rule fired.
+    history : list of Iteration
+        Parameter vector and cost after every accepted update.
+    noise_variance : float
+        Residual variance ``|e|^2 / (N - n_theta)``.
+    condition : float
+        Condition number of the column-scaled sensitivity matrix at the estimate.
+    warnings : list of str
+        Conditions a user should know about (active bounds, weak excitation, ...).
+    delay_profile : list of (tau, cost)
+        Costs of the dead-time grid search, if one ran.
+
+    """
+
+    model: Model
+    params: Dict[str, float]
+    std: Dict[str, float]
+    covariance: np.ndarray
+    fit: float
+    converged: bool
+    iterations: int
+    cost: float
+    stop_reason: str
+    history: List[Iteration]
+    noise_variance: float
+    condition: float
+    intersample: str = 'zoh'
+    warnings: List[str] = field(default_factory=list)
+    delay_profile: List[Tuple[float, float]] = field(default_factory=list)
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Parameter vector in ``model.parameters`` order."""
+        return self.model.vector(self.params)
+
+    def simulate(self, data: Union[Data, Sequence[float]], ts: Optional[float] = None
+                 ) -> np.ndarray:
+        """Simulate the identified model on ``data`` (or on an input array with ``ts``)."""
+        if isinstance(data, Data):
+            return self.model.simulate(self.params, data.u, data.ts,
+                                       intersample=self.intersample)
+        if ts is None:
+            raise ValueError('give the sample time ts when simulating an input array')
+        return self.model.simulate(self.params, data, ts, intersample=self.intersample)
+
+    def compare(self, data: Data) -> float:
+        """Fit in percent of the identified model on (validation) ``data``."""
+        return fit_percent(data.y, self.simulate(data))
+
+    def to_dict(self) -> dict:
+        """Summary as plain JSON-serialisable types (the ``ctid fit --json`` object)."""
+        return {
+            'params': dict(self.params),
+            'std': dict(self.std),
+            'fit': float(self.fit),
+            'converged': bool(self.converged),
+            'iterations': int(self.iterations),
+            'cost': float(self.cost),
+            'stop_reason': self.stop_reason,
+            'warnings': list(self.warnings),
+        }
+
+
+def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
+    """Normalised root-mean-square fit in percent (100 is a perfect fit)."""
+    spread = np.linalg.norm(y - np.mean(y))
+    if spread == 0.0:
+        return float('nan')
+    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / spread))
+
+
+class _Problem:
+    """Data, model and constraints of one estimation; evaluates costs and directions."""
+
+    def __init__(self, model: Model, data: Data, lower: np.ndarray, upper: np.ndarray,
+                 intersample: str):
+        self.model = model
+        self.data = data
+        self.lower = lower
+        self.upper = upper
+        self.bank = SignalBank(model, data.u, data.y, data.ts, intersample)
+        self.evaluations = 0
+        self._leading_sign = None
+
+    def admissible(self, theta: np.ndarray) -> Optional[Structure]:
+        """Structure at theta if it is inside the bounds with a stable ``D``, else None."""
+        if np.any(theta < self.lower) or np.any(theta > self.upper):
+            return None
+        try:
+            structure = self.model.structure(theta)
+        except ModelError:
+            return None
+        if structure.delay < 0.0 or not is_stable(structure.den):
+            return None
+        sign = np.sign(structure.den[0])
+        if self._leading_sign is not None and sign != self._leading_sign:
+            return None
+        return structure
+
+    def anchor(self, structure: Structure) -> None:
+        """Fix the sign of D's leading coefficient: crossing zero would change the order."""
+        self._leading_sign = np.sign(structure.den[0])
+
+    def cost(self, structure: Structure) -> float:
+        self.evaluations += 1
+        error = self.data.y - self.bank.output(structure)
+        return 0.5 * float(error @ error)
+
+
+@dataclass
+class _State:
+    theta: np.ndarray
+    structure: Structure
+    cost: float
+
+
+def _column_scales(psi: np.ndarray) -> np.ndarray:
+    scales = np.linalg.norm(psi, axis=0)
+    return np.where(scales > 0.0, scales, 1.0)
+
+
+def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
+               damping: float = 0.0) -> Optional[np.ndarray]:
+    """Update direction on the free parameters (zeros elsewhere), or None if singular."""
+    psi = lin.psi[:, free]
+    scales = _column_scales(psi)
+    psi_s = psi / scales
+    if kind == 'ls':
+        phi_s = lin.phi[:, free] / scales
+        step = np.linalg.lstsq(phi_s, error, rcond=None)[0]
+    elif kind == 'iv':
+        phi_s = lin.phi[:, free] / scales
+        matrix = psi_s.T @ phi_s
+        if np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
+            return None
+        step = np.linalg.solve(matrix, psi_s.T @ error)
+    elif kind == 'gn':
+        step = np.linalg.lstsq(psi_s, error, rcond=None)[0]
+    else:
+        gram = psi_s.T @ psi_s
+        step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), psi_s.T @ error)
+    if not np.all(np.isfinite(step)):
+        return None
+    full = np.zeros(free.size)
+    full[free] = step / scales
+    return full
+
+
+def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray,
+               upper: np.ndarray) -> float:
+    """Largest fraction (<= 1) of ``step`` that keeps theta inside the box."""
+    limit = 1.0
+    with np.errstate(divide='ignore', invalid='ignore'):
+        up = np.where(step > 0, (upper - theta) / step, np.inf)
+        down = np.where(step < 0, (lower - theta) / step, np.inf)
+    limit = min(limit, float(np.min(up, initial=np.inf)), float(np.min(down, initial=np.inf)))
+    return limit if limit >= 1.0 else 0.999 * limit
+
+
+def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
+               problem: _Problem, frozen: np.ndarray) -> np.ndarray:
+    """Active set: drop parameters that sit on a bound and whose gradient pushes outward."""
+    gradient = lin.psi.T @ error                     # -dV/dtheta
+    span = np.maximum(np.abs(theta), 1.0)
+    at_lower = (theta - problem.lower <= 1e-9 * span) & (gradient < 0)
+    at_upper = (problem.upper - theta <= 1e-9 * span) & (gradient > 0)
+    return ~(frozen | at_lower | at_upper)
+
+
+def _try_step(problem: _Problem, state: _State, step: np.ndarray, monotone: bool
+              ) -> Optional[Tuple[_State, float]]:
+    """Step halving along ``step``; the first admissible candidate that does not raise V."""
+    scale = _box_limit(state.theta, step, problem.lower, problem.upper)
+    for _ in range(_HALVINGS):
+        candidate = state.theta + scale * step
+        structure = problem.admissible(candidate)
+        if structure is not None:
+            cost = problem.cost(structure)
+            if not monotone or cost <= state.cost:
+                return _State(candidate, structure, cost), scale
+        scale *= 0.5
+    return None
+
+
+def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarray,
+             max_iterations: int, tolerance: float, first_ls: bool = True
+             ) -> Tuple[_State, List[Iteration], str, bool]:
+    """Run the controlled projection iteration from ``state``."""
+    history: List[Iteration] = []
+    data = problem.data
+    for iteration in range(max_iterations):
+        lin = problem.bank.linearize(state.structure, regressors=method != 'gn')
+        error = data.y - lin.output
+        free = _free_mask(state.theta, lin, error, problem, frozen)
+        if not np.any(free):
+            return state, history, 'all parameters fixed at bounds', True
+        primary = 'gn' if method == 'gn' else ('ls' if method == 'ls' or (
+            iteration == 0 and first_ls) else 'iv')
+        accepted = None
+        for kind, damping in [(primary, 0.0), ('gn', 0.0), ('lm', 1e-2), ('lm', 1.0),
+                              ('lm', 1e2)]:
+            if kind == 'gn' and primary == 'gn':
+                continue
+            step = _direction(kind, lin, error, free, damping)
+            if step is None:
+                continue
+            # Pure P-LS follows its own fixed point, not the output-error descent.
+            outcome = _try_step(problem, state, step, monotone=method != 'ls')
+            if outcome is not None:
+                accepted = (kind, step, outcome)
+                break
+            if method == 'ls':
+                break
+        if accepted is None:
+            return state, history, 'no admissible step decreases the cost', True
+        kind, step, (new_state, scale) = accepted
+        change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
+        decrease = (state.cost - new_state.cost) / max(state.cost, np.finfo(float).tiny)
+        state = new_state
+        history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
+        if change < tolerance:
+            return state, history, f'relative parameter change below {tolerance:g}', True
+        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls':
+            return state, history, 'relative cost decrease below resolution', True
+        if state.cost <= 1e-30 * max(float(data.y @ data.y), 1e-300):
+            return state, history, 'output reproduced exactly', True
+    return state, history, f'iteration limit ({max_iterations}) reached', False
+
+
+def _bounds_arrays(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, np.ndarray]:
+    lower = np.full(len(model.parameters), -np.inf)
+    upper = np.full(len(model.parameters), np.inf)
+    for name, pair in (bounds or {}).items():
+        if name not in model.parameters:
+            raise ModelError(f'bounds given for unknown parameter {name!r}; the model has '
+                             f'{", ".join(model.parameters)}')
+        index = model.parameters.index(name)
+        low, high = pair
+        lower[index] = -np.inf if low is None else float(low)
+        upper[index] = np.inf if high is None else float(high)
+        if not lower[index] < upper[index]:
+            raise ModelError(f'bounds for {name} are empty: {low} >= {high}')
+    delay_index = delay_parameter(model)
+    if delay_index is not None:
+        lower[delay_index] = max(lower[delay_index], 0.0)
+    return lower, upper
+
+
+def delay_parameter(model: Model) -> Optional[int]:
+    """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
+    if not model.delay_is_estimated:
+        return None
+    probe = model.structure(np.ones(len(model.parameters)))
+    gradient = probe.delay_gradient
+    nonzero = np.flatnonzero(gradient)
+    if nonzero.size == 1 and gradient[nonzero[0]] == 1.0:
+        return int(nonzero[0])
+    return None
+
+
+def _check_excitation(data: Data) -> None:
+    if np.ptp(data.u) == 0.0:
+        raise EstimationError('the input is constant: it does not excite the system, so no '
+                              'dynamic parameter can be identified')
+    if np.ptp(data.y) == 0.0:
+        raise EstimationError('the output is constant: the data carry no information about '
+                              'the dynamics (is the output topic/column the right one?)')
+    if len(data) < 10:
+        raise EstimationError(f'only {len(data)} samples: too few to identify a model')
+
+
+def _blind_combination(problem: _Problem, state: _State) -> Optional[str]:
+    """Explain why the output is (almost) blind to a parameter combination, or None."""
+    lin = problem.bank.linearize(state.structure, regressors=False)
+    norms = np.linalg.norm(lin.psi, axis=0)
+    if np.any(norms == 0.0):
+        dead = ', '.join(problem.model.parameters[i] for i in np.flatnonzero(norms == 0.0))
+        return f'the output does not depend on {dead} on these data: the input does not excite it'
+    singular, vectors = np.linalg.svd(lin.psi / norms, full_matrices=False)[1:]
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
+    if condition <= _IDENTIFIABILITY_LIMIT:
+        return None
+    names = [f'{weight:+.2f}*{name}' for weight, name in
+             zip(vectors[-1], problem.model.parameters) if abs(weight) > 0.1]
+    return ('the parameters are not identifiable from these data: the combination '
+            f'{" ".join(names)} has (almost) no effect on the output (condition number '
+            f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
+
+
+def _nudged(problem: _Problem, state: _State, rng: np.random.Generator) -> Optional[_State]:
+    """Perturb a point where symmetric parameters coincide (e.g. T1 = T2) so they can split."""
+    for _ in range(_HALVINGS):
+        theta = state.theta * (1.0 + 0.05 * rng.standard_normal(state.theta.size))
+        theta = np.clip(theta, problem.lower, problem.upper)
+        structure = problem.admissible(theta)
+        if structure is not None:
+            return _State(theta, structure, problem.cost(structure))
+    return None
+
+
+def _covariance(problem: _Problem, state: _State) -> Tuple[np.ndarray, float, float]:
+    lin = problem.bank.linearize(state.structure, regressors=False)
+    error = problem.data.y - lin.output
+    count, params = lin.psi.shape
+    variance = float(error @ error) / max(count - params, 1)
+    scales = _column_scales(lin.psi)
+    _, singular, vt = np.linalg.svd(lin.psi / scales, full_matrices=False)
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
+    inverse = (vt.T / singular ** 2) @ vt
+    covariance = variance * inverse / np.outer(scales, scales)
+    return covariance, variance, condition
+
+
+def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
+             bounds: Optional[Bounds] = None, method: str = 'iv', intersample: str = 'zoh',
+             max_iterations: int = 100, tolerance: float = 1e-8,
+             delay_range: Optional[Tuple[float, float]] = None) -> Estimate:
+    """
+    Estimate the parameters of a grey-box continuous-time model from sampled data.
+
+    Parameters
+    ----------
+    model : Model
+        Model structure (open loop, or closed loop with a known controller; then ``data.u`` is
+        the reference ``r``).
+    data : Data
+        Uniformly sampled input/output data, starting at rest.
+    initial : dict, 'auto' or None
+        Initial values by parameter name. Missing names (or ``'auto'``/None) are initialised
+        automatically from a state-variable-filter least-squares fit with multi-start.
+    bounds : dict, optional
+        ``{name: (lower, upper)}``, either side may be None. A dead-time parameter is kept
+        non-negative in any case.
+    method : {'iv', 'ls', 'gn'}
+        ``'iv'``: least-squares projection first, then instrumental-variable projections
+        (consistent, default). ``'ls'``: least-squares projection at every iteration (biased
+        under noise; for comparison). ``'gn'``: Gauss-Newton on the output error.
+    intersample : {'zoh', 'foh'}
+        Behaviour of the input between samples.
+    max_iterations : int
+        Limit on the number of updates of the final iteration.
+    tolerance : float
+        Stop when the largest relative parameter change falls below it.
+    delay_range : (float, float), optional
+        Search range in seconds for a dead-time parameter; default from its bounds, else
+        automatic.
+
+    Returns
+    -------
+    Estimate
+        Estimates, standard deviations, covariance, fit and iteration record.
+
+    Raises
+    ------
+    EstimationError
+        If the data cannot identify the parameters or no stable starting point is found.
+    ModelError
+        If initial values or bounds do not match the model.
+
+    """
+    from ctid_ros.initialization import delay_search, initial_estimate
+
+    if method not in METHODS:
+        raise ValueError(f'method must be one of {METHODS}, got {method!r}')
+    if max_iterations < 1:
+        raise ValueError('max_iterations must be at least 1')
+    _check_excitation(data)
+    lower, upper = _bounds_arrays(model, bounds)
+    problem = _Problem(model, data, lower, upper, intersample)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)
+        start = initial_estimate(problem, initial, delay_range)
+        problem.anchor(start.structure)
+        profile: List[Tuple[float, float]] = []
+        delay_index = delay_parameter(model)
+        if delay_index is not None:
+            start, profile = delay_search(problem, start, delay_index, delay_range)
+        frozen = np.zeros(len(model.parameters), dtype=bool)
+        final, history, reason, converged = _iterate(
+            problem, start, method=method, frozen=frozen, max_iterations=max_iterations,
+            tolerance=tolerance)
+        rng = np.random.default_rng(0)
+        for _ in range(_SYMMETRY_RESTARTS):
+            if _blind_combination(problem, final) is None:
+                break
+            nudged = _nudged(problem, final, rng)
+            if nudged is None:
+                break
+            final, more, reason, converged = _iterate(
+                problem, nudged, method=method, frozen=frozen,
+                max_iterations=max_iterations, tolerance=tolerance, first_ls=False)
+            history.extend(more)
+        blind = _blind_combination(problem, final)
+        if blind is not None:
+            raise EstimationError(blind)
+        covariance, variance, condition = _covariance(problem, final)
+    std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    notes = _warnings(problem, final, converged, reason)
+    fit = fit_percent(data.y, problem.bank.output(final.structure))
+    return Estimate(
+        model=model, params=model.as_dict(final.theta), std=model.as_dict(std),
+        covariance=covariance, fit=fit, converged=converged, iterations=len(history),
+        cost=final.cost, stop_reason=reason, history=history, noise_variance=variance,
+        condition=condition, intersample=intersample, warnings=notes, delay_profile=profile)
+
+
+def _warnings(problem: _Problem, state: _State, converged: bool, reason: str) -> List[str]:
+    notes = []
+    span = np.maximum(np.abs(state.theta), 1.0)
+    for index, name in enumerate(problem.model.parameters):
+        if state.theta[index] - problem.lower[index] <= 1e-6 * span[index]:
+            notes.append(f'{name} is at its lower bound {problem.lower[index]:g}')
+        elif problem.upper[index] - state.theta[index] <= 1e-6 * span[index]:
+            notes.append(f'{name} is at its upper bound {problem.upper[index]:g}')
+    if not converged:
+        notes.append(f'not converged: {reason}')
+    return notes

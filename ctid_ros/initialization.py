@@ -1,0 +1,259 @@
+"""
+Starting points for the projection iteration: automatic initialisation and dead-time search.
+
+Automatic initialisation needs no user guess. For a few state-variable filters
+``E(p) = (p + lam)^n`` it fits the equation error ``[D(p, theta) y - N(p, theta) u] / E`` by
+least squares directly in the grey-box parameters (a small problem: the filtered signals are
+computed once per filter and reduce to a triangular factor), from several starts, and keeps the
+candidate with the lowest output-error cost. For affine structures this is the exact
+one-step regression of the method with a fixed filter, so any start works.
+
+The dead time is located by a profile: for each ``tau`` on a grid the other parameters get a
+few projection iterations with ``tau`` frozen; the best local minima of that profile are then
+refined jointly.
+"""
+
+from typing import List, Mapping, Optional, Tuple
+
+from ctid_ros.errors import EstimationError, ModelError
+from ctid_ros.simulation import ContinuousFilter
+import numpy as np
+from scipy import optimize
+
+_FILTER_COUNT = 5
+_RANDOM_STARTS = 6
+_GRID_POINTS = 30
+_GRID_ITERATIONS = 3
+_REFINED_MINIMA = 3
+
+
+def _given_values(model, initial) -> Mapping[str, float]:
+    if initial is None or (isinstance(initial, str) and initial == 'auto'):
+        return {}
+    if isinstance(initial, str):
+        raise ModelError(f"initial must be a dict of values or 'auto', got {initial!r}")
+    unknown = sorted(set(initial) - set(model.parameters))
+    if unknown:
+        raise ModelError(f'initial values given for unknown parameter(s) {", ".join(unknown)}; '
+                         f'the model has {", ".join(model.parameters)}')
+    values = {name: float(value) for name, value in initial.items()}
+    bad = [name for name, value in values.items() if not np.isfinite(value)]
+    if bad:
+        raise ModelError(f'initial value(s) of {", ".join(bad)} are not finite')
+    return values
+
+
+def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]]):
+    """
+    Return the starting state of the iteration.
+
+    Complete, admissible user values are used as they are; otherwise the missing values are
+    found by the equation-error multi-start described in the module docstring.
+
+    """
+    from ctid_ros.estimator import _State, delay_parameter
+
+    model = problem.model
+    given = _given_values(model, initial)
+    for name, value in given.items():
+        index = model.parameters.index(name)
+        if not problem.lower[index] <= value <= problem.upper[index]:
+            raise ModelError(f'initial value {name}={value:g} lies outside its bounds '
+                             f'[{problem.lower[index]:g}, {problem.upper[index]:g}]')
+    if len(given) == len(model.parameters):
+        theta = model.vector(given)
+        structure = problem.admissible(theta)
+        if structure is not None:
+            return _State(theta, structure, problem.cost(structure))
+    delay_index = delay_parameter(model)
+    tau = _initial_delay(problem, given, delay_index, delay_range)
+    candidates = _equation_error_candidates(problem, given, delay_index, tau)
+    best = None
+    for theta in candidates:
+        structure = problem.admissible(theta)
+        if structure is None:
+            continue
+        cost = problem.cost(structure)
+        if best is None or cost < best.cost:
+            best = _State(theta, structure, cost)
+    if best is None:
+        raise EstimationError(
+            'no stable starting model was found: the initial values give an unstable or '
+            'out-of-bounds D(s), and the automatic initialisation found none either; give '
+            'initial values that make the model stable, or check the bounds')
+    return best
+
+
+def _initial_delay(problem, given, delay_index, delay_range) -> float:
+    if delay_index is None:
+        return 0.0
+    name = problem.model.parameters[delay_index]
+    if name in given:
+        return given[name]
+    low, high = _delay_bracket(problem, delay_index, delay_range)
+    return float(np.clip(impulse_delay(problem.data), low, high))
+
+
+def _starts(problem, given, delay_index, tau, rng) -> List[np.ndarray]:
+    model = problem.model
+    count = len(model.parameters)
+    fixed = np.array([given.get(name, np.nan) for name in model.parameters])
+    starts = []
+    for draw in range(_RANDOM_STARTS + 1):
+        guess = np.ones(count) if draw == 0 else 10.0 ** rng.uniform(-2.0, 2.0, count)
+        guess = np.where(np.isfinite(problem.lower) & np.isfinite(problem.upper),
+                         problem.lower + (problem.upper - problem.lower)
+                         * rng.uniform(0.1, 0.9, count) if draw else
+                         0.5 * (problem.lower + problem.upper), guess)
+        guess = np.clip(guess, problem.lower, problem.upper)
+        guess = np.where(np.isnan(fixed), guess, fixed)
+        if delay_index is not None:
+            guess[delay_index] = tau
+        starts.append(guess)
+    return starts
+
+
+def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
+    """Triangular factor ``R`` of ``[p^j/E y, -p^j/E u]`` ordered like ``(den, num)``."""
+    model = problem.model
+    data = problem.data
+    n, m = model.den_degree, model.num_degree
+    filter_den = np.poly(np.full(n, -lam)) if n else np.ones(1)
+    powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
+    y_parts = ContinuousFilter(filter_den).discretize(data.ts, 0.0, 'foh').outputs(
+        data.y, powers[::-1])
+    u_parts = ContinuousFilter(filter_den).discretize(
+        data.ts, tau, problem.bank.intersample).outputs(data.u, powers[m::-1])
+    columns = np.vstack([y_parts, -u_parts]).T
+    scales = np.linalg.norm(columns, axis=0)
+    scales[scales == 0.0] = 1.0
+    triangular = np.linalg.qr(columns / scales, mode='r')
+    return triangular / scales
+
+
+def _equation_error_candidates(problem, given, delay_index, tau) -> List[np.ndarray]:
+    model = problem.model
+    data = problem.data
+    record = data.ts * len(data)
+    rng = np.random.default_rng(20131)
+    lams = np.geomspace(10.0 / record, 0.3 * np.pi / data.ts, _FILTER_COUNT)
+    free = np.array([name not in given for name in model.parameters])
+    if delay_index is not None:
+        free[delay_index] = False
+    starts = _starts(problem, given, delay_index, tau, rng)
+    if not np.any(free):
+        return starts
+    candidates = []
+    for lam in lams:
+        factor = _filtered_regressors(problem, lam, tau)
+
+        def residual(values, start):
+            theta = start.copy()
+            theta[free] = values
+            structure = model.structure(theta)
+            return factor @ np.concatenate([structure.den, structure.num])
+
+        def jacobian(values, start):
+            theta = start.copy()
+            theta[free] = values
+            structure = model.structure(theta)
+            grad = np.hstack([structure.den_jacobian, structure.num_jacobian])[free]
+            return factor @ grad.T
+
+        for start in starts:
+            try:
+                result = optimize.least_squares(
+                    residual, start[free], jac=jacobian, args=(start,),
+                    bounds=(problem.lower[free], problem.upper[free]), method='trf',
+                    max_nfev=200)
+            except (ValueError, ModelError, np.linalg.LinAlgError):
+                continue
+            theta = start.copy()
+            theta[free] = result.x
+            candidates.append(theta)
+    return candidates + starts
+
+
+def impulse_delay(data) -> float:
+    """
+    Dead-time guess from a regularised FIR estimate of the impulse response.
+
+    The first lag at which the estimated response reaches a quarter of its peak, less half a
+    sample (the hold), is a robust bracket centre even for coloured inputs.
+
+    """
+    count = len(data)
+    lags = int(min(max(count // 5, 10), 300))
+    u = data.u - np.mean(data.u)
+    y = data.y - np.mean(data.y)
+    shifted = np.zeros((count, lags))
+    for lag in range(lags):
+        shifted[lag:, lag] = u[:count - lag]
+    gram = shifted.T @ shifted
+    ridge = 1e-3 * np.trace(gram) / lags
+    response = np.linalg.solve(gram + ridge * np.eye(lags), shifted.T @ y)
+    peak = np.max(np.abs(response))
+    if peak == 0.0:
+        return 0.0
+    first = int(np.argmax(np.abs(response) >= 0.25 * peak))
+    return max(first - 0.5, 0.0) * data.ts
+
+
+def _delay_bracket(problem, delay_index, delay_range) -> Tuple[float, float]:
+    data = problem.data
+    if delay_range is not None:
+        low, high = float(delay_range[0]), float(delay_range[1])
+        if not (0.0 <= low < high):
+            raise ModelError(f'delay range must satisfy 0 <= min < max, got {delay_range}')
+        return max(low, problem.lower[delay_index]), min(high, problem.upper[delay_index])
+    low = problem.lower[delay_index]
+    high = problem.upper[delay_index]
+    if not np.isfinite(high):
+        guess = impulse_delay(data)
+        high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
+    return low, max(high, low + data.ts)
+
+
+def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
+    costs = np.array([cost for _, cost, _ in profile])
+    indices = [i for i in range(len(costs))
+               if (i == 0 or costs[i] <= costs[i - 1])
+               and (i == len(costs) - 1 or costs[i] <= costs[i + 1])]
+    indices.sort(key=lambda i: costs[i])
+    return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
+
+
+def delay_search(problem, start, delay_index: int, delay_range):
+    """
+    Locate the dead time by a frozen-delay profile, then refine the best minima jointly.
+
+    Returns the best state and the profile as ``[(tau, cost), ...]``.
+
+    """
+    from ctid_ros.estimator import _iterate, _State
+
+    low, high = _delay_bracket(problem, delay_index, delay_range)
+    grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
+                      np.clip([start.theta[delay_index], impulse_delay(problem.data)],
+                              low, high))
+    frozen = np.zeros(start.theta.size, dtype=bool)
+    frozen[delay_index] = True
+    profile = []
+    for tau in grid:
+        theta = start.theta.copy()
+        theta[delay_index] = tau
+        structure = problem.admissible(theta)
+        if structure is None:
+            continue
+        state = _State(theta, structure, problem.cost(structure))
+        state = _iterate(problem, state, method='iv', frozen=frozen,
+                         max_iterations=_GRID_ITERATIONS, tolerance=1e-6)[0]
+        profile.append((float(tau), state.cost, state))
+    if not profile:
+        return start, []
+    refined = [
+        _iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+                 max_iterations=10, tolerance=1e-6, first_ls=False)[0]
+        for state in _local_minima(profile)]
+    best = min(refined, key=lambda state: state.cost)
+    return best, [(tau, cost) for tau, cost, _ in profile]

@@ -1,0 +1,104 @@
+"""
+Filtered signals of one iteration of the projection method.
+
+At the current estimate ``theta`` with ``G = N/D * exp(-tau s)`` this module computes, from the
+sampled input ``u`` and output ``y``, with three state simulations sharing one denominator:
+
+* the model output ``yhat = G u`` (u through ``1/D``, with the dead time);
+* the regressors ``phi_i = [dN/dtheta_i e^{-tau s} u - dD/dtheta_i y] / D`` (y through ``1/D``,
+  first-order hold), minus ``dtau/dtheta_i * s G u`` for a dead time;
+* the instruments ``psi_i = d yhat / d theta_i = (dN_i D - dD_i N)/D^2 e^{-tau s} u - ...``
+  (u through ``1/D^2``), which carry no measurement noise.
+
+``phi`` makes the error decomposition exact (one-step property); ``psi`` are the output
+sensitivities that make the instrumental-variable iteration consistent.
+"""
+
+from dataclasses import dataclass
+from typing import Optional
+
+from ctid_ros.errors import EstimationError
+from ctid_ros.model import Model, Structure
+from ctid_ros.simulation import ContinuousFilter
+import numpy as np
+
+
+@dataclass
+class Linearization:
+    """Model output and its regressors/instruments at one parameter vector."""
+
+    output: np.ndarray
+    phi: Optional[np.ndarray]
+    psi: np.ndarray
+
+
+def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
+    """Return True if every root of ``den`` lies left of ``-margin * max|root|``."""
+    if den.size < 2:
+        return den.size == 1 and den[0] != 0.0
+    if den[0] == 0.0 or not np.all(np.isfinite(den)):
+        return False
+    roots = np.roots(den)
+    scale = max(np.max(np.abs(roots)), np.finfo(float).tiny)
+    return bool(np.max(roots.real) < -margin * scale)
+
+
+def _pad(poly: np.ndarray, length: int) -> np.ndarray:
+    return np.concatenate([np.zeros(length - poly.size), poly])
+
+
+class SignalBank:
+    """Computes outputs and sensitivities of a model on one data record."""
+
+    def __init__(self, model: Model, u: np.ndarray, y: np.ndarray, ts: float,
+                 intersample: str = 'zoh'):
+        self.model = model
+        self.u = u
+        self.y = y
+        self.ts = ts
+        self.intersample = intersample
+
+    def output(self, structure: Structure) -> np.ndarray:
+        """Model output ``G u`` at a structure (no sensitivities)."""
+        discrete = ContinuousFilter(structure.den).discretize(
+            self.ts, structure.delay, self.intersample)
+        return discrete.outputs(self.u, [structure.num])[0]
+
+    def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
+        """Return the output, the regressors ``phi`` (if requested) and instruments ``psi``."""
+        num, den = structure.num, structure.den
+        order = den.size - 1
+        params = structure.num_jacobian.shape[0]
+        num_jac = np.array([_pad(row, order + 1) for row in structure.num_jacobian])
+        den_jac = structure.den_jacobian
+        num_full = _pad(num, order + 1)
+        delay_used = np.any(structure.delay_gradient != 0.0)
+        if delay_used and num_full[0] != 0.0:
+            raise EstimationError(
+                'cannot estimate the dead time of a biproper model (numerator and denominator '
+                'of equal degree): its output jumps with the held input; fix the dead time or '
+                'use a strictly proper model')
+        bank_u = ContinuousFilter(den).discretize(self.ts, structure.delay, self.intersample)
+        u_numerators = [num_full]
+        if delay_used:
+            u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
+        if regressors:
+            u_numerators.extend(num_jac)
+        u_parts = bank_u.outputs(self.u, u_numerators)
+        output = u_parts[0]
+        delay_term = np.zeros((params, output.size))
+        if delay_used:
+            delay_term = -np.outer(structure.delay_gradient, u_parts[1])
+        squared = np.polymul(den, den)
+        sensitivity_numerators = [np.polysub(np.polymul(num_jac[i], den),
+                                             np.polymul(den_jac[i], num_full))
+                                  for i in range(params)]
+        bank_sensitivity = ContinuousFilter(squared).discretize(
+            self.ts, structure.delay, self.intersample)
+        psi = bank_sensitivity.outputs(self.u, sensitivity_numerators) + delay_term
+        phi = None
+        if regressors:
+            bank_y = ContinuousFilter(den).discretize(self.ts, 0.0, 'foh')
+            y_parts = bank_y.outputs(self.y, list(den_jac))
+            phi = u_parts[-params:] - y_parts + delay_term
+        return Linearization(output, None if phi is None else phi.T, psi.T)
