@@ -39,7 +39,8 @@ setup(
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
     ],
     python_requires='>=3.10',
-    install_requires=['numpy>=1.24', 'scipy>=1.10', 'sympy>=1.12', 'PyYAML>=6'],
+    install_requires=['numpy>=1.24', 'scipy>=1.10', 'sympy>=1.12', 'PyYAML>=6',
+                      'threadpoolctl>=3'],
     extras_require={
         'ros': ROS_WHEELS,
         'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5'],

@@ -60,14 +60,17 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
         if not problem.lower[index] <= value <= problem.upper[index]:
             raise ModelError(f'initial value {name}={value:g} lies outside its bounds '
                              f'[{problem.lower[index]:g}, {problem.upper[index]:g}]')
+    pinned = given
     if len(given) == len(model.parameters):
         theta = model.vector(given)
         structure = problem.admissible(theta)
         if structure is not None:
             return _State(theta, structure, problem.cost(structure))
+        # An unstable guess only serves as a hint: every parameter is refitted.
+        pinned = {}
     delay_index = delay_parameter(model)
     tau = _initial_delay(problem, given, delay_index, delay_range)
-    candidates = _equation_error_candidates(problem, given, delay_index, tau)
+    candidates = _equation_error_candidates(problem, given, pinned, delay_index, tau)
     best = None
     for theta in candidates:
         structure = problem.admissible(theta)
@@ -94,18 +97,34 @@ def _initial_delay(problem, given, delay_index, delay_range) -> float:
     return float(np.clip(impulse_delay(problem.data), low, high))
 
 
-def _starts(problem, given, delay_index, tau, rng) -> List[np.ndarray]:
+def _starts(problem, hints, pinned, delay_index, tau, rng) -> List[np.ndarray]:
+    """
+    Return starting points: the user's hints first, then random draws.
+
+    Draws are log-uniform over 1e-2..1e2, or over the box where it is finite (uniform when the
+    box includes zero). Pinned values and the dead time are the same in every start.
+
+    """
     model = problem.model
     count = len(model.parameters)
-    fixed = np.array([given.get(name, np.nan) for name in model.parameters])
+    lower, upper = problem.lower, problem.upper
+    boxed = np.isfinite(lower) & np.isfinite(upper)
+    positive_box = boxed & (lower > 0)
+    hinted = np.array([hints.get(name, np.nan) for name in model.parameters])
+    fixed = np.array([pinned.get(name, np.nan) for name in model.parameters])
     starts = []
     for draw in range(_RANDOM_STARTS + 1):
-        guess = np.ones(count) if draw == 0 else 10.0 ** rng.uniform(-2.0, 2.0, count)
-        guess = np.where(np.isfinite(problem.lower) & np.isfinite(problem.upper),
-                         problem.lower + (problem.upper - problem.lower)
-                         * rng.uniform(0.1, 0.9, count) if draw else
-                         0.5 * (problem.lower + problem.upper), guess)
-        guess = np.clip(guess, problem.lower, problem.upper)
+        if draw == 0:
+            guess = np.where(np.isnan(hinted), 1.0, hinted)
+        else:
+            guess = 10.0 ** rng.uniform(-2.0, 2.0, count)
+            in_log_box = np.exp(rng.uniform(np.log(np.where(positive_box, lower, 1.0)),
+                                            np.log(np.where(positive_box, upper, 1.0))))
+            guess = np.where(positive_box, in_log_box, guess)
+            guess = np.where(boxed & ~positive_box, rng.uniform(np.where(boxed, lower, 0.0),
+                                                                np.where(boxed, upper, 1.0)),
+                             guess)
+        guess = np.clip(guess, lower, upper)
         guess = np.where(np.isnan(fixed), guess, fixed)
         if delay_index is not None:
             guess[delay_index] = tau
@@ -131,16 +150,16 @@ def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
     return triangular / scales
 
 
-def _equation_error_candidates(problem, given, delay_index, tau) -> List[np.ndarray]:
+def _equation_error_candidates(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
     model = problem.model
     data = problem.data
     record = data.ts * len(data)
     rng = np.random.default_rng(20131)
     lams = np.geomspace(10.0 / record, 0.3 * np.pi / data.ts, _FILTER_COUNT)
-    free = np.array([name not in given for name in model.parameters])
+    free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
-    starts = _starts(problem, given, delay_index, tau, rng)
+    starts = _starts(problem, hints, pinned, delay_index, tau, rng)
     if not np.any(free):
         return starts
     candidates = []

@@ -1,0 +1,138 @@
+"""
+Command line: ``ctid fit`` on CSV files (and the entry point of the other subcommands).
+
+Examples
+--------
+::
+
+    ctid fit data.csv --model 'K*exp(-tau*s)/(T*s + 1)' --initial K=1,T=2
+    ctid fit data.csv --model '1/(m*s**2 + d*s + k)' --controller '20 + 10/s' --json
+
+"""
+
+import argparse
+import json
+import sys
+from typing import Dict, List, Optional, Tuple
+
+from ctid_ros.csv_data import load_csv
+from ctid_ros.errors import CtidError
+from ctid_ros.estimator import Estimate, estimate, METHODS
+from ctid_ros.model import Model
+from ctid_ros.simulation import INTERSAMPLE
+import numpy as np
+
+
+def _assignments(text: str, option: str) -> Dict[str, str]:
+    pairs = {}
+    for item in filter(None, (part.strip() for part in text.split(','))):
+        name, separator, value = item.partition('=')
+        if not separator or not name.strip():
+            raise argparse.ArgumentTypeError(f'{option} expects NAME=VALUE[,NAME=VALUE...], '
+                                             f'got {item!r}')
+        pairs[name.strip()] = value.strip()
+    return pairs
+
+
+def parse_initial(text: str) -> Dict[str, float]:
+    """Parse ``K=1,T=2`` into ``{'K': 1.0, 'T': 2.0}``."""
+    try:
+        return {name: float(value) for name, value in _assignments(text, '--initial').items()}
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f'--initial: {error}') from None
+
+
+def parse_bounds(text: str) -> Dict[str, Tuple[Optional[float], Optional[float]]]:
+    """Parse ``T=0:10,tau=0:`` into ``{'T': (0, 10), 'tau': (0, None)}``."""
+    bounds = {}
+    for name, value in _assignments(text, '--bounds').items():
+        low, separator, high = value.partition(':')
+        if not separator:
+            raise argparse.ArgumentTypeError(f'--bounds expects NAME=LOW:HIGH, got {value!r}')
+        try:
+            bounds[name] = (float(low) if low else None, float(high) if high else None)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(f'--bounds: {error}') from None
+    return bounds
+
+
+def format_table(result: Estimate) -> str:
+    """Human-readable table of estimates with standard deviations and 95 % intervals."""
+    width = max(len(name) for name in result.params)
+    lines = [f'{"parameter":<{max(width, 9)}}  {"estimate":>13}  {"std":>11}  '
+             f'{"95% interval":>27}']
+    for name, value in result.params.items():
+        std = result.std[name]
+        lines.append(f'{name:<{max(width, 9)}}  {value:>13.6g}  {std:>11.3g}  '
+                     f'[{value - 1.96 * std:>12.6g}, {value + 1.96 * std:>12.6g}]')
+    lines.append('')
+    lines.append(f'fit {result.fit:.2f} %   iterations {result.iterations}   '
+                 f'converged {"yes" if result.converged else "no"} ({result.stop_reason})')
+    lines.extend(f'warning: {note}' for note in result.warnings)
+    return '\n'.join(lines)
+
+
+def _add_fit_parser(subparsers) -> None:
+    fit = subparsers.add_parser('fit', help='estimate a model from a CSV file',
+                                description='Estimate grey-box parameters from a CSV file with '
+                                'columns t,u,y (or u,y with --ts).')
+    fit.add_argument('csv', help='CSV file with a header line')
+    fit.add_argument('--model', required=True, help="plant transfer function, e.g. 'K/(T*s+1)'")
+    fit.add_argument('--controller', default=None,
+                     help='known controller for closed-loop data (u is then the reference r)')
+    fit.add_argument('--initial', type=parse_initial, default=None,
+                     help='initial values NAME=VALUE,...; missing ones are found automatically')
+    fit.add_argument('--bounds', type=parse_bounds, default=None,
+                     help='bounds NAME=LOW:HIGH,... (either side may be empty)')
+    fit.add_argument('--ts', type=float, default=None, help='sample time if there is no t column')
+    fit.add_argument('--input', default='u', help='input column name (default u)')
+    fit.add_argument('--output', default='y', help='output column name (default y)')
+    fit.add_argument('--method', choices=METHODS, default='iv')
+    fit.add_argument('--intersample', choices=INTERSAMPLE, default='zoh')
+    fit.add_argument('--max-iterations', type=int, default=100)
+    fit.add_argument('--json', action='store_true', help='print a JSON object instead of a table')
+    fit.set_defaults(run=_run_fit)
+
+
+def _run_fit(arguments) -> int:
+    model = Model(arguments.model, controller=arguments.controller)
+    data = load_csv(arguments.csv, input_column=arguments.input, output_column=arguments.output,
+                    ts=arguments.ts)
+    result = estimate(model, data, arguments.initial or 'auto', bounds=arguments.bounds,
+                      method=arguments.method, intersample=arguments.intersample,
+                      max_iterations=arguments.max_iterations)
+    if arguments.json:
+        print(json.dumps(result.to_dict(), indent=2, default=_json_default))
+    else:
+        print(format_table(result))
+    return 0
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f'not JSON serialisable: {type(value).__name__}')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the ``ctid`` argument parser with all subcommands."""
+    parser = argparse.ArgumentParser(
+        prog='ctid', description='Continuous-time grey-box identification (ctid_ros).')
+    subparsers = parser.add_subparsers(dest='command', required=True)
+    _add_fit_parser(subparsers)
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Entry point of the ``ctid`` command."""
+    parser = build_parser()
+    arguments = parser.parse_args(argv)
+    try:
+        return arguments.run(arguments)
+    except CtidError as error:
+        print(f'ctid {arguments.command}: error: {error}', file=sys.stderr)
+        return 2
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,178 @@
+"""Estimator tests on the systems of the algorithm notes, against the truth that made the data."""
+
+from ctid_ros import Data, estimate, EstimationError, Model, ModelError
+from ctid_ros.excitation import prbs
+import numpy as np
+import pytest
+import systems
+
+
+def assert_near_truth(result, system, sigmas=4.0):
+    """Check every estimate is within `sigmas` Cramer-Rao standard deviations of the truth."""
+    for name, true_value in system.truth.items():
+        bound = sigmas * system.crlb_std[name]
+        assert abs(result.params[name] - true_value) < bound, (name, result.params, bound)
+
+
+def assert_std_matches_crlb(result, system, tolerance=0.25):
+    """Check the reported standard deviations agree with the Cramer-Rao bound at the truth."""
+    for name, crlb in system.crlb_std.items():
+        assert result.std[name] == pytest.approx(crlb, rel=tolerance), (name, result.std)
+
+
+def test_rao_garnier_from_random_start():
+    system = systems.rao_garnier()
+    rng = np.random.default_rng(7)
+    initial = {name: value * rng.uniform(0.5, 2.0) for name, value in system.truth.items()}
+    result = estimate(system.model, system.data(seed=1), initial)
+    assert result.converged
+    assert_near_truth(result, system)
+    assert_std_matches_crlb(result, system)
+
+
+def test_mass_spring_damper_where_gauss_newton_stalls():
+    # From this start Gauss-Newton drifts to a near-zero-gain plateau (algorithm notes, test 2).
+    system = systems.mass_spring_damper()
+    data = system.data(seed=2)
+    result = estimate(system.model, data, {'m': 1.47, 'd': 1.01, 'k': 16.0},
+                      bounds=system.bounds)
+    assert result.converged
+    assert_near_truth(result, system)
+    assert_std_matches_crlb(result, system)
+    assert all(later.cost <= earlier.cost
+               for earlier, later in zip(result.history, result.history[1:]))
+
+
+def test_closed_loop_unstable_plant_gives_plant_parameters():
+    system = systems.closed_loop_pid()
+    result = estimate(system.model, system.data(seed=3), {'m': 3.0, 'd': 1.5, 'k': -0.5},
+                      bounds=system.bounds)
+    assert_near_truth(result, system)
+    assert result.params['k'] < 0          # the plant itself is unstable
+
+
+def test_fractional_dead_time_from_poor_start():
+    system = systems.first_order_dead_time()
+    result = estimate(system.model, system.data(seed=4), {'K': 1.0, 'T': 10.0, 'tau': 3.5},
+                      bounds=system.bounds)
+    assert_near_truth(result, system)
+    assert abs(result.params['tau'] - 1.234) < 0.05     # half a sample is 0.05 s
+    assert result.delay_profile, 'the dead-time grid search should have run'
+
+
+def test_dead_time_regression_system_of_the_tdsrivc_demo():
+    # 12 e^{-8s}/(s^2 + 4s + 4): without the grid the iteration ends at tau -> 0.
+    model = Model('b0*exp(-tau*s)/(s**2 + a1*s + a0)')
+    u = prbs(8, 20)
+    clean = model.simulate({'b0': 12.0, 'a1': 4.0, 'a0': 4.0, 'tau': 8.0}, u, 0.1)
+    noise = np.random.default_rng(5).standard_normal(u.size) * np.std(clean) / 10 ** 0.75
+    result = estimate(model, Data(u, clean + noise, 0.1),
+                      {'b0': 6.0, 'a1': 2.0, 'a0': 2.0, 'tau': 1.0})
+    assert abs(result.params['tau'] - 8.0) < 0.05
+    for name, value, crlb in [('b0', 12.0, 0.52), ('a1', 4.0, 0.15), ('a0', 4.0, 0.17)]:
+        assert abs(result.params[name] - value) < 4 * crlb, result.params
+
+
+def test_non_affine_natural_frequency_and_damping():
+    system = systems.second_order_nonaffine()
+    assert not system.model.is_affine
+    result = estimate(system.model, system.data(seed=6), {'K': 4.0, 'w': 8.0, 'z': 0.9},
+                      bounds=system.bounds)
+    assert_near_truth(result, system)
+
+
+def test_non_affine_two_time_constants_with_automatic_start():
+    model = Model('K/((T1*s + 1)*(T2*s + 1))')
+    u = prbs(9, 5)
+    clean = model.simulate({'K': 1.5, 'T1': 0.3, 'T2': 2.0}, u, 0.02)
+    noisy = clean + 0.05 * np.std(clean) * np.random.default_rng(8).standard_normal(u.size)
+    result = estimate(model, Data(u, noisy, 0.02), 'auto',
+                      bounds={'T1': (1e-3, None), 'T2': (1e-3, None)})
+    # T1 and T2 are interchangeable: compare the sorted pair.
+    times = sorted([result.params['T1'], result.params['T2']])
+    assert times == pytest.approx([0.3, 2.0], rel=0.02)
+    assert result.params['K'] == pytest.approx(1.5, rel=0.01)
+
+
+def test_noise_free_affine_data_give_the_truth_to_high_precision():
+    system = systems.mass_spring_damper()
+    data = Data(system.u, system.noise_free(), system.ts)
+    result = estimate(system.model, data, {'m': 2.0, 'd': 0.1, 'k': 5.0}, bounds=system.bounds)
+    for name, value in system.truth.items():
+        assert result.params[name] == pytest.approx(value, rel=1e-8)
+    assert result.fit > 99.9999
+
+
+@pytest.mark.parametrize('factory', [systems.mass_spring_damper, systems.first_order_dead_time])
+def test_automatic_initialisation_needs_no_guess(factory):
+    system = factory()
+    result = estimate(system.model, system.data(seed=9), 'auto', bounds=system.bounds)
+    assert_near_truth(result, system)
+
+
+def test_monte_carlo_iv_is_unbiased_where_ls_is_biased():
+    # The mass regressor -s^2/D y is biproper, so the LS projection correlates with the noise.
+    system = systems.mass_spring_damper()
+    runs = 8
+    estimates = {'iv': [], 'ls': []}
+    for seed in range(runs):
+        data = system.data(seed=100 + seed)
+        for method in estimates:
+            result = estimate(system.model, data, {'m': 1.0, 'd': 2.0, 'k': 30.0},
+                              method=method, bounds=system.bounds, max_iterations=40)
+            estimates[method].append(result.params['m'])
+    for method, values in estimates.items():
+        estimates[method] = (np.mean(values), np.std(values, ddof=1) / np.sqrt(runs))
+    iv_mean, iv_error = estimates['iv']
+    ls_mean, ls_error = estimates['ls']
+    assert abs(iv_mean - 0.5) < 3 * iv_error + 1e-3
+    assert 0.5 - ls_mean > 10 * ls_error         # LS underestimates the mass (about 20 %)
+
+
+def test_bounds_are_honoured():
+    system = systems.mass_spring_damper()
+    result = estimate(system.model, system.data(seed=10), {'m': 0.3, 'd': 0.5, 'k': 30.0},
+                      bounds={'m': (0.1, 0.4), 'd': (0.0, 100.0), 'k': (0.0, 1e4)})
+    assert result.params['m'] == pytest.approx(0.4, abs=1e-6)
+    assert any('m is at its upper bound' in note for note in result.warnings)
+
+
+def test_constant_input_is_rejected_with_a_clear_error():
+    model = Model('K/(T*s + 1)')
+    with pytest.raises(EstimationError, match='constant'):
+        estimate(model, Data(np.ones(500), np.random.default_rng(0).standard_normal(500), 0.1),
+                 {'K': 1.0, 'T': 1.0})
+
+
+def test_unidentifiable_parameter_combination_is_named():
+    model = Model('g/(J*s**2 + b*s + k)')          # g, J, b, k: only ratios are visible
+    u = prbs(8, 5)
+    y = model.simulate({'g': 2.0, 'J': 1.0, 'b': 1.0, 'k': 4.0}, u, 0.05)
+    with pytest.raises(EstimationError, match='not identifiable'):
+        estimate(model, Data(u, y, 0.05), {'g': 1.0, 'J': 1.0, 'b': 2.0, 'k': 2.0})
+
+
+def test_initial_values_must_match_the_model():
+    system = systems.mass_spring_damper()
+    with pytest.raises(ModelError, match='unknown parameter'):
+        estimate(system.model, system.data(seed=0), {'mass': 1.0})
+    with pytest.raises(ModelError, match='outside its bounds'):
+        estimate(system.model, system.data(seed=0), {'m': 500.0, 'd': 1.0, 'k': 1.0},
+                 bounds=system.bounds)
+
+
+def test_unstable_initial_model_is_recovered_automatically():
+    system = systems.mass_spring_damper()
+    result = estimate(system.model, system.data(seed=11), {'m': 0.5, 'd': -1.0, 'k': 50.0},
+                      bounds={'m': (1e-3, 100.0)})
+    assert_near_truth(result, system)
+
+
+def test_estimate_simulates_and_compares_on_validation_data():
+    system = systems.first_order_dead_time()
+    result = estimate(system.model, system.data(seed=12), 'auto', bounds=system.bounds)
+    validation = system.data(seed=13)
+    assert result.compare(validation) == pytest.approx(result.fit, abs=3.0)
+    assert result.simulate(validation).shape == validation.y.shape
+    summary = result.to_dict()
+    assert set(summary) >= {'params', 'std', 'fit', 'converged', 'iterations'}
