@@ -1,0 +1,221 @@
+"""
+Numeric fields of ROS messages addressed by path, without importing ROS.
+
+A field path names one number inside a message::
+
+    data                    std_msgs/Float64
+    effort[0]               sensor_msgs/JointState
+    twist.linear.x          geometry_msgs/TwistStamped
+    pose.pose.position.z    nav_msgs/Odometry
+    points[3].positions[1]  trajectory_msgs/JointTrajectory
+
+The grammar is identifiers (a letter, then letters, digits and underscores) joined by dots, each
+optionally followed by non-negative integer indices in brackets. Nothing else is accepted, in
+particular no name starting with ``_``, so a path can never reach private or dunder attributes.
+
+The same compiled :class:`FieldPath` reads messages from every source the package meets, all of
+which expose fields as attributes:
+
+* rclpy message classes (field list from ``get_fields_and_field_types()``);
+* ``rosbags`` deserialised dataclasses (``dataclasses.fields``, without ``__msgtype__``);
+* ``mcap_ros2`` decoded objects (``__slots__``) and other plain objects (``vars``).
+
+Only declared fields are followed, so ``data.real`` or a method name is refused even though
+Python would resolve it.
+"""
+
+from dataclasses import dataclass, fields, is_dataclass
+import functools
+import numbers
+import re
+from typing import Optional, Sequence, Tuple, Union
+
+from ctid_ros.errors import ConfigError
+import numpy as np
+
+_NAME = r'[A-Za-z][A-Za-z0-9_]*'
+_SEGMENT = rf'{_NAME}(?:\[[0-9]+\])*'
+_PATH = re.compile(rf'{_SEGMENT}(?:\.{_SEGMENT})*')
+_TOKEN = re.compile(rf'({_NAME})|\[([0-9]+)\]|\.')
+_GRAMMAR = ('a field path is names joined by dots, each optionally followed by non-negative '
+            "integer indices, e.g. 'data', 'effort[0]', 'twist.linear.x'; a name starts with a "
+            'letter and contains only letters, digits and underscores')
+
+Step = Union[str, int]
+
+
+@dataclass(frozen=True)
+class FieldPath:
+    """
+    A parsed field path: a sequence of attribute names (str) and indices (int).
+
+    Build it with :func:`parse_field_path`; read a message with :func:`extract`.
+    """
+
+    text: str
+    steps: Tuple[Step, ...]
+
+    def __str__(self) -> str:
+        return self.text
+
+
+@functools.lru_cache(maxsize=256)
+def parse_field_path(text: str) -> FieldPath:
+    """
+    Parse and check a field path such as ``'pose.pose.position.z'`` or ``'effort[0]'``.
+
+    Parameters
+    ----------
+    text : str
+        The path; surrounding whitespace is ignored.
+
+    Returns
+    -------
+    FieldPath
+        The compiled accessor.
+
+    Raises
+    ------
+    ConfigError
+        If the text does not follow the grammar; the message states the grammar.
+
+    """
+    if not isinstance(text, str):
+        raise ConfigError(f'a field path must be a string, got {type(text).__name__}')
+    stripped = text.strip()
+    if not _PATH.fullmatch(stripped):
+        raise ConfigError(f'invalid field path {text!r}: {_GRAMMAR}')
+    steps = tuple(name if name else int(index)
+                  for name, index in _TOKEN.findall(stripped) if name or index)
+    return FieldPath(stripped, steps)
+
+
+@functools.lru_cache(maxsize=256)
+def _declared_fields(cls: type) -> Optional[Tuple[str, ...]]:
+    """Return the field names a message class declares, or None if only instances know them."""
+    introspect = getattr(cls, 'get_fields_and_field_types', None)
+    if callable(introspect):
+        return tuple(introspect())
+    if is_dataclass(cls):
+        return tuple(item.name for item in fields(cls) if not item.name.startswith('_'))
+    slots = [name for klass in cls.__mro__ for name in vars(klass).get('__slots__', ())]
+    if slots:
+        return tuple(name for name in slots if not name.startswith('_'))
+    return None
+
+
+def message_fields(message) -> Tuple[str, ...]:
+    """
+    List the public fields of a message (rclpy, rosbags dataclass or mcap_ros2 object).
+
+    Returns
+    -------
+    tuple of str
+        Field names in declaration order; empty for a primitive value.
+
+    """
+    if isinstance(message, (numbers.Number, str, bytes, np.ndarray)):
+        return ()
+    declared = _declared_fields(type(message))
+    if declared is not None:
+        return declared
+    try:
+        return tuple(name for name in vars(message) if not name.startswith('_'))
+    except TypeError:
+        return ()
+
+
+def _type_name(value) -> str:
+    return type(value).__name__
+
+
+def _describe(value) -> str:
+    names = message_fields(value)
+    if names:
+        return f'available fields: {", ".join(names)}'
+    if _is_array(value):
+        return f'it is an array of length {len(value)}'
+    return f'it is a {_type_name(value)}, which has no fields'
+
+
+def _is_array(value) -> bool:
+    return not isinstance(value, (str, bytes)) and (
+        isinstance(value, (Sequence, np.ndarray)) or hasattr(value, 'typecode'))
+
+
+def _location(path: FieldPath, depth: int) -> str:
+    """Render the part of the path already followed, for error messages."""
+    text = ''
+    for step in path.steps[:depth]:
+        text += f'[{step}]' if isinstance(step, int) else (f'.{step}' if text else step)
+    return text or 'the message'
+
+
+def extract(message, path: Union[FieldPath, str]) -> float:
+    """
+    Read one number from a message.
+
+    Parameters
+    ----------
+    message : object
+        An rclpy message, a ``rosbags`` dataclass or an ``mcap_ros2`` decoded object.
+    path : FieldPath or str
+        The field to read; a string is parsed (and cached).
+
+    Returns
+    -------
+    float
+        The value, converted to float (integers and booleans included). NaN and infinity are
+        returned as they are: the sample buffer rejects and counts them.
+
+    Raises
+    ------
+    ConfigError
+        If a field does not exist (the message lists the fields available at that level), an
+        index is out of range (the message gives the array length), an index is applied to a
+        non-array, or the value reached is not a number.
+
+    """
+    if not isinstance(path, FieldPath):
+        path = parse_field_path(path)
+    value = message
+    for depth, step in enumerate(path.steps):
+        where = _location(path, depth)
+        if isinstance(step, int):
+            if not _is_array(value):
+                raise ConfigError(f'field {path}: {where} is not an array, cannot take '
+                                  f'[{step}]; {_describe(value)}')
+            if step >= len(value):
+                raise ConfigError(f'field {path}: index {step} out of range for {where}, '
+                                  f'an array of length {len(value)}')
+            value = value[step]
+        else:
+            if step not in message_fields(value):
+                raise ConfigError(f'field {path}: {where} ({_type_name(value)}) has no field '
+                                  f'{step!r}; {_describe(value)}')
+            value = getattr(value, step)
+    if isinstance(value, numbers.Real):
+        return float(value)
+    hint = f'; {_describe(value)}' if message_fields(value) or _is_array(value) else ''
+    raise ConfigError(f'field {path} is not a number: it is a {_type_name(value)}{hint}')
+
+
+def message_stamp(message) -> Optional[int]:
+    """
+    Return ``header.stamp`` in integer nanoseconds, or None if the message has no usable stamp.
+
+    A message without a ``header`` field (``std_msgs/Float64``), or whose stamp lacks
+    ``sec``/``nanosec``, gives None. So does an all-zero stamp: it means the publisher left the
+    header unset, and the caller should fall back to the receive time rather than put every
+    sample at the epoch.
+    """
+    if 'header' not in message_fields(message):
+        return None
+    header = message.header
+    if 'stamp' not in message_fields(header):
+        return None
+    stamp = header.stamp
+    if not {'sec', 'nanosec'} <= set(message_fields(stamp)):
+        return None
+    nanoseconds = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return nanoseconds or None
