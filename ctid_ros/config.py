@@ -29,15 +29,15 @@ import sys
 from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, ModelError
+from ctid_ros.estimator import METHODS
 from ctid_ros.fields import parse_field_path
 from ctid_ros.model import Model
+from ctid_ros.simulation import INTERSAMPLE
 import numpy as np
 import yaml
 
 PACKAGE = 'ctid_ros'
 DEFAULT_NODE_NAME = 'ctid_node'
-METHODS = ('iv', 'ls')
-INTERSAMPLE = ('zoh', 'foh')
 STAMP_SOURCES = ('header', 'receive')
 RELIABILITIES = ('best_effort', 'reliable')
 MIN_WINDOW_SAMPLES = 10
@@ -169,7 +169,8 @@ class IdentificationConfig:
         1.0, 'double', 'Seconds (> 0) between successive estimates.', minimum=0.0)
     method: str = _param(
         'iv', 'string', "'iv': least squares then instrumental-variable iterations "
-        "(consistent under noise); 'ls': least-squares iterations only.", choices=METHODS)
+        "(consistent under noise); 'ls': least-squares iterations only; 'gn': Gauss-Newton on "
+        'the output error.', choices=METHODS)
     intersample: str = _param(
         'zoh', 'string', "Input behaviour between samples: 'zoh' (held, e.g. a digital "
         "actuator command) or 'foh' (linear).", choices=INTERSAMPLE)

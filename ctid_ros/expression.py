@@ -16,11 +16,19 @@ Names are parameters (or the Laplace variable ``s``, or the constant ``pi``); ``
 function. Everything else (attribute access, other calls, strings, keywords, oversized numbers
 or exponents, deep nesting) raises :class:`~ctid_ros.errors.ModelError` with the column of the
 offending part.
+
+Text that is short and shallow can still describe enormous objects (``(a+b+c+s)**16``,
+``((9**16)**16)**16``, ``1e999999999``), and sympy would expand or compute them eagerly or when
+the model takes the expression apart. The parser therefore carries an upper bound of the size
+of every sub-expression written as ``numerator/denominator`` (number of terms once expanded,
+degree in ``s``, digits of the numbers) and rejects the text before anything large is built.
 """
 
 from dataclasses import dataclass
+import keyword
+import math
 import re
-from typing import List
+from typing import List, Tuple
 
 from ctid_ros.errors import ModelError
 import sympy as sp
@@ -31,13 +39,20 @@ MAX_NAME_LENGTH = 64
 MAX_DEPTH = 40
 MAX_EXPONENT = 16
 MAX_NUMBER_DIGITS = 32
+# Bounds of the size of an expression, checked before sympy builds it (see the module notes).
+MAX_DEGREE = 32          # degree in s of a numerator or denominator
+MAX_TERMS = 1024         # terms of an expanded numerator or denominator
+MAX_VALUE_DIGITS = 1000  # decimal digits of the exact numbers
+MAX_WORK = 2048          # (numerator + denominator terms) * number of parameters
 
+_ASCII_SPACE = ' \t\n\r\f\v'
+# re.ASCII: only ASCII digits and white space (no other Unicode digits that mean something else).
 _TOKEN = re.compile(
     r'\s*(?:'
     r'(?P<number>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)'
     r'|(?P<name>[A-Za-z_][A-Za-z0-9_]*)'
     r'|(?P<op>\*\*|[-+*/^()])'
-    r')')
+    r')', re.ASCII)
 
 
 @dataclass(frozen=True)
@@ -47,6 +62,66 @@ class Token:
     kind: str
     text: str
     column: int
+
+
+@dataclass(frozen=True)
+class Size:
+    """
+    Upper bound of the size of ``numerator/denominator`` once put over a common denominator.
+
+    ``*_terms`` count the terms of the expanded polynomials (in ``s`` and the parameters),
+    ``*_degree`` their degree in ``s``; ``digits`` bounds the decimal digits of the exact
+    rational numbers involved.
+    """
+
+    num_terms: int = 1
+    den_terms: int = 1
+    num_degree: int = 0
+    den_degree: int = 0
+    digits: int = 0
+
+    def __add__(self, other: 'Size') -> 'Size':
+        return Size(self.num_terms * other.den_terms + other.num_terms * self.den_terms,
+                    self.den_terms * other.den_terms,
+                    max(self.num_degree + other.den_degree, other.num_degree + self.den_degree),
+                    self.den_degree + other.den_degree,
+                    max(self.digits, other.digits) + 1)
+
+    def __mul__(self, other: 'Size') -> 'Size':
+        return Size(self.num_terms * other.num_terms, self.den_terms * other.den_terms,
+                    self.num_degree + other.num_degree, self.den_degree + other.den_degree,
+                    self.digits + other.digits)
+
+    def inverse(self) -> 'Size':
+        return Size(self.den_terms, self.num_terms, self.den_degree, self.num_degree,
+                    self.digits)
+
+    def power(self, exponent) -> 'Size':
+        """Size of ``self ** exponent`` (integer exponents expand multinomially)."""
+        base = self if exponent >= 0 else self.inverse()
+        k = int(sp.ceiling(abs(exponent)))
+        if exponent.is_Integer:
+            return Size(math.comb(base.num_terms + k - 1, k),
+                        math.comb(base.den_terms + k - 1, k),
+                        k * base.num_degree, k * base.den_degree, k * base.digits)
+        # A fractional power of an expression free of s (enforced by the parser) stays one
+        # generator, except that sympy's expand splits off its integer part.
+        return Size(math.comb(base.num_terms + k - 1, k) + 1,
+                    math.comb(base.den_terms + k - 1, k) + 1,
+                    0, 0, k * base.digits + 1)
+
+    def problem(self):
+        """Return what exceeds the limits, or None."""
+        if max(self.num_degree, self.den_degree) > MAX_DEGREE:
+            return f'its degree in s would exceed {MAX_DEGREE}'
+        if max(self.num_terms, self.den_terms) > MAX_TERMS:
+            return f'it would expand to more than {MAX_TERMS} terms'
+        if self.digits > MAX_VALUE_DIGITS:
+            return f'its numbers would have more than {MAX_VALUE_DIGITS} digits'
+        return None
+
+
+_ATOM = Size()
 
 
 def _pointer(text: str, column: int) -> str:
@@ -62,11 +137,11 @@ def tokenize(text: str) -> List[Token]:
                          f'{MAX_LENGTH}')
     tokens = []
     position = 0
-    stripped_end = len(text.rstrip())
+    stripped_end = len(text.rstrip(_ASCII_SPACE))
     while position < stripped_end:
         match = _TOKEN.match(text, position)
         if match is None or match.end() == position:
-            bad = text[position:].lstrip()
+            bad = text[position:].lstrip(_ASCII_SPACE)
             column = len(text) - len(bad)
             raise ModelError(f'unexpected character {bad[0]!r} at column {column + 1}; only '
                              'numbers, names, + - * / ** ^ ( ) and exp(...) are allowed'
@@ -77,6 +152,9 @@ def tokenize(text: str) -> List[Token]:
         position = match.end()
     tokens.append(Token('end', '', len(text)))
     return tokens
+
+
+Node = Tuple[sp.Expr, Size]
 
 
 class _Parser:
@@ -92,6 +170,12 @@ class _Parser:
     def error(self, message: str, token: Token) -> ModelError:
         return ModelError(f'{message} at column {token.column + 1}'
                           + _pointer(self.text, token.column))
+
+    def checked(self, size: Size, token: Token) -> Size:
+        problem = size.problem()
+        if problem is not None:
+            raise self.error(f'expression too large: {problem}', token)
+        return size
 
     @property
     def current(self) -> Token:
@@ -112,9 +196,14 @@ class _Parser:
     def parse(self) -> sp.Expr:
         if self.current.kind == 'end':
             raise ModelError('model expression is empty')
-        result = self.expression()
+        result, size = self.expression()
         if self.current.kind != 'end':
             raise self.error(f'unexpected {self.current.text!r}', self.current)
+        work = (size.num_terms + size.den_terms) * max(1, len(self.symbols))
+        if work > MAX_WORK:
+            raise ModelError(f'model expression too large: up to {size.num_terms} + '
+                             f'{size.den_terms} terms in {len(self.symbols)} parameters '
+                             f'exceed the limit of {MAX_WORK} (terms times parameters)')
         return result
 
     def nested(self, token: Token):
@@ -122,49 +211,53 @@ class _Parser:
         if self.depth > MAX_DEPTH:
             raise self.error(f'expression nested deeper than {MAX_DEPTH} levels', token)
 
-    def expression(self) -> sp.Expr:
-        result = self.term()
+    def expression(self) -> Node:
+        result, size = self.term()
         while self.current.text in ('+', '-'):
-            operator = self.advance().text
-            right = self.term()
-            result = result + right if operator == '+' else result - right
-        return result
+            operator = self.advance()
+            right, right_size = self.term()
+            size = self.checked(size + right_size, operator)
+            result = result + right if operator.text == '+' else result - right
+        return result, size
 
-    def term(self) -> sp.Expr:
-        result = self.unary()
+    def term(self) -> Node:
+        result, size = self.unary()
         while self.current.text in ('*', '/'):
             operator = self.advance()
-            right = self.unary()
+            right, right_size = self.unary()
             if operator.text == '*':
+                size = self.checked(size * right_size, operator)
                 result = result * right
             elif right == 0:
                 raise self.error('division by zero', operator)
             else:
+                size = self.checked(size * right_size.inverse(), operator)
                 result = result / right
-        return result
+        return result, size
 
-    def unary(self) -> sp.Expr:
+    def unary(self) -> Node:
         token = self.current
         if token.text in ('+', '-'):
             self.advance()
             self.nested(token)
-            operand = self.unary()
+            operand, size = self.unary()
             self.depth -= 1
-            return -operand if token.text == '-' else operand
+            return (-operand if token.text == '-' else operand), size
         return self.power()
 
-    def power(self) -> sp.Expr:
+    def power(self) -> Node:
         base = self.atom()
         if self.current.text not in ('**', '^'):
             return base
         operator = self.advance()
         self.nested(operator)
         exponent_token = self.current
-        exponent = self.unary()
+        exponent, _ = self.unary()
         self.depth -= 1
         return self.checked_power(base, exponent, exponent_token)
 
-    def checked_power(self, base: sp.Expr, exponent: sp.Expr, token: Token) -> sp.Expr:
+    def checked_power(self, base: Node, exponent: sp.Expr, token: Token) -> Node:
+        base, size = base
         if not exponent.is_Number:
             raise self.error('exponents must be numbers', token)
         if abs(exponent) > MAX_EXPONENT:
@@ -174,9 +267,11 @@ class _Parser:
             raise self.error('powers of expressions in s must have integer exponents', token)
         if base == 0 and exponent < 0:
             raise self.error('division by zero', token)
-        return base ** exponent
+        # Checked before sympy evaluates the power (it computes numeric powers eagerly).
+        size = self.checked(size.power(exponent), token)
+        return base ** exponent, size
 
-    def atom(self) -> sp.Expr:
+    def atom(self) -> Node:
         token = self.current
         if token.kind == 'number':
             self.advance()
@@ -194,15 +289,19 @@ class _Parser:
         found = repr(token.text) if token.kind != 'end' else 'end of expression'
         raise self.error(f'expected a number, a name or "(" but found {found}', token)
 
-    def number(self, token: Token) -> sp.Expr:
+    def number(self, token: Token) -> Node:
         if len(token.text) > MAX_NUMBER_DIGITS:
             raise self.error(f'number longer than {MAX_NUMBER_DIGITS} characters', token)
-        value = sp.Rational(token.text)
-        if value != 0 and not (1e-300 < abs(value) < 1e300):
+        # Range check on the float first: sp.Rational('1e999999999') would compute 10**999999999.
+        if not re.split('[eE]', token.text)[0].strip('0.'):
+            return sp.Integer(0), _ATOM
+        if not 1e-300 < float(token.text) < 1e300:
             raise self.error(f'number {token.text} is out of range', token)
-        return value
+        value = sp.Rational(token.text)
+        digits = len(str(abs(value.p))) + len(str(value.q))
+        return value, Size(digits=digits)
 
-    def name(self, token: Token) -> sp.Expr:
+    def name(self, token: Token) -> Node:
         name = token.text
         if self.current.text == '(':
             if name != 'exp':
@@ -210,23 +309,25 @@ class _Parser:
                                  'exp(-tau*s), a dead time', token)
             open_paren = self.advance()
             self.nested(open_paren)
-            argument = self.expression()
+            argument, _ = self.expression()
             self.expect(')')
             self.depth -= 1
-            return sp.exp(argument)
+            return sp.exp(argument), Size(digits=1)
         if name == 'exp':
             raise self.error('exp must be called as exp(...)', token)
         if name.startswith('_'):
             raise self.error(f'names may not start with "_" ({name!r})', token)
         if len(name) > MAX_NAME_LENGTH:
             raise self.error(f'name longer than {MAX_NAME_LENGTH} characters', token)
+        if keyword.iskeyword(name):
+            raise self.error(f'{name!r} is a reserved word and cannot name a parameter', token)
         if name == 's':
-            return LAPLACE
+            return LAPLACE, Size(num_degree=1)
         if name == 'pi':
-            return sp.pi
+            return sp.pi, Size(digits=1)
         if name not in self.symbols:
             self.symbols[name] = sp.Symbol(name, real=True)
-        return self.symbols[name]
+        return self.symbols[name], _ATOM
 
 
 def parse_expression(text: str) -> tuple:

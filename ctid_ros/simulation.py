@@ -136,20 +136,28 @@ class ContinuousFilter:
         segments, feed = _delayed_segments(whole, fraction, intersample)
         n = self.order
         transition = np.eye(n)
-        drive: Dict[int, np.ndarray] = {}
+        drive: Dict[Sample, np.ndarray] = {}
         for length, start, end in segments:
             e, p, q = _hold_integrals(self.a, self.b, length * scaled_ts)
             transition = e @ transition
-            drive = {offset: e @ vector for offset, vector in drive.items()}
+            drive = {sample: e @ vector for sample, vector in drive.items()}
             _accumulate(drive, start, p - q)
             _accumulate(drive, end, q)
         return DiscreteFilter(self, transition, drive, feed)
 
 
-def _accumulate(terms: Dict[int, np.ndarray], combination: Dict[int, float],
+def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
                 vector: np.ndarray) -> None:
-    for offset, weight in combination.items():
-        terms[offset] = terms.get(offset, 0.0) + weight * vector
+    for sample, weight in combination.items():
+        terms[sample] = terms.get(sample, 0.0) + weight * vector
+
+
+# A sample of the signal relative to the current step k: (offset, masked). ``masked`` marks the
+# sample at the END of a delayed FOH interval; it reads as zero when it is the first sample u_0,
+# because the signal is zero before t_0 (it jumps to u_0 at t_0 instead of ramping up from an
+# imaginary u_{-1} = 0 over the preceding interval). Delaying by whole samples then shifts the
+# response exactly, and the undelayed FOH response is unchanged.
+Sample = Tuple[int, bool]
 
 
 def _delayed_segments(whole: int, fraction: float, intersample: str):
@@ -157,22 +165,25 @@ def _delayed_segments(whole: int, fraction: float, intersample: str):
     Sub-intervals of one sample period and the input values at their ends.
 
     Each segment is ``(length as a fraction of ts, value at start, value at end)`` where a value
-    is a linear combination ``{sample offset: weight}`` of input samples relative to ``k``.
-    The feedthrough combination gives the delayed input at the sample instant itself.
+    is a linear combination ``{sample: weight}`` of input samples relative to ``k`` (see
+    :data:`Sample`). The feedthrough combination gives the delayed input at the sample instant
+    itself (its right limit).
     """
     d = whole
     if fraction == 0.0:
         if intersample == 'zoh':
-            return [(1.0, {-d: 1.0}, {-d: 1.0})], {-d: 1.0}
-        return [(1.0, {-d: 1.0}, {-d + 1: 1.0})], {-d: 1.0}
+            return [(1.0, {(-d, False): 1.0}, {(-d, False): 1.0})], {(-d, False): 1.0}
+        return [(1.0, {(-d, False): 1.0}, {(-d + 1, True): 1.0})], {(-d, False): 1.0}
     beta = 1.0 - fraction
     if intersample == 'zoh':
-        first, second = {-d - 1: 1.0}, {-d: 1.0}
+        first, second = {(-d - 1, False): 1.0}, {(-d, False): 1.0}
         return [(fraction, first, first), (beta, second, second)], first
-    start = {-d - 1: 1.0 - beta, -d: beta}
-    middle = {-d: 1.0}
-    end = {-d: 1.0 - beta, -d + 1: beta}
-    return [(fraction, start, middle), (beta, middle, end)], start
+    # First segment: inside delayed interval k-d-1, second: inside delayed interval k-d.
+    start = {(-d - 1, False): 1.0 - beta, (-d, True): beta}
+    left = {(-d, True): 1.0}
+    right = {(-d, False): 1.0}
+    end = {(-d, False): 1.0 - beta, (-d + 1, True): beta}
+    return [(fraction, start, left), (beta, right, end)], start
 
 
 def _hold_integrals(a: np.ndarray, b: np.ndarray, h: float):
@@ -198,14 +209,23 @@ def _shifted(values: np.ndarray, offset: int) -> np.ndarray:
     return out
 
 
+def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
+    """Signal of one :data:`Sample` for every k."""
+    offset, masked = sample
+    if masked and values.shape[0]:
+        values = values.copy()
+        values[0] = 0.0
+    return _shifted(values, offset)
+
+
 @dataclass
 class DiscreteFilter:
     """``x[k+1] = Ad x[k] + sum_o B_o u[k+o]`` realising a :class:`ContinuousFilter` exactly."""
 
     continuous: ContinuousFilter
     transition: np.ndarray
-    drive: Dict[int, np.ndarray]
-    feed: Dict[int, float]
+    drive: Dict[Sample, np.ndarray]
+    feed: Dict[Sample, float]
 
     def states(self, values: np.ndarray) -> np.ndarray:
         """State trajectory (N x n) for the sampled signal, starting at rest."""
@@ -214,15 +234,15 @@ class DiscreteFilter:
         if n == 0:
             return np.zeros((count, 0))
         forcing = np.zeros((count, n))
-        for offset, vector in self.drive.items():
-            forcing += np.outer(_shifted(values, offset), vector)
+        for sample, vector in self.drive.items():
+            forcing += np.outer(_sampled(values, sample), vector)
         return _propagate(self.transition, forcing)
 
     def delayed_input(self, values: np.ndarray) -> np.ndarray:
         """Return the delayed, held input at the sample instants (the feedthrough signal)."""
         result = np.zeros(values.shape[0])
-        for offset, weight in self.feed.items():
-            result += weight * _shifted(values, offset)
+        for sample, weight in self.feed.items():
+            result += weight * _sampled(values, sample)
         return result
 
     def outputs(self, values: np.ndarray, numerators: Iterable) -> np.ndarray:

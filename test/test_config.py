@@ -54,7 +54,7 @@ def test_parameter_specs_follow_the_contract():
     assert by_name['controller'].default == ''
     assert by_name['window'].type_name == 'PARAMETER_DOUBLE'
     assert by_name['initial'].type_name == 'PARAMETER_DOUBLE_ARRAY'
-    assert by_name['method'].constraints == 'one of: iv, ls'
+    assert by_name['method'].constraints == 'one of: iv, ls, gn'
     assert by_name['qos_depth'].constraints == 'value >= 1'
     assert by_name['input_topic'].read_only and not by_name['model'].read_only
 
@@ -303,7 +303,7 @@ def test_runtime_change_leaves_the_current_configuration_intact(base):
     ({'reorder_horizon': 10.0}, r'reorder_horizon \(10.0 s\) must be shorter than the window'),
     ({'qos_depth': 0}, 'qos_depth must be at least 1'),
     ({'max_iterations': 0}, 'max_iterations must be at least 1'),
-    ({'method': 'gradient'}, "method must be one of iv, ls; got 'gradient'"),
+    ({'method': 'gradient'}, "method must be one of iv, ls, gn; got 'gradient'"),
     ({'intersample': 'spline'}, 'intersample must be one of zoh, foh'),
     ({'stamp_source': 'now'}, 'stamp_source must be one of header, receive'),
     ({'qos_reliability': 'sometimes'}, 'qos_reliability must be one of best_effort, reliable'),

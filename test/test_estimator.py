@@ -1,10 +1,10 @@
 """Estimator tests on the systems of the algorithm notes, against the truth that made the data."""
 
 from ctid_ros import Data, estimate, EstimationError, Model, ModelError
+from ctid_ros import reference_systems as systems
 from ctid_ros.excitation import prbs
 import numpy as np
 import pytest
-import systems
 
 
 def assert_near_truth(result, system, sigmas=4.0):
