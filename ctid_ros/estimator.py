@@ -153,7 +153,37 @@ class _Problem:
         self.upper = upper
         self.bank = SignalBank(model, data.u, data.y, data.ts, intersample)
         self.evaluations = 0
+        self.skip = 0
         self._leading_sign = None
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Output samples that are fitted (after the excluded transient)."""
+        return self.data.y[self.skip:]
+
+    def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
+        """Output, regressors and instruments on the fitted samples."""
+        lin = self.bank.linearize(structure, regressors)
+        return Linearization(lin.output[self.skip:],
+                             None if lin.phi is None else lin.phi[self.skip:],
+                             lin.psi[self.skip:])
+
+    def exclude_transient(self, seconds: Union[float, str], structure: Structure) -> None:
+        """
+        Leave the first samples out of every sum, so data that do not start at rest fit.
+
+        ``'auto'`` takes five times the slowest time constant of ``structure`` plus its dead
+        time, at most half of the record.
+
+        """
+        if seconds == 'auto':
+            roots = np.roots(structure.den) if structure.den.size > 1 else np.zeros(0)
+            slowest = np.max(-1.0 / roots.real, initial=0.0) if roots.size else 0.0
+            seconds = 5.0 * slowest + structure.delay
+        seconds = float(seconds)
+        if not (np.isfinite(seconds) and seconds >= 0.0):
+            raise ValueError(f"transient must be 'auto' or a non-negative time, got {seconds}")
+        self.skip = int(min(np.ceil(seconds / self.data.ts), len(self.data) // 2))
 
     def admissible(self, theta: np.ndarray) -> Optional[Structure]:
         """Structure at theta if it is inside the bounds with a stable ``D``, else None."""
@@ -176,7 +206,7 @@ class _Problem:
 
     def cost(self, structure: Structure) -> float:
         self.evaluations += 1
-        error = self.data.y - self.bank.output(structure)
+        error = self.measured - self.bank.output(structure)[self.skip:]
         return 0.5 * float(error @ error)
 
 
@@ -260,10 +290,9 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
              ) -> Tuple[_State, List[Iteration], str, bool]:
     """Run the controlled projection iteration from ``state``."""
     history: List[Iteration] = []
-    data = problem.data
     for iteration in range(max_iterations):
-        lin = problem.bank.linearize(state.structure, regressors=method != 'gn')
-        error = data.y - lin.output
+        lin = problem.linearize(state.structure, regressors=method != 'gn')
+        error = problem.measured - lin.output
         free = _free_mask(state.theta, lin, error, problem, frozen)
         if not np.any(free):
             return state, history, 'all parameters fixed at bounds', True
@@ -295,7 +324,7 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
             return state, history, f'relative parameter change below {tolerance:g}', True
         if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls':
             return state, history, 'relative cost decrease below resolution', True
-        if state.cost <= 1e-30 * max(float(data.y @ data.y), 1e-300):
+        if state.cost <= 1e-30 * max(float(problem.measured @ problem.measured), 1e-300):
             return state, history, 'output reproduced exactly', True
     return state, history, f'iteration limit ({max_iterations}) reached', False
 
@@ -344,7 +373,7 @@ def _check_excitation(data: Data) -> None:
 
 def _blind_combination(problem: _Problem, state: _State) -> Optional[str]:
     """Explain why the output is (almost) blind to a parameter combination, or None."""
-    lin = problem.bank.linearize(state.structure, regressors=False)
+    lin = problem.linearize(state.structure, regressors=False)
     norms = np.linalg.norm(lin.psi, axis=0)
     if np.any(norms == 0.0):
         dead = ', '.join(problem.model.parameters[i] for i in np.flatnonzero(norms == 0.0))
@@ -372,8 +401,8 @@ def _nudged(problem: _Problem, state: _State, rng: np.random.Generator) -> Optio
 
 
 def _covariance(problem: _Problem, state: _State) -> Tuple[np.ndarray, float, float]:
-    lin = problem.bank.linearize(state.structure, regressors=False)
-    error = problem.data.y - lin.output
+    lin = problem.linearize(state.structure, regressors=False)
+    error = problem.measured - lin.output
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
     scales = _column_scales(lin.psi)
@@ -387,7 +416,8 @@ def _covariance(problem: _Problem, state: _State) -> Tuple[np.ndarray, float, fl
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
              bounds: Optional[Bounds] = None, method: str = 'iv', intersample: str = 'zoh',
              max_iterations: int = 100, tolerance: float = 1e-8,
-             delay_range: Optional[Tuple[float, float]] = None) -> Estimate:
+             delay_range: Optional[Tuple[float, float]] = None,
+             transient: Union[float, str] = 0.0) -> Estimate:
     """
     Estimate the parameters of a grey-box continuous-time model from sampled data.
 
@@ -417,6 +447,11 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     delay_range : (float, float), optional
         Search range in seconds for a dead-time parameter; default from its bounds, else
         automatic.
+    transient : float or 'auto'
+        Seconds at the start of the record that are simulated but not fitted, for data that do
+        not start at rest (e.g. a window cut from a running plant). ``'auto'``: five times the
+        slowest time constant of the starting model plus its dead time (at most half of the
+        record). Default 0: the data start at rest.
 
     Returns
     -------
@@ -445,6 +480,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         warnings.simplefilter('ignore', RuntimeWarning)
         start = initial_estimate(problem, initial, delay_range)
         problem.anchor(start.structure)
+        if transient:
+            problem.exclude_transient(transient, start.structure)
+            start = _State(start.theta, start.structure, problem.cost(start.structure))
         profile: List[Tuple[float, float]] = []
         delay_index = delay_parameter(model)
         if delay_index is not None:
@@ -470,7 +508,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         covariance, variance, condition = _covariance(problem, final)
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     notes = _warnings(problem, final, converged, reason)
-    fit = fit_percent(data.y, problem.bank.output(final.structure))
+    fit = fit_percent(problem.measured, problem.bank.output(final.structure)[problem.skip:])
     return Estimate(
         model=model, params=model.as_dict(final.theta), std=model.as_dict(std),
         covariance=covariance, fit=fit, converged=converged, iterations=len(history),
