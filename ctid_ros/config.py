@@ -201,6 +201,10 @@ class IdentificationConfig:
     tolerance: float = _param(
         1e-8, 'double', 'Stop when the largest relative parameter change falls below it (> 0).',
         minimum=0.0)
+    transient: float = _param(
+        -1.0, 'double', 'Seconds at the start of each window that are simulated but not fitted, '
+        'because a window cut from a running plant does not start at rest. Negative = '
+        'automatic (five slowest time constants plus the dead time, at most half the window).')
     warm_start: bool = _param(
         True, 'bool', 'Start each estimate from the previous one instead of initial.')
     publish_prediction: bool = _param(
@@ -288,7 +292,8 @@ class IdentificationConfig:
         return {'initial': self.initial_values() or 'auto', 'bounds': self.bounds() or None,
                 'method': self.method, 'intersample': self.intersample,
                 'max_iterations': self.max_iterations, 'tolerance': self.tolerance,
-                'delay_range': self.delay_range}
+                'delay_range': self.delay_range,
+                'transient': 'auto' if self.transient < 0 else self.transient}
 
     def _validate(self) -> Model:
         for name in ('input_topic', 'output_topic'):

@@ -14,8 +14,8 @@ CONTRACT = (
     'input_topic', 'input_field', 'output_topic', 'output_field', 'model', 'controller',
     'parameter_names', 'initial', 'lower', 'upper', 'sample_time', 'window', 'update_period',
     'method', 'intersample', 'stamp_source', 'qos_reliability', 'qos_depth', 'max_gap',
-    'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance', 'warm_start',
-    'publish_prediction')
+    'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance', 'transient',
+    'warm_start', 'publish_prediction')
 FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
 
 
@@ -42,7 +42,7 @@ def test_parameter_specs_follow_the_contract():
     assert kinds['parameter_names'] == 'string_array'
     assert all(kinds[name] == 'double' for name in (
         'sample_time', 'window', 'update_period', 'max_gap', 'reorder_horizon', 'delay_min',
-        'delay_max', 'tolerance'))
+        'delay_max', 'tolerance', 'transient'))
     defaults = IdentificationConfig(model='1/(T*s + 1)')
     for spec in PARAMETERS:
         assert len(spec.description) > 20, spec.name
@@ -252,7 +252,8 @@ def test_parameter_order_and_estimator_options(base):
     assert config.estimator_options() == {
         'initial': {'tau': 0.2, 'T': 1.5}, 'bounds': {'tau': (0.0, 1.0), 'T': (0.1, 10.0)},
         'method': 'ls', 'intersample': 'zoh', 'max_iterations': 100, 'tolerance': 1e-8,
-        'delay_range': (0.05, 0.5)}
+        'delay_range': (0.05, 0.5), 'transient': 'auto'}
+    assert base.updated({'transient': 2.0}).estimator_options()['transient'] == 2.0
     assert base.names == ('K', 'tau', 'T')
     assert base.estimator_options()['initial'] == 'auto'
     assert base.estimator_options()['bounds'] is None

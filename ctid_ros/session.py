@@ -1,0 +1,164 @@
+"""
+Repeated identification on windows of streaming data.
+
+:class:`IdentificationSession` is the engine shared by the live node and the offline replay:
+both resample their messages with :mod:`ctid_ros.buffer` and hand each
+:class:`~ctid_ros.buffer.Window` to :meth:`IdentificationSession.update`, which estimates
+(warm-started from the previous window) and returns an :class:`Update` holding everything that
+is published: estimates and standard deviations in ``parameter_names`` order, diagnostics and
+the predicted output. Because both front ends go through this one class, the replay of a bag
+gives the same numbers as the live node fed the same samples.
+"""
+
+from dataclasses import dataclass
+import time
+from typing import Any, Dict, Optional, Tuple
+
+from ctid_ros.buffer import Window
+from ctid_ros.config import IdentificationConfig
+from ctid_ros.estimator import Estimate, estimate
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Update:
+    """
+    One estimate over one window, in the order of ``parameter_names``.
+
+    Attributes
+    ----------
+    end_ns, start_ns : int
+        Last and first grid instant of the window used (nanoseconds).
+    names : tuple of str
+        Parameter names in publishing order.
+    values, stds : ndarray
+        Estimates and their standard deviations.
+    prediction : ndarray
+        Model output over the window, one value per grid instant.
+    result : Estimate
+        The full estimator result.
+    window : Window
+        The window it was computed from.
+    compute_time : float
+        Wall-clock seconds spent estimating.
+
+    """
+
+    end_ns: int
+    start_ns: int
+    names: Tuple[str, ...]
+    values: np.ndarray
+    stds: np.ndarray
+    prediction: np.ndarray
+    result: Estimate
+    window: Window
+    compute_time: float
+
+    @property
+    def prediction_times_ns(self) -> np.ndarray:
+        """Return the grid instants of :attr:`prediction` in nanoseconds."""
+        step = int(round(self.window.data.ts * 1e9))
+        return self.start_ns + step * np.arange(self.prediction.size, dtype=np.int64)
+
+    @property
+    def warnings(self) -> Tuple[str, ...]:
+        """Return what a user should know about this estimate (gaps, bounds, convergence)."""
+        notes = list(self.result.warnings)
+        if self.window.dropped:
+            notes.append(f'{self.window.dropped} of {self.window.requested} samples left out '
+                         f'by {len(self.window.gaps)} gap(s) in the data')
+        return tuple(notes)
+
+    def diagnostics(self) -> Dict[str, Any]:
+        """Return the key/value pairs published on ``/diagnostics``."""
+        return {
+            'fit_percent': self.result.fit,
+            'iterations': self.result.iterations,
+            'converged': self.result.converged,
+            'stop_reason': self.result.stop_reason,
+            'window_start': self.start_ns * 1e-9,
+            'window_end': self.end_ns * 1e-9,
+            'window_span': (self.end_ns - self.start_ns) * 1e-9,
+            'samples': int(self.prediction.size),
+            'compute_time': self.compute_time,
+            'warnings': list(self.warnings),
+        }
+
+    def to_dict(self) -> Dict[str, Any]:
+        """Return the ``ctid fit --json`` object of this window plus its end time (s)."""
+        summary = self.result.to_dict()
+        summary['params'] = {name: float(value) for name, value in zip(self.names, self.values)}
+        summary['std'] = {name: float(value) for name, value in zip(self.names, self.stds)}
+        summary['warnings'] = list(self.warnings)
+        summary['time'] = self.end_ns * 1e-9
+        return summary
+
+
+class IdentificationSession:
+    """
+    Estimate a configured model on successive windows, warm-starting each from the last.
+
+    Parameters
+    ----------
+    config : IdentificationConfig
+        Model, bounds, estimator options and publishing order.
+
+    """
+
+    def __init__(self, config: IdentificationConfig):
+        self._config = config
+        self._previous: Optional[Dict[str, float]] = None
+
+    @property
+    def config(self) -> IdentificationConfig:
+        """Return the configuration in use."""
+        return self._config
+
+    @property
+    def previous(self) -> Optional[Dict[str, float]]:
+        """Return the last estimate by name (the next warm start), if any."""
+        return None if self._previous is None else dict(self._previous)
+
+    def reconfigure(self, config: IdentificationConfig) -> None:
+        """Switch configuration; the warm start survives only if the model is unchanged."""
+        same_model = (config.model, config.controller) == (self._config.model,
+                                                          self._config.controller)
+        self._config = config
+        if not same_model:
+            self._previous = None
+
+    def reset(self) -> None:
+        """Forget the warm start: the next estimate starts from the configured initial values."""
+        self._previous = None
+
+    def update(self, window: Window) -> Update:
+        """
+        Estimate on one window.
+
+        Raises
+        ------
+        CtidError
+            Any :class:`~ctid_ros.errors.EstimationError` or data problem, for the caller to
+            report; the session keeps its previous warm start.
+
+        """
+        config = self._config
+        options = config.estimator_options()
+        if config.warm_start and self._previous is not None:
+            options['initial'] = self._previous
+        started = time.perf_counter()
+        result = estimate(config.compiled_model, window.data, **options)
+        elapsed = time.perf_counter() - started
+        self._previous = dict(result.params)
+        order = [result.model.parameters[index] for index in config.model_index]
+        data = window.data
+        step_ns = int(round(data.ts * 1e9))
+        # Grid instants are whole multiples of the sample time (see buffer.SampleBuffer.window).
+        start_ns = int(round(data.t0 * 1e9 / step_ns)) * step_ns
+        return Update(
+            end_ns=start_ns + step_ns * (len(data) - 1), start_ns=start_ns,
+            names=config.names,
+            values=np.array([result.params[name] for name in order]),
+            stds=np.array([result.std[name] for name in order]),
+            prediction=result.simulate(data), result=result, window=window,
+            compute_time=elapsed)
