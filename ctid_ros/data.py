@@ -1,6 +1,7 @@
 """Uniformly sampled input/output data and their validation."""
 
 from dataclasses import dataclass
+import numbers
 from typing import Optional
 
 from ctid_ros.errors import DataError
@@ -8,9 +9,13 @@ import numpy as np
 
 
 def as_signal(values, name: str) -> np.ndarray:
-    """Validate one sampled signal: a finite, 1-D float array."""
+    """Validate one sampled signal: a finite, 1-D float array (a copy, never a view)."""
     try:
-        array = np.asarray(values, dtype=float)
+        raw = np.asarray(values)
+        if raw.dtype.kind in 'cUSVmM':
+            # Complex values would silently lose their imaginary part, text would be parsed.
+            raise TypeError(f'got values of type {raw.dtype}')
+        array = np.array(raw, dtype=float)
     except (TypeError, ValueError) as error:
         raise DataError(f'{name} must be numeric: {error}') from None
     if array.ndim != 1:
@@ -22,6 +27,13 @@ def as_signal(values, name: str) -> np.ndarray:
         raise DataError(f'{name} has {bad.size} non-finite value(s) (NaN or inf), first at '
                         f'sample {bad[0]}; remove or interpolate them before identification')
     return array
+
+
+def _real(value, what: str) -> float:
+    """Return a real scalar (not text, not a bool) as float."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise DataError(f'{what} must be a number, got {value!r}')
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -55,16 +67,16 @@ class Data:
         y = as_signal(self.y, 'y')
         if u.size != y.size:
             raise DataError(f'u and y must have the same length, got {u.size} and {y.size}')
-        try:
-            ts = float(self.ts)
-        except (TypeError, ValueError):
-            raise DataError(f'sample time must be a number, got {self.ts!r}') from None
+        ts = _real(self.ts, 'sample time')
         if not (np.isfinite(ts) and ts > 0):
             raise DataError(f'sample time must be positive and finite, got {self.ts!r}')
+        t0 = _real(self.t0, 'start time t0')
+        if not np.isfinite(t0):
+            raise DataError(f'start time t0 must be finite, got {self.t0!r}')
         object.__setattr__(self, 'u', u)
         object.__setattr__(self, 'y', y)
         object.__setattr__(self, 'ts', ts)
-        object.__setattr__(self, 't0', float(self.t0))
+        object.__setattr__(self, 't0', t0)
 
     def __len__(self) -> int:
         return self.y.size
@@ -75,6 +87,7 @@ class Data:
         return self.t0 + self.ts * np.arange(self.y.size)
 
     def segment(self, start: int, stop: Optional[int] = None) -> 'Data':
-        """Return samples ``start:stop`` as new data (times kept)."""
+        """Return samples ``start:stop`` (Python slice rules) as new data, times kept."""
+        start, stop, _ = slice(start, stop).indices(len(self))
         return Data(self.u[start:stop], self.y[start:stop], self.ts,
                     self.t0 + start * self.ts)

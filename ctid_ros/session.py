@@ -121,8 +121,8 @@ class IdentificationSession:
 
     def reconfigure(self, config: IdentificationConfig) -> None:
         """Switch configuration; the warm start survives only if the model is unchanged."""
-        same_model = (config.model, config.controller) == (self._config.model,
-                                                          self._config.controller)
+        old = self._config
+        same_model = (config.model, config.controller) == (old.model, old.controller)
         self._config = config
         if not same_model:
             self._previous = None

@@ -45,7 +45,7 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
 
 def _check_intersample(intersample: str) -> None:
     if intersample not in INTERSAMPLE:
-        raise ValueError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
+        raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
 
 
 def _time_scale(den: np.ndarray) -> float:
