@@ -11,6 +11,7 @@ Examples
 """
 
 import argparse
+import importlib
 import json
 import sys
 from typing import Dict, List, Optional, Tuple
@@ -114,19 +115,37 @@ def _json_default(value):
     raise TypeError(f'not JSON serialisable: {type(value).__name__}')
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Return the ``ctid`` argument parser with all subcommands."""
+# Subcommands living in their own modules, imported only when used (the node needs rclpy):
+# each module offers configure_parser(parser) and run(arguments) -> int.
+_MODULE_COMMANDS = {
+    'replay': ('ctid_ros.replay', 'estimate from a rosbag2 directory or an MCAP file'),
+    'node': ('ctid_ros.node', 'run the live identification node (same as ctid_node)'),
+}
+
+
+def build_parser(argv: Optional[List[str]] = None) -> argparse.ArgumentParser:
+    """Return the ``ctid`` argument parser with its subcommands."""
     parser = argparse.ArgumentParser(
         prog='ctid', description='Continuous-time grey-box identification (ctid_ros).')
     subparsers = parser.add_subparsers(dest='command', required=True)
     _add_fit_parser(subparsers)
+    for command, (module_name, summary) in _MODULE_COMMANDS.items():
+        subparser = subparsers.add_parser(command, help=summary, description=summary)
+        if argv and argv[0] == command:
+            module = importlib.import_module(module_name)
+            module.configure_parser(subparser)
+            subparser.set_defaults(run=module.run)
     return parser
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     """Entry point of the ``ctid`` command."""
-    parser = build_parser()
-    arguments = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
+    arguments, unknown = parser.parse_known_args(argv)
+    if unknown and arguments.command != 'node':
+        parser.error(f'unrecognized arguments: {" ".join(unknown)}')
+    arguments.ros_arguments = unknown
     try:
         return arguments.run(arguments)
     except CtidError as error:
