@@ -67,7 +67,7 @@ class Estimate:
     converged : bool
         True if a convergence test (not the iteration limit or a failed step) stopped it.
     iterations : int
-        Number of accepted updates of the final iteration.
+        Number of accepted updates (joint dead-time refinement included).
     cost : float
         Output-error cost ``0.5 |y - yhat|^2``.
     stop_reason : str
@@ -484,13 +484,15 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             problem.exclude_transient(transient, start.structure)
             start = _State(start.theta, start.structure, problem.cost(start.structure))
         profile: List[Tuple[float, float]] = []
+        history: List[Iteration] = []
         delay_index = delay_parameter(model)
         if delay_index is not None:
-            start, profile = delay_search(problem, start, delay_index, delay_range)
+            start, profile, history = delay_search(problem, start, delay_index, delay_range)
         frozen = np.zeros(len(model.parameters), dtype=bool)
-        final, history, reason, converged = _iterate(
+        final, more, reason, converged = _iterate(
             problem, start, method=method, frozen=frozen, max_iterations=max_iterations,
             tolerance=tolerance)
+        history.extend(more)
         rng = np.random.default_rng(0)
         for _ in range(_SYMMETRY_RESTARTS):
             if _blind_combination(problem, final) is None:

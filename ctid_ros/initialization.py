@@ -23,8 +23,7 @@ from scipy import optimize
 _FILTER_COUNT = 5
 _RANDOM_STARTS = 6
 _GRID_POINTS = 30
-_GRID_ITERATIONS = 3
-_REFINED_MINIMA = 3
+_REFINED_MINIMA = 2
 
 
 def _given_values(model, initial) -> Mapping[str, float]:
@@ -246,7 +245,8 @@ def delay_search(problem, start, delay_index: int, delay_range):
     """
     Locate the dead time by a frozen-delay profile, then refine the best minima jointly.
 
-    Returns the best state and the profile as ``[(tau, cost), ...]``.
+    Returns the best state, the profile as ``[(tau, cost), ...]`` and the joint iterations
+    that refined the best minimum.
 
     """
     from ctid_ros.estimator import _iterate, _State
@@ -257,6 +257,8 @@ def delay_search(problem, start, delay_index: int, delay_range):
                               low, high))
     frozen = np.zeros(start.theta.size, dtype=bool)
     frozen[delay_index] = True
+    # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
+    grid_iterations = 2 if problem.model.is_affine else 3
     profile = []
     for tau in grid:
         theta = start.theta.copy()
@@ -266,13 +268,13 @@ def delay_search(problem, start, delay_index: int, delay_range):
             continue
         state = _State(theta, structure, problem.cost(structure))
         state = _iterate(problem, state, method='iv', frozen=frozen,
-                         max_iterations=_GRID_ITERATIONS, tolerance=1e-6)[0]
+                         max_iterations=grid_iterations, tolerance=1e-6)[0]
         profile.append((float(tau), state.cost, state))
     if not profile:
-        return start, []
+        return start, [], []
     refined = [
         _iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
-                 max_iterations=10, tolerance=1e-6, first_ls=False)[0]
+                 max_iterations=10, tolerance=1e-6, first_ls=False)[:2]
         for state in _local_minima(profile)]
-    best = min(refined, key=lambda state: state.cost)
-    return best, [(tau, cost) for tau, cost, _ in profile]
+    best, history = min(refined, key=lambda outcome: outcome[0].cost)
+    return best, [(tau, cost) for tau, cost, _ in profile], history

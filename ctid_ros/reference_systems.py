@@ -76,6 +76,15 @@ def first_order_dead_time() -> ReferenceSystem:
         crlb_std={'K': 0.0176, 'T': 0.0661, 'tau': 0.0107})
 
 
+def second_order_dead_time() -> ReferenceSystem:
+    """Second order with a long dead time, the CONTSID TDSRIVC demo (multimodal in tau)."""
+    return ReferenceSystem(
+        'second order plus long dead time', Model('b0*exp(-tau*s)/(s**2 + a1*s + a0)'),
+        {'b0': 12.0, 'a1': 4.0, 'a0': 4.0, 'tau': 8.0}, prbs(8, 20), 0.1, snr_db=15.0,
+        bounds={'tau': (0.0, 15.0)},
+        crlb_std={'b0': 0.52, 'a1': 0.15, 'a0': 0.17, 'tau': 0.010})
+
+
 def second_order_nonaffine() -> ReferenceSystem:
     """Second order in gain, natural frequency and damping: not affine (test 5)."""
     return ReferenceSystem(
@@ -86,4 +95,4 @@ def second_order_nonaffine() -> ReferenceSystem:
 
 
 ALL = (rao_garnier, mass_spring_damper, closed_loop_pid, first_order_dead_time,
-       second_order_nonaffine)
+       second_order_dead_time, second_order_nonaffine)

@@ -78,7 +78,8 @@ class SignalBank:
                 'cannot estimate the dead time of a biproper model (numerator and denominator '
                 'of equal degree): its output jumps with the held input; fix the dead time or '
                 'use a strictly proper model')
-        bank_u = ContinuousFilter(den).discretize(self.ts, structure.delay, self.intersample)
+        realization = ContinuousFilter(den)
+        bank_u = realization.discretize(self.ts, structure.delay, self.intersample)
         u_numerators = [num_full]
         if delay_used:
             u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
@@ -98,7 +99,7 @@ class SignalBank:
         psi = bank_sensitivity.outputs(self.u, sensitivity_numerators) + delay_term
         phi = None
         if regressors:
-            bank_y = ContinuousFilter(den).discretize(self.ts, 0.0, 'foh')
+            bank_y = realization.discretize(self.ts, 0.0, 'foh')
             y_parts = bank_y.outputs(self.y, list(den_jac))
             phi = u_parts[-params:] - y_parts + delay_term
         return Linearization(output, None if phi is None else phi.T, psi.T)
