@@ -286,9 +286,16 @@ def _try_step(problem: _Problem, state: _State, step: np.ndarray, monotone: bool
 
 
 def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarray,
-             max_iterations: int, tolerance: float, first_ls: bool = True
-             ) -> Tuple[_State, List[Iteration], str, bool]:
-    """Run the controlled projection iteration from ``state``."""
+             max_iterations: int, tolerance: float, first_ls: bool = True,
+             trust_first_ls: bool = False) -> Tuple[_State, List[Iteration], str, bool]:
+    """
+    Run the controlled projection iteration from ``state``.
+
+    ``trust_first_ls`` accepts the first (least-squares) step even if it raises the cost, as
+    long as the model stays stable and inside the bounds: for an affine structure that step is
+    the exact regression from any start, which is what a profile over frozen parameters needs.
+
+    """
     history: List[Iteration] = []
     for iteration in range(max_iterations):
         lin = problem.linearize(state.structure, regressors=method != 'gn')
@@ -307,7 +314,8 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
             if step is None:
                 continue
             # Pure P-LS follows its own fixed point, not the output-error descent.
-            outcome = _try_step(problem, state, step, monotone=method != 'ls')
+            trusted = method == 'ls' or (trust_first_ls and iteration == 0 and kind == 'ls')
+            outcome = _try_step(problem, state, step, monotone=not trusted)
             if outcome is not None:
                 accepted = (kind, step, outcome)
                 break

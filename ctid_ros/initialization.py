@@ -21,7 +21,8 @@ import numpy as np
 from scipy import optimize
 
 _FILTER_COUNT = 5
-_RANDOM_STARTS = 6
+_GRID_FILTER_COUNT = 3
+_RANDOM_STARTS = 4
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
 
@@ -46,11 +47,13 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     """
     Return the starting state of the iteration.
 
-    Complete, admissible user values are used as they are; otherwise the missing values are
-    found by the equation-error multi-start described in the module docstring.
+    The user's values compete with the equation-error multi-start described in the module
+    docstring (missing values are fitted, given ones serve as hints, or stay fixed while others
+    are missing); the candidate with the lowest output-error cost wins. A far or unstable guess
+    therefore costs robustness nothing.
 
     """
-    from ctid_ros.estimator import _State, delay_parameter
+    from ctid_ros.estimator import delay_parameter
 
     model = problem.model
     given = _given_values(model, initial)
@@ -59,17 +62,24 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
         if not problem.lower[index] <= value <= problem.upper[index]:
             raise ModelError(f'initial value {name}={value:g} lies outside its bounds '
                              f'[{problem.lower[index]:g}, {problem.upper[index]:g}]')
-    pinned = given
-    if len(given) == len(model.parameters):
-        theta = model.vector(given)
-        structure = problem.admissible(theta)
-        if structure is not None:
-            return _State(theta, structure, problem.cost(structure))
-        # An unstable guess only serves as a hint: every parameter is refitted.
-        pinned = {}
+    # A complete guess is a hint for every parameter; a partial one pins the given values.
+    pinned = {} if len(given) == len(model.parameters) else given
     delay_index = delay_parameter(model)
     tau = _initial_delay(problem, given, delay_index, delay_range)
-    candidates = _equation_error_candidates(problem, given, pinned, delay_index, tau)
+    best = best_candidate(problem, _equation_error_candidates(
+        problem, given, pinned, delay_index, tau))
+    if best is None:
+        raise EstimationError(
+            'no stable starting model was found: the initial values give an unstable or '
+            'out-of-bounds D(s), and the automatic initialisation found none either; give '
+            'initial values that make the model stable, or check the bounds')
+    return best
+
+
+def best_candidate(problem, candidates: List[np.ndarray]):
+    """Return the admissible candidate with the lowest output-error cost (a state), or None."""
+    from ctid_ros.estimator import _State
+
     best = None
     for theta in candidates:
         structure = problem.admissible(theta)
@@ -78,11 +88,6 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
         cost = problem.cost(structure)
         if best is None or cost < best.cost:
             best = _State(theta, structure, cost)
-    if best is None:
-        raise EstimationError(
-            'no stable starting model was found: the initial values give an unstable or '
-            'out-of-bounds D(s), and the automatic initialisation found none either; give '
-            'initial values that make the model stable, or check the bounds')
     return best
 
 
@@ -112,7 +117,8 @@ def _starts(problem, hints, pinned, delay_index, tau, rng) -> List[np.ndarray]:
     hinted = np.array([hints.get(name, np.nan) for name in model.parameters])
     fixed = np.array([pinned.get(name, np.nan) for name in model.parameters])
     starts = []
-    for draw in range(_RANDOM_STARTS + 1):
+    # The equation error of an affine structure is linear in theta: one start finds its optimum.
+    for draw in range(1 if model.is_affine else _RANDOM_STARTS + 1):
         if draw == 0:
             guess = np.where(np.isnan(hinted), 1.0, hinted)
         else:
@@ -149,12 +155,13 @@ def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
     return triangular / scales
 
 
-def _equation_error_candidates(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
+def _equation_error_candidates(problem, hints, pinned, delay_index, tau,
+                               filters: int = _FILTER_COUNT) -> List[np.ndarray]:
     model = problem.model
     data = problem.data
     record = data.ts * len(data)
     rng = np.random.default_rng(20131)
-    lams = np.geomspace(10.0 / record, 0.3 * np.pi / data.ts, _FILTER_COUNT)
+    lams = np.geomspace(10.0 / record, 0.3 * np.pi / data.ts, filters)
     free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
@@ -194,26 +201,25 @@ def _equation_error_candidates(problem, hints, pinned, delay_index, tau) -> List
 
 def impulse_delay(data) -> float:
     """
-    Dead-time guess from a regularised FIR estimate of the impulse response.
+    Dead-time guess from the cross-correlation of the differenced input and output.
 
-    The first lag at which the estimated response reaches a quarter of its peak, less half a
-    sample (the hold), is a robust bracket centre even for coloured inputs.
+    Differencing whitens a held (e.g. PRBS) input, so the correlation approximates the impulse
+    response; the first lag at which it reaches a quarter of its peak, less half a sample (the
+    hold), is a robust bracket centre.
 
     """
-    count = len(data)
-    lags = int(min(max(count // 5, 10), 300))
-    u = data.u - np.mean(data.u)
-    y = data.y - np.mean(data.y)
-    shifted = np.zeros((count, lags))
-    for lag in range(lags):
-        shifted[lag:, lag] = u[:count - lag]
-    gram = shifted.T @ shifted
-    ridge = 1e-3 * np.trace(gram) / lags
-    response = np.linalg.solve(gram + ridge * np.eye(lags), shifted.T @ y)
-    peak = np.max(np.abs(response))
+    du = np.diff(data.u)
+    dy = np.diff(data.y)
+    count = du.size
+    if count < 4 or not np.any(du):
+        return 0.0
+    size = 1 << int(np.ceil(np.log2(2 * count)))
+    spectrum = np.fft.rfft(dy, size) * np.conj(np.fft.rfft(du, size))
+    correlation = np.abs(np.fft.irfft(spectrum, size)[:count // 2])
+    peak = np.max(correlation)
     if peak == 0.0:
         return 0.0
-    first = int(np.argmax(np.abs(response) >= 0.25 * peak))
+    first = int(np.argmax(correlation >= 0.25 * peak))
     return max(first - 0.5, 0.0) * data.ts
 
 
@@ -249,7 +255,7 @@ def delay_search(problem, start, delay_index: int, delay_range):
     that refined the best minimum.
 
     """
-    from ctid_ros.estimator import _iterate, _State
+    from ctid_ros.estimator import _iterate
 
     low, high = _delay_bracket(problem, delay_index, delay_range)
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
@@ -259,16 +265,19 @@ def delay_search(problem, start, delay_index: int, delay_range):
     frozen[delay_index] = True
     # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
     grid_iterations = 2 if problem.model.is_affine else 3
+    hints = problem.model.as_dict(start.theta)
     profile = []
     for tau in grid:
         theta = start.theta.copy()
         theta[delay_index] = tau
-        structure = problem.admissible(theta)
-        if structure is None:
+        # A start fitted at another tau can be far off here: refit by equation error too.
+        state = best_candidate(problem, [theta] + _equation_error_candidates(
+            problem, hints, {}, delay_index, tau, filters=_GRID_FILTER_COUNT))
+        if state is None:
             continue
-        state = _State(theta, structure, problem.cost(structure))
         state = _iterate(problem, state, method='iv', frozen=frozen,
-                         max_iterations=grid_iterations, tolerance=1e-6)[0]
+                         max_iterations=grid_iterations, tolerance=1e-6,
+                         trust_first_ls=True)[0]
         profile.append((float(tau), state.cost, state))
     if not profile:
         return start, [], []

@@ -1,0 +1,21 @@
+"""``make bench``: every benchmark, each against a baseline measured in the same run."""
+
+import sys
+
+from bench import estimator
+
+
+def main() -> int:
+    """Run the estimator benchmark, then the node throughput benchmark if it is available."""
+    estimator.main(['--runs', '100', '--json', 'bench/results-estimator.json'] + sys.argv[1:])
+    try:
+        from bench import node_throughput
+    except ImportError as error:       # rclpy missing: the core benchmark still stands
+        print(f'node throughput benchmark skipped: {error}')
+        return 0
+    node_throughput.main()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
