@@ -45,7 +45,7 @@ from ctid_ros.cli import _json_default, format_table
 from ctid_ros.config import DEFAULT_NODE_NAME, IdentificationConfig, load_params_file
 from ctid_ros.errors import BagError, DataError, EstimationError
 from ctid_ros.fields import extract, message_stamp, parse_field_path
-from ctid_ros.session import IdentificationSession, Update
+from ctid_ros.session import history_span, IdentificationSession, Update
 import numpy as np
 
 NANOSECONDS = 1_000_000_000
@@ -139,7 +139,7 @@ class Replay:
 
 def sliding_capacity(config: IdentificationConfig, rate_hz: float) -> int:
     """Size the buffer for ``window`` plus ``max_gap`` and the reorder horizon at ``rate_hz``."""
-    return capacity_for(config.window + config.max_gap + config.reorder_horizon, rate_hz)
+    return capacity_for(history_span(config) + config.max_gap + config.reorder_horizon, rate_hz)
 
 
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,
@@ -159,7 +159,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         False: one estimate over everything received (the window is the whole span).
         True: tick every ``update_period`` of log time, the first one period after the first
         message; a tick at ``T`` sees the messages logged at or before ``T`` and estimates on
-        ``buffer.window(window, sample_time)`` (the settled end, half a window at least).
+        ``session.take_window(buffer)`` (the settled end): the window plus the transient that
+        settles the model's state, exactly as the live node does.
     topics : (str, str), optional
         Absolute input and output topics; default the configured ones resolved for a node
         ``ctid_node`` in the root namespace.
@@ -239,7 +240,7 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
 
     def fire(time_ns: int) -> None:
         try:
-            updates.append(session.update(buffer.window(config.window, config.sample_time)))
+            updates.append(session.update(session.take_window(buffer)))
         except (DataError, EstimationError) as error:
             skipped.append((time_ns, str(error)))
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import time
 from typing import Any, Dict, Optional, Tuple
 
-from ctid_ros.buffer import Window
+from ctid_ros.buffer import SampleBuffer, Window
 from ctid_ros.config import IdentificationConfig
 from ctid_ros.estimator import Estimate, estimate
 import numpy as np
@@ -94,6 +94,26 @@ class Update:
         return summary
 
 
+def history_span(config: IdentificationConfig) -> float:
+    """
+    Return the longest span (s) of data a session asks for.
+
+    It is the fitted window plus the transient before it that only settles the model's state
+    (a window cut from a running plant does not start at rest); an automatic transient is at
+    most one window long.
+
+    """
+    return config.window + (config.transient if config.transient >= 0 else config.window)
+
+
+def settling_time(result: Estimate) -> float:
+    """Return five times the slowest time constant of an estimate plus its dead time."""
+    structure = result.model.structure(result.params)
+    roots = np.roots(structure.den) if structure.den.size > 1 else np.zeros(0)
+    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
+    return 5.0 * slowest + max(structure.delay, 0.0)
+
+
 class IdentificationSession:
     """
     Estimate a configured model on successive windows, warm-starting each from the last.
@@ -108,6 +128,7 @@ class IdentificationSession:
     def __init__(self, config: IdentificationConfig):
         self._config = config
         self._previous: Optional[Dict[str, float]] = None
+        self._settling: Optional[float] = None
 
     @property
     def config(self) -> IdentificationConfig:
@@ -125,11 +146,37 @@ class IdentificationSession:
         same_model = (config.model, config.controller) == (old.model, old.controller)
         self._config = config
         if not same_model:
-            self._previous = None
+            self.reset()
 
     def reset(self) -> None:
         """Forget the warm start: the next estimate starts from the configured initial values."""
         self._previous = None
+        self._settling = None
+
+    def window_length(self) -> float:
+        """
+        Return the seconds of data to take for the next update.
+
+        That is the window plus a settling transient: the configured one, else the settling
+        time of the previous estimate (at most one window), else one window.
+
+        """
+        config = self._config
+        if config.transient >= 0 or self._settling is None:
+            return history_span(config)
+        return config.window + min(self._settling, config.window)
+
+    def take_window(self, buffer: SampleBuffer, end_ns: Optional[int] = None) -> Window:
+        """
+        Resample the data for the next update from ``buffer`` (live node and replay alike).
+
+        Asks for :meth:`window_length` seconds and accepts half a window at least, so the first
+        estimate comes as soon as that much contiguous data has arrived.
+
+        """
+        config = self._config
+        return buffer.window(self.window_length(), config.sample_time, end_ns,
+                             min_length=0.5 * config.window)
 
     def update(self, window: Window) -> Update:
         """
@@ -146,10 +193,15 @@ class IdentificationSession:
         options = config.estimator_options()
         if config.warm_start and self._previous is not None:
             options['initial'] = self._previous
+        record = len(window.data) * window.data.ts
+        if config.transient < 0 and record > config.window:
+            # Everything before the last `window` seconds only settles the model's state.
+            options['transient'] = record - config.window
         started = time.perf_counter()
         result = estimate(config.compiled_model, window.data, **options)
         elapsed = time.perf_counter() - started
         self._previous = dict(result.params)
+        self._settling = settling_time(result)
         order = [result.model.parameters[index] for index in config.model_index]
         data = window.data
         step_ns = int(round(data.ts * 1e9))

@@ -295,9 +295,11 @@ def test_sliding_agrees_with_a_buffer_fed_message_by_message():
             (stamp, msg.data) for name, stamp, msg in messages
             if name == topic and stamp <= until_ns])]
 
-    # A tick at T estimates on what was logged up to T, whatever the buffer size.
-    window, _ = resample(*streams(T0_NS + 12 * 10 ** 9), TS, length=8.0,
-                         end_ns=updates[-1].end_ns)
+    # A tick at T estimates on what was logged up to T, whatever the buffer size; the span is
+    # the window plus the settling transient the session asks for.
+    window, _ = resample(*streams(T0_NS + 12 * 10 ** 9), TS,
+                         length=updates[-1].window.requested * TS, end_ns=updates[-1].end_ns,
+                         min_length=4.0)
     assert np.array_equal(window.data.y, updates[-1].window.data.y)
     big = replay_messages(messages, config, sliding=True, capacity=100_000).updates
     assert [update.values.tolist() for update in big] == [update.values.tolist()
@@ -399,7 +401,8 @@ def test_stamp_rule_and_topic_resolution():
     assert resolve_topic('~/u', '/lab/ctid_node') == '/lab/ctid_node/u'
     config = IdentificationConfig(model='K/(T*s + 1)', window=10.0, max_gap=0.5,
                                   reorder_horizon=0.05)
-    assert sliding_capacity(config, 100.0) == 2110
+    # Window plus an automatic transient of at most one window, gap and horizon, twice over.
+    assert sliding_capacity(config, 100.0) == 4110
 
 
 def test_progress_bar_only_on_a_terminal():
