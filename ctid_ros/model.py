@@ -20,7 +20,7 @@ import keyword
 from typing import Dict, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import ModelError
-from ctid_ros.expression import LAPLACE, parse_expression
+from ctid_ros.expression import LAPLACE, MAX_DEGREE, parse_expression
 from ctid_ros.simulation import ContinuousFilter, INTERSAMPLE
 import numpy as np
 import sympy as sp
@@ -130,8 +130,10 @@ class Model:
     """
 
     def __init__(self, expression: str, controller: Optional[str] = None):
+        if controller is not None and not isinstance(controller, str):
+            raise ModelError(f'controller must be a string, got {type(controller).__name__}')
         self.expression = expression
-        self.controller = controller or None
+        self.controller = controller if controller and controller.strip() else None
         parsed, symbols = parse_expression(expression)
         for symbol in symbols:
             if keyword.iskeyword(symbol.name):
@@ -145,6 +147,10 @@ class Model:
                     'a dead time inside a closed loop makes P K/(1 + P K) irrational; identify '
                     'the plant open loop from its measured input u instead')
             k_num, k_den = _numeric_controller(self.controller)
+            degree = max(num.degree() + k_num.degree(), den.degree() + k_den.degree())
+            if degree > MAX_DEGREE:
+                raise ModelError(f'the closed loop of {expression!r} with {self.controller!r} '
+                                 f'has degree {degree} in s; the limit is {MAX_DEGREE}')
             num, den = num * k_num, den * k_den + num * k_num
             _check_proper(num, den, f'closed loop of {expression!r} with {self.controller!r}')
         self._symbols = symbols
@@ -164,6 +170,10 @@ class Model:
         symbols = self._symbols
         jacobian = [[sp.diff(c, p) for p in symbols]
                     for c in num_coefficients + den_coefficients + [tau]]
+        absent = [p.name for i, p in enumerate(symbols) if all(row[i] == 0 for row in jacobian)]
+        if absent:
+            raise ModelError(f'parameter(s) {", ".join(absent)} cancel out of the transfer '
+                             'function, so no data can determine them; remove them')
         self.is_affine = all(not entry.has(*symbols) for row in jacobian for entry in row)
         self.has_delay = tau != 0
         self.delay_is_estimated = bool(tau.free_symbols)
@@ -247,10 +257,13 @@ class Model:
         if intersample not in INTERSAMPLE:
             raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
         num, den, delay = self.transfer_function(params)
+        if delay < 0.0:
+            raise ModelError(f'the dead time is negative ({delay:g} s) at '
+                             f'{self.as_dict(self.vector(params))}: that is a time advance')
         if den[0] == 0.0:
             raise ModelError(f'the leading denominator coefficient vanishes at '
                              f'{self.as_dict(self.vector(params))}: the model order drops')
-        discrete = ContinuousFilter(den).discretize(ts, max(delay, 0.0), intersample)
+        discrete = ContinuousFilter(den).discretize(ts, delay, intersample)
         return discrete.outputs(as_signal(u, 'u'), [num])[0]
 
     def frequency_response(self, params: ParameterValues, omega) -> np.ndarray:

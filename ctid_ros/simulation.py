@@ -5,7 +5,9 @@ A rational ``N(s)/D(s)`` (optionally with a dead time ``e^{-tau s}``) is applied
 known only at the sample instants ``t_k = k*ts`` under an intersample assumption:
 
 * ``'zoh'``: the signal is held constant between samples (exact for a zero-order-hold input);
-* ``'foh'``: the signal is linear between samples (the usual assumption for a measured output).
+* ``'foh'``: the signal is linear between samples (the usual assumption for a measured output);
+  it is zero before ``t_0`` and jumps to ``u_0`` there, as in ``scipy.signal.lsim``, also when
+  delayed.
 
 The response is exact for that assumption, including dead times that are not a multiple of the
 sample time: ``tau = d*ts + eps`` splits each sample interval into two sub-intervals whose

@@ -1,0 +1,270 @@
+"""Grey-box Model: structure, Jacobians, affinity, delays, closed loop and rejected models."""
+
+from ctid_ros import DataError, Model, ModelError
+import numpy as np
+import pytest
+
+
+MSD = '1/(m*s**2 + d*s + k)'
+
+
+@pytest.mark.parametrize('text', [
+    'K*s', 's**2/(s+1)', 'K*s**2/(T*s + 1)', '(s**3 + a)/(s**2 + b*s + 1)', 'K/s**-2',
+    'K*(T*s + 1)', 's', 'K + s',
+])
+def test_improper_models_are_rejected(text):
+    with pytest.raises(ModelError, match='improper'):
+        Model(text)
+
+
+@pytest.mark.parametrize('text,fragment', [
+    ('1/(s+1) + exp(-tau*s)', 'factor'),
+    ('K/(s+1) + K*exp(-tau*s)/(s+2)', 'factor'),
+    ('exp(-tau*s**2)/(s+1)', 'not a dead time'),
+    ('K*exp(-tau/s)/(s+1)', 'not a dead time'),
+    ('K*exp(-tau*s + 1)/(s+1)', 'not a dead time'),
+    ('1/(exp(-tau*s) + s)', 'factor'),
+    ('K/(s+1)/exp(-tau*s)**-1 + 1/(s+2)', 'factor'),
+    ('exp(2*s)/(s+1)', 'advance'),
+    ('K*exp(0.5*s)/(T*s+1)', 'advance'),
+    ('K*exp(-a*s)/(s+1) + exp(-b*s)/(s+2)', 'at most one'),
+    ('K*exp(-a*s)/(s+1) - K*exp(-b*s)/(s+1)', 'at most one'),
+    ('K*exp(exp(-tau*s))/(s+1)', 'at most one'),
+])
+def test_dead_times_that_are_not_a_factor_are_rejected(text, fragment):
+    with pytest.raises(ModelError, match=fragment):
+        Model(text)
+
+
+@pytest.mark.parametrize('controller', [
+    'kp*(1 + 1/(Ti*s))', 'kp', '4 + ki/s', 'exp(-tau*s)*2',
+])
+def test_controllers_with_parameters_are_rejected(controller):
+    with pytest.raises(ModelError, match='numeric coefficients'):
+        Model(MSD, controller=controller)
+
+
+def test_delays_in_closed_loop_are_rejected():
+    with pytest.raises(ModelError, match='dead time'):
+        Model('K*exp(-tau*s)/(T*s + 1)', controller='4 + 2/s')
+    with pytest.raises(ModelError, match='dead time'):
+        Model('K*exp(-0.5*s)/(T*s + 1)', controller='1')
+    with pytest.raises(ModelError, match='dead time'):
+        Model(MSD, controller='2*exp(-0.1*s)')
+    with pytest.raises(ModelError, match='zero'):
+        Model(MSD, controller='0*s')
+
+
+@pytest.mark.parametrize('name', ['lambda', 'import', 'class', 'def', 'None', 'True', 'if',
+                                  'yield', 'await', 'not'])
+def test_python_keywords_are_not_parameter_names(name):
+    with pytest.raises(ModelError, match='reserved word') as info:
+        Model(f'K/({name}*s + 1)')
+    assert 'column 4' in str(info.value)
+
+
+def test_models_without_parameters_are_rejected():
+    with pytest.raises(ModelError, match='no parameters'):
+        Model('1/(s+1)')
+    with pytest.raises(ModelError, match='no parameters'):
+        Model('2*pi/(s+pi)')
+
+
+def test_mass_spring_damper_structure():
+    model = Model(MSD)
+    assert model.parameters == ('m', 'd', 'k')
+    assert model.is_affine
+    assert not model.has_delay
+    assert (model.num_degree, model.den_degree) == (0, 2)
+    structure = model.structure({'m': 0.5, 'd': 1.0, 'k': 50.0})
+    np.testing.assert_array_equal(structure.num, [1.0])
+    np.testing.assert_array_equal(structure.den, [0.5, 1.0, 50.0])
+    assert structure.delay == 0.0
+    np.testing.assert_array_equal(structure.num_jacobian, np.zeros((3, 1)))
+    np.testing.assert_array_equal(structure.den_jacobian, np.eye(3))
+    np.testing.assert_array_equal(structure.delay_gradient, np.zeros(3))
+    # The same structure with '^' as power and a vector of values.
+    same = Model('1/(m*s^2 + d*s + k)').structure([0.5, 1.0, 50.0])
+    np.testing.assert_array_equal(same.den, structure.den)
+
+
+def test_parameter_order_is_order_of_first_appearance():
+    assert Model('K*exp(-tau*s)/(T*s + 1)').parameters == ('K', 'tau', 'T')
+    assert Model('(b1*s + b0)/(s**4 + a3*s**3 + a2*s**2 + a1*s + a0)').parameters == (
+        'b1', 'b0', 'a3', 'a2', 'a1', 'a0')
+    assert Model('z/(w*s + z*w + Kp)').parameters == ('z', 'w', 'Kp')
+    assert Model('K/(s + 2*pi*f)').parameters == ('K', 'f')
+
+
+def test_rao_garnier_black_box_structure():
+    model = Model('(b1*s + b0)/(s**4 + a3*s**3 + a2*s**2 + a1*s + a0)')
+    theta = {'b1': -6400.0, 'b0': 1600.0, 'a3': 5.0, 'a2': 408.0, 'a1': 416.0, 'a0': 1600.0}
+    structure = model.structure(theta)
+    np.testing.assert_array_equal(structure.num, [-6400.0, 1600.0])
+    np.testing.assert_array_equal(structure.den, [1.0, 5.0, 408.0, 416.0, 1600.0])
+    np.testing.assert_allclose(np.polymul([1, 1, 4], [1, 4, 400]), structure.den)
+    assert model.is_affine
+
+
+def test_non_affine_structures():
+    model = Model('K/((T1*s + 1)*(T2*s + 1))')
+    assert not model.is_affine
+    structure = model.structure({'K': 2.0, 'T1': 3.0, 'T2': 5.0})
+    np.testing.assert_allclose(structure.num, [2.0])
+    np.testing.assert_allclose(structure.den, [15.0, 8.0, 1.0])
+    model = Model('K*w**2/(s**2 + 2*z*w*s + w**2)')
+    assert not model.is_affine
+    assert model.parameters == ('K', 'w', 'z')
+    structure = model.structure({'K': 1.5, 'w': 3.0, 'z': 0.2})
+    np.testing.assert_allclose(structure.num, [13.5])
+    np.testing.assert_allclose(structure.den, [1.0, 1.2, 9.0])
+    # Section 8, test 5: dN/dK = w^2, dN/dw = 2 K w, dD/dw = 2 z s + 2 w, dD/dz = 2 w s.
+    np.testing.assert_allclose(structure.num_jacobian, [[9.0], [9.0], [0.0]])
+    np.testing.assert_allclose(structure.den_jacobian,
+                               [[0.0, 0.0, 0.0], [0.0, 0.4, 6.0], [0.0, 6.0, 0.0]])
+
+
+def test_first_order_plus_dead_time():
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    assert model.has_delay and model.delay_is_estimated and model.is_affine
+    structure = model.structure({'K': 2.0, 'T': 5.0, 'tau': 1.234})
+    np.testing.assert_array_equal(structure.num, [2.0])
+    np.testing.assert_array_equal(structure.den, [5.0, 1.0])
+    assert structure.delay == 1.234
+    np.testing.assert_array_equal(structure.delay_gradient, [0.0, 1.0, 0.0])
+    known = Model('K*exp(-0.5*s)/(T*s + 1)')
+    assert known.has_delay and not known.delay_is_estimated
+    assert known.structure([2.0, 5.0]).delay == 0.5
+    twice = Model('K*exp(-tau*s)*exp(-tau*s)/(T*s + 1)')     # one factor exp(-2 tau s)
+    assert twice.structure([1.0, 0.3, 1.0]).delay == pytest.approx(0.6, rel=1e-15)
+
+
+def test_closed_loop_structure_matches_hand_computation():
+    model = Model(MSD, controller='4 + 2/s')
+    assert model.parameters == ('m', 'd', 'k')
+    m, d, k = 0.5, 1.0, 50.0
+    structure = model.structure({'m': m, 'd': d, 'k': k})
+    np_, dp = np.array([1.0]), np.array([m, d, k])                 # plant
+    kn, kd = np.array([4.0, 2.0]), np.array([1.0, 0.0])            # 4 + 2/s = (4s + 2)/s
+    num = np.polymul(np_, kn)
+    den = np.polyadd(np.polymul(dp, kd), np.polymul(np_, kn))
+    np.testing.assert_allclose(structure.num, num, rtol=1e-15)
+    np.testing.assert_allclose(structure.den, den, rtol=1e-15)
+    np.testing.assert_allclose(structure.den, [m, d, k + 4.0, 2.0], rtol=1e-15)
+    assert model.is_affine
+
+
+def test_closed_loop_pid_matches_section_8_test_3():
+    controller = '(5*s**2 + 20*s + 10)/(s*(0.02*s + 1))'
+    model = Model(MSD, controller=controller)
+    structure = model.structure({'m': 1.0, 'd': 0.5, 'k': -2.0})
+    den = np.array([0.02, 1.01, 5.46, 18.0, 10.0])
+    num = np.array([5.0, 20.0, 10.0])
+    scale = structure.den[0] / den[0]          # N and D are defined up to a common factor
+    np.testing.assert_allclose(structure.den, scale * den, rtol=1e-13)
+    np.testing.assert_allclose(structure.num, scale * num, rtol=1e-13)
+    poles = np.sort_complex(np.roots(structure.den))
+    np.testing.assert_allclose(poles.real, [-44.86, -2.48, -2.48, -0.678], atol=0.006)
+    # D_m = Tf s^4 + s^3, D_d = Tf s^3 + s^2, D_k = Tf s^2 + s (times the same factor).
+    np.testing.assert_allclose(structure.den_jacobian / scale, [
+        [0.02, 1.0, 0.0, 0.0, 0.0], [0.0, 0.02, 1.0, 0.0, 0.0], [0.0, 0.0, 0.02, 1.0, 0.0]],
+        atol=1e-15)
+    np.testing.assert_array_equal(structure.num_jacobian, np.zeros((3, 3)))
+
+
+JACOBIAN_CASES = [
+    ('K*w**2/(s**2 + 2*z*w*s + w**2)', [1.5, 3.0, 0.2]),
+    ('K/((T1*s + 1)*(T2*s + 1))', [2.0, 3.0, 0.7]),
+    ('K*exp(-tau*s)*(a*s + 1)/(T**2*s**2 + T*s + 1)', [2.0, 0.3, 0.5, 1.7]),
+    ('k*exp(-(a + b**2)*s)/(a*b*s + exp(a))', [1.2, 0.4, 0.8]),
+    ('(K/T)/(s + 1/T)', [2.0, 0.25]),
+]
+
+
+@pytest.mark.parametrize('text,theta', JACOBIAN_CASES)
+def test_jacobians_match_central_differences(text, theta):
+    model = Model(text)
+    theta = np.array(theta)
+    structure = model.structure(theta)
+    for index in range(theta.size):
+        step = 1e-6 * max(1.0, abs(theta[index]))
+        up, down = theta.copy(), theta.copy()
+        up[index] += step
+        down[index] -= step
+        plus, minus = model.structure(up), model.structure(down)
+        for field in ('num', 'den', 'delay'):
+            difference = (np.asarray(getattr(plus, field))
+                          - np.asarray(getattr(minus, field))) / (2 * step)
+            exact = {'num': structure.num_jacobian, 'den': structure.den_jacobian,
+                     'delay': structure.delay_gradient}[field][index]
+            np.testing.assert_allclose(exact, difference, rtol=1e-7, atol=1e-7,
+                                       err_msg=f'{text}: d{field}/d{model.parameters[index]}')
+
+
+def test_closed_loop_jacobian_matches_central_differences():
+    model = Model('K*w**2/(s**2 + 2*z*w*s + w**2)', controller='(3*s + 2)/(s*(0.1*s + 1))')
+    theta = np.array([1.5, 3.0, 0.2])
+    structure = model.structure(theta)
+    for index in range(3):
+        step = 1e-6 * theta[index]
+        up, down = theta.copy(), theta.copy()
+        up[index] += step
+        down[index] -= step
+        difference = (model.structure(up).den - model.structure(down).den) / (2 * step)
+        np.testing.assert_allclose(structure.den_jacobian[index], difference, rtol=1e-7,
+                                   atol=1e-7)
+
+
+def test_parameter_values_are_validated():
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    with pytest.raises(ModelError, match='missing'):
+        model.structure({'K': 1.0, 'T': 1.0})
+    with pytest.raises(ModelError, match='unknown'):
+        model.structure({'K': 1.0, 'T': 1.0, 'tau': 0.1, 'L': 2.0})
+    with pytest.raises(ModelError, match='expected 3'):
+        model.structure([1.0, 2.0])
+    with pytest.raises(ModelError, match='finite'):
+        model.structure([1.0, np.nan, 2.0])
+    with pytest.raises(ModelError, match='undefined'):
+        Model('K/(s + exp(1/T))').structure({'K': 1.0, 'T': 0.0})
+    assert model.as_dict(model.vector({'tau': 0.1, 'T': 2.0, 'K': 3.0})) == {
+        'K': 3.0, 'tau': 0.1, 'T': 2.0}
+
+
+def test_frequency_response_matches_formula():
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    omega = np.logspace(-2, 2, 50)
+    response = model.frequency_response({'K': 2.0, 'T': 1.5, 'tau': 0.237}, omega)
+    expected = 2.0 * np.exp(-0.237j * omega) / (1.5j * omega + 1.0)
+    np.testing.assert_allclose(response, expected, rtol=1e-14)
+
+
+def test_simulate_rejects_bad_arguments():
+    model = Model('K/(T*s + 1)')
+    with pytest.raises(ModelError, match='intersample'):
+        model.simulate({'K': 1.0, 'T': 1.0}, np.ones(10), 0.1, intersample='linear')
+    with pytest.raises(DataError):
+        model.simulate({'K': 1.0, 'T': 1.0}, [1.0, np.nan], 0.1)
+    with pytest.raises(DataError):
+        model.simulate({'K': 1.0, 'T': 1.0}, np.ones(10), 0.0)
+    with pytest.raises(ModelError, match='order drops'):
+        model.simulate({'K': 1.0, 'T': 0.0}, np.ones(10), 0.1)
+
+
+def test_simulate_rejects_a_negative_dead_time():
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    with pytest.raises(ModelError, match='dead time'):
+        model.simulate({'K': 1.0, 'T': 1.0, 'tau': -0.5}, np.ones(20), 0.1)
+
+
+def test_model_rejects_parameters_that_cancel_and_non_string_controllers():
+    with pytest.raises(ModelError, match='cancel out'):
+        Model('K/K/(s + 1)')
+    with pytest.raises(ModelError, match='controller must be a string'):
+        Model('1/(T*s + 1)', controller=0)
+    assert Model('1/(T*s + 1)', controller='  ').controller is None
+
+
+def test_closed_loop_degree_is_limited_before_expansion():
+    with pytest.raises(ModelError, match='degree'):
+        Model('K/(a*s + 1)**16/(b*s + 1)**4', controller='(s + 1)**16/(s + 2)**16')
