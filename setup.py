@@ -56,6 +56,8 @@ setup(
     entry_points={
         'console_scripts': [
             'ctid = ctid_ros.cli:main',
+            'ctid_node = ctid_ros.node:main',
+            'ctid_plant = ctid_ros.plant:main',
         ],
     },
 )
