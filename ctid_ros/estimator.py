@@ -177,9 +177,7 @@ class _Problem:
 
         """
         if seconds == 'auto':
-            roots = np.roots(structure.den) if structure.den.size > 1 else np.zeros(0)
-            slowest = np.max(-1.0 / roots.real, initial=0.0) if roots.size else 0.0
-            seconds = 5.0 * slowest + structure.delay
+            seconds = settling_time(structure)
         seconds = float(seconds)
         if not (np.isfinite(seconds) and seconds >= 0.0):
             raise ValueError(f"transient must be 'auto' or a non-negative time, got {seconds}")
@@ -215,6 +213,13 @@ class _State:
     theta: np.ndarray
     structure: Structure
     cost: float
+
+
+def settling_time(structure: Structure) -> float:
+    """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
+    roots = np.roots(structure.den) if structure.den.size > 1 else np.zeros(0)
+    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
+    return 5.0 * slowest + max(structure.delay, 0.0)
 
 
 def _column_scales(psi: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Any, Dict, Optional, Tuple
 
 from ctid_ros.buffer import SampleBuffer, Window
 from ctid_ros.config import IdentificationConfig
-from ctid_ros.estimator import Estimate, estimate
+from ctid_ros.estimator import Estimate, estimate, settling_time
 import numpy as np
 
 
@@ -106,14 +106,6 @@ def history_span(config: IdentificationConfig) -> float:
     return config.window + (config.transient if config.transient >= 0 else config.window)
 
 
-def settling_time(result: Estimate) -> float:
-    """Return five times the slowest time constant of an estimate plus its dead time."""
-    structure = result.model.structure(result.params)
-    roots = np.roots(structure.den) if structure.den.size > 1 else np.zeros(0)
-    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
-    return 5.0 * slowest + max(structure.delay, 0.0)
-
-
 class IdentificationSession:
     """
     Estimate a configured model on successive windows, warm-starting each from the last.
@@ -201,7 +193,7 @@ class IdentificationSession:
         result = estimate(config.compiled_model, window.data, **options)
         elapsed = time.perf_counter() - started
         self._previous = dict(result.params)
-        self._settling = settling_time(result)
+        self._settling = settling_time(result.model.structure(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
         data = window.data
         step_ns = int(round(data.ts * 1e9))
