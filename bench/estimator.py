@@ -19,6 +19,7 @@ import time
 from typing import Callable, Dict, List
 
 from ctid_ros import estimate, EstimationError, reference_systems
+from ctid_ros.estimator import bound_vectors
 from ctid_ros.reference_systems import ReferenceSystem
 from ctid_ros.sensitivity import is_stable, SignalBank
 import numpy as np
@@ -42,12 +43,7 @@ def draw_start(system: ReferenceSystem, rng: np.random.Generator) -> np.ndarray:
     """Start within a factor 10 of the truth, inside the bounds, with a stable D."""
     model = system.model
     truth = model.vector(system.truth)
-    lower = np.full(truth.size, -np.inf)
-    upper = np.full(truth.size, np.inf)
-    for name, (low, high) in (system.bounds or {}).items():
-        index = model.parameters.index(name)
-        lower[index] = -np.inf if low is None else low
-        upper[index] = np.inf if high is None else high
+    lower, upper = bound_vectors(model, system.bounds)
     while True:
         start = np.clip(truth * 10.0 ** rng.uniform(-1.0, 1.0, truth.size), lower, upper)
         if is_stable(model.structure(start).den):
@@ -72,13 +68,7 @@ def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: 
 
     bounds = (-np.inf, np.inf)
     if method == 'trf' and system.bounds:
-        lower = np.full(start.size, -np.inf)
-        upper = np.full(start.size, np.inf)
-        for name, (low, high) in system.bounds.items():
-            index = model.parameters.index(name)
-            lower[index] = -np.inf if low is None else low
-            upper[index] = np.inf if high is None else high
-        bounds = (lower, upper)
+        bounds = bound_vectors(model, system.bounds)
     result = optimize.least_squares(residual, start, jac=jacobian, method=method,
                                     bounds=bounds, x_scale='jac', max_nfev=2000)
     return result.x

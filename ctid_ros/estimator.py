@@ -342,7 +342,8 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
     return state, history, f'iteration limit ({max_iterations}) reached', False
 
 
-def _bounds_arrays(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, np.ndarray]:
+def bound_vectors(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, np.ndarray]:
+    """Return lower and upper bound vectors in parameter order (a dead time >= 0)."""
     lower = np.full(len(model.parameters), -np.inf)
     upper = np.full(len(model.parameters), np.inf)
     for name, pair in (bounds or {}).items():
@@ -486,7 +487,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     if max_iterations < 1:
         raise ValueError('max_iterations must be at least 1')
     _check_excitation(data)
-    lower, upper = _bounds_arrays(model, bounds)
+    lower, upper = bound_vectors(model, bounds)
     problem = _Problem(model, data, lower, upper, intersample)
     # The matrices are tiny: threaded BLAS only adds spin-waiting (about 6x slower under load).
     with warnings.catch_warnings(), threadpool_limits(limits=1, user_api='blas'):
