@@ -28,7 +28,7 @@ from dataclasses import dataclass, fields, is_dataclass
 import functools
 import numbers
 import re
-from typing import Optional, Sequence, Tuple, Union
+from typing import Any, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import ConfigError
 import numpy as np
@@ -219,3 +219,17 @@ def message_stamp(message) -> Optional[int]:
         return None
     nanoseconds = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
     return nanoseconds or None
+
+
+def sample_stamp(msg: Any, receive_ns: int, stamp_source: str) -> int:
+    """
+    Return the stamp (ns) a message's samples are filed under (live node and replay alike).
+
+    ``header.stamp`` when ``stamp_source`` is ``'header'`` and the message has a non-zero one,
+    otherwise ``receive_ns``: the source/receive time live, the recorder's log time in a bag.
+    """
+    if stamp_source == 'header':
+        stamp = message_stamp(msg)
+        if stamp is not None:
+            return stamp
+    return int(receive_ns)

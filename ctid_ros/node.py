@@ -45,7 +45,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 from ctid_ros.buffer import capacity_for, NANOSECONDS, SampleBuffer, StreamStats
 from ctid_ros.config import find_config, IdentificationConfig, PARAMETER_NAMES, PARAMETERS
 from ctid_ros.errors import ConfigError, CtidError, DataError
-from ctid_ros.fields import extract, message_stamp, parse_field_path
+from ctid_ros.fields import extract, parse_field_path, sample_stamp
 from ctid_ros.session import history_span, IdentificationSession, Update
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -247,10 +247,9 @@ class IdentificationNode(Node):
                                    f'{" and ".join(roles)}')
 
     def _stamp(self, message, info: Dict[str, Any]) -> int:
-        if self._config.stamp_source == 'header':
-            stamp = message_stamp(message)
-            if stamp is not None:
-                return stamp
+        return sample_stamp(message, self._receive_stamp(info), self._config.stamp_source)
+
+    def _receive_stamp(self, info: Dict[str, Any]) -> int:
         clock = self.get_clock()
         if clock.ros_time_is_active:
             return clock.now().nanoseconds

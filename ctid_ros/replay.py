@@ -44,7 +44,7 @@ from ctid_ros.buffer import BufferStats, capacity_for, resample, SampleBuffer
 from ctid_ros.cli import _json_default, format_table
 from ctid_ros.config import DEFAULT_NODE_NAME, IdentificationConfig, load_params_file
 from ctid_ros.errors import BagError, DataError, EstimationError
-from ctid_ros.fields import extract, message_stamp, parse_field_path
+from ctid_ros.fields import extract, parse_field_path, sample_stamp
 from ctid_ros.session import history_span, IdentificationSession, Update
 import numpy as np
 
@@ -65,20 +65,6 @@ def resolve_topic(name: str, node_name: str = DEFAULT_NODE_NAME) -> str:
     if name.startswith('~/'):
         return f'{namespace}/{base}/{name[2:]}'
     return f'{namespace}/{name}'
-
-
-def sample_stamp(msg: Any, log_time_ns: int, stamp_source: str) -> int:
-    """
-    Return the stamp (ns) a message's samples are filed under, as the live node does.
-
-    ``header.stamp`` when ``stamp_source`` is ``'header'`` and the message has a non-zero one,
-    otherwise the receive time (in a bag: the recorder's log time).
-    """
-    if stamp_source == 'header':
-        stamp = message_stamp(msg)
-        if stamp is not None:
-            return stamp
-    return int(log_time_ns)
 
 
 class MessageSampler:

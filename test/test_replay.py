@@ -23,8 +23,8 @@ from ctid_ros.cli import main
 from ctid_ros.config import IdentificationConfig
 from ctid_ros.errors import ConfigError
 from ctid_ros.excitation import prbs
-from ctid_ros.replay import (Progress, replay_messages, resolve_topic, sample_stamp,
-                             sliding_capacity)
+from ctid_ros.fields import sample_stamp
+from ctid_ros.replay import Progress, replay_messages, resolve_topic, sliding_capacity
 from ctid_ros.session import IdentificationSession
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
