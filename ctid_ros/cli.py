@@ -103,13 +103,14 @@ def _run_fit(arguments) -> int:
                       method=arguments.method, intersample=arguments.intersample,
                       max_iterations=arguments.max_iterations)
     if arguments.json:
-        print(json.dumps(result.to_dict(), indent=2, default=_json_default))
+        print(json.dumps(result.to_dict(), indent=2, default=json_default))
     else:
         print(format_table(result))
     return 0
 
 
-def _json_default(value):
+def json_default(value):
+    """Convert numpy scalars for :func:`json.dumps` (its ``default`` hook)."""
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f'not JSON serialisable: {type(value).__name__}')

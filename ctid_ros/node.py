@@ -42,11 +42,11 @@ import threading
 import time
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
-from ctid_ros.buffer import capacity_for, NANOSECONDS, SampleBuffer, StreamStats
+from ctid_ros.buffer import NANOSECONDS, SampleBuffer, StreamStats
 from ctid_ros.config import find_config, IdentificationConfig, PARAMETER_NAMES, PARAMETERS
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.fields import extract, parse_field_path, sample_stamp
-from ctid_ros.session import history_span, IdentificationSession, Update
+from ctid_ros.session import buffer_capacity, IdentificationSession, Update
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
@@ -198,9 +198,8 @@ class IdentificationNode(Node):
         return self._buffer
 
     def _new_buffer(self, config: IdentificationConfig) -> SampleBuffer:
-        span = history_span(config) + config.max_gap + config.reorder_horizon
         rate = max(1.0 / config.sample_time, MAX_RATE)
-        return SampleBuffer(capacity_for(span, rate), max_gap=config.max_gap,
+        return SampleBuffer(buffer_capacity(config, rate), max_gap=config.max_gap,
                             reorder_horizon=config.reorder_horizon,
                             names=(f'{config.input_topic} {config.input_field}',
                                    f'{config.output_topic} {config.output_field}'))

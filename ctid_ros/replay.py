@@ -40,12 +40,12 @@ import sys
 from typing import Any, Iterable, Iterator, List, Optional, Sequence, TextIO, Tuple
 
 from ctid_ros.bag import BagReader, EstimateWriter, open_bag, PathLike
-from ctid_ros.buffer import BufferStats, capacity_for, resample, SampleBuffer
-from ctid_ros.cli import _json_default, format_table
+from ctid_ros.buffer import BufferStats, resample, SampleBuffer
+from ctid_ros.cli import format_table, json_default
 from ctid_ros.config import DEFAULT_NODE_NAME, IdentificationConfig, load_params_file
 from ctid_ros.errors import BagError, DataError, EstimationError
 from ctid_ros.fields import extract, parse_field_path, sample_stamp
-from ctid_ros.session import history_span, IdentificationSession, Update
+from ctid_ros.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
 
 NANOSECONDS = 1_000_000_000
@@ -123,11 +123,6 @@ class Replay:
     skipped: List[Tuple[int, str]]
 
 
-def sliding_capacity(config: IdentificationConfig, rate_hz: float) -> int:
-    """Size the buffer for ``window`` plus ``max_gap`` and the reorder horizon at ``rate_hz``."""
-    return capacity_for(history_span(config) + config.max_gap + config.reorder_horizon, rate_hz)
-
-
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,
                     sliding: bool = False, topics: Optional[Tuple[str, str]] = None,
                     capacity: Optional[int] = None) -> Replay:
@@ -151,8 +146,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         Absolute input and output topics; default the configured ones resolved for a node
         ``ctid_node`` in the root namespace.
     capacity : int, optional
-        Sliding mode: samples kept per stream; default :func:`sliding_capacity` at one message
-        per ``sample_time``. Ignored in the default mode, which keeps the whole span.
+        Sliding mode: samples kept per stream; default
+        :func:`~ctid_ros.session.buffer_capacity` at one message per ``sample_time``. Ignored in the default mode, which keeps the whole span.
 
     Returns
     -------
@@ -175,7 +170,7 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     names = (f'input {topics[0]} ({config.input_field})',
              f'output {topics[1]} ({config.output_field})')
     if sliding:
-        capacity = capacity or sliding_capacity(config, 1.0 / config.sample_time)
+        capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
         return _replay_sliding(messages, config, sampler, names, capacity)
     return _replay_span(messages, config, sampler, names)
 
@@ -490,7 +485,7 @@ def _capacity(bag: BagReader, config: IdentificationConfig, topics: Sequence[str
     if None in counts or bag.duration_s <= 0:
         return None
     rate = max(max(counts) / bag.duration_s, 1.0 / config.sample_time)
-    return sliding_capacity(config, rate)
+    return buffer_capacity(config, rate)
 
 
 def _report(arguments: argparse.Namespace, replay: Replay, topics: Tuple[str, str],
@@ -501,7 +496,7 @@ def _report(arguments: argparse.Namespace, replay: Replay, topics: Tuple[str, st
     if arguments.json:
         objects = [update.to_dict() for update in replay.updates]
         print(json.dumps(objects if arguments.sliding else objects[0], indent=2,
-                         default=_json_default))
+                         default=json_default))
         return
     if arguments.sliding:
         print(format_series(replay.updates, origin_ns))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import time
 from typing import Any, Dict, Optional, Tuple
 
-from ctid_ros.buffer import SampleBuffer, Window
+from ctid_ros.buffer import capacity_for, SampleBuffer, Window
 from ctid_ros.config import IdentificationConfig
 from ctid_ros.estimator import Estimate, estimate, settling_time
 import numpy as np
@@ -104,6 +104,11 @@ def history_span(config: IdentificationConfig) -> float:
 
     """
     return config.window + (config.transient if config.transient >= 0 else config.window)
+
+
+def buffer_capacity(config: IdentificationConfig, rate_hz: float) -> int:
+    """Size a buffer for :func:`history_span` plus ``max_gap`` and the reorder horizon."""
+    return capacity_for(history_span(config) + config.max_gap + config.reorder_horizon, rate_hz)
 
 
 class IdentificationSession:

@@ -24,8 +24,8 @@ from ctid_ros.config import IdentificationConfig
 from ctid_ros.errors import ConfigError
 from ctid_ros.excitation import prbs
 from ctid_ros.fields import sample_stamp
-from ctid_ros.replay import Progress, replay_messages, resolve_topic, sliding_capacity
-from ctid_ros.session import IdentificationSession
+from ctid_ros.replay import Progress, replay_messages, resolve_topic
+from ctid_ros.session import buffer_capacity, IdentificationSession
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
 import pytest
@@ -402,7 +402,7 @@ def test_stamp_rule_and_topic_resolution():
     config = IdentificationConfig(model='K/(T*s + 1)', window=10.0, max_gap=0.5,
                                   reorder_horizon=0.05)
     # Window plus an automatic transient of at most one window, gap and horizon, twice over.
-    assert sliding_capacity(config, 100.0) == 4110
+    assert buffer_capacity(config, 100.0) == 4110
 
 
 def test_progress_bar_only_on_a_terminal():
