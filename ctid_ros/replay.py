@@ -147,7 +147,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         ``ctid_node`` in the root namespace.
     capacity : int, optional
         Sliding mode: samples kept per stream; default
-        :func:`~ctid_ros.session.buffer_capacity` at one message per ``sample_time``. Ignored in the default mode, which keeps the whole span.
+        :func:`~ctid_ros.session.buffer_capacity` at one message per ``sample_time``.
+        Ignored in the default mode, which keeps the whole span.
 
     Returns
     -------
