@@ -29,6 +29,29 @@ def as_signal(values, name: str) -> np.ndarray:
     return array
 
 
+def as_inputs(values, count: Optional[int] = None) -> np.ndarray:
+    """
+    Validate the input samples: an (N, count) float array (a copy).
+
+    A 1-D array is one input; a 2-D array has one column per input. ``count=None`` accepts any
+    number of columns.
+    """
+    try:
+        raw = np.asarray(values)
+    except ValueError as error:
+        raise DataError(f'u must be numeric: {error}') from None
+    if raw.ndim == 2:
+        columns = [as_signal(raw[:, index], f'input column {index}')
+                   for index in range(raw.shape[1])]
+        matrix = np.column_stack(columns) if columns else np.zeros((raw.shape[0], 0))
+    else:
+        matrix = as_signal(raw, 'u')[:, None]
+    if count is not None and matrix.shape[1] != count:
+        raise DataError(f'the model has {count} input(s), the data have {matrix.shape[1]} '
+                        'input column(s)')
+    return matrix
+
+
 def _real(value, what: str) -> float:
     """Return a real scalar (not text, not a bool) as float."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
@@ -43,8 +66,11 @@ class Data:
 
     Parameters
     ----------
-    u, y : array_like
-        Equal-length, finite samples at ``t_k = t0 + k*ts``.
+    u : array_like
+        Input samples, shape (N,), or (N, m) for a model with m inputs (columns in the order of
+        ``Model.inputs``).
+    y : array_like
+        Output samples, shape (N,). All samples are finite and at ``t_k = t0 + k*ts``.
     ts : float
         Sample time in seconds (> 0).
     t0 : float, optional
@@ -63,10 +89,11 @@ class Data:
     t0: float = 0.0
 
     def __post_init__(self):
-        u = as_signal(self.u, 'u')
+        u = as_inputs(self.u)
+        u = u[:, 0] if np.ndim(self.u) != 2 else u
         y = as_signal(self.y, 'y')
-        if u.size != y.size:
-            raise DataError(f'u and y must have the same length, got {u.size} and {y.size}')
+        if u.shape[0] != y.size:
+            raise DataError(f'u and y must have the same length, got {u.shape[0]} and {y.size}')
         ts = _real(self.ts, 'sample time')
         if not (np.isfinite(ts) and ts > 0):
             raise DataError(f'sample time must be positive and finite, got {self.ts!r}')
@@ -85,6 +112,28 @@ class Data:
     def time(self) -> np.ndarray:
         """Return the sample instants in seconds."""
         return self.t0 + self.ts * np.arange(self.y.size)
+
+    @property
+    def input_count(self) -> int:
+        """Return the number of input signals (columns of ``u``)."""
+        return 1 if self.u.ndim == 1 else self.u.shape[1]
+
+    def detrend(self, kind: str = 'mean') -> 'Data':
+        """
+        Return the data with the operating point removed from ``u`` and ``y``.
+
+        Parameters
+        ----------
+        kind : {'mean', 'initial'}
+            Subtract the means (as MATLAB's ``detrend(data, 0)``), or the first samples (for a
+            record that starts in equilibrium).
+
+        """
+        if kind == 'mean':
+            return Data(self.u - self.u.mean(axis=0), self.y - self.y.mean(), self.ts, self.t0)
+        if kind == 'initial':
+            return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0)
+        raise DataError(f"detrend kind must be 'mean' or 'initial', got {kind!r}")
 
     def segment(self, start: int, stop: Optional[int] = None) -> 'Data':
         """Return samples ``start:stop`` (Python slice rules) as new data, times kept."""

@@ -23,13 +23,17 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import warnings
 
 from ctid_ros.data import Data
-from ctid_ros.errors import EstimationError, ModelError
+from ctid_ros.errors import DataError, EstimationError, ModelError
+from ctid_ros.integrators import default_cutoff, StabilizedModel
 from ctid_ros.model import Model, Structure
 from ctid_ros.sensitivity import is_stable, Linearization, SignalBank
+from ctid_ros.simulation import ContinuousFilter
 import numpy as np
+from scipy import linalg
 from threadpoolctl import threadpool_limits
 
 METHODS = ('iv', 'ls', 'gn')
+INITIAL_STATES = ('zero', 'estimate')
 Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
 Initial = Union[str, None, Mapping[str, float]]
 
@@ -63,7 +67,8 @@ class Estimate:
     covariance : ndarray
         Parameter covariance in ``model.parameters`` order.
     fit : float
-        Normalised fit in percent, ``100 (1 - |y - yhat| / |y - mean(y)|)`` as MATLAB's compare.
+        Normalised fit in percent, ``100 (1 - |y - yhat| / |y - mean(y)|)`` as MATLAB's compare,
+        on the fitted samples (for an integrating model: of the high-passed output).
     converged : bool
         True if a convergence test (not the iteration limit or a failed step) stopped it.
     iterations : int
@@ -82,6 +87,9 @@ class Estimate:
         Conditions a user should know about (active bounds, weak excitation, ...).
     delay_profile : list of (tau, cost)
         Costs of the dead-time grid search, if one ran.
+    initial_state, output_offset, integrator_cutoff
+        The options of :func:`estimate` that shaped the fit (:meth:`compare` uses the first
+        two on validation data).
 
     """
 
@@ -100,6 +108,9 @@ class Estimate:
     intersample: str = 'zoh'
     warnings: List[str] = field(default_factory=list)
     delay_profile: List[Tuple[float, float]] = field(default_factory=list)
+    initial_state: str = 'zero'
+    output_offset: bool = False
+    integrator_cutoff: Optional[float] = None
 
     @property
     def theta(self) -> np.ndarray:
@@ -116,9 +127,24 @@ class Estimate:
             raise ValueError('give the sample time ts when simulating an input array')
         return self.model.simulate(self.params, data, ts, intersample=self.intersample)
 
+    def predict(self, data: Data) -> np.ndarray:
+        """
+        Return the simulated output on ``data`` as :meth:`compare` sees it.
+
+        The model response to ``data.u``, plus an initial-state response and/or a constant
+        output offset fitted to ``data.y`` by least squares if the estimation estimated them.
+        An integrating model starts at rest at ``data.y[0]``.
+        """
+        output = self.simulate(data)
+        if self.model.integrators:
+            output = output + data.y[0]
+        basis = nuisance_basis(self.model.structure(self.params).den, len(data), data.ts,
+                               self.initial_state == 'estimate', self.output_offset)
+        return _fitted(data.y, output, basis)
+
     def compare(self, data: Data) -> float:
-        """Fit in percent of the identified model on (validation) ``data``."""
-        return fit_percent(data.y, self.simulate(data))
+        """Fit in percent of the identified model on (validation) ``data``, see :meth:`predict`."""
+        return fit_percent(data.y, self.predict(data))
 
     def to_dict(self) -> dict:
         """Summary as plain JSON-serialisable types (the ``ctid fit --json`` object)."""
@@ -142,16 +168,47 @@ def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
     return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / spread))
 
 
+def nuisance_basis(den: np.ndarray, count: int, ts: float, initial_state: bool,
+                   output_offset: bool) -> Optional[np.ndarray]:
+    """
+    Return an orthonormal basis of the output components fitted besides ``G u``, or None.
+
+    ``initial_state``: the free responses of ``1/D`` (a nonzero initial state, algorithm notes
+    section 5.8); ``output_offset``: a constant. Their coefficients enter linearly, so they are
+    projected out of every residual, regressor and instrument (variable projection).
+    """
+    columns = []
+    if initial_state:
+        columns.append(ContinuousFilter(den).discretize(ts).free_responses(count))
+    if output_offset:
+        columns.append(np.ones((count, 1)))
+    if not columns:
+        return None
+    matrix = np.hstack(columns)
+    norms = np.linalg.norm(matrix, axis=0)
+    return linalg.orth(matrix / np.where(norms > 0.0, norms, 1.0))
+
+
+def _fitted(measured: np.ndarray, output: np.ndarray, basis: Optional[np.ndarray]
+            ) -> np.ndarray:
+    """Model output plus its least-squares fitted nuisance part."""
+    if basis is None:
+        return output
+    return output + basis @ (basis.T @ (measured - output))
+
+
 class _Problem:
     """Data, model and constraints of one estimation; evaluates costs and directions."""
 
     def __init__(self, model: Model, data: Data, lower: np.ndarray, upper: np.ndarray,
-                 intersample: str):
+                 intersample: str, initial_state: bool = False, output_offset: bool = False):
         self.model = model
         self.data = data
         self.lower = lower
         self.upper = upper
         self.bank = SignalBank(model, data.u, data.y, data.ts, intersample)
+        self.initial_state = initial_state
+        self.output_offset = output_offset
         self.evaluations = 0
         self.skip = 0
         self._leading_sign = None
@@ -161,12 +218,29 @@ class _Problem:
         """Output samples that are fitted (after the excluded transient)."""
         return self.data.y[self.skip:]
 
+    def _basis(self, structure: Structure) -> Optional[np.ndarray]:
+        basis = nuisance_basis(structure.den, len(self.data), self.data.ts,
+                               self.initial_state, self.output_offset)
+        return None if basis is None else linalg.orth(basis[self.skip:])
+
+    def prediction(self, structure: Structure) -> np.ndarray:
+        """Model output on the fitted samples, with the fitted initial state and offset."""
+        return _fitted(self.measured, self.bank.output(structure)[self.skip:],
+                       self._basis(structure))
+
     def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
-        """Output, regressors and instruments on the fitted samples."""
+        """Output, regressors and instruments on the fitted samples (nuisance projected out)."""
         lin = self.bank.linearize(structure, regressors)
-        return Linearization(lin.output[self.skip:],
-                             None if lin.phi is None else lin.phi[self.skip:],
-                             lin.psi[self.skip:])
+        output, phi, psi = (lin.output[self.skip:],
+                            None if lin.phi is None else lin.phi[self.skip:],
+                            lin.psi[self.skip:])
+        basis = self._basis(structure)
+        if basis is not None:
+            output = _fitted(self.measured, output, basis)
+            psi = psi - basis @ (basis.T @ psi)
+            if phi is not None:
+                phi = phi - basis @ (basis.T @ phi)
+        return Linearization(output, phi, psi)
 
     def exclude_transient(self, seconds: Union[float, str], structure: Structure) -> None:
         """
@@ -204,7 +278,7 @@ class _Problem:
 
     def cost(self, structure: Structure) -> float:
         self.evaluations += 1
-        error = self.measured - self.bank.output(structure)[self.skip:]
+        error = self.measured - self.prediction(structure)
         return 0.5 * float(error @ error)
 
 
@@ -374,10 +448,15 @@ def delay_parameter(model: Model) -> Optional[int]:
     return None
 
 
-def _check_excitation(data: Data) -> None:
-    if np.ptp(data.u) == 0.0:
-        raise EstimationError('the input is constant: it does not excite the system, so no '
-                              'dynamic parameter can be identified')
+def _check_excitation(model: Model, data: Data) -> None:
+    if data.input_count != len(model.inputs):
+        raise DataError(f'the model has {len(model.inputs)} input(s) '
+                        f'({", ".join(model.inputs)}), the data have {data.input_count}')
+    spans = np.ptp(data.u.reshape(len(data), -1), axis=0)
+    for name, span in zip(model.inputs, spans):
+        if span == 0.0:
+            raise EstimationError(f'the input {name} is constant: it does not excite the '
+                                  'system, so no dynamic parameter can be identified')
     if np.ptp(data.y) == 0.0:
         raise EstimationError('the output is constant: the data carry no information about '
                               'the dynamics (is the output topic/column the right one?)')
@@ -431,7 +510,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
              bounds: Optional[Bounds] = None, method: str = 'iv', intersample: str = 'zoh',
              max_iterations: int = 100, tolerance: float = 1e-8,
              delay_range: Optional[Tuple[float, float]] = None,
-             transient: Union[float, str] = 0.0) -> Estimate:
+             transient: Union[float, str] = 0.0, initial_state: str = 'zero',
+             output_offset: bool = False, integrator_cutoff: Optional[float] = None
+             ) -> Estimate:
     """
     Estimate the parameters of a grey-box continuous-time model from sampled data.
 
@@ -439,9 +520,12 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     ----------
     model : Model
         Model structure (open loop, or closed loop with a known controller; then ``data.u`` is
-        the reference ``r``).
+        the reference ``r``). Integrators (``D = s^k D'``) are fitted through the exact stable
+        reformulation of :mod:`ctid_ros.integrators`.
     data : Data
-        Uniformly sampled input/output data, starting at rest.
+        Uniformly sampled input/output data (one column of ``u`` per model input), starting at
+        rest unless ``initial_state``/``transient`` say otherwise. Offsets are not removed: use
+        :meth:`Data.detrend`, ``output_offset`` or a constant term of a model equation.
     initial : dict, 'auto' or None
         Initial values by parameter name. Missing names (or ``'auto'``/None) are initialised
         automatically from a state-variable-filter least-squares fit with multi-start.
@@ -466,6 +550,14 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         not start at rest (e.g. a window cut from a running plant). ``'auto'``: five times the
         slowest time constant of the starting model plus its dead time (at most half of the
         record). Default 0: the data start at rest.
+    initial_state : {'zero', 'estimate'}
+        ``'estimate'``: fit the response of an unknown initial state (the free responses of
+        ``1/D``) along with the parameters, for records that do not start at rest.
+    output_offset : bool
+        Fit a constant added to the output (an unknown operating point of ``y``).
+    integrator_cutoff : float, optional
+        Corner in rad/s of the high pass applied to the output of an integrating model; default
+        ``20 pi / T`` for a record of ``T`` seconds (ten periods per record).
 
     Returns
     -------
@@ -486,9 +578,19 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         raise ValueError(f'method must be one of {METHODS}, got {method!r}')
     if max_iterations < 1:
         raise ValueError('max_iterations must be at least 1')
-    _check_excitation(data)
+    if initial_state not in INITIAL_STATES:
+        raise ValueError(f'initial_state must be one of {INITIAL_STATES}, got {initial_state!r}')
+    _check_excitation(model, data)
     lower, upper = bound_vectors(model, bounds)
-    problem = _Problem(model, data, lower, upper, intersample)
+    fitted_model, fitted_data, cutoff = model, data, None
+    if model.integrators:
+        cutoff = default_cutoff(len(data) * data.ts) if integrator_cutoff is None \
+            else float(integrator_cutoff)
+        fitted_model = StabilizedModel(model, cutoff)
+        fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
+                           data.t0)
+    problem = _Problem(fitted_model, fitted_data, lower, upper, intersample,
+                       initial_state == 'estimate', output_offset)
     # The matrices are tiny: threaded BLAS only adds spin-waiting (about 6x slower under load).
     with warnings.catch_warnings(), threadpool_limits(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
@@ -524,12 +626,13 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         covariance, variance, condition = _covariance(problem, final)
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     notes = _warnings(problem, final, converged, reason)
-    fit = fit_percent(problem.measured, problem.bank.output(final.structure)[problem.skip:])
+    fit = fit_percent(problem.measured, problem.prediction(final.structure))
     return Estimate(
         model=model, params=model.as_dict(final.theta), std=model.as_dict(std),
         covariance=covariance, fit=fit, converged=converged, iterations=len(history),
         cost=final.cost, stop_reason=reason, history=history, noise_variance=variance,
-        condition=condition, intersample=intersample, warnings=notes, delay_profile=profile)
+        condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
+        initial_state=initial_state, output_offset=output_offset, integrator_cutoff=cutoff)
 
 
 def _warnings(problem: _Problem, state: _State, converged: bool, reason: str) -> List[str]:

@@ -6,6 +6,7 @@ handed to ``eval``, ``sympify`` or ``parse_expr``. This module tokenises the tex
 builds the sympy expression with a small recursive-descent parser that knows exactly one
 grammar::
 
+    equation   := expression ('=' expression)?     (model equations only)
     expression := term (('+' | '-') term)*
     term       := unary (('*' | '/') unary)*
     unary      := ('+' | '-') unary | power
@@ -51,7 +52,7 @@ _TOKEN = re.compile(
     r'\s*(?:'
     r'(?P<number>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)'
     r'|(?P<name>[A-Za-z_][A-Za-z0-9_]*)'
-    r'|(?P<op>\*\*|[-+*/^()])'
+    r'|(?P<op>\*\*|[-+*/^()=])'
     r')', re.ASCII)
 
 
@@ -144,7 +145,7 @@ def tokenize(text: str) -> List[Token]:
             bad = text[position:].lstrip(_ASCII_SPACE)
             column = len(text) - len(bad)
             raise ModelError(f'unexpected character {bad[0]!r} at column {column + 1}; only '
-                             'numbers, names, + - * / ** ^ ( ) and exp(...) are allowed'
+                             'numbers, names, + - * / ** ^ ( ), = and exp(...) are allowed'
                              + _pointer(text, column))
         kind = match.lastgroup
         column = match.start(kind)
@@ -193,10 +194,20 @@ class _Parser:
             raise self.error(f'expected {text!r} but found {found}', token)
         return self.advance()
 
-    def parse(self) -> sp.Expr:
+    def parse(self, equation: bool = False) -> List[sp.Expr]:
         if self.current.kind == 'end':
             raise ModelError('model expression is empty')
         result, size = self.expression()
+        sides = [result]
+        if equation and self.current.text == '=':
+            sign = self.advance()
+            if self.current.kind == 'end':
+                raise self.error("nothing after '='", self.current)
+            right, right_size = self.expression()
+            sides.append(right)
+            size = self.checked(size + right_size, sign)
+        if self.current.text == '=':
+            raise self.error("'=' is only allowed once, in a model equation", self.current)
         if self.current.kind != 'end':
             raise self.error(f'unexpected {self.current.text!r}', self.current)
         work = (size.num_terms + size.den_terms) * max(1, len(self.symbols))
@@ -204,7 +215,7 @@ class _Parser:
             raise ModelError(f'model expression too large: up to {size.num_terms} + '
                              f'{size.den_terms} terms in {len(self.symbols)} parameters '
                              f'exceed the limit of {MAX_WORK} (terms times parameters)')
-        return result
+        return sides
 
     def nested(self, token: Token):
         self.depth += 1
@@ -353,5 +364,34 @@ def parse_expression(text: str) -> tuple:
 
     """
     parser = _Parser(text)
-    expression = parser.parse()
+    expression, = parser.parse()
     return expression, tuple(parser.symbols.values())
+
+
+def parse_equation(text: str) -> tuple:
+    """
+    Parse a model equation ``left = right`` (or a single expression) safely.
+
+    Parameters
+    ----------
+    text : str
+        For example ``"M*s**2*y + Fv*s*y = 35.15*u - Fc*w - off"``; ``s`` acts on the signal
+        it multiplies.
+
+    Returns
+    -------
+    sides : list of sympy.Expr
+        ``[left, right]``, or ``[expression]`` when the text has no ``=``.
+    names : tuple of sympy.Symbol
+        Every name other than ``s`` and ``pi`` (signals and parameters) in order of first
+        appearance.
+
+    Raises
+    ------
+    ModelError
+        As :func:`parse_expression`; also for more than one ``=``.
+
+    """
+    parser = _Parser(text)
+    sides = parser.parse(equation=True)
+    return sides, tuple(parser.symbols.values())

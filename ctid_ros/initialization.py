@@ -138,21 +138,33 @@ def _starts(problem, hints, pinned, delay_index, tau, rng) -> List[np.ndarray]:
 
 
 def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
-    """Triangular factor ``R`` of ``[p^j/E y, -p^j/E u]`` ordered like ``(den, num)``."""
+    """
+    Triangular factor ``R`` of ``[p^j/E y, -p^j/E u_c]`` ordered like ``(den, num)``.
+
+    Initial-state and offset components of the equation error (if the problem estimates them)
+    are projected out first.
+    """
     model = problem.model
     data = problem.data
     n, m = model.den_degree, model.num_degree
     filter_den = np.poly(np.full(n, -lam)) if n else np.ones(1)
     powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
-    y_parts = ContinuousFilter(filter_den).discretize(data.ts, 0.0, 'foh').outputs(
-        data.y, powers[::-1])
-    u_parts = ContinuousFilter(filter_den).discretize(
-        data.ts, tau, problem.bank.intersample).outputs(data.u, powers[m::-1])
-    columns = np.vstack([y_parts, -u_parts]).T
+    realization = ContinuousFilter(filter_den)
+    y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
+    bank_u = realization.discretize(data.ts, tau, problem.bank.intersample)
+    u_parts = [bank_u.outputs(channel, powers[m::-1]) for channel in problem.bank.channels.T]
+    columns = np.vstack([y_parts] + [-part for part in u_parts]).T
+    nuisance = []
+    if problem.initial_state:
+        nuisance.append(realization.discretize(data.ts).free_responses(len(data)))
+    if problem.output_offset:
+        nuisance.append(bank_u.outputs(np.ones(len(data)), [np.ones(1)]).T)
+    columns = np.hstack(nuisance + [columns])
     scales = np.linalg.norm(columns, axis=0)
     scales[scales == 0.0] = 1.0
     triangular = np.linalg.qr(columns / scales, mode='r')
-    return triangular / scales
+    leading = columns.shape[1] - (n + 1) - len(u_parts) * (m + 1)
+    return (triangular / scales)[leading:, leading:]
 
 
 def _equation_error_candidates(problem, hints, pinned, delay_index, tau,
@@ -176,13 +188,14 @@ def _equation_error_candidates(problem, hints, pinned, delay_index, tau,
             theta = start.copy()
             theta[free] = values
             structure = model.structure(theta)
-            return factor @ np.concatenate([structure.den, structure.num])
+            return factor @ np.concatenate([structure.den, structure.num.ravel()])
 
         def jacobian(values, start):
             theta = start.copy()
             theta[free] = values
             structure = model.structure(theta)
-            grad = np.hstack([structure.den_jacobian, structure.num_jacobian])[free]
+            grad = np.hstack([structure.den_jacobian,
+                              structure.num_jacobian.reshape(theta.size, -1)])[free]
             return factor @ grad.T
 
         for start in starts:

@@ -2,7 +2,8 @@
 Filtered signals of one iteration of the projection method.
 
 At the current estimate ``theta`` with ``G = N/D * exp(-tau s)`` this module computes, from the
-sampled input ``u`` and output ``y``, with three state simulations sharing one denominator:
+sampled input ``u`` and output ``y``, with three state simulations sharing one denominator
+(per input channel: a model with several inputs sums the terms of its numerators ``N_j``):
 
 * the model output ``yhat = G u`` (u through ``1/D``, with the dead time);
 * the regressors ``phi_i = [dN/dtheta_i e^{-tau s} u - dD/dtheta_i y] / D`` (y through ``1/D``,
@@ -53,53 +54,62 @@ class SignalBank:
     def __init__(self, model: Model, u: np.ndarray, y: np.ndarray, ts: float,
                  intersample: str = 'zoh'):
         self.model = model
-        self.u = u
+        self.channels = model.input_channels(u)
         self.y = y
         self.ts = ts
         self.intersample = intersample
 
     def output(self, structure: Structure) -> np.ndarray:
-        """Model output ``G u`` at a structure (no sensitivities)."""
+        """Model output ``sum_j N_j/D u_j`` at a structure (no sensitivities)."""
         discrete = ContinuousFilter(structure.den).discretize(
             self.ts, structure.delay, self.intersample)
-        return discrete.outputs(self.u, [structure.num])[0]
+        return sum(discrete.outputs(self.channels[:, j], [num])[0]
+                   for j, num in enumerate(structure.num))
 
     def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
         """Return the output, the regressors ``phi`` (if requested) and instruments ``psi``."""
-        num, den = structure.num, structure.den
+        den = structure.den
         order = den.size - 1
         params = structure.num_jacobian.shape[0]
-        num_jac = np.array([_pad(row, order + 1) for row in structure.num_jacobian])
-        den_jac = structure.den_jacobian
-        num_full = _pad(num, order + 1)
         delay_used = np.any(structure.delay_gradient != 0.0)
-        if delay_used and num_full[0] != 0.0:
-            raise EstimationError(
-                'cannot estimate the dead time of a biproper model (numerator and denominator '
-                'of equal degree): its output jumps with the held input; fix the dead time or '
-                'use a strictly proper model')
         realization = ContinuousFilter(den)
         bank_u = realization.discretize(self.ts, structure.delay, self.intersample)
-        u_numerators = [num_full]
-        if delay_used:
-            u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
-        if regressors:
-            u_numerators.extend(num_jac)
-        u_parts = bank_u.outputs(self.u, u_numerators)
-        output = u_parts[0]
-        delay_term = np.zeros((params, output.size))
-        if delay_used:
-            delay_term = -np.outer(structure.delay_gradient, u_parts[1])
-        squared = np.polymul(den, den)
-        sensitivity_numerators = [np.polysub(np.polymul(num_jac[i], den),
-                                             np.polymul(den_jac[i], num_full))
-                                  for i in range(params)]
-        bank_sensitivity = ContinuousFilter(squared).discretize(
+        bank_sensitivity = ContinuousFilter(np.polymul(den, den)).discretize(
             self.ts, structure.delay, self.intersample)
-        psi = bank_sensitivity.outputs(self.u, sensitivity_numerators) + delay_term
+        output = np.zeros(self.y.size)
+        derivative = np.zeros(self.y.size)
+        psi = np.zeros((params, self.y.size))
+        u_regressors = np.zeros((params, self.y.size))
+        for j, num in enumerate(structure.num):
+            signal = self.channels[:, j]
+            num_full = _pad(num, order + 1)
+            num_jac = np.array([_pad(row, order + 1) for row in structure.num_jacobian[:, j]])
+            if delay_used and num_full[0] != 0.0:
+                raise EstimationError(
+                    'cannot estimate the dead time of a biproper model (numerator and '
+                    'denominator of equal degree): its output jumps with the held input; fix '
+                    'the dead time or use a strictly proper model')
+            u_numerators = [num_full]
+            if delay_used:
+                u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
+            if regressors:
+                u_numerators.extend(num_jac)
+            u_parts = bank_u.outputs(signal, u_numerators)
+            output += u_parts[0]
+            if delay_used:
+                derivative += u_parts[1]
+            if regressors:
+                u_regressors += u_parts[-params:]
+            sensitivity_numerators = [
+                np.polysub(np.polymul(num_jac[i], den),
+                           np.polymul(structure.den_jacobian[i], num_full))
+                for i in range(params)]
+            psi += bank_sensitivity.outputs(signal, sensitivity_numerators)
+        delay_term = -np.outer(structure.delay_gradient, derivative)
+        psi += delay_term
         phi = None
         if regressors:
             bank_y = realization.discretize(self.ts, 0.0, 'foh')
-            y_parts = bank_y.outputs(self.y, list(den_jac))
-            phi = u_parts[-params:] - y_parts + delay_term
-        return Linearization(output, None if phi is None else phi.T, psi.T)
+            y_parts = bank_y.outputs(self.y, list(structure.den_jacobian))
+            phi = (u_regressors - y_parts + delay_term).T
+        return Linearization(output, phi, psi.T)

@@ -240,6 +240,23 @@ class DiscreteFilter:
             forcing += np.outer(_sampled(values, sample), vector)
         return _propagate(self.transition, forcing)
 
+    def free_responses(self, count: int) -> np.ndarray:
+        """
+        Basis of the free (initial-state) responses of ``1/D`` at ``k = 0..count-1``.
+
+        Returns ``(count, n)``: column ``i`` is the output ``1/D`` would show from the initial
+        state ``e_i`` (the realisation is observable, so the columns span every response of a
+        nonzero initial state).
+        """
+        n = self.continuous.order
+        if n == 0:
+            return np.zeros((count, 0))
+        row, _ = self.continuous.output_map(np.ones(1))
+        forcing = np.zeros((count + 1, n))
+        forcing[0] = row
+        # x[k+1] = A^T x[k] + f[k] gives x[k+1] = (row A^k)^T: all n columns in one run.
+        return _propagate(self.transition.T, forcing)[1:]
+
     def delayed_input(self, values: np.ndarray) -> np.ndarray:
         """Return the delayed, held input at the sample instants (the feedthrough signal)."""
         result = np.zeros(values.shape[0])

@@ -39,7 +39,7 @@ def test_valid_data():
     (np.ones(10), np.ones(10), True, 'number'),
     (np.ones(10), np.ones(10), np.array([0.1]), 'number'),
     (np.ones(10), np.ones(10), 0.1 + 0.1j, 'number'),
-    (np.ones((10, 1)), np.ones(10), 0.1, '1-D'),
+    (np.ones((10, 1, 2)), np.ones(10), 0.1, '1-D'),
     (np.ones(10), np.ones((2, 5)), 0.1, '1-D'),
     (1.0, 1.0, 0.1, '1-D'),
     (['a', 'b'], [1.0, 2.0], 0.1, 'numeric'),

@@ -77,10 +77,10 @@ def test_mass_spring_damper_structure():
     assert not model.has_delay
     assert (model.num_degree, model.den_degree) == (0, 2)
     structure = model.structure({'m': 0.5, 'd': 1.0, 'k': 50.0})
-    np.testing.assert_array_equal(structure.num, [1.0])
+    np.testing.assert_array_equal(structure.num[0], [1.0])
     np.testing.assert_array_equal(structure.den, [0.5, 1.0, 50.0])
     assert structure.delay == 0.0
-    np.testing.assert_array_equal(structure.num_jacobian, np.zeros((3, 1)))
+    np.testing.assert_array_equal(structure.num_jacobian[:, 0], np.zeros((3, 1)))
     np.testing.assert_array_equal(structure.den_jacobian, np.eye(3))
     np.testing.assert_array_equal(structure.delay_gradient, np.zeros(3))
     # The same structure with '^' as power and a vector of values.
@@ -100,7 +100,7 @@ def test_rao_garnier_black_box_structure():
     model = Model('(b1*s + b0)/(s**4 + a3*s**3 + a2*s**2 + a1*s + a0)')
     theta = {'b1': -6400.0, 'b0': 1600.0, 'a3': 5.0, 'a2': 408.0, 'a1': 416.0, 'a0': 1600.0}
     structure = model.structure(theta)
-    np.testing.assert_array_equal(structure.num, [-6400.0, 1600.0])
+    np.testing.assert_array_equal(structure.num[0], [-6400.0, 1600.0])
     np.testing.assert_array_equal(structure.den, [1.0, 5.0, 408.0, 416.0, 1600.0])
     np.testing.assert_allclose(np.polymul([1, 1, 4], [1, 4, 400]), structure.den)
     assert model.is_affine
@@ -110,16 +110,16 @@ def test_non_affine_structures():
     model = Model('K/((T1*s + 1)*(T2*s + 1))')
     assert not model.is_affine
     structure = model.structure({'K': 2.0, 'T1': 3.0, 'T2': 5.0})
-    np.testing.assert_allclose(structure.num, [2.0])
+    np.testing.assert_allclose(structure.num[0], [2.0])
     np.testing.assert_allclose(structure.den, [15.0, 8.0, 1.0])
     model = Model('K*w**2/(s**2 + 2*z*w*s + w**2)')
     assert not model.is_affine
     assert model.parameters == ('K', 'w', 'z')
     structure = model.structure({'K': 1.5, 'w': 3.0, 'z': 0.2})
-    np.testing.assert_allclose(structure.num, [13.5])
+    np.testing.assert_allclose(structure.num[0], [13.5])
     np.testing.assert_allclose(structure.den, [1.0, 1.2, 9.0])
     # Section 8, test 5: dN/dK = w^2, dN/dw = 2 K w, dD/dw = 2 z s + 2 w, dD/dz = 2 w s.
-    np.testing.assert_allclose(structure.num_jacobian, [[9.0], [9.0], [0.0]])
+    np.testing.assert_allclose(structure.num_jacobian[:, 0], [[9.0], [9.0], [0.0]])
     np.testing.assert_allclose(structure.den_jacobian,
                                [[0.0, 0.0, 0.0], [0.0, 0.4, 6.0], [0.0, 6.0, 0.0]])
 
@@ -128,7 +128,7 @@ def test_first_order_plus_dead_time():
     model = Model('K*exp(-tau*s)/(T*s + 1)')
     assert model.has_delay and model.delay_is_estimated and model.is_affine
     structure = model.structure({'K': 2.0, 'T': 5.0, 'tau': 1.234})
-    np.testing.assert_array_equal(structure.num, [2.0])
+    np.testing.assert_array_equal(structure.num[0], [2.0])
     np.testing.assert_array_equal(structure.den, [5.0, 1.0])
     assert structure.delay == 1.234
     np.testing.assert_array_equal(structure.delay_gradient, [0.0, 1.0, 0.0])
@@ -148,7 +148,7 @@ def test_closed_loop_structure_matches_hand_computation():
     kn, kd = np.array([4.0, 2.0]), np.array([1.0, 0.0])            # 4 + 2/s = (4s + 2)/s
     num = np.polymul(np_, kn)
     den = np.polyadd(np.polymul(dp, kd), np.polymul(np_, kn))
-    np.testing.assert_allclose(structure.num, num, rtol=1e-15)
+    np.testing.assert_allclose(structure.num[0], num, rtol=1e-15)
     np.testing.assert_allclose(structure.den, den, rtol=1e-15)
     np.testing.assert_allclose(structure.den, [m, d, k + 4.0, 2.0], rtol=1e-15)
     assert model.is_affine
@@ -162,14 +162,14 @@ def test_closed_loop_pid_matches_section_8_test_3():
     num = np.array([5.0, 20.0, 10.0])
     scale = structure.den[0] / den[0]          # N and D are defined up to a common factor
     np.testing.assert_allclose(structure.den, scale * den, rtol=1e-13)
-    np.testing.assert_allclose(structure.num, scale * num, rtol=1e-13)
+    np.testing.assert_allclose(structure.num[0], scale * num, rtol=1e-13)
     poles = np.sort_complex(np.roots(structure.den))
     np.testing.assert_allclose(poles.real, [-44.86, -2.48, -2.48, -0.678], atol=0.006)
     # D_m = Tf s^4 + s^3, D_d = Tf s^3 + s^2, D_k = Tf s^2 + s (times the same factor).
     np.testing.assert_allclose(structure.den_jacobian / scale, [
         [0.02, 1.0, 0.0, 0.0, 0.0], [0.0, 0.02, 1.0, 0.0, 0.0], [0.0, 0.0, 0.02, 1.0, 0.0]],
         atol=1e-15)
-    np.testing.assert_array_equal(structure.num_jacobian, np.zeros((3, 3)))
+    np.testing.assert_array_equal(structure.num_jacobian[:, 0], np.zeros((3, 3)))
 
 
 JACOBIAN_CASES = [
