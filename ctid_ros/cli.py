@@ -7,6 +7,10 @@ Examples
 
     ctid fit data.csv --model 'K*exp(-tau*s)/(T*s + 1)' --initial K=1,T=2
     ctid fit data.csv --model '1/(m*s**2 + d*s + k)' --controller '20 + 10/s' --json
+    ctid fit dryer.csv --model 'K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))' --detrend mean \
+        --estimate-range 1:500 --validate-range 501:1000
+    ctid fit stage.csv --model 'M*s**2*q + Fv*s*q = 35.15*v - Fc*w - off' \
+        --input v --input w --output q
 
 """
 
@@ -17,8 +21,9 @@ import sys
 from typing import Dict, List, Optional, Tuple
 
 from ctid_ros.csv_data import load_csv
-from ctid_ros.errors import CtidError
-from ctid_ros.estimator import Estimate, estimate, METHODS
+from ctid_ros.data import Data
+from ctid_ros.errors import CtidError, DataError
+from ctid_ros.estimator import Estimate, estimate, INITIAL_STATES, METHODS
 from ctid_ros.model import Model
 from ctid_ros.simulation import INTERSAMPLE
 import numpy as np
@@ -73,6 +78,32 @@ def format_table(result: Estimate) -> str:
     return '\n'.join(lines)
 
 
+def parse_range(text: str) -> Tuple[int, int]:
+    """Parse ``FIRST:LAST``, 1-based inclusive sample numbers (as MATLAB's ``z(1:500)``)."""
+    try:
+        first, last = (int(part) for part in text.split(':'))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected FIRST:LAST sample numbers, got {text!r}'
+                                         ) from None
+    if not 1 <= first <= last:
+        raise argparse.ArgumentTypeError(f'need 1 <= FIRST <= LAST, got {text!r}')
+    return first, last
+
+
+def _select(data: Data, samples: Optional[Tuple[int, int]], detrend: str, what: str) -> Data:
+    if samples is not None:
+        first, last = samples
+        if last > len(data):
+            raise DataError(f'{what} range {first}:{last} exceeds the {len(data)} samples')
+        data = data.segment(first - 1, last)
+    return data if detrend == 'none' else data.detrend(detrend)
+
+
+def _input_names(values: Optional[List[str]]) -> Tuple[str, ...]:
+    names = [name.strip() for value in (values or ['u']) for name in value.split(',')]
+    return tuple(name for name in names if name)
+
+
 def _add_fit_parser(subparsers) -> None:
     fit = subparsers.add_parser('fit', help='estimate a model from a CSV file',
                                 description='Estimate grey-box parameters from a CSV file with '
@@ -86,8 +117,23 @@ def _add_fit_parser(subparsers) -> None:
     fit.add_argument('--bounds', type=parse_bounds, default=None,
                      help='bounds NAME=LOW:HIGH,... (either side may be empty)')
     fit.add_argument('--ts', type=float, default=None, help='sample time if there is no t column')
-    fit.add_argument('--input', default='u', help='input column name (default u)')
+    fit.add_argument('--input', action='append', default=None,
+                     help='input column name (default u); repeat (or separate by commas) for '
+                     'the inputs of a model equation, which uses these names')
     fit.add_argument('--output', default='y', help='output column name (default y)')
+    fit.add_argument('--estimate-range', type=parse_range, default=None, metavar='FIRST:LAST',
+                     help='estimate on these samples only (1-based, inclusive)')
+    fit.add_argument('--validate', default=None, metavar='CSV',
+                     help='report the fit on this validation file (same columns)')
+    fit.add_argument('--validate-range', type=parse_range, default=None, metavar='FIRST:LAST',
+                     help='validation samples (of --validate, else of the estimation file)')
+    fit.add_argument('--detrend', choices=('none', 'mean', 'initial'), default='none',
+                     help='remove the operating point of every range: its means, or its first '
+                     'samples (default none: the columns are deviations already)')
+    fit.add_argument('--initial-state', choices=INITIAL_STATES, default='zero',
+                     help='zero: data start at rest (default); estimate: fit the initial state')
+    fit.add_argument('--output-offset', action='store_true',
+                     help='estimate a constant offset of the output')
     fit.add_argument('--method', choices=METHODS, default='iv')
     fit.add_argument('--intersample', choices=INTERSAMPLE, default='zoh')
     fit.add_argument('--max-iterations', type=int, default=100)
@@ -96,16 +142,31 @@ def _add_fit_parser(subparsers) -> None:
 
 
 def _run_fit(arguments) -> int:
-    model = Model(arguments.model, controller=arguments.controller)
-    data = load_csv(arguments.csv, input_column=arguments.input, output_column=arguments.output,
+    inputs = _input_names(arguments.input)
+    model = Model(arguments.model, controller=arguments.controller, inputs=inputs,
+                  output=arguments.output)
+    data = load_csv(arguments.csv, input_column=inputs, output_column=arguments.output,
                     ts=arguments.ts)
-    result = estimate(model, data, arguments.initial or 'auto', bounds=arguments.bounds,
+    estimation = _select(data, arguments.estimate_range, arguments.detrend, 'estimation')
+    result = estimate(model, estimation, arguments.initial or 'auto', bounds=arguments.bounds,
                       method=arguments.method, intersample=arguments.intersample,
-                      max_iterations=arguments.max_iterations)
+                      max_iterations=arguments.max_iterations,
+                      initial_state=arguments.initial_state,
+                      output_offset=arguments.output_offset)
+    summary = result.to_dict()
+    if arguments.validate or arguments.validate_range:
+        source = data if arguments.validate is None else load_csv(
+            arguments.validate, input_column=inputs, output_column=arguments.output,
+            ts=arguments.ts)
+        validation = _select(source, arguments.validate_range, arguments.detrend, 'validation')
+        summary['validation_fit'] = result.compare(validation)
     if arguments.json:
-        print(json.dumps(result.to_dict(), indent=2, default=json_default))
+        print(json.dumps(summary, indent=2, default=json_default))
     else:
         print(format_table(result))
+        if 'validation_fit' in summary:
+            print(f'validation fit {summary["validation_fit"]:.2f} % '
+                  f'({len(validation)} samples)')
     return 0
 
 

@@ -1,8 +1,9 @@
 """Reading input/output data from CSV files with a header line."""
 
 import csv
+import gzip
 from pathlib import Path
-from typing import Optional, Union
+from typing import Optional, Sequence, Union
 
 from ctid_ros.data import Data
 from ctid_ros.errors import DataError
@@ -37,17 +38,20 @@ def uniform_sample_time(time: np.ndarray, what: str = 'time column') -> float:
     return ts
 
 
-def load_csv(path: Union[str, Path], *, input_column: str = 'u', output_column: str = 'y',
-             time_column: str = 't', ts: Optional[float] = None) -> Data:
+def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] = 'u',
+             output_column: str = 'y', time_column: str = 't', ts: Optional[float] = None
+             ) -> Data:
     """
     Load uniformly sampled data from a CSV file whose first line names the columns.
 
     Parameters
     ----------
     path : str or Path
-        CSV file.
-    input_column, output_column : str
-        Column names of the input (reference in closed loop) and the output.
+        CSV file, optionally gzip-compressed (``.gz``).
+    input_column : str or sequence of str
+        Input column name(s); several make a multi-input ``Data`` (columns in that order).
+    output_column : str
+        Output column name.
     time_column : str
         Column of time stamps in seconds, used if present to infer and check the sample time.
     ts : float, optional
@@ -65,16 +69,19 @@ def load_csv(path: Union[str, Path], *, input_column: str = 'u', output_column: 
     """
     path = Path(path)
     try:
-        with path.open(newline='') as handle:
+        # A gzip-compressed file (name ending in .gz) is read transparently.
+        opener = gzip.open if path.suffix == '.gz' else open
+        with opener(path, 'rt', newline='') as handle:
             rows = list(csv.reader(handle))
     except OSError as error:
         raise DataError(f'cannot read {path}: {error.strerror}') from None
     if len(rows) < 2:
         raise DataError(f'{path} needs a header line and at least one row of data')
     header = [name.strip() for name in rows[0]]
+    inputs = (input_column,) if isinstance(input_column, str) else tuple(input_column)
     columns = {}
     time = time_column
-    for name in (input_column, output_column) + ((time,) if time in header else ()):
+    for name in inputs + (output_column,) + ((time,) if time in header else ()):
         if name not in header:
             raise DataError(f'{path} has no column {name!r}; its columns are {", ".join(header)}')
         index = header.index(name)
@@ -87,7 +94,10 @@ def load_csv(path: Union[str, Path], *, input_column: str = 'u', output_column: 
         if ts is not None and abs(ts - inferred) > _RELATIVE_JITTER * inferred:
             raise DataError(f'--ts {ts:g} contradicts the time column of {path} '
                             f'(sample time {inferred:g} s)')
-        return Data(columns[input_column], columns[output_column], inferred, columns[time][0])
-    if ts is None:
-        raise DataError(f'{path} has no {time!r} column: give the sample time (--ts)')
-    return Data(columns[input_column], columns[output_column], ts)
+    else:
+        if ts is None:
+            raise DataError(f'{path} has no {time!r} column: give the sample time (--ts)')
+        inferred = ts
+    signals = [columns[name] for name in inputs]
+    u = signals[0] if len(signals) == 1 else np.column_stack(signals)
+    return Data(u, columns[output_column], inferred, columns[time][0] if time in columns else 0.0)
