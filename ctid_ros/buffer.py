@@ -194,12 +194,14 @@ class _Stream:
     least ``capacity`` appends, which keeps appending O(1) amortised.
     """
 
-    def __init__(self, name: str, capacity: int, horizon_ns: int):
+    def __init__(self, name: str, capacity: int, horizon_ns: int, width: int = 1):
         self.name = name
         self.capacity = capacity
         self.horizon_ns = horizon_ns
+        self.width = width
         self._stamps = np.empty(2 * capacity, dtype=np.int64)
-        self._values = np.empty(2 * capacity, dtype=float)
+        # One value per stamp, or a row of ``width`` values (several inputs in one message).
+        self._values = np.empty(2 * capacity if width == 1 else (2 * capacity, width))
         self.clear()
 
     def clear(self) -> None:
@@ -225,9 +227,9 @@ class _Stream:
             self._values[:count] = self._values[self._start:self._stop]
             self._start, self._stop = 0, count
 
-    def append(self, stamp: int, value: float) -> Admission:
+    def append(self, stamp: int, value) -> Admission:
         self.received += 1
-        if not math.isfinite(value):
+        if not (math.isfinite(value) if self.width == 1 else np.all(np.isfinite(value))):
             self.non_finite += 1
             return Admission.NON_FINITE
         if self._stop == self._start or stamp > self._stamps[self._stop - 1]:
@@ -334,6 +336,9 @@ class SampleBuffer:
         inserted in order; older ones are dropped and counted as late.
     names : (str, str)
         How the input and output are called in error messages (e.g. ``'/plant/u data'``).
+    inputs : int
+        Values per input sample: more than one for a model with several inputs taken from one
+        message (:meth:`add_input` then takes a sequence and windows have 2-D ``u``).
 
     Notes
     -----
@@ -343,7 +348,7 @@ class SampleBuffer:
     """
 
     def __init__(self, capacity: int, *, max_gap: float = 0.5, reorder_horizon: float = 0.05,
-                 names: Tuple[str, str] = (INPUT, OUTPUT)):
+                 names: Tuple[str, str] = (INPUT, OUTPUT), inputs: int = 1):
         capacity = operator.index(capacity)
         if capacity < 2:
             raise DataError(f'capacity must be at least 2 samples, got {capacity}')
@@ -354,7 +359,7 @@ class SampleBuffer:
             raise DataError('max_gap must be positive')
         self._horizon_ns = _to_ns(reorder_horizon, 'reorder_horizon')
         self.names = tuple(names)
-        self._input = _Stream(self.names[0], capacity, self._horizon_ns)
+        self._input = _Stream(self.names[0], capacity, self._horizon_ns, operator.index(inputs))
         self._output = _Stream(self.names[1], capacity, self._horizon_ns)
         self._lock = threading.Lock()
 
@@ -363,7 +368,16 @@ class SampleBuffer:
         """Return the number of samples kept per stream."""
         return self._input.capacity
 
-    def add_input(self, stamp_ns: int, value: float) -> Admission:
+    def _input_value(self, value):
+        if self._input.width == 1:
+            return float(value)
+        row = np.asarray(value, dtype=float)
+        if row.shape != (self._input.width,):
+            raise DataError(f'an input sample needs {self._input.width} values, got shape '
+                            f'{row.shape}')
+        return row
+
+    def add_input(self, stamp_ns: int, value) -> Admission:
         """
         Append one input sample.
 
@@ -371,8 +385,8 @@ class SampleBuffer:
         ----------
         stamp_ns : int
             Time stamp in integer nanoseconds (a float is refused: seconds would be misread).
-        value : float
-            The sample.
+        value : float or sequence of float
+            The sample (one value per input).
 
         Returns
         -------
@@ -380,7 +394,7 @@ class SampleBuffer:
             Whether it was accepted, or why not.
 
         """
-        stamp, value = operator.index(stamp_ns), float(value)
+        stamp, value = operator.index(stamp_ns), self._input_value(value)
         with self._lock:
             return self._input.append(stamp, value)
 
@@ -390,9 +404,9 @@ class SampleBuffer:
         with self._lock:
             return self._output.append(stamp, value)
 
-    def add_pair(self, stamp_ns: int, u: float, y: float) -> Tuple[Admission, Admission]:
+    def add_pair(self, stamp_ns: int, u, y: float) -> Tuple[Admission, Admission]:
         """Append an input and an output carried by one message (e.g. a JointState)."""
-        stamp, u, y = operator.index(stamp_ns), float(u), float(y)
+        stamp, u, y = operator.index(stamp_ns), self._input_value(u), float(y)
         with self._lock:
             return self._input.append(stamp, u), self._output.append(stamp, y)
 
@@ -568,7 +582,7 @@ def resample(input_stamps, input_values, output_stamps, output_values, sample_ti
     input_stamps, output_stamps : array_like of int
         Stamps in integer nanoseconds, in arrival order.
     input_values, output_values : array_like of float
-        Values, one per stamp.
+        Values, one per stamp (input: one row per stamp for several inputs).
     sample_time : float
         Grid spacing in seconds.
     length : float, optional
@@ -592,15 +606,17 @@ def resample(input_stamps, input_values, output_stamps, output_values, sample_ti
                                  (names[1], output_stamps, output_values)):
         stamps = np.asarray(stamps)
         values = np.asarray(values, dtype=float)
-        if stamps.ndim != 1 or stamps.shape != values.shape:
+        if stamps.ndim != 1 or stamps.shape != values.shape[:1] or \
+                values.ndim > (2 if name == names[0] else 1):
             raise DataError(f'{name} stamps and values must be 1-D of equal length, got shapes '
                             f'{stamps.shape} and {values.shape}')
         if stamps.size and not np.issubdtype(stamps.dtype, np.integer):
             raise DataError(f'{name} stamps must be integer nanoseconds, got {stamps.dtype}')
         streams.append((stamps.tolist(), values.tolist()))
     capacity = max(2, len(streams[0][0]), len(streams[1][0]))
+    inputs = np.shape(input_values)[1] if np.ndim(input_values) == 2 else 1
     buffer = SampleBuffer(capacity, max_gap=max_gap, reorder_horizon=reorder_horizon,
-                          names=names)
+                          names=names, inputs=inputs)
     for add, (stamps, values) in zip((buffer.add_input, buffer.add_output), streams):
         for stamp, value in zip(stamps, values):
             add(stamp, value)

@@ -29,7 +29,7 @@ import sys
 from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, ModelError
-from ctid_ros.estimator import METHODS
+from ctid_ros.estimator import INITIAL_STATES, METHODS
 from ctid_ros.fields import parse_field_path
 from ctid_ros.model import Model
 from ctid_ros.simulation import INTERSAMPLE
@@ -105,16 +105,17 @@ def _param(default: Any, kind: str, description: str, *, minimum: Optional[float
 
 
 @functools.lru_cache(maxsize=16)
-def _compile_model(expression: str, controller: str) -> Model:
+def _compile_model(expression: str, controller: str, inputs: Tuple[str, ...],
+                   output: str) -> Model:
     """Parse the plant, then the closed loop, so that an error names the text at fault."""
     try:
-        plant = Model(expression)
+        plant = Model(expression, inputs=inputs, output=output)
     except ModelError as error:
         raise ConfigError(f'model {expression!r} is invalid: {error}') from None
     if not controller:
         return plant
     try:
-        return Model(expression, controller)
+        return Model(expression, controller, inputs=inputs, output=output)
     except ModelError as error:
         raise ConfigError(f'controller {controller!r} is invalid: {error}') from None
 
@@ -140,9 +141,19 @@ class IdentificationConfig:
         'message carries both (e.g. /joint_states).', read_only=True)
     output_field: str = _param(
         'data', 'string', "Field of the output message holding the value, e.g. 'position[0]'.")
+    extra_input_fields: Tuple[str, ...] = _param(
+        (), 'string_array', 'Fields of the input message holding the further inputs of a '
+        "model equation, in input_names order after the first, e.g. ['effort[1]'].")
     model: str = _param(
         '', 'string', 'Plant transfer function in s; every other name is a parameter, e.g. '
-        "'K*exp(-tau*s)/(T*s + 1)'. Required.")
+        "'K*exp(-tau*s)/(T*s + 1)'; or a model equation such as "
+        "'M*s**2*y + Fv*s*y = 35.2*u - Fc*w - off' with its signals named by input_names and "
+        'output_name. Required.')
+    input_names: Tuple[str, ...] = _param(
+        ('u',), 'string_array', 'Names of the inputs in a model equation: the first is read '
+        'from input_field, the others from extra_input_fields.')
+    output_name: str = _param(
+        'y', 'string', 'Name of the output in a model equation.')
     controller: str = _param(
         '', 'string', "Known controller K(s) with numeric coefficients, e.g. '20 + 10/s': the "
         "data are then the closed loop from the reference (input_topic) to y. '' = open loop.")
@@ -205,6 +216,12 @@ class IdentificationConfig:
         -1.0, 'double', 'Seconds at the start of each window that are simulated but not fitted, '
         'because a window cut from a running plant does not start at rest. Negative = '
         'automatic (five slowest time constants plus the dead time, at most half the window).')
+    initial_state: str = _param(
+        'zero', 'string', "'zero': each window is treated as starting at rest (with the "
+        "transient excluded); 'estimate': the initial state is estimated as well.",
+        choices=INITIAL_STATES)
+    output_offset: bool = _param(
+        False, 'bool', 'Estimate a constant offset of the output (an unknown operating point).')
     warm_start: bool = _param(
         True, 'bool', 'Start each estimate from the previous one instead of initial.')
     publish_prediction: bool = _param(
@@ -287,13 +304,19 @@ class IdentificationConfig:
                 for name, low, high in zip(self.names, lower, upper)
                 if math.isfinite(low) or math.isfinite(high)}
 
+    @property
+    def input_fields(self) -> Tuple[str, ...]:
+        """Return the field paths of all inputs in the input message, in input_names order."""
+        return (self.input_field,) + self.extra_input_fields
+
     def estimator_options(self) -> Dict[str, Any]:
         """Return keyword arguments for :func:`ctid_ros.estimate` (without model and data)."""
         return {'initial': self.initial_values() or 'auto', 'bounds': self.bounds() or None,
                 'method': self.method, 'intersample': self.intersample,
                 'max_iterations': self.max_iterations, 'tolerance': self.tolerance,
                 'delay_range': self.delay_range,
-                'transient': 'auto' if self.transient < 0 else self.transient}
+                'transient': 'auto' if self.transient < 0 else self.transient,
+                'initial_state': self.initial_state, 'output_offset': self.output_offset}
 
     def _validate(self) -> Model:
         for name in ('input_topic', 'output_topic'):
@@ -303,18 +326,24 @@ class IdentificationConfig:
                     f'{name} {topic!r} is not a valid topic name: tokens of letters, digits '
                     "and underscores (not starting with a digit) separated by '/', optionally "
                     "starting with '/' or '~/'")
-        for name in ('input_field', 'output_field'):
+        for name, path in [('input_field', self.input_field),
+                           ('output_field', self.output_field)] + [
+                ('extra_input_fields', path) for path in self.extra_input_fields]:
             try:
-                parse_field_path(getattr(self, name))
+                parse_field_path(path)
             except ConfigError as error:
                 raise ConfigError(f'{name}: {error}') from None
+        if len(self.extra_input_fields) != len(self.input_names) - 1:
+            raise ConfigError(f'input_names has {len(self.input_names)} name(s), so '
+                              f'extra_input_fields needs {len(self.input_names) - 1} field(s), '
+                              f'got {len(self.extra_input_fields)}')
         if (self.input_topic, self.input_field) == (self.output_topic, self.output_field):
             raise ConfigError('input and output are the same field of the same topic: '
                               'set output_topic or output_field')
         if not self.model.strip():
             raise ConfigError('model is required: a transfer function in s such as '
                               "'K/(T*s + 1)'")
-        model = _compile_model(self.model, self.controller)
+        model = _compile_model(self.model, self.controller, self.input_names, self.output_name)
         self._check_names(model)
         self._check_vectors(self.parameter_names or model.parameters)
         self._check_choices()

@@ -125,6 +125,13 @@ def message_fields(message) -> Tuple[str, ...]:
         return ()
 
 
+def extract_values(message, paths: Sequence[Union[FieldPath, str]]) -> Union[float, np.ndarray]:
+    """Read one number per path (see :func:`extract`): a float for one path, else an array."""
+    if len(paths) == 1:
+        return extract(message, paths[0])
+    return np.array([extract(message, path) for path in paths])
+
+
 def _type_name(value) -> str:
     return type(value).__name__
 

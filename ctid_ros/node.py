@@ -45,7 +45,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 from ctid_ros.buffer import NANOSECONDS, SampleBuffer, StreamStats
 from ctid_ros.config import find_config, IdentificationConfig, PARAMETER_NAMES, PARAMETERS
 from ctid_ros.errors import ConfigError, CtidError, DataError
-from ctid_ros.fields import extract, parse_field_path, sample_stamp
+from ctid_ros.fields import extract_values, sample_stamp
 from ctid_ros.session import buffer_capacity, IdentificationSession, Update
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -201,8 +201,9 @@ class IdentificationNode(Node):
         rate = max(1.0 / config.sample_time, MAX_RATE)
         return SampleBuffer(buffer_capacity(config, rate), max_gap=config.max_gap,
                             reorder_horizon=config.reorder_horizon,
-                            names=(f'{config.input_topic} {config.input_field}',
-                                   f'{config.output_topic} {config.output_field}'))
+                            names=(f'{config.input_topic} {", ".join(config.input_fields)}',
+                                   f'{config.output_topic} {config.output_field}'),
+                            inputs=len(config.input_fields))
 
     def _create_update_timer(self):
         return self.create_timer(self._config.update_period, self._on_timer,
@@ -255,15 +256,15 @@ class IdentificationNode(Node):
         return info.get('source_timestamp') or info.get('received_timestamp') or \
             clock.now().nanoseconds
 
-    def _value(self, message, role: str) -> Optional[float]:
+    def _value(self, message, role: str):
         config = self._config
-        path = config.input_field if role == INPUT else config.output_field
+        paths = config.input_fields if role == INPUT else (config.output_field,)
         try:
-            return extract(message, parse_field_path(path))
+            return extract_values(message, paths)
         except ConfigError as error:
             self._field_errors[role] += 1
-            if (role, path) not in self._logged_fields:
-                self._logged_fields.add((role, path))
+            if (role, paths) not in self._logged_fields:
+                self._logged_fields.add((role, paths))
                 self.get_logger().error(f'{role}: {error}')
             return None
 

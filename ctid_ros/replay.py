@@ -44,7 +44,7 @@ from ctid_ros.buffer import BufferStats, resample, SampleBuffer
 from ctid_ros.cli import format_table, json_default
 from ctid_ros.config import DEFAULT_NODE_NAME, IdentificationConfig, load_params_file
 from ctid_ros.errors import BagError, DataError, EstimationError
-from ctid_ros.fields import extract, parse_field_path, sample_stamp
+from ctid_ros.fields import extract_values, parse_field_path, sample_stamp
 from ctid_ros.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
 
@@ -85,16 +85,15 @@ class MessageSampler:
 
     def __init__(self, config: IdentificationConfig, topics: Tuple[str, str]):
         self.topics = topics
-        self._fields = (parse_field_path(config.input_field),
-                        parse_field_path(config.output_field))
+        self._fields = (tuple(parse_field_path(path) for path in config.input_fields),
+                        (parse_field_path(config.output_field),))
         self._stamp_source = config.stamp_source
 
-    def __call__(self, topic: str, log_time_ns: int, msg: Any
-                 ) -> Tuple[int, Optional[float], Optional[float]]:
-        """Return the stamp and the input/output values the message carries."""
+    def __call__(self, topic: str, log_time_ns: int, msg: Any) -> Tuple[int, Any, Any]:
+        """Return the stamp and the input (float or row)/output values the message carries."""
         stamp = sample_stamp(msg, log_time_ns, self._stamp_source)
-        u, y = (extract(msg, path) if topic == wanted else None
-                for wanted, path in zip(self.topics, self._fields))
+        u, y = (extract_values(msg, paths) if topic == wanted else None
+                for wanted, paths in zip(self.topics, self._fields))
         return stamp, u, y
 
 
@@ -168,7 +167,7 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     if topics is None:
         topics = (resolve_topic(config.input_topic), resolve_topic(config.output_topic))
     sampler = MessageSampler(config, topics)
-    names = (f'input {topics[0]} ({config.input_field})',
+    names = (f'input {topics[0]} ({", ".join(config.input_fields)})',
              f'output {topics[1]} ({config.output_field})')
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
@@ -192,9 +191,12 @@ def _replay_span(messages: Iterable[Tuple[str, int, Any]], config: Identificatio
         for (stamps, samples), value in zip(streams, values):
             if value is not None:
                 stamps.append(stamp)
-                samples.append(value)
+                samples.extend(np.atleast_1d(value))
     _require_samples(streams, names)
     (u_stamps, u), (y_stamps, y) = streams
+    inputs = len(config.input_fields)
+    u = np.frombuffer(u, dtype=float) if inputs == 1 else \
+        np.frombuffer(u, dtype=float).reshape(-1, inputs)
     window, stats = resample(np.frombuffer(u_stamps, dtype=np.int64), u,
                              np.frombuffer(y_stamps, dtype=np.int64), y, config.sample_time,
                              max_gap=config.max_gap, reorder_horizon=config.reorder_horizon,
@@ -212,7 +214,8 @@ def _require_samples(streams: Sequence[Tuple[array, array]], names: Sequence[str
 def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig,
                     sampler: MessageSampler, names: Tuple[str, str], capacity: int) -> Replay:
     buffer = SampleBuffer(capacity, max_gap=config.max_gap,
-                          reorder_horizon=config.reorder_horizon, names=names)
+                          reorder_horizon=config.reorder_horizon, names=names,
+                          inputs=len(config.input_fields))
     session = IdentificationSession(config)
     period_ns = round(config.update_period * NANOSECONDS)
     updates: List[Update] = []

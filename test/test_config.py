@@ -11,11 +11,12 @@ import pytest
 import yaml
 
 CONTRACT = (
-    'input_topic', 'input_field', 'output_topic', 'output_field', 'model', 'controller',
-    'parameter_names', 'initial', 'lower', 'upper', 'sample_time', 'window', 'update_period',
+    'input_topic', 'input_field', 'output_topic', 'output_field', 'extra_input_fields', 'model',
+    'input_names', 'output_name', 'controller', 'parameter_names', 'initial', 'lower', 'upper',
+    'sample_time', 'window', 'update_period',
     'method', 'intersample', 'stamp_source', 'qos_reliability', 'qos_depth', 'max_gap',
     'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance', 'transient',
-    'warm_start', 'publish_prediction')
+    'initial_state', 'output_offset', 'warm_start', 'publish_prediction')
 FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
 
 
@@ -36,7 +37,7 @@ def test_parameter_specs_follow_the_contract():
     assert {name for name, kind in kinds.items() if kind == 'integer'} == {
         'qos_depth', 'max_iterations'}
     assert {name for name, kind in kinds.items() if kind == 'bool'} == {
-        'warm_start', 'publish_prediction'}
+        'output_offset', 'warm_start', 'publish_prediction'}
     assert {name for name, kind in kinds.items() if kind == 'double_array'} == {
         'initial', 'lower', 'upper'}
     assert kinds['parameter_names'] == 'string_array'
@@ -80,10 +81,14 @@ def test_example_files_load(name, checks):
     assert set(config.compiled_model.parameters) == set(config.names)
     # Every parameter is set and commented, with doubles written as doubles.
     section = yaml.safe_load(path.read_text())['ctid_node']['ros__parameters']
-    assert tuple(section) == CONTRACT
     text = path.read_text()
+    # An empty list cannot be typed by ROS 2: such a parameter is shown commented out.
+    empty = [name for name in CONTRACT if name not in section]
+    assert empty == ['extra_input_fields'] and '    # extra_input_fields: [' in text
+    assert tuple(section) == tuple(name for name in CONTRACT if name in section)
     for parameter in CONTRACT:
-        line = text.index(f'    {parameter}:')
+        line = text.index(f'    {parameter}:') if parameter in section else \
+            text.index(f'    # {parameter}:')
         assert text[:line].rstrip().splitlines()[-1].strip().startswith('#'), parameter
     for spec in PARAMETERS:
         if spec.kind == 'double':
@@ -252,7 +257,8 @@ def test_parameter_order_and_estimator_options(base):
     assert config.estimator_options() == {
         'initial': {'tau': 0.2, 'T': 1.5}, 'bounds': {'tau': (0.0, 1.0), 'T': (0.1, 10.0)},
         'method': 'ls', 'intersample': 'zoh', 'max_iterations': 100, 'tolerance': 1e-8,
-        'delay_range': (0.05, 0.5), 'transient': 'auto'}
+        'delay_range': (0.05, 0.5), 'transient': 'auto', 'initial_state': 'zero',
+        'output_offset': False}
     assert base.updated({'transient': 2.0}).estimator_options()['transient'] == 2.0
     assert base.names == ('K', 'tau', 'T')
     assert base.estimator_options()['initial'] == 'auto'
@@ -330,3 +336,18 @@ def test_valid_edge_cases(base):
     same_topic = base.updated({'output_topic': '/plant/u', 'output_field': 'position[0]'})
     assert same_topic.output_field == 'position[0]'
     assert IdentificationConfig.from_dict({'model': FOPDT}).model == FOPDT
+
+
+def test_model_equation_with_extra_inputs():
+    config = IdentificationConfig(
+        model='M*s**2*q + F*s*q = v - c*w', input_names=('v', 'w'), output_name='q',
+        extra_input_fields=('effort[1]',), input_field='effort[0]', output_field='position[0]',
+        input_topic='/joint_states', output_topic='/joint_states')
+    assert config.compiled_model.inputs == ('v', 'w')
+    assert config.compiled_model.parameters == ('M', 'F', 'c')
+    with pytest.raises(ConfigError, match='extra_input_fields needs 1 field'):
+        config.updated({'extra_input_fields': []})
+    with pytest.raises(ConfigError, match='extra_input_fields'):
+        config.updated({'extra_input_fields': ['effort[']})
+    with pytest.raises(ConfigError, match='do not appear'):
+        config.updated({'input_names': ['v', 'z']})

@@ -433,3 +433,26 @@ def test_absent_bag(tmp_path, capsys):
     code, _, err = replay(capsys, tmp_path / 'absent', '--params-file',
                           params_file(tmp_path, DELAY))
     assert code == 2 and 'does not exist' in err
+
+
+def test_two_inputs_from_one_joint_state(tmp_path, capsys):
+    """A model equation whose second input is effort[1] of the same JointState."""
+    model = Model('T*s*q + q = K1*v + K2*w', inputs=('v', 'w'), output='q')
+    truth = {'T': 0.5, 'K1': 2.0, 'K2': -1.0}
+    rng = np.random.default_rng(4)
+    u = np.column_stack([prbs(10, 10)[:2500], np.repeat(rng.standard_normal(250), 10)])
+    clean = model.simulate(truth, u, TS)
+    y = clean + 0.01 * np.std(clean) * rng.standard_normal(clean.size)
+    records = joint_state_records(u[:, 0], y, 2_000_000)
+    # The jitter (< 3 ms) is below the 10 ms step, so log order is stamp order.
+    for record, second in zip(records, u[:, 1]):
+        record.fields['effort'].append(float(second))
+    bag = write_bag(tmp_path, records, 'mcap-file')
+    params = params_file(
+        tmp_path, {'model': 'T*s*q + q = K1*v + K2*w', 'params': {}},
+        input_topic='/joint_states', output_topic='/joint_states', input_field='effort[0]',
+        output_field='position[0]', extra_input_fields=['effort[1]'], input_names=['v', 'w'],
+        output_name='q', stamp_source='header')
+    code, out, err = replay(capsys, bag, '--params-file', params, '--json')
+    assert code == 0, err
+    assert json.loads(out)['params'] == pytest.approx(truth, rel=0.03)
