@@ -28,4 +28,4 @@ lint: $(STAMP)
 	$(BIN)/python -m pytest test/test_flake8.py test/test_pep257.py
 
 clean:
-	rm -rf $(VENV) build install log *.egg-info
+	rm -rf $(VENV) build install log *.egg-info demo_output

@@ -6,8 +6,10 @@ rosbags), a single ``.db3`` file, or a standalone ``.mcap`` file (read with mcap
 mcap-ros2-support, so that a recording cut short still replays up to the cut). Messages are
 decoded from the definitions stored in the bag itself: custom types need not be installed.
 
-Writing (:class:`EstimateWriter`) creates a new standalone MCAP file holding the topics the live
-node publishes, readable by Foxglove, PlotJuggler, rosbags and mcap-ros2-support.
+Writing creates a new standalone MCAP file, readable by Foxglove, PlotJuggler, rosbags and
+mcap-ros2-support: :class:`EstimateWriter` holds the topics the live node publishes,
+:class:`RecordingWriter` records serialised messages as they come off the wire (what
+``ros2 bag record`` does, for machines without the ros2 CLI).
 
 Times are integers in nanoseconds since the epoch (the recorder's log time) wherever a name ends
 in ``_ns``; ``start`` and ``end`` given to :meth:`BagReader.messages` are seconds from the first
@@ -24,19 +26,21 @@ from pathlib import Path
 import re
 import struct
 from typing import (Any, Dict, FrozenSet, Iterable, Iterator, List, Mapping, NamedTuple,
-                    Optional, Sequence, Tuple, Union)
+                    Optional, Sequence, Tuple, TypeVar, Union)
 
 from ctid_ros.errors import BagError, ConfigError, DataError
+from ctid_ros.session import format_diagnostic
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import breakup_chunk
+from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
 from rosbags.highlevel import AnyReader
-from rosbags.typesys import get_typestore, Stores
+from rosbags.typesys import get_typestore, Stores, TypesysError
 
 PathLike = Union[str, os.PathLike]
 
@@ -628,19 +632,6 @@ def _time_ns(value: Any) -> int:
     return int(value)
 
 
-def _format_value(value: Any) -> str:
-    """Format a diagnostic value as ROS tools show it (KeyValue values are strings)."""
-    if isinstance(value, (bool, np.bool_)):
-        return 'true' if value else 'false'
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, (float, np.floating)):
-        return format(float(value), '.6g')
-    if isinstance(value, (list, tuple)):
-        return '; '.join(_format_value(item) for item in value)
-    return str(value)
-
-
 def _status_level(diagnostics: Mapping[str, Any]) -> Tuple[int, str]:
     """Return WARN with the reason if the estimate did not converge or has warnings, else OK."""
     warnings = list(diagnostics.get('warnings') or [])
@@ -651,7 +642,112 @@ def _status_level(diagnostics: Mapping[str, Any]) -> Tuple[int, str]:
     return DIAGNOSTIC_OK, 'ok'
 
 
-class EstimateWriter:
+_Output = TypeVar('_Output', bound='_McapOutput')
+
+
+class _McapOutput:
+    """
+    A new standalone MCAP file: created by the constructor, indexed and closed by :meth:`close`.
+
+    Subclasses set ``_writer`` (an mcap or mcap_ros2 writer on ``_stream``) and check
+    :meth:`_check_open` before writing.
+    """
+
+    _writer: Any
+
+    def __init__(self, path: Path, inputs: Iterable[PathLike], overwrite: bool) -> None:
+        self.path = path
+        _check_output(path, inputs, overwrite)
+        try:
+            self._stream = open(path, 'wb' if overwrite else 'xb')
+        except OSError as error:
+            raise BagError(f'cannot create {path}: {error.strerror}') from None
+        self._closed = False
+
+    def __enter__(self: _Output) -> _Output:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Write the MCAP index and close the file (also after an error: messages so far stay)."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self._writer.finish()
+            finally:
+                self._stream.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise BagError(f'{self.path} is already closed')
+
+
+class RecordingWriter(_McapOutput):
+    """
+    Record serialised ROS 2 messages into a new standalone MCAP file, as ``ros2 bag record``.
+
+    The messages are written as received, in CDR (e.g. from an rclpy subscription created with
+    ``raw=True``), with the definitions of their types from rosbags' ROS 2 Jazzy type store, so
+    :class:`BagReader` and any MCAP tool decode them without ROS.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.mcap`` file to create.
+    overwrite : bool, optional
+        Replace an existing file at ``path`` instead of refusing.
+
+    Raises
+    ------
+    BagError
+        If ``path`` is not a new ``.mcap`` file or cannot be created.
+
+    """
+
+    def __init__(self, path: PathLike, *, overwrite: bool = False) -> None:
+        super().__init__(Path(path), (), overwrite)
+        self._writer = McapWriter(self._stream)
+        self._writer.start(profile='ros2', library='ctid_ros')
+        self._typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._schemas: Dict[str, int] = {}
+        self._channels: Dict[str, int] = {}
+
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        """
+        Declare a topic and its message type, e.g. ``'geometry_msgs/msg/PointStamped'``.
+
+        Raises
+        ------
+        BagError
+            If the topic was declared already or the type is not a standard ROS 2 Jazzy type.
+
+        """
+        self._check_open()
+        if topic in self._channels:
+            raise BagError(f'topic {topic} is already recorded in {self.path}')
+        if msgtype not in self._schemas:
+            try:
+                text, _ = self._typestore.generate_msgdef(msgtype, ros_version=2)
+            except TypesysError:
+                raise BagError(f'cannot record {topic}: {msgtype} is not a standard ROS 2 '
+                               'Jazzy message type') from None
+            self._schemas[msgtype] = self._writer.register_schema(msgtype, 'ros2msg',
+                                                                  text.encode())
+        self._channels[topic] = self._writer.register_channel(topic, 'cdr',
+                                                              self._schemas[msgtype])
+
+    def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Write one serialised message of a declared topic at its log (reception) time."""
+        self._check_open()
+        if topic not in self._channels:
+            raise BagError(f'topic {topic} was not declared with add_topic')
+        time_ns = _time_ns(log_time_ns)
+        self._writer.add_message(self._channels[topic], time_ns, bytes(data), time_ns)
+
+
+class EstimateWriter(_McapOutput):
     """
     Write estimates to a new standalone MCAP file, on the topics the live node publishes.
 
@@ -689,45 +785,23 @@ class EstimateWriter:
     def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
                  node_name: str = 'ctid_node', namespace: str = '',
                  overwrite: bool = False) -> None:
-        self.path = Path(path)
         prefix = _node_prefix(namespace, node_name)
-        _check_output(self.path, inputs, overwrite)
+        super().__init__(Path(path), inputs, overwrite)
         self.estimate_topic = f'{prefix}/estimate'
         self.estimate_std_topic = f'{prefix}/estimate_std'
         self.prediction_topic = f'{prefix}/prediction'
         self.diagnostics_topic = '/diagnostics'
         self._prefix = prefix
-        try:
-            self._stream = open(self.path, 'wb' if overwrite else 'xb')
-        except OSError as error:
-            raise BagError(f'cannot create {self.path}: {error.strerror}') from None
         self._writer = McapRos2Writer(self._stream)
         self._schemas = {msgtype: self._writer.register_msgdef(msgtype, text)
                          for msgtype, text in _MSGDEFS.items()}
-        self._closed = False
-
-    def __enter__(self) -> 'EstimateWriter':
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Write the MCAP index and close the file (also after an error: estimates so far stay)."""
-        if not self._closed:
-            self._closed = True
-            try:
-                self._writer.finish()
-            finally:
-                self._stream.close()
 
     def param_topic(self, name: str) -> str:
         """Return the topic of parameter ``name``."""
         return f'{self._prefix}/params/{name}'
 
     def _write(self, topic: str, msgtype: str, message: Mapping[str, Any], time_ns: int) -> None:
-        if self._closed:
-            raise BagError(f'{self.path} is already closed')
+        self._check_open()
         self._writer.write_message(topic, self._schemas[msgtype], message, log_time=time_ns,
                                    publish_time=time_ns)
 
@@ -785,7 +859,7 @@ class EstimateWriter:
         level, message = _status_level(diagnostics)
         status = {'level': level, 'name': f'{self._prefix[1:]}: estimate', 'message': message,
                   'hardware_id': '',
-                  'values': [{'key': str(key), 'value': _format_value(value)}
+                  'values': [{'key': str(key), 'value': format_diagnostic(value)}
                              for key, value in diagnostics.items()]}
         self._write(self.diagnostics_topic, 'diagnostic_msgs/msg/DiagnosticArray',
                     {'header': {'stamp': _stamp(time_ns), 'frame_id': ''}, 'status': [status]},

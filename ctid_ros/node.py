@@ -46,7 +46,7 @@ from ctid_ros.buffer import NANOSECONDS, SampleBuffer, StreamStats
 from ctid_ros.config import find_config, IdentificationConfig, PARAMETER_NAMES, PARAMETERS
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.fields import extract_values, sample_stamp
-from ctid_ros.session import buffer_capacity, IdentificationSession, Update
+from ctid_ros.session import buffer_capacity, format_diagnostic, IdentificationSession, Update
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
@@ -118,16 +118,6 @@ def import_message(type_name: str) -> type:
     except (ImportError, AttributeError, ValueError):
         raise ConfigError(f'message type {type_name} is not installed: install the package '
                           f'{package.split("/")[0]} in this environment') from None
-
-
-def _format(value: Any) -> str:
-    if isinstance(value, bool):
-        return 'true' if value else 'false'
-    if isinstance(value, float):
-        return format(value, '.6g')
-    if isinstance(value, (list, tuple)):
-        return '; '.join(_format(item) for item in value)
-    return str(value)
 
 
 def _array(names: Tuple[str, ...], values, label: Optional[str] = None) -> Float64MultiArray:
@@ -395,7 +385,7 @@ class IdentificationNode(Node):
             text = '; '.join([*self._waiting.values(), text])
         status = DiagnosticStatus(level=level, name=self._status_name, message=text,
                                   hardware_id=self.get_name(),
-                                  values=[KeyValue(key=key, value=_format(value))
+                                  values=[KeyValue(key=key, value=format_diagnostic(value))
                                           for key, value in values.items()])
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()

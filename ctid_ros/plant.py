@@ -5,11 +5,19 @@ A simulated plant for tests and demonstrations: exact sampled simulation, publis
 for :class:`ctid_ros.Model` (``'K*exp(-tau*s)/(T*s + 1)'`` with numeric parameter values) one
 sample at a time, exactly for a zero-order-hold input, including a dead time that is not a
 multiple of the sample time (the modified discretisation of :mod:`ctid_ros.simulation` with a
-history of past inputs). With a ``controller`` such as ``'20 + 10/s'`` the controller runs in
-continuous time together with the plant, as one system driven by the held reference ``r``: the
-closed-loop data then match exactly the model ``P K/(1 + P K)`` the estimator fits, at any sample
-rate. The plant input ``u`` of the loop is a second output of that system. Measurement noise
-(Gaussian, seeded) is added to ``y`` only; the loop feeds back the noise-free output.
+history of past inputs). Two kinds of feedback close the loop around the held reference ``r``:
+
+* ``controller`` such as ``'20 + 10/s'``: the controller runs in continuous time together with
+  the plant, as one system: the closed-loop data then match exactly the model
+  ``P K/(1 + P K)`` the estimator fits, at any sample rate. The plant input ``u`` of the loop
+  is a second output of that system, and the loop feeds back the noise-free output. A dead
+  time cannot be inside such a loop (it would not be rational).
+* ``pi_gains=(kp, ki)``: a digital PI controller (:class:`DigitalPI`), as on a real robot: at
+  every sample it reads the measured (noisy) output, computes the command and holds it until
+  the next sample. The plant may have a dead time; the data are identified from the measured
+  command ``u`` to ``y`` (direct closed-loop identification).
+
+Measurement noise (Gaussian, seeded) is added to ``y`` only.
 
 :class:`PlantNode` (``ctid_plant``) drives a simulator with a PRBS and publishes, per sample:
 
@@ -32,9 +40,10 @@ Run it with ``ctid_plant --ros-args --params-file config/plant_sim.yaml``.
 """
 
 from collections import deque
+from dataclasses import dataclass
 import itertools
 import sys
-from typing import Dict, Iterator, List, Mapping, Optional, Tuple
+from typing import Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.excitation import prbs
@@ -53,6 +62,37 @@ NANOSECONDS = 1_000_000_000
 MESSAGE_TYPES = ('float64', 'point_stamped', 'joint_state')
 
 
+@dataclass
+class DigitalPI:
+    """
+    Discrete PI controller run every sample: ``u[k] = kp e[k] + ki Ts (e[0] + ... + e[k])``.
+
+    The integral is the backward-Euler sum, so the command reacts to the error of the sample it
+    was computed from, as a controller that reads the sensor and writes the actuator in one
+    cycle.
+
+    Attributes
+    ----------
+    kp, ki : float
+        Proportional and integral gains.
+    sample_time : float
+        Controller period in seconds.
+    integral : float
+        State of the integrator (the integral term of the last command).
+
+    """
+
+    kp: float
+    ki: float
+    sample_time: float
+    integral: float = 0.0
+
+    def __call__(self, error: float) -> float:
+        """Return the command for the control error of this sample."""
+        self.integral += self.ki * self.sample_time * error
+        return self.kp * error + self.integral
+
+
 class PlantSimulator:
     """
     Exact sample-by-sample simulation of a continuous-time plant, open or closed loop.
@@ -66,8 +106,11 @@ class PlantSimulator:
     sample_time : float
         Seconds between samples; the excitation is held (ZOH) in between.
     controller : str
-        Known controller ``K(s)`` with numeric coefficients, e.g. ``'20 + 10/s'``; empty for
-        open loop. The plant may then have no dead time.
+        Known controller ``K(s)`` with numeric coefficients, e.g. ``'20 + 10/s'``, simulated in
+        continuous time with the plant; empty for none. The plant may then have no dead time.
+    pi_gains : (float, float), optional
+        Gains ``(kp, ki)`` of a :class:`DigitalPI` that closes the loop at the sample time on
+        the measured output; the plant must be strictly proper. Not with ``controller``.
     noise_std : float
         Standard deviation of white Gaussian noise added to the measured output.
     seed : int
@@ -76,20 +119,28 @@ class PlantSimulator:
     """
 
     def __init__(self, model: str, params: Mapping[str, float], sample_time: float, *,
-                 controller: str = '', noise_std: float = 0.0, seed: int = 0):
+                 controller: str = '', pi_gains: Optional[Sequence[float]] = None,
+                 noise_std: float = 0.0, seed: int = 0):
+        if pi_gains and (controller or len(pi_gains) != 2):
+            raise ConfigError(f'pi_gains must be two gains (kp, ki) and exclude a continuous '
+                              f'controller; got {list(pi_gains)} with controller {controller!r}')
         self.sample_time = float(sample_time)
         self.noise_std = float(noise_std)
         self._plant = Model(model)
         self._loop = Model(model, controller) if controller else self._plant
+        self._pi = DigitalPI(*pi_gains, self.sample_time) if pi_gains else None
         self._rng = np.random.default_rng(seed)
         self._state: Optional[np.ndarray] = None
         self._history: deque = deque([0.0])
         self.retune(params)
+        if self._pi is not None and self._outputs[0][1] != 0.0:
+            raise ConfigError(f'a digital controller needs a strictly proper plant (the output '
+                              f'cannot react to the command it is computed from): {model}')
 
     @property
     def closed_loop(self) -> bool:
         """Return True when a controller closes the loop."""
-        return self._loop is not self._plant
+        return self._loop is not self._plant or self._pi is not None
 
     @property
     def parameters(self) -> Tuple[str, ...]:
@@ -106,7 +157,7 @@ class PlantSimulator:
         """
         num, den, delay = self._loop.transfer_function(params)
         numerators = [num]
-        if self.closed_loop:
+        if self._loop is not self._plant:
             # u/r = K/(1 + P K) = (P K/(1 + P K)) * Dp/Np: the loop numerator is Np*Nk.
             plant_num, plant_den, _ = self._plant.transfer_function(params)
             controller_num, _ = np.polydiv(num, plant_num)
@@ -145,15 +196,22 @@ class PlantSimulator:
             The plant input ``u`` and the measured (noisy) output ``y`` at this instant.
 
         """
-        self._history.append(float(value))
-        held = sum(weight * self._input(offset) for (offset, _), weight in
-                   self._discrete.feed.items())
-        outputs = [float(row @ self._state) + feed * held for row, feed in self._outputs]
+        noise = self.noise_std * float(self._rng.standard_normal())
+        if self._pi is None:
+            self._history.append(float(value))
+            held = sum(weight * self._input(offset) for (offset, _), weight in
+                       self._discrete.feed.items())
+            outputs = [float(row @ self._state) + feed * held for row, feed in self._outputs]
+            u, y = (outputs[1] if self.closed_loop else float(value)), outputs[0] + noise
+        else:
+            # No feedthrough (checked): y now does not depend on the command being computed.
+            y = float(self._outputs[0][0] @ self._state) + noise
+            u = self._pi(float(value) - y)
+            self._history.append(u)
         forcing = sum(vector * self._input(offset) for (offset, _), vector in
                       self._discrete.drive.items())
         self._state = self._discrete.transition @ self._state + forcing
-        y = outputs[0] + self.noise_std * float(self._rng.standard_normal())
-        return (outputs[1] if self.closed_loop else float(value)), y
+        return u, y
 
 
 def excitation(bits: int, clock: int, amplitude: float = 1.0,
@@ -171,6 +229,7 @@ class PlantNode(Node):
         self.declare_parameters('', [
             ('model', 'K*exp(-tau*s)/(T*s + 1)'), ('parameter_names', ['K', 'T', 'tau']),
             ('parameter_values', [2.0, 0.5, 0.137]), ('controller', ''),
+            ('pi_gains', double_array),
             ('sample_time', 0.005), ('noise_std', 0.01), ('seed', 0),
             ('prbs_bits', 9), ('prbs_clock', 20), ('amplitude', 1.0), ('offset', 0.0),
             ('message_type', 'float64'), ('input_topic', 'u'), ('output_topic', 'y'),
@@ -184,10 +243,12 @@ class PlantNode(Node):
         names = list(value('parameter_names'))
         self._params = dict(zip(names, value('parameter_values')))
         drift = value('drift_values')
-        self._drift = dict(zip(names, drift)) if drift else None
         self._drift_time = value('drift_time')
+        # A negative drift_time disables the drift, whatever drift_values say.
+        self._drift = dict(zip(names, drift)) if drift and self._drift_time >= 0 else None
         self.simulator = PlantSimulator(value('model'), self._params, value('sample_time'),
                                         controller=value('controller'),
+                                        pi_gains=value('pi_gains'),
                                         noise_std=value('noise_std'), seed=value('seed'))
         self._excitation = excitation(value('prbs_bits'), value('prbs_clock'),
                                       value('amplitude'), value('offset'))
@@ -218,10 +279,19 @@ class PlantNode(Node):
         self._topic_publishers = {role: self.create_publisher(kind, topic, self._qos)
                                   for role, (kind, topic) in topics.items()}
 
+    def subscription_counts(self) -> Dict[str, int]:
+        """Return the number of matched subscriptions of each published topic."""
+        return {publisher.topic_name: publisher.get_subscription_count()
+                for publisher in self._topic_publishers.values()}
+
     def matched(self) -> bool:
         """Return True when every publisher has at least one subscriber."""
-        return all(publisher.get_subscription_count()
-                   for publisher in self._topic_publishers.values())
+        return all(self.subscription_counts().values())
+
+    @property
+    def start_ns(self) -> int:
+        """Return the stamp (node clock, ns) of sample 0: the simulation starts at rest there."""
+        return self._start_ns
 
     def restart(self) -> None:
         """Count samples from zero, the next one due now (e.g. once subscribers matched)."""

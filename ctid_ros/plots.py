@@ -167,15 +167,24 @@ def _plotted_model(result: Estimate, closed_loop: bool) -> Model:
     return Model(model.expression)
 
 
-def default_omega(model: Model, params: Mapping[str, float], points: int = 300) -> np.ndarray:
-    """Return frequencies two decades around the model's poles, zeros and dead time (rad/s)."""
+def default_omega(model: Model, params: Mapping[str, float], points: int = 300,
+                  max_omega: Optional[float] = None) -> np.ndarray:
+    """
+    Return frequencies two decades around the model's poles, zeros and dead time (rad/s).
+
+    ``max_omega`` caps the range, e.g. at the Nyquist frequency ``pi/Ts`` of the data: sampled
+    data say nothing about the response above it.
+    """
     num, den, delay = model.transfer_function(params)
     corners = np.abs(np.concatenate([np.roots(num), np.roots(den)]))
     corners = list(corners[corners > 0])
     if delay > 0:
         corners.append(1.0 / delay)
     low, high = (min(corners), max(corners)) if corners else (1.0, 1.0)
-    return np.logspace(np.floor(np.log10(low)) - 1, np.ceil(np.log10(high)) + 1, points)
+    top = np.ceil(np.log10(high)) + 1
+    if max_omega is not None:
+        top = min(top, np.log10(max_omega))
+    return np.logspace(np.floor(np.log10(low)) - 1, top, points)
 
 
 def _response(model: Model, params: Mapping[str, float], omega: np.ndarray
@@ -186,7 +195,7 @@ def _response(model: Model, params: Mapping[str, float], omega: np.ndarray
 
 def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 100,
               seed: int = 0, percentiles: Tuple[float, float] = (5.0, 95.0),
-              closed_loop: bool = False) -> BodeData:
+              closed_loop: bool = False, max_omega: Optional[float] = None) -> BodeData:
     """
     Compute the Bode response of an estimate and its band over covariance draws.
 
@@ -199,7 +208,7 @@ def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: in
     result : Estimate
         The identified model.
     omega : ndarray, optional
-        Angular frequencies (rad/s); default :func:`default_omega`.
+        Angular frequencies (rad/s); default :func:`default_omega` up to ``max_omega``.
     draws : int
         Number of Monte Carlo draws.
     seed : int
@@ -208,6 +217,8 @@ def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: in
         Band limits in percent.
     closed_loop : bool
         For a closed-loop estimate: the closed loop r -> y instead of the plant P(s).
+    max_omega : float, optional
+        Highest default frequency (rad/s), e.g. the Nyquist frequency of the data.
 
     Returns
     -------
@@ -217,7 +228,7 @@ def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: in
     """
     model = _plotted_model(result, closed_loop)
     if omega is None:
-        omega = default_omega(model, result.params)
+        omega = default_omega(model, result.params, max_omega=max_omega)
     omega = np.asarray(omega, dtype=float)
     magnitude, phase = _response(model, result.params, omega)
     covariance = np.asarray(result.covariance, dtype=float)
@@ -242,7 +253,8 @@ def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: in
 
 def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 100,
          seed: int = 0, percentiles: Tuple[float, float] = (5.0, 95.0),
-         closed_loop: bool = False, path: Optional[PathLike] = None) -> Figure:
+         closed_loop: bool = False, max_omega: Optional[float] = None,
+         path: Optional[PathLike] = None) -> Figure:
     """
     Plot the Bode diagram of an identified model with its uncertainty band.
 
@@ -255,18 +267,20 @@ def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 1
 
     """
     data = bode_data(result, omega, draws=draws, seed=seed, percentiles=percentiles,
-                     closed_loop=closed_loop)
+                     closed_loop=closed_loop, max_omega=max_omega)
     model = _plotted_model(result, closed_loop)
     figure = _new_figure(8.0, 6.0)
     top, bottom = figure.subplots(2, 1, sharex=True)
-    band_label = (f'{percentiles[0]:g}–{percentiles[1]:g} % of {data.draws} covariance draws')
-    for axes, nominal, band, unit in ((top, data.magnitude_db, data.magnitude_band,
-                                       'magnitude (dB)'),
-                                      (bottom, data.phase_deg, data.phase_band,
-                                       'phase (deg)')):
+    band_label = f'{percentiles[0]:g}–{percentiles[1]:g} % of {data.draws} covariance draws'
+    for axes, nominal, band, unit, short in ((top, data.magnitude_db, data.magnitude_band,
+                                              'magnitude (dB)', ' dB'),
+                                             (bottom, data.phase_deg, data.phase_band,
+                                              'phase (deg)', '°')):
         if band is not None:
+            # A precise estimate's band is thinner than the line: its width says it exists.
+            width = float(np.max(band[1] - band[0]))
             axes.fill_between(data.omega, band[0], band[1], color='tab:orange', alpha=0.3,
-                              linewidth=0, label=band_label)
+                              linewidth=0, label=f'{band_label}, at most {width:.2g}{short} wide')
         axes.semilogx(data.omega, nominal, color='tab:blue', label='estimate')
         axes.set_ylabel(unit)
         axes.grid(True, which='both', alpha=0.3)

@@ -335,19 +335,34 @@ def format_series(updates: Sequence[Update], origin_ns: int) -> str:
 
     """
     names = updates[0].names
-    cells = [[f'{value:.5g} ± {std:.2g}' for value, std in zip(update.values, update.stds)]
+    cells = [[format_estimate(value, std) for value, std in zip(update.values, update.stds)]
              for update in updates]
     widths = [max(len(name), *(len(row[index]) for row in cells))
               for index, name in enumerate(names)]
-    header = '  '.join([f'{"time s":>9}'] + [f'{name:>{width}}'
-                                             for name, width in zip(names, widths)]
-                       + [f'{"fit %":>7}'])
-    lines = [header]
+    lines = [series_header(names, widths)]
     for update, row in zip(updates, cells):
-        lines.append('  '.join([f'{(update.end_ns - origin_ns) / NANOSECONDS:>9.2f}']
-                               + [f'{cell:>{width}}' for cell, width in zip(row, widths)]
-                               + [f'{update.result.fit:>7.2f}']))
+        lines.append(series_row((update.end_ns - origin_ns) / NANOSECONDS, row,
+                                update.result.fit, widths))
     return '\n'.join(lines)
+
+
+def format_estimate(value: float, std: float) -> str:
+    """Return the cell ``value ± std`` of a series table."""
+    return f'{value:.5g} ± {std:.2g}'
+
+
+def series_header(names: Sequence[str], widths: Sequence[int]) -> str:
+    """Return the header of a series table with columns of the given widths."""
+    return '  '.join([f'{"time s":>9}'] + [f'{name:>{width}}'
+                                           for name, width in zip(names, widths)]
+                     + [f'{"fit %":>7}'])
+
+
+def series_row(time_s: float, cells: Sequence[str], fit: float, widths: Sequence[int]) -> str:
+    """Return one row of a series table: time (s), one cell per parameter, fit (%)."""
+    return '  '.join([f'{time_s:>9.2f}'] + [f'{cell:>{width}}'
+                                            for cell, width in zip(cells, widths)]
+                     + [f'{fit:>7.2f}'])
 
 
 def _format_stats(stats: BufferStats, names: Sequence[str], messages: int) -> str:
@@ -373,8 +388,9 @@ def write_plots(path: Path, updates: Sequence[Update], origin_ns: int, sliding: 
     Write the replay's figures as PNG files and return their paths.
 
     ``path`` gets measured vs. simulated output of the last window; ``<stem>_bode.png`` the Bode
-    plot of the last estimate; with ``sliding`` also ``<stem>_params.png``, the estimates over
-    time with their ±2σ bands (against ``truth`` if given).
+    plot of the last estimate up to the Nyquist frequency of the data; with ``sliding`` also
+    ``<stem>_params.png``, the estimates over time with their ±2σ bands (against ``truth`` if
+    given).
     """
     from ctid_ros import plots
 
@@ -390,7 +406,7 @@ def write_plots(path: Path, updates: Sequence[Update], origin_ns: int, sliding: 
             last.names, np.array([update.values for update in updates]),
             np.array([update.stds for update in updates]), truth=truth, path=params_path)
         written.append(params_path)
-    plots.bode(last.result, path=bode_path)
+    plots.bode(last.result, max_omega=np.pi / last.window.data.ts, path=bode_path)
     written.append(bode_path)
     return written
 

@@ -94,6 +94,25 @@ class Update:
         return summary
 
 
+def format_diagnostic(value: Any) -> str:
+    """
+    Format a value of :meth:`Update.diagnostics` as a ``diagnostic_msgs/KeyValue`` string.
+
+    Floats keep every digit (the shortest text that reads back exactly): ``window_start`` and
+    ``window_end`` are seconds since the epoch, which six significant digits would round to
+    hours.
+    """
+    if isinstance(value, (bool, np.bool_)):
+        return 'true' if value else 'false'
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (list, tuple)):
+        return '; '.join(format_diagnostic(item) for item in value)
+    return str(value)
+
+
 def history_span(config: IdentificationConfig) -> float:
     """
     Return the longest span (s) of data a session asks for.
@@ -191,9 +210,12 @@ class IdentificationSession:
         if config.warm_start and self._previous is not None:
             options['initial'] = self._previous
         record = len(window.data) * window.data.ts
-        if config.transient < 0 and record > config.window:
-            # Everything before the last `window` seconds only settles the model's state.
-            options['transient'] = record - config.window
+        if config.transient < 0 and self._settling is not None and record > config.window:
+            # Everything before the last `window` seconds only settles the model's state, and
+            # at least the settling time does (a record barely longer than the window would
+            # otherwise be fitted from an unsettled state). Without a previous estimate the
+            # estimator's 'auto' transient settles the starting model instead.
+            options['transient'] = max(record - config.window, self._settling)
         started = time.perf_counter()
         result = estimate(config.compiled_model, window.data, **options)
         elapsed = time.perf_counter() - started

@@ -300,7 +300,7 @@ def test_estimate_writer_output_reads_back_with_rosbags_and_mcap_ros2(tmp_path):
             assert msg.header.stamp.sec == time_ns // 10**9
             assert status.name == 'ctid_node: estimate'
             pairs = {kv.key: kv.value for kv in status.values}
-            assert pairs['fit'] == '91.2346' and pairs['iterations'] == str(4 + index)
+            assert pairs['fit'] == '91.23456789' and pairs['iterations'] == str(4 + index)
             assert pairs['converged'] == ('false' if index == 1 else 'true')
             assert status.level == (0 if index == 0 else 1)
         assert status.message == 'poorly excited'

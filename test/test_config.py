@@ -71,6 +71,9 @@ def test_parameter_specs_follow_the_contract():
     ('joint_states', {'input_topic': '/joint_states', 'output_topic': '/joint_states',
                       'input_field': 'effort[0]', 'output_field': 'position[0]',
                       'model': '1/(J*s**2 + b*s + k)', 'parameter_names': ('J', 'b', 'k')}),
+    ('wheel_demo', {'input_topic': '/wheel/u', 'output_topic': '/wheel/y',
+                    'input_field': 'point.x', 'model': 'exp(-tau*s)/(J*s + b)',
+                    'controller': '', 'parameter_names': ('J', 'b', 'tau'), 'delay_max': 0.2}),
 ])
 def test_example_files_load(name, checks):
     path = find_config(name)

@@ -84,6 +84,15 @@ def test_bode_band_contains_the_estimate(tmp_path, result):
     assert bottom.get_xscale() == 'log'
 
 
+def test_bode_stops_at_max_omega_and_gives_the_band_width(result):
+    assert bode_data(result, draws=0).omega[-1] == pytest.approx(100.0)  # 1/tau: 4.2 rad/s
+    data = bode_data(result, draws=20, max_omega=20.0)
+    assert data.omega[-1] == pytest.approx(20.0) and data.omega[0] < 1 / TRUTH['T'] / 10
+    legend = bode(result, draws=20, max_omega=20.0).axes[0].get_legend()
+    width = np.max(data.magnitude_band[1] - data.magnitude_band[0])
+    assert f'at most {width:.2g} dB wide' in legend.get_texts()[0].get_text()
+
+
 def test_bode_of_a_closed_loop_estimate_shows_the_plant():
     model = Model('1/(m*s**2 + d*s + k)', controller='20 + 10/s')
     u = prbs(9, 20)[:2000]
