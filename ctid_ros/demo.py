@@ -61,6 +61,8 @@ DOC_FIGURES = {'replay.png': 'demo_fit.png', 'parameters.png': 'demo_parameters.
 DOCS_DIRECTORY = Path(__file__).resolve().parent.parent / 'docs' / 'images'
 # Seconds to wait for the processes to start and discover each other on a loaded machine.
 STARTUP_TIMEOUT = 60.0
+# Seconds to wait for the last samples in flight after the plant has finished.
+DRAIN_TIMEOUT = 3.0
 CELL_WIDTH = 19
 
 
@@ -385,12 +387,17 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
         try:
             recorder = rclpy.create_node('ctid_demo_recorder', context=context)
             qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+            written = dict.fromkeys(recorded, 0)
+
+            def record(data, info, topic):
+                writer.write(topic, info['received_timestamp'], data)
+                written[topic] += 1
+
             for topic, msgtype in recorded.items():
                 writer.add_topic(topic, msgtype)
                 recorder.create_subscription(
                     import_message(msgtype), topic,
-                    lambda data, info, topic=topic: writer.write(
-                        topic, info['received_timestamp'], data), qos, raw=True)
+                    lambda data, info, topic=topic: record(data, info, topic), qos, raw=True)
             for topic, msgtype, callback in (
                     (ESTIMATE_TOPIC, ARRAY, table.on_estimate),
                     (ESTIMATE_STD_TOPIC, ARRAY, table.on_std),
@@ -400,7 +407,14 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
             spinner.start()
             table.start_ns = _wait_event(events, 'started', STARTUP_TIMEOUT, *processes)
             table.header()
-            return _wait_event(events, 'finished', duration + STARTUP_TIMEOUT, *processes)
+            published = _wait_event(events, 'finished', duration + STARTUP_TIMEOUT, *processes)
+            # The last samples may still be in flight: let them reach the recording.
+            deadline = time.monotonic() + DRAIN_TIMEOUT
+            signals = [scenario.topics[name] for name in 'ruy']
+            while time.monotonic() < deadline and \
+                    any(written[topic] < published for topic in signals):
+                time.sleep(0.01)
+            return published
         finally:
             executor.shutdown()
             rclpy.try_shutdown(context=context)
