@@ -164,7 +164,7 @@ def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
     scales[scales == 0.0] = 1.0
     triangular = np.linalg.qr(columns / scales, mode='r')
     leading = columns.shape[1] - (n + 1) - len(u_parts) * (m + 1)
-    return (triangular / scales)[leading:, leading:]
+    return (triangular * scales)[leading:, leading:]
 
 
 def _equation_error_candidates(problem, hints, pinned, delay_index, tau,
