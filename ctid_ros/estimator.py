@@ -138,9 +138,9 @@ class Estimate:
         output = self.simulate(data)
         if self.model.integrators:
             output = output + data.y[0]
-        basis = nuisance_basis(self.model.structure(self.params).den, len(data), data.ts,
-                               self.initial_state == 'estimate', self.output_offset)
-        return _fitted(data.y, output, basis)
+        columns = nuisance_columns(self.model.structure(self.params).den, len(data), data.ts,
+                                   self.initial_state == 'estimate', self.output_offset)
+        return _fitted(data.y, output, _orthonormal(columns))
 
     def compare(self, data: Data) -> float:
         """Fit in percent of the identified model on (validation) ``data``, see :meth:`predict`."""
@@ -168,10 +168,10 @@ def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
     return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / spread))
 
 
-def nuisance_basis(den: np.ndarray, count: int, ts: float, initial_state: bool,
-                   output_offset: bool) -> Optional[np.ndarray]:
+def nuisance_columns(den: np.ndarray, count: int, ts: float, initial_state: bool,
+                     output_offset: bool) -> Optional[np.ndarray]:
     """
-    Return an orthonormal basis of the output components fitted besides ``G u``, or None.
+    Return the output components fitted besides ``G u`` as columns, or None.
 
     ``initial_state``: the free responses of ``1/D`` (a nonzero initial state, algorithm notes
     section 5.8); ``output_offset``: a constant. Their coefficients enter linearly, so they are
@@ -182,11 +182,15 @@ def nuisance_basis(den: np.ndarray, count: int, ts: float, initial_state: bool,
         columns.append(ContinuousFilter(den).discretize(ts).free_responses(count))
     if output_offset:
         columns.append(np.ones((count, 1)))
-    if not columns:
+    return np.hstack(columns) if columns else None
+
+
+def _orthonormal(columns: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """Orthonormal basis of the span of ``columns`` (None stays None)."""
+    if columns is None:
         return None
-    matrix = np.hstack(columns)
-    norms = np.linalg.norm(matrix, axis=0)
-    return linalg.orth(matrix / np.where(norms > 0.0, norms, 1.0))
+    norms = np.linalg.norm(columns, axis=0)
+    return linalg.orth(columns / np.where(norms > 0.0, norms, 1.0))
 
 
 def _fitted(measured: np.ndarray, output: np.ndarray, basis: Optional[np.ndarray]
@@ -219,9 +223,9 @@ class _Problem:
         return self.data.y[self.skip:]
 
     def _basis(self, structure: Structure) -> Optional[np.ndarray]:
-        basis = nuisance_basis(structure.den, len(self.data), self.data.ts,
-                               self.initial_state, self.output_offset)
-        return None if basis is None else linalg.orth(basis[self.skip:])
+        columns = nuisance_columns(structure.den, len(self.data), self.data.ts,
+                                   self.initial_state, self.output_offset)
+        return None if columns is None else _orthonormal(columns[self.skip:])
 
     def prediction(self, structure: Structure) -> np.ndarray:
         """Model output on the fitted samples, with the fitted initial state and offset."""
