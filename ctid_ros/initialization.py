@@ -154,11 +154,13 @@ def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
     bank_u = realization.discretize(data.ts, tau, problem.bank.intersample)
     u_parts = [bank_u.outputs(channel, powers[m::-1]) for channel in problem.bank.channels.T]
     columns = np.vstack([y_parts] + [-part for part in u_parts]).T
+    # Both act on y from t_0, so they are filtered without the input's dead time.
+    undelayed = realization.discretize(data.ts)
     nuisance = []
     if problem.initial_state:
-        nuisance.append(realization.discretize(data.ts).free_responses(len(data)))
+        nuisance.append(undelayed.free_responses(len(data)))
     if problem.output_offset:
-        nuisance.append(bank_u.outputs(np.ones(len(data)), [np.ones(1)]).T)
+        nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
     columns = np.hstack(nuisance + [columns])
     scales = np.linalg.norm(columns, axis=0)
     scales[scales == 0.0] = 1.0
