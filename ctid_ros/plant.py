@@ -299,12 +299,6 @@ class PlantNode(Node):
         self._start_ns = -(-now // self._step_ns) * self._step_ns
         self.published = 0
 
-    def destroy_publishers(self) -> None:
-        """Stop publishing (the simulation keeps running) until :meth:`create_publishers`."""
-        for publisher in self._topic_publishers.values():
-            self.destroy_publisher(publisher)
-        self._topic_publishers = {}
-
     def _tick(self) -> None:
         now = self.get_clock().now().nanoseconds
         while self._start_ns + self.published * self._step_ns <= now:
