@@ -16,8 +16,9 @@ matrix exponentials are composed (the modified discretisation). Everything start
 Numerics follow the algorithm notes: the denominator is time-scaled so its roots are O(1),
 realised in controllable canonical form whose states are ``s^j/D(s)`` applied to the signal
 (so any numerator of degree <= deg D is just an output map of one state simulation), diagonally
-balanced, discretised with one matrix exponential per sub-interval, and propagated in complex
-Schur coordinates where every state is a first-order recursion run by :func:`scipy.signal.lfilter`.
+balanced, discretised with one matrix exponential per sub-interval, and propagated in modal
+(eigenvector, else complex Schur) coordinates where every mode is a first-order recursion run by
+:func:`scipy.signal.lfilter`.
 No high-order difference equation is ever formed, so precision holds up to high orders, and no
 Python loop runs per sample.
 """
@@ -30,6 +31,8 @@ import numpy as np
 from scipy import linalg, signal
 
 INTERSAMPLE = ('zoh', 'foh')
+# Above this condition number of the eigenvector basis the propagation uses the Schur form.
+_MODAL_CONDITION_LIMIT = 1e4
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -199,7 +202,7 @@ def _hold_integrals(a: np.ndarray, b: np.ndarray, h: float):
     return exponential[:n, :n], exponential[:n, n], exponential[:n, n + 1]
 
 
-def _shifted(values: np.ndarray, offset: int) -> np.ndarray:
+def shifted(values: np.ndarray, offset: int) -> np.ndarray:
     """``values[k + offset]`` for every k, zero outside the record (signals start at rest)."""
     count = values.shape[0]
     out = np.zeros_like(values)
@@ -217,7 +220,7 @@ def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
     if masked and values.shape[0]:
         values = values.copy()
         values[0] = 0.0
-    return _shifted(values, offset)
+    return shifted(values, offset)
 
 
 @dataclass
@@ -231,14 +234,14 @@ class DiscreteFilter:
 
     def states(self, values: np.ndarray) -> np.ndarray:
         """State trajectory (N x n) for the sampled signal, starting at rest."""
-        n = self.continuous.order
-        count = values.shape[0]
-        if n == 0:
-            return np.zeros((count, 0))
-        forcing = np.zeros((count, n))
-        for sample, vector in self.drive.items():
-            forcing += np.outer(_sampled(values, sample), vector)
-        return _propagate(self.transition, forcing)
+        return self._mapped(values, np.eye(self.continuous.order)).T
+
+    def _mapped(self, values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """``rows @ x[k]`` for every k, shape (q, N)."""
+        if self.continuous.order == 0:
+            return np.zeros((rows.shape[0], values.shape[0]))
+        signals = np.array([_sampled(values, sample) for sample in self.drive])
+        return _propagate(self.transition, signals, np.array(list(self.drive.values())), rows)
 
     def free_responses(self, count: int) -> np.ndarray:
         """
@@ -252,10 +255,10 @@ class DiscreteFilter:
         if n == 0:
             return np.zeros((count, 0))
         row, _ = self.continuous.output_map(np.ones(1))
-        forcing = np.zeros((count + 1, n))
-        forcing[0] = row
-        # x[k+1] = A^T x[k] + f[k] gives x[k+1] = (row A^k)^T: all n columns in one run.
-        return _propagate(self.transition.T, forcing)[1:]
+        impulse = np.zeros((1, count + 1))
+        impulse[0, 0] = 1.0
+        # x[k+1] = A^T x[k] + row^T impulse[k] gives x[k+1] = (row A^k)^T: all n columns at once.
+        return _propagate(self.transition.T, impulse, row[None, :], np.eye(n))[:, 1:].T
 
     def delayed_input(self, values: np.ndarray) -> np.ndarray:
         """Return the delayed, held input at the sample instants (the feedthrough signal)."""
@@ -267,24 +270,49 @@ class DiscreteFilter:
     def outputs(self, values: np.ndarray, numerators: Iterable) -> np.ndarray:
         """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
         rows, feeds = zip(*(self.continuous.output_map(num) for num in numerators))
-        states = self.states(values)
         held = self.delayed_input(values)
-        return np.asarray(rows) @ states.T + np.outer(feeds, held)
+        return self._mapped(values, np.asarray(rows)) + np.outer(feeds, held)
 
 
-def _propagate(transition: np.ndarray, forcing: np.ndarray) -> np.ndarray:
-    """Solve ``x[k+1] = A x[k] + f[k]``, ``x[0] = 0``, in complex Schur coordinates."""
-    count, n = forcing.shape
-    upper, unitary = linalg.schur(transition.astype(complex), output='complex')
-    modal_forcing = forcing @ unitary.conj()              # rows: Z^H f[k]
-    modal = np.zeros((count, n), dtype=complex)
-    for i in range(n - 1, -1, -1):
-        driving = modal_forcing[:, i].copy()
-        if i + 1 < n:
-            driving += modal[:, i + 1:] @ upper[i, i + 1:]
-        # modal[k+1, i] = upper[i, i] * modal[k, i] + driving[k]
-        modal[1:, i] = signal.lfilter([1.0], [1.0, -upper[i, i]], driving[:-1])
-    return (modal @ unitary.T).real
+def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
+               rows: np.ndarray) -> np.ndarray:
+    """
+    Return ``rows @ x[k]`` where ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
+
+    Each mode is a first-order recursion run by :func:`scipy.signal.lfilter`. When the
+    eigenvectors of ``A`` form a well-conditioned basis the modes are uncoupled and, the signals
+    being real, only one mode of each conjugate pair is run; otherwise (repeated poles, as in
+    ``D^2``) the modes are the coupled ones of the complex Schur form.
+
+    """
+    count = signals.shape[1]
+    eigenvalues, vectors = np.linalg.eig(transition)
+    if np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
+        keep = eigenvalues.imag >= 0.0
+        poles = eigenvalues[keep]
+        coupling = None
+        modal_drives = np.linalg.solve(vectors, drives.T)[keep]
+        # A conjugate partner contributes the conjugate: twice the real part in total.
+        out_map = (rows @ vectors)[:, keep] * np.where(poles.imag > 0.0, 2.0, 1.0)
+    else:
+        upper, unitary = linalg.schur(transition.astype(complex), output='complex')
+        poles = np.diag(upper)
+        coupling = upper
+        modal_drives = unitary.conj().T @ drives.T
+        out_map = rows @ unitary
+    driving = modal_drives @ signals
+    modal = np.zeros(driving.shape, dtype=complex)
+    for i in range(poles.size - 1, -1, -1):
+        if coupling is not None and i + 1 < poles.size:
+            driving[i] += coupling[i, i + 1:] @ modal[i + 1:]
+        # modal[i, k+1] = pole * modal[i, k] + driving[i, k]
+        if coupling is None and poles[i].imag == 0.0:
+            # A real mode of real signals: any imaginary part is rounding.
+            modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i].real],
+                                          driving[i, :count - 1].real)
+        else:
+            modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i]], driving[i, :count - 1])
+    return (out_map @ modal).real
 
 
 def response(num, den, values, ts: float, *, delay: float = 0.0,

@@ -28,6 +28,9 @@ SYSTEMS = {
     'biproper fourth order': (np.poly([-1.0, -3.0, 2.0 + 1.0j, 2.0 - 1.0j]),
                               np.polymul([1.0, 1.0, 4.0], [1.0, 4.0, 400.0]), 0.01),
     'unstable (Test 3 plant)': ([1.0], [1.0, 0.5, -2.0], 0.01),
+    # Repeated poles (the sensitivity filters 1/D^2) have no eigenvector basis: Schur form.
+    'repeated complex pair': ([1.0, 0.0], np.polymul([0.5, 1.0, 50.0], [0.5, 1.0, 50.0]), 0.01),
+    'triple real pole': ([1.0], [1.0, 3.0, 3.0, 1.0], 0.1),
 }
 
 
