@@ -38,9 +38,15 @@ Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
 Initial = Union[str, None, Mapping[str, float]]
 
 _HALVINGS = 14
+_FULL_STEP = (1.0,)
+_HALVED_STEPS = tuple(0.5 ** np.arange(1, _HALVINGS))
+_ALL_STEPS = _FULL_STEP + _HALVED_STEPS
 _IV_CONDITION_LIMIT = 1e10
 _IDENTIFIABILITY_LIMIT = 1e10
 _SYMMETRY_RESTARTS = 3
+# An update smaller than this many standard deviations of the estimate changes nothing a user
+# can see: the iteration stops instead of resolving noise to the last digit.
+_NEGLIGIBLE_STEP = 1e-3
 
 
 @dataclass
@@ -216,6 +222,7 @@ class _Problem:
         self.evaluations = 0
         self.skip = 0
         self._leading_sign = None
+        self._latest: Optional[Tuple[bytes, Linearization]] = None
 
     @property
     def measured(self) -> np.ndarray:
@@ -233,7 +240,24 @@ class _Problem:
                        self._basis(structure))
 
     def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
-        """Output, regressors and instruments on the fitted samples (nuisance projected out)."""
+        """
+        Output, regressors and instruments on the fitted samples (nuisance projected out).
+
+        The latest result is kept: the final estimate is linearised once for the stopping
+        rule, the identifiability check and the covariance.
+
+        """
+        key = b''.join(np.ascontiguousarray(part).tobytes() for part in (
+            structure.den, structure.num, structure.delay, structure.den_jacobian,
+            structure.num_jacobian, structure.delay_gradient, self.skip))
+        if self._latest is not None and self._latest[0] == key and (
+                self._latest[1].phi is not None or not regressors):
+            return self._latest[1]
+        lin = self._linearized(structure, regressors)
+        self._latest = (key, lin)
+        return lin
+
+    def _linearized(self, structure: Structure, regressors: bool) -> Linearization:
         lin = self.bank.linearize(structure, regressors)
         output, phi, psi = (lin.output[self.skip:],
                             None if lin.phi is None else lin.phi[self.skip:],
@@ -324,7 +348,10 @@ def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarra
         step = np.linalg.lstsq(psi_s, error, rcond=None)[0]
     else:
         gram = psi_s.T @ psi_s
-        step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), psi_s.T @ error)
+        try:
+            step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), psi_s.T @ error)
+        except np.linalg.LinAlgError:
+            return None
     if not np.all(np.isfinite(step)):
         return None
     full = np.zeros(free.size)
@@ -353,19 +380,27 @@ def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
     return ~(frozen | at_lower | at_upper)
 
 
-def _try_step(problem: _Problem, state: _State, step: np.ndarray, monotone: bool
-              ) -> Optional[Tuple[_State, float]]:
-    """Step halving along ``step``; the first admissible candidate that does not raise V."""
-    scale = _box_limit(state.theta, step, problem.lower, problem.upper)
-    for _ in range(_HALVINGS):
-        candidate = state.theta + scale * step
+def _try_step(problem: _Problem, state: _State, step: np.ndarray, monotone: bool,
+              scales: Sequence[float]) -> Optional[Tuple[_State, float]]:
+    """First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V."""
+    limit = _box_limit(state.theta, step, problem.lower, problem.upper)
+    for scale in scales:
+        candidate = state.theta + limit * scale * step
         structure = problem.admissible(candidate)
         if structure is not None:
             cost = problem.cost(structure)
             if not monotone or cost <= state.cost:
-                return _State(candidate, structure, cost), scale
-        scale *= 0.5
+                return _State(candidate, structure, cost), limit * scale
     return None
+
+
+def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float:
+    """Length of ``step`` in standard deviations of the estimate, ``|Psi step| / sigma``."""
+    count, params = lin.psi.shape
+    variance = float(error @ error) / max(count - params, 1)
+    if variance == 0.0:
+        return np.inf
+    return float(np.linalg.norm(lin.psi @ step) / np.sqrt(variance))
 
 
 def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarray,
@@ -373,6 +408,10 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
              trust_first_ls: bool = False) -> Tuple[_State, List[Iteration], str, bool]:
     """
     Run the controlled projection iteration from ``state``.
+
+    Each update tries the full primary step, then the full Gauss-Newton step, and only then
+    halves them and falls back to Levenberg-Marquardt: a biased first least-squares step then
+    costs one cost evaluation, not a whole halving sequence.
 
     ``trust_first_ls`` accepts the first (least-squares) step even if it raises the cost, as
     long as the model stays stable and inside the bounds: for an affine structure that step is
@@ -388,21 +427,39 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
             return state, history, 'all parameters fixed at bounds', True
         primary = 'gn' if method == 'gn' else ('ls' if method == 'ls' or (
             iteration == 0 and first_ls) else 'iv')
+        directions = {}
+
+        def direction(kind: str, damping: float) -> Optional[np.ndarray]:
+            if (kind, damping) not in directions:
+                directions[kind, damping] = _direction(kind, lin, error, free, damping)
+            return directions[kind, damping]
+
+        first = direction(primary, 0.0)
+        if primary != 'ls' and first is not None and \
+                _step_size(lin, error, first) < _NEGLIGIBLE_STEP:
+            return state, history, \
+                f'update below {_NEGLIGIBLE_STEP:g} standard deviations', True
+        # Pure P-LS follows its own fixed point, not the output-error descent.
+        trusted = method == 'ls' or (trust_first_ls and iteration == 0 and primary == 'ls')
+        if trusted:
+            attempts = [(primary, 0.0, _ALL_STEPS, False), ('gn', 0.0, _ALL_STEPS, True)]
+        else:
+            attempts = [(primary, 0.0, _FULL_STEP, True), ('gn', 0.0, _FULL_STEP, True),
+                        (primary, 0.0, _HALVED_STEPS, True), ('gn', 0.0, _HALVED_STEPS, True)]
+        if method == 'ls':
+            attempts = attempts[:1]
+        else:
+            attempts += [('lm', damping, _ALL_STEPS, True) for damping in (1e-2, 1.0, 1e2)]
         accepted = None
-        for kind, damping in [(primary, 0.0), ('gn', 0.0), ('lm', 1e-2), ('lm', 1.0),
-                              ('lm', 1e2)]:
-            if kind == 'gn' and primary == 'gn':
+        tried = set()
+        for kind, damping, scales, monotone in attempts:
+            step = direction(kind, damping)
+            if step is None or (kind, damping, scales) in tried:
                 continue
-            step = _direction(kind, lin, error, free, damping)
-            if step is None:
-                continue
-            # Pure P-LS follows its own fixed point, not the output-error descent.
-            trusted = method == 'ls' or (trust_first_ls and iteration == 0 and kind == 'ls')
-            outcome = _try_step(problem, state, step, monotone=not trusted)
+            tried.add((kind, damping, scales))
+            outcome = _try_step(problem, state, step, monotone, scales)
             if outcome is not None:
                 accepted = (kind, step, outcome)
-                break
-            if method == 'ls':
                 break
         if accepted is None:
             return state, history, 'no admissible step decreases the cost', True
@@ -609,9 +666,10 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         if delay_index is not None:
             start, profile, history = delay_search(problem, start, delay_index, delay_range)
         frozen = np.zeros(len(model.parameters), dtype=bool)
+        # A start refined by the dead-time search needs no least-squares step.
         final, more, reason, converged = _iterate(
             problem, start, method=method, frozen=frozen, max_iterations=max_iterations,
-            tolerance=tolerance)
+            tolerance=tolerance, first_ls=delay_index is None)
         history.extend(more)
         rng = np.random.default_rng(0)
         for _ in range(_SYMMETRY_RESTARTS):
