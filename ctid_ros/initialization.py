@@ -8,20 +8,20 @@ computed once per filter and reduce to a triangular factor), from several starts
 candidate with the lowest output-error cost. For affine structures this is the exact
 one-step regression of the method with a fixed filter, so any start works.
 
-The dead time is located by a profile: for each ``tau`` on a grid the other parameters get a
-few projection iterations with ``tau`` frozen; the best local minima of that profile are then
-refined jointly.
+The dead time is located by a profile: for each ``tau`` on a grid the other parameters get
+their equation-error fit with ``tau`` frozen and the profile records its output-error cost; the
+best local minima of that profile are then refined by projection iterations.
 """
 
 from typing import List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import EstimationError, ModelError
-from ctid_ros.simulation import ContinuousFilter
+from ctid_ros.simulation import ContinuousFilter, shifted
 import numpy as np
 from scipy import optimize
 
 _FILTER_COUNT = 5
-_GRID_FILTER_COUNT = 3
+_START_TOLERANCE = 1e-6
 _RANDOM_STARTS = 4
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
@@ -66,8 +66,13 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     pinned = {} if len(given) == len(model.parameters) else given
     delay_index = delay_parameter(model)
     tau = _initial_delay(problem, given, delay_index, delay_range)
-    best = best_candidate(problem, _equation_error_candidates(
-        problem, given, pinned, delay_index, tau))
+    filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
+    starts = _starts(problem, given, pinned, delay_index, tau)
+    free = np.array([name not in pinned for name in model.parameters])
+    if delay_index is not None:
+        free[delay_index] = False
+    best = best_candidate(problem, _equation_error_fits(problem, starts, free, tau, filters)
+                          + starts)
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
@@ -101,15 +106,17 @@ def _initial_delay(problem, given, delay_index, delay_range) -> float:
     return float(np.clip(impulse_delay(problem.data), low, high))
 
 
-def _starts(problem, hints, pinned, delay_index, tau, rng) -> List[np.ndarray]:
+def _starts(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
     """
     Return starting points: the user's hints first, then random draws.
 
     Draws are log-uniform over 1e-2..1e2, or over the box where it is finite (uniform when the
-    box includes zero). Pinned values and the dead time are the same in every start.
+    box includes zero), seeded so a fit is reproducible. Pinned values and the dead time are the
+    same in every start.
 
     """
     model = problem.model
+    rng = np.random.default_rng(20131)
     count = len(model.parameters)
     lower, upper = problem.lower, problem.upper
     boxed = np.isfinite(lower) & np.isfinite(upper)
@@ -137,81 +144,156 @@ def _starts(problem, hints, pinned, delay_index, tau, rng) -> List[np.ndarray]:
     return starts
 
 
-def _filtered_regressors(problem, lam: float, tau: float) -> np.ndarray:
+class _StateVariableFilters:
     """
-    Triangular factor ``R`` of ``[p^j/E y, -p^j/E u_c]`` ordered like ``(den, num)``.
+    Signals ``p^j/E`` of the data for the state-variable filters ``E = (p + lam)^n``.
 
-    Initial-state and offset components of the equation error (if the problem estimates them)
-    are projected out first.
+    The output, initial-state and offset parts do not depend on the dead time and are filtered
+    once. The input parts of a dead time of whole samples are shifts of one undelayed filtering
+    (exact: the filters start at rest), so a delay grid on the sample lattice filters the input
+    once per filter.
+
+    """
+
+    def __init__(self, problem, lams: np.ndarray):
+        model, data = problem.model, problem.data
+        n, m = model.den_degree, model.num_degree
+        powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
+        self._u_powers = powers[m::-1]
+        self._problem = problem
+        self._filters = []
+        for lam in lams:
+            realization = ContinuousFilter(np.poly(np.full(n, -lam)) if n else np.ones(1))
+            y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
+            # Both act on y from t_0, so they are filtered without the input's dead time.
+            undelayed = realization.discretize(data.ts)
+            nuisance = []
+            if problem.initial_state:
+                nuisance.append(undelayed.free_responses(len(data)))
+            if problem.output_offset:
+                nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
+            self._filters.append((realization, y_parts.T, nuisance, {}))
+
+    def factors(self, tau: float) -> List[np.ndarray]:
+        """
+        Triangular factors ``R`` of ``[p^j/E y, -p^j/E u_c]`` ordered like ``(den, num)``.
+
+        Initial-state and offset components of the equation error (if the problem estimates
+        them) are projected out first.
+
+        """
+        ts = self._problem.data.ts
+        whole = int(round(tau / ts))
+        on_lattice = abs(tau - whole * ts) <= 1e-9 * ts
+        factors = []
+        for realization, y_parts, nuisance, undelayed_inputs in self._filters:
+            if on_lattice:
+                if not undelayed_inputs:
+                    undelayed_inputs[0] = self._input_parts(realization, 0.0)
+                u_parts = shifted(undelayed_inputs[0], -whole)
+            else:
+                u_parts = self._input_parts(realization, tau)
+            columns = np.hstack(nuisance + [y_parts, -u_parts])
+            scales = np.linalg.norm(columns, axis=0)
+            scales[scales == 0.0] = 1.0
+            # columns / scales = Q R_s, so |columns c| = |(R_s * scales) c|.
+            triangular = np.linalg.qr(columns / scales, mode='r') * scales
+            leading = sum(part.shape[1] for part in nuisance)
+            factors.append(triangular[leading:, leading:])
+        return factors
+
+    def select(self, index: int) -> '_StateVariableFilters':
+        """Return the same signals for filter ``index`` only."""
+        chosen = object.__new__(_StateVariableFilters)
+        chosen.__dict__.update(self.__dict__)
+        chosen._filters = self._filters[index:index + 1]
+        return chosen
+
+    def _input_parts(self, realization: ContinuousFilter, tau: float) -> np.ndarray:
+        """Return ``p^j/E e^{-tau p} u_c`` for every channel, as columns."""
+        problem = self._problem
+        discrete = realization.discretize(problem.data.ts, tau, problem.bank.intersample)
+        return np.vstack([discrete.outputs(channel, self._u_powers)
+                          for channel in problem.bank.channels.T]).T
+
+
+def filter_bandwidths(data, count: int) -> np.ndarray:
+    """Return ``count`` filter corners from ten per record to 0.3 of the Nyquist frequency."""
+    return np.geomspace(10.0 / (data.ts * len(data)), 0.3 * np.pi / data.ts, count)
+
+
+def _equation_error_fits(problem, starts: List[np.ndarray], free: np.ndarray, tau: float,
+                         filters: _StateVariableFilters) -> List[np.ndarray]:
+    """
+    Return the equation-error fits of every filter from every start.
+
+    Only the ``free`` parameters are fitted; the others (the dead time ``tau`` among them) keep
+    their start values.
+
     """
     model = problem.model
-    data = problem.data
-    n, m = model.den_degree, model.num_degree
-    filter_den = np.poly(np.full(n, -lam)) if n else np.ones(1)
-    powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
-    realization = ContinuousFilter(filter_den)
-    y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
-    bank_u = realization.discretize(data.ts, tau, problem.bank.intersample)
-    u_parts = [bank_u.outputs(channel, powers[m::-1]) for channel in problem.bank.channels.T]
-    columns = np.vstack([y_parts] + [-part for part in u_parts]).T
-    # Both act on y from t_0, so they are filtered without the input's dead time.
-    undelayed = realization.discretize(data.ts)
-    nuisance = []
-    if problem.initial_state:
-        nuisance.append(undelayed.free_responses(len(data)))
-    if problem.output_offset:
-        nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-    columns = np.hstack(nuisance + [columns])
-    scales = np.linalg.norm(columns, axis=0)
-    scales[scales == 0.0] = 1.0
-    triangular = np.linalg.qr(columns / scales, mode='r')
-    leading = columns.shape[1] - (n + 1) - len(u_parts) * (m + 1)
-    return (triangular * scales)[leading:, leading:]
-
-
-def _equation_error_candidates(problem, hints, pinned, delay_index, tau,
-                               filters: int = _FILTER_COUNT) -> List[np.ndarray]:
-    model = problem.model
-    data = problem.data
-    record = data.ts * len(data)
-    rng = np.random.default_rng(20131)
-    lams = np.geomspace(10.0 / record, 0.3 * np.pi / data.ts, filters)
-    free = np.array([name not in pinned for name in model.parameters])
-    if delay_index is not None:
-        free[delay_index] = False
-    starts = _starts(problem, hints, pinned, delay_index, tau, rng)
     if not np.any(free):
-        return starts
-    candidates = []
-    for lam in lams:
-        factor = _filtered_regressors(problem, lam, tau)
-
-        def residual(values, start):
-            theta = start.copy()
-            theta[free] = values
-            structure = model.structure(theta)
-            return factor @ np.concatenate([structure.den, structure.num.ravel()])
-
-        def jacobian(values, start):
-            theta = start.copy()
-            theta[free] = values
-            structure = model.structure(theta)
-            grad = np.hstack([structure.den_jacobian,
-                              structure.num_jacobian.reshape(theta.size, -1)])[free]
-            return factor @ grad.T
-
+        return []
+    lower, upper = problem.lower[free], problem.upper[free]
+    fits = []
+    for factor in filters.factors(tau):
+        equation = _EquationError(model, factor, free)
         for start in starts:
+            theta = start.copy()
             try:
-                result = optimize.least_squares(
-                    residual, start[free], jac=jacobian, args=(start,),
-                    bounds=(problem.lower[free], problem.upper[free]), method='trf',
-                    max_nfev=200)
+                if model.is_affine:
+                    theta[free] = equation.linear_solution(start, lower, upper)
+                else:
+                    theta[free] = optimize.least_squares(
+                        equation.residual, start[free], jac=equation.jacobian, args=(start,),
+                        bounds=(lower, upper), method='trf', max_nfev=200,
+                        ftol=_START_TOLERANCE, xtol=_START_TOLERANCE, gtol=_START_TOLERANCE).x
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
+            fits.append(theta)
+    return fits
+
+
+class _EquationError:
+    """Residual ``R [den; num]`` of one filter as a function of the free parameters."""
+
+    def __init__(self, model, factor: np.ndarray, free: np.ndarray):
+        self._model = model
+        self._factor = factor
+        self._free = free
+        self._latest = None
+
+    def _structure(self, values: np.ndarray, start: np.ndarray):
+        # least_squares asks for the Jacobian where it has just evaluated the residual.
+        key = values.tobytes() + start.tobytes()
+        if self._latest is None or self._latest[0] != key:
             theta = start.copy()
-            theta[free] = result.x
-            candidates.append(theta)
-    return candidates + starts
+            theta[self._free] = values
+            self._latest = (key, self._model.structure(theta))
+        return self._latest[1]
+
+    def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
+        structure = self._structure(values, start)
+        return self._factor @ np.concatenate([structure.den, structure.num.ravel()])
+
+    def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
+        structure = self._structure(values, start)
+        gradient = np.hstack([structure.den_jacobian,
+                              structure.num_jacobian.reshape(start.size, -1)])[self._free]
+        return self._factor @ gradient.T
+
+    def linear_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                        ) -> np.ndarray:
+        """Exact minimiser for an affine structure (the residual is linear), within bounds."""
+        values = start[self._free]
+        jacobian = self.jacobian(values, start)
+        residual = self.residual(values, start)
+        step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
+        if np.all(values + step >= lower) and np.all(values + step <= upper):
+            return values + step
+        return values + optimize.lsq_linear(jacobian, -residual,
+                                            bounds=(lower - values, upper - values),
+                                            method='bvls').x
 
 
 def impulse_delay(data) -> float:
@@ -262,9 +344,33 @@ def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
     return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
 
 
+def _profile_filter(problem, hints, delay_index: int, tau: float) -> _StateVariableFilters:
+    """
+    Return the state-variable filter for the dead-time profile.
+
+    It is the filter whose equation-error fit at the data's own dead-time guess ``tau``
+    simulates best: it does not depend on the start, which may be fitted at a far dead time.
+
+    """
+    filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
+    starts = _starts(problem, hints, {}, delay_index, tau)[:1]
+    free = np.ones(len(problem.model.parameters), dtype=bool)
+    free[delay_index] = False
+    costs = [getattr(best_candidate(problem, _equation_error_fits(
+        problem, starts, free, tau, filters.select(index))), 'cost', np.inf)
+        for index in range(_FILTER_COUNT)]
+    return filters.select(int(np.argmin(costs)))
+
+
 def delay_search(problem, start, delay_index: int, delay_range):
     """
-    Locate the dead time by a frozen-delay profile, then refine the best minima jointly.
+    Locate the dead time by a profile over a grid, then refine the best minima jointly.
+
+    At each grid ``tau`` (on whole samples where the search bracket allows, so the filtered
+    input is a shift) the other parameters get their equation-error fit with one
+    state-variable filter matched to the starting model's bandwidth, and the profile records
+    the output-error cost of that fit. The best local minima of the profile get a few
+    projection iterations with ``tau`` frozen, then joint ones.
 
     Returns the best state, the profile as ``[(tau, cost), ...]`` and the joint iterations
     that refined the best minimum.
@@ -272,33 +378,32 @@ def delay_search(problem, start, delay_index: int, delay_range):
     """
     from ctid_ros.estimator import _iterate
 
+    data = problem.data
     low, high = _delay_bracket(problem, delay_index, delay_range)
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
-                      np.clip([start.theta[delay_index], impulse_delay(problem.data)],
-                              low, high))
+                      [start.theta[delay_index], impulse_delay(data)])
+    grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
     frozen = np.zeros(start.theta.size, dtype=bool)
     frozen[delay_index] = True
-    # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
-    grid_iterations = 2 if problem.model.is_affine else 3
     hints = problem.model.as_dict(start.theta)
+    filters = _profile_filter(problem, hints, delay_index, float(np.clip(
+        impulse_delay(data), low, high)))
     profile = []
     for tau in grid:
-        theta = start.theta.copy()
-        theta[delay_index] = tau
-        # A start fitted at another tau can be far off here: refit by equation error too.
-        state = best_candidate(problem, [theta] + _equation_error_candidates(
-            problem, hints, {}, delay_index, tau, filters=_GRID_FILTER_COUNT))
-        if state is None:
-            continue
-        state = _iterate(problem, state, method='iv', frozen=frozen,
-                         max_iterations=grid_iterations, tolerance=1e-6,
-                         trust_first_ls=True)[0]
-        profile.append((float(tau), state.cost, state))
+        state = best_candidate(problem, _equation_error_fits(
+            problem, _starts(problem, hints, {}, delay_index, tau), ~frozen, tau, filters))
+        if state is not None:
+            profile.append((float(tau), state.cost, state))
     if not profile:
         return start, [], []
-    refined = [
-        _iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
-                 max_iterations=10, tolerance=1e-6, first_ls=False)[:2]
-        for state in _local_minima(profile)]
+    # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
+    frozen_iterations = 2 if problem.model.is_affine else 3
+    refined = []
+    for state in _local_minima(profile):
+        state = _iterate(problem, state, method='iv', frozen=frozen,
+                         max_iterations=frozen_iterations, tolerance=1e-6,
+                         trust_first_ls=True)[0]
+        refined.append(_iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+                                max_iterations=10, tolerance=1e-6, first_ls=False)[:2])
     best, history = min(refined, key=lambda outcome: outcome[0].cost)
     return best, [(tau, cost) for tau, cost, _ in profile], history

@@ -3,8 +3,10 @@
 from ctid_ros import Data, estimate, EstimationError, Model, ModelError
 from ctid_ros import reference_systems as systems
 from ctid_ros.excitation import prbs
+from ctid_ros.sensitivity import SignalBank
 import numpy as np
 import pytest
+from scipy import optimize
 
 
 def assert_near_truth(result, system, sigmas=4.0):
@@ -58,6 +60,32 @@ def test_fractional_dead_time_from_poor_start():
     assert_near_truth(result, system)
     assert abs(result.params['tau'] - 1.234) < 0.05     # half a sample is 0.05 s
     assert result.delay_profile, 'the dead-time grid search should have run'
+
+
+def test_dead_time_from_a_start_whose_equation_error_fit_is_degenerate():
+    # At the far tau of this start the automatic start has T at its lower bound; the dead-time
+    # profile must not inherit that start's bandwidth (found by the benchmark).
+    system = systems.first_order_dead_time()
+    result = estimate(system.model, system.data(seed=1000),
+                      {'K': 10.558, 'tau': 6.989, 'T': 4.393}, bounds=system.bounds)
+    assert_near_truth(result, system)
+
+
+def test_iv_stops_at_the_output_error_minimum_within_a_thousandth_of_a_std():
+    # The statistical stopping rule leaves the estimate where a tightly converged output-error
+    # fit (scipy least_squares with exact sensitivities) ends.
+    system = systems.mass_spring_damper()
+    data = system.data(seed=11)
+    result = estimate(system.model, data, {'m': 1.0, 'd': 2.0, 'k': 20.0},
+                      bounds=system.bounds)
+    assert result.stop_reason.startswith('update below')
+    bank = SignalBank(system.model, data.u, data.y, data.ts)
+    minimum = optimize.least_squares(
+        lambda theta: data.y - bank.output(system.model.structure(theta)), result.theta,
+        jac=lambda theta: -bank.linearize(system.model.structure(theta), False).psi,
+        xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+    for index, name in enumerate(system.model.parameters):
+        assert abs(result.params[name] - minimum[index]) < 2e-3 * result.std[name], name
 
 
 def test_dead_time_regression_system_of_the_tdsrivc_demo():
