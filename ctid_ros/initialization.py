@@ -71,8 +71,13 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
-    best = best_candidate(problem, _equation_error_fits(problem, starts, free, tau, filters)
-                          + starts)
+    # Every filter fits from the hint; the random starts of a non-affine structure then look
+    # for other equation-error minima with the filter that simulated best.
+    fit, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
+    if fit is not None and len(starts) > 1:
+        more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
+        fit = _lower_cost(fit, more)
+    best = _lower_cost(fit, best_candidate(problem, starts))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
@@ -94,6 +99,39 @@ def best_candidate(problem, candidates: List[np.ndarray]):
         if best is None or cost < best.cost:
             best = _State(theta, structure, cost)
     return best
+
+
+def _lower_cost(first, second):
+    """Return the state of lower cost; either may be None."""
+    if first is None or (second is not None and second.cost < first.cost):
+        return second
+    return first
+
+
+def _distinct(thetas: List[np.ndarray]) -> List[np.ndarray]:
+    """Drop parameter vectors equal (to 1e-6 relative) to an earlier one: fits from different
+    starts often reach the same minimum, which need not be simulated twice."""
+    kept: List[np.ndarray] = []
+    for theta in thetas:
+        if not any(np.allclose(theta, other, rtol=1e-6, atol=0.0) for other in kept):
+            kept.append(theta)
+    return kept
+
+
+def _best_filter_fit(problem, starts, free, tau, filters):
+    """
+    Return the equation-error fit that simulates best over all filters, and its filter index.
+
+    Returns ``(None, None)`` if no fit gives an admissible model.
+
+    """
+    best, chosen = None, None
+    for index in range(filters.count):
+        state = best_candidate(problem, _distinct(_equation_error_fits(
+            problem, starts, free, tau, filters.select(index))))
+        if state is not None and (best is None or state.cost < best.cost):
+            best, chosen = state, index
+    return best, chosen
 
 
 def _initial_delay(problem, given, delay_index, delay_range) -> float:
@@ -201,6 +239,11 @@ class _StateVariableFilters:
             leading = sum(part.shape[1] for part in nuisance)
             factors.append(triangular[leading:, leading:])
         return factors
+
+    @property
+    def count(self) -> int:
+        """Number of filters."""
+        return len(self._filters)
 
     def select(self, index: int) -> '_StateVariableFilters':
         """Return the same signals for filter ``index`` only."""
@@ -353,13 +396,11 @@ def _profile_filter(problem, hints, delay_index: int, tau: float) -> _StateVaria
 
     """
     filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
-    starts = _starts(problem, hints, {}, delay_index, tau)[:1]
     free = np.ones(len(problem.model.parameters), dtype=bool)
     free[delay_index] = False
-    costs = [getattr(best_candidate(problem, _equation_error_fits(
-        problem, starts, free, tau, filters.select(index))), 'cost', np.inf)
-        for index in range(_FILTER_COUNT)]
-    return filters.select(int(np.argmin(costs)))
+    _, index = _best_filter_fit(problem, _starts(problem, hints, {}, delay_index, tau)[:1],
+                                free, tau, filters)
+    return filters.select(_FILTER_COUNT // 2 if index is None else index)
 
 
 def delay_search(problem, start, delay_index: int, delay_range):
@@ -390,8 +431,10 @@ def delay_search(problem, start, delay_index: int, delay_range):
         impulse_delay(data), low, high)))
     profile = []
     for tau in grid:
+        starts = _starts(problem, hints, {}, delay_index, tau)
+        # Where no fit is admissible (an unstable D) the start itself stands in at this tau.
         state = best_candidate(problem, _equation_error_fits(
-            problem, _starts(problem, hints, {}, delay_index, tau), ~frozen, tau, filters))
+            problem, starts, ~frozen, tau, filters) or starts[:1])
         if state is not None:
             profile.append((float(tau), state.cost, state))
     if not profile:

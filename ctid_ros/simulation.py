@@ -295,13 +295,16 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
         # A conjugate partner contributes the conjugate: twice the real part in total.
         out_map = (rows @ vectors)[:, keep] * np.where(poles.imag > 0.0, 2.0, 1.0)
     else:
-        upper, unitary = linalg.schur(transition.astype(complex), output='complex')
+        upper, unitary = linalg.schur(transition, output='real')
+        if np.any(np.diag(upper, -1)):
+            # Complex poles: 2x2 blocks in the real form, so use the complex triangular one.
+            upper, unitary = linalg.schur(transition.astype(complex), output='complex')
         poles = np.diag(upper)
         coupling = upper
         modal_drives = unitary.conj().T @ drives.T
         out_map = rows @ unitary
     driving = modal_drives @ signals
-    modal = np.zeros(driving.shape, dtype=complex)
+    modal = np.zeros(driving.shape, dtype=driving.dtype)
     for i in range(poles.size - 1, -1, -1):
         if coupling is not None and i + 1 < poles.size:
             driving[i] += coupling[i, i + 1:] @ modal[i + 1:]
