@@ -109,8 +109,12 @@ def _lower_cost(first, second):
 
 
 def _distinct(thetas: List[np.ndarray]) -> List[np.ndarray]:
-    """Drop parameter vectors equal (to 1e-6 relative) to an earlier one: fits from different
-    starts often reach the same minimum, which need not be simulated twice."""
+    """
+    Drop parameter vectors equal (to 1e-6 relative) to an earlier one.
+
+    Fits from different starts often reach the same minimum, which need not be simulated twice.
+
+    """
     kept: List[np.ndarray] = []
     for theta in thetas:
         if not any(np.allclose(theta, other, rtol=1e-6, atol=0.0) for other in kept):
@@ -242,7 +246,7 @@ class _StateVariableFilters:
 
     @property
     def count(self) -> int:
-        """Number of filters."""
+        """Return the number of filters."""
         return len(self._filters)
 
     def select(self, index: int) -> '_StateVariableFilters':
