@@ -25,6 +25,7 @@ _START_TOLERANCE = 1e-6
 _RANDOM_STARTS = 4
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
+_REFINEMENT_MARGIN = 3.0
 
 
 def _given_values(model, initial) -> Mapping[str, float]:
@@ -291,9 +292,11 @@ def _equation_error_fits(problem, starts: List[np.ndarray], free: np.ndarray, ta
                 if model.is_affine:
                     theta[free] = equation.linear_solution(start, lower, upper)
                 else:
+                    # Dogbox: half the time of trf on these few-parameter problems; a start
+                    # needs no more digits than the projection iteration corrects.
                     theta[free] = optimize.least_squares(
                         equation.residual, start[free], jac=equation.jacobian, args=(start,),
-                        bounds=(lower, upper), method='trf', max_nfev=200,
+                        bounds=(lower, upper), method='dogbox', max_nfev=200,
                         ftol=_START_TOLERANCE, xtol=_START_TOLERANCE, gtol=_START_TOLERANCE).x
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
@@ -435,22 +438,28 @@ def delay_search(problem, start, delay_index: int, delay_range):
         impulse_delay(data), low, high)))
     profile = []
     for tau in grid:
-        starts = _starts(problem, hints, {}, delay_index, tau)
-        # Where no fit is admissible (an unstable D) the start itself stands in at this tau.
+        # A grid point without an admissible fit (an unstable D, as often past the true dead
+        # time, where the fit would have to anticipate the input) drops out of the profile.
         state = best_candidate(problem, _equation_error_fits(
-            problem, starts, ~frozen, tau, filters) or starts[:1])
+            problem, _starts(problem, hints, {}, delay_index, tau), ~frozen, tau, filters))
         if state is not None:
             profile.append((float(tau), state.cost, state))
     if not profile:
         return start, [], []
     # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
     frozen_iterations = 2 if problem.model.is_affine else 3
-    refined = []
+    best, history, margin = None, [], np.inf
     for state in _local_minima(profile):
+        # Refinement lowered the best minimum's cost by some amount; a minimum whose profile
+        # cost exceeds the best refined cost by three times that amount cannot compete.
+        if best is not None and state.cost - _REFINEMENT_MARGIN * margin > best.cost:
+            continue
+        profiled = state.cost
         state = _iterate(problem, state, method='iv', frozen=frozen,
                          max_iterations=frozen_iterations, tolerance=1e-6,
                          trust_first_ls=True)[0]
-        refined.append(_iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
-                                max_iterations=10, tolerance=1e-6, first_ls=False)[:2])
-    best, history = min(refined, key=lambda outcome: outcome[0].cost)
+        state, iterations = _iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+                                     max_iterations=10, tolerance=1e-6, first_ls=False)[:2]
+        if best is None or state.cost < best.cost:
+            best, history, margin = state, iterations, profiled - state.cost
     return best, [(tau, cost) for tau, cost, _ in profile], history
