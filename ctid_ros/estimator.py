@@ -602,7 +602,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     max_iterations : int
         Limit on the number of updates of the final iteration.
     tolerance : float
-        Stop when the largest relative parameter change falls below it.
+        Stop when the largest relative parameter change falls below it. The iteration also
+        stops when the next update is below 0.001 standard deviations of the estimate.
     delay_range : (float, float), optional
         Search range in seconds for a dead-time parameter; default from its bounds, else
         automatic.
