@@ -19,6 +19,7 @@ import argparse
 import json
 import time
 from typing import Callable, Dict, List
+import warnings
 
 from ctid_ros import estimate, EstimationError, reference_systems
 from ctid_ros.estimator import bound_vectors
@@ -71,8 +72,11 @@ def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: 
     bounds = (-np.inf, np.inf)
     if method == 'trf' and system.bounds:
         bounds = bound_vectors(model, system.bounds)
-    result = optimize.least_squares(residual, start, jac=jacobian, method=method,
-                                    bounds=bounds, x_scale='jac', max_nfev=2000)
+    with warnings.catch_warnings():
+        # Far starts overflow inside scipy's own cost; the failed fit is what counts.
+        warnings.simplefilter('ignore', RuntimeWarning)
+        result = optimize.least_squares(residual, start, jac=jacobian, method=method,
+                                        bounds=bounds, x_scale='jac', max_nfev=2000)
     return result.x
 
 

@@ -4,9 +4,11 @@ Starting points for the projection iteration: automatic initialisation and dead-
 Automatic initialisation needs no user guess. For a few state-variable filters
 ``E(p) = (p + lam)^n`` it fits the equation error ``[D(p, theta) y - N(p, theta) u] / E`` by
 least squares directly in the grey-box parameters (a small problem: the filtered signals are
-computed once per filter and reduce to a triangular factor), from several starts, and keeps the
-candidate with the lowest output-error cost. For affine structures this is the exact
-one-step regression of the method with a fixed filter, so any start works.
+computed once per filter and reduce to a triangular factor) and keeps the candidate with the
+lowest output-error cost. For affine structures this is one linear solve, the exact one-step
+regression of the method with a fixed filter, so any start works; a non-affine structure is
+fitted from the hint with every filter, then from random starts with the filter that simulated
+best.
 
 The dead time is located by a profile: for each ``tau`` on a grid the other parameters get
 their equation-error fit with ``tau`` frozen and the profile records its output-error cost; the
@@ -20,7 +22,7 @@ from ctid_ros.simulation import ContinuousFilter, shifted
 import numpy as np
 from scipy import optimize
 
-_FILTER_COUNT = 5
+_FILTER_COUNT = 3
 _START_TOLERANCE = 1e-6
 _RANDOM_STARTS = 4
 _GRID_POINTS = 30
