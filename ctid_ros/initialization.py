@@ -28,6 +28,7 @@ _RANDOM_STARTS = 4
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
 _REFINEMENT_MARGIN = 3.0
+_COARSE_STRIDE = 3
 
 
 def _given_values(model, initial) -> Mapping[str, float]:
@@ -396,31 +397,17 @@ def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
     return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
 
 
-def _profile_filter(problem, hints, delay_index: int, tau: float) -> _StateVariableFilters:
-    """
-    Return the state-variable filter for the dead-time profile.
-
-    It is the filter whose equation-error fit at the data's own dead-time guess ``tau``
-    simulates best: it does not depend on the start, which may be fitted at a far dead time.
-
-    """
-    filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
-    free = np.ones(len(problem.model.parameters), dtype=bool)
-    free[delay_index] = False
-    _, index = _best_filter_fit(problem, _starts(problem, hints, {}, delay_index, tau)[:1],
-                                free, tau, filters)
-    return filters.select(_FILTER_COUNT // 2 if index is None else index)
-
-
 def delay_search(problem, start, delay_index: int, delay_range):
     """
     Locate the dead time by a profile over a grid, then refine the best minima jointly.
 
     At each grid ``tau`` (on whole samples where the search bracket allows, so the filtered
-    input is a shift) the other parameters get their equation-error fit with one
-    state-variable filter matched to the starting model's bandwidth, and the profile records
-    the output-error cost of that fit. The best local minima of the profile get a few
-    projection iterations with ``tau`` frozen, then joint ones.
+    input is a shift) the other parameters get their equation-error fit and the profile
+    records the output-error cost of that fit. Every third grid point tries every
+    state-variable filter; the filter that gave the lowest cost there serves the whole profile
+    (one filter throughout, so the profile's minima are not artefacts of switching filters).
+    The best local minima of the profile get a few projection iterations with ``tau`` frozen,
+    then joint ones.
 
     Returns the best state, the profile as ``[(tau, cost), ...]`` and the joint iterations
     that refined the best minimum.
@@ -436,16 +423,27 @@ def delay_search(problem, start, delay_index: int, delay_range):
     frozen = np.zeros(start.theta.size, dtype=bool)
     frozen[delay_index] = True
     hints = problem.model.as_dict(start.theta)
-    filters = _profile_filter(problem, hints, delay_index, float(np.clip(
-        impulse_delay(data), low, high)))
-    profile = []
-    for tau in grid:
-        # A grid point without an admissible fit (an unstable D, as often past the true dead
-        # time, where the fit would have to anticipate the input) drops out of the profile.
-        state = best_candidate(problem, _equation_error_fits(
-            problem, _starts(problem, hints, {}, delay_index, tau), ~frozen, tau, filters))
-        if state is not None:
-            profile.append((float(tau), state.cost, state))
+    filters = _StateVariableFilters(problem, filter_bandwidths(data, _FILTER_COUNT))
+    coarse = np.zeros(grid.size, dtype=bool)
+    coarse[::_COARSE_STRIDE] = True
+
+    def fitted(tau: float, chosen: _StateVariableFilters):
+        return best_candidate(problem, _distinct(_equation_error_fits(
+            problem, _starts(problem, hints, {}, delay_index, tau), ~frozen, tau, chosen)))
+
+    trials = {tau: [fitted(tau, filters.select(index)) for index in range(filters.count)]
+              for tau in grid[coarse]}
+    costs = np.array([[np.inf if state is None else state.cost for state in row]
+                      for row in trials.values()]).reshape(-1, filters.count)
+    index = int(np.argmin(np.min(costs, axis=0))) if np.isfinite(costs).any() \
+        else filters.count // 2
+    states = {tau: row[index] for tau, row in trials.items()}
+    chosen = filters.select(index)
+    states.update({tau: fitted(tau, chosen) for tau in grid[~coarse]})
+    # A grid point without an admissible fit (an unstable D, as often past the true dead time,
+    # where the fit would have to anticipate the input) drops out of the profile.
+    profile = [(float(tau), states[tau].cost, states[tau]) for tau in grid
+               if states[tau] is not None]
     if not profile:
         return start, [], []
     # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
