@@ -422,14 +422,22 @@ def delay_search(problem, start, delay_index: int, delay_range):
     grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
     frozen = np.zeros(start.theta.size, dtype=bool)
     frozen[delay_index] = True
-    hints = problem.model.as_dict(start.theta)
     filters = _StateVariableFilters(problem, filter_bandwidths(data, _FILTER_COUNT))
     coarse = np.zeros(grid.size, dtype=bool)
     coarse[::_COARSE_STRIDE] = True
 
+    lowest = [start]
+
     def fitted(tau: float, chosen: _StateVariableFilters):
-        return best_candidate(problem, _distinct(_equation_error_fits(
-            problem, _starts(problem, hints, {}, delay_index, tau), ~frozen, tau, chosen)))
+        # A non-affine fit starts from the hint and from the best fit so far (moved to this
+        # tau), not from random draws: the start's multi-start has been done at its own tau.
+        sources = [start] if problem.model.is_affine else [start, lowest[0]]
+        starts = _distinct([np.where(frozen, tau, state.theta) for state in sources])
+        state = best_candidate(problem, _distinct(_equation_error_fits(
+            problem, starts, ~frozen, tau, chosen)))
+        if state is not None and state.cost < lowest[0].cost:
+            lowest[0] = state
+        return state
 
     trials = {tau: [fitted(tau, filters.select(index)) for index in range(filters.count)]
               for tau in grid[coarse]}

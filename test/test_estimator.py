@@ -122,6 +122,21 @@ def test_non_affine_two_time_constants_with_automatic_start():
     assert result.params['K'] == pytest.approx(1.5, rel=0.01)
 
 
+def test_non_affine_dead_time_from_a_far_start():
+    # Non-affine and delayed (the hair dryer's structure): the profile's equation-error fits
+    # are nonlinear least squares started from the hint and the best fit so far.
+    model = Model('K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))')
+    u = prbs(8, 8)
+    clean = model.simulate({'K': 1.5, 'T1': 2.0, 'T2': 0.5, 'tau': 0.73}, u, 0.1)
+    noisy = clean + 0.1 * np.std(clean) * np.random.default_rng(9).standard_normal(u.size)
+    result = estimate(model, Data(u, noisy, 0.1), {'K': 1.0, 'T1': 1.0, 'T2': 1.0, 'tau': 3.0},
+                      bounds={'T1': (1e-3, None), 'T2': (1e-3, None), 'tau': (0.0, 5.0)})
+    times = sorted([result.params['T1'], result.params['T2']])
+    assert times == pytest.approx([0.5, 2.0], rel=0.05)
+    assert result.params['K'] == pytest.approx(1.5, rel=0.02)
+    assert result.params['tau'] == pytest.approx(0.73, abs=0.03)
+
+
 def test_noise_free_affine_data_give_the_truth_to_high_precision():
     system = systems.mass_spring_damper()
     data = Data(system.u, system.noise_free(), system.ts)
