@@ -18,6 +18,7 @@ best local minima of that profile are then refined by projection iterations.
 from typing import List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import EstimationError, ModelError
+from ctid_ros.residuals import independent_of_input
 from ctid_ros.simulation import ContinuousFilter, shifted
 import numpy as np
 from scipy import optimize
@@ -29,6 +30,7 @@ _GRID_POINTS = 30
 _REFINED_MINIMA = 2
 _REFINEMENT_MARGIN = 3.0
 _COARSE_STRIDE = 3
+_LOCAL_ITERATIONS = 4
 
 
 def _given_values(model, initial) -> Mapping[str, float]:
@@ -399,8 +401,14 @@ def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
 
 def delay_search(problem, start, delay_index: int, delay_range):
     """
-    Locate the dead time by a profile over a grid, then refine the best minima jointly.
+    Locate the dead time: a local fit if it explains the data, else a profile over a grid.
 
+    A few joint iterations from the start come first. If they reach a model whose residual is
+    independent of the input over the lags of the delay range plus the settling time
+    (:mod:`ctid_ros.residuals`), the data show no dynamics the model misses and the search
+    ends there (a warm start in the live node takes this path).
+
+    Otherwise the search profiles the whole range and refines its best minima jointly.
     At each grid ``tau`` (on whole samples where the search bracket allows, so the filtered
     input is a shift) the other parameters get their equation-error fit and the profile
     records the output-error cost of that fit. Every third grid point tries every
@@ -409,14 +417,22 @@ def delay_search(problem, start, delay_index: int, delay_range):
     The best local minima of the profile get a few projection iterations with ``tau`` frozen,
     then joint ones.
 
-    Returns the best state, the profile as ``[(tau, cost), ...]`` and the joint iterations
-    that refined the best minimum.
+    Returns the best state, the profile as ``[(tau, cost), ...]`` (empty if the local fit was
+    accepted) and the joint iterations that refined the best minimum.
 
     """
-    from ctid_ros.estimator import _iterate
+    from ctid_ros.estimator import _iterate, settling_time
 
     data = problem.data
     low, high = _delay_bracket(problem, delay_index, delay_range)
+    local, history = _iterate(
+        problem, start, method='iv', frozen=np.zeros(start.theta.size, dtype=bool),
+        max_iterations=_LOCAL_ITERATIONS, tolerance=1e-6)[:2]
+    lags = int(np.ceil((high + settling_time(local.structure)) / data.ts))
+    residual = np.zeros(len(data))
+    residual[problem.skip:] = problem.measured - problem.prediction(local.structure)
+    if independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4)):
+        return local, [], history
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
                       [start.theta[delay_index], impulse_delay(data)])
     grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))

@@ -59,7 +59,16 @@ def test_fractional_dead_time_from_poor_start():
                       bounds=system.bounds)
     assert_near_truth(result, system)
     assert abs(result.params['tau'] - 1.234) < 0.05     # half a sample is 0.05 s
-    assert result.delay_profile, 'the dead-time grid search should have run'
+
+
+def test_local_dead_time_fit_that_explains_the_data_needs_no_profile():
+    # A warm start: the local fit leaves a residual independent of the input, so the delay
+    # range is not searched.
+    system = systems.first_order_dead_time()
+    result = estimate(system.model, system.data(seed=5), {'K': 2.2, 'T': 4.5, 'tau': 1.3},
+                      bounds=system.bounds)
+    assert result.delay_profile == []
+    assert_near_truth(result, system)
 
 
 def test_dead_time_from_a_start_whose_equation_error_fit_is_degenerate():
@@ -96,6 +105,7 @@ def test_dead_time_regression_system_of_the_tdsrivc_demo():
     noise = np.random.default_rng(5).standard_normal(u.size) * np.std(clean) / 10 ** 0.75
     result = estimate(model, Data(u, clean + noise, 0.1),
                       {'b0': 6.0, 'a1': 2.0, 'a0': 2.0, 'tau': 1.0})
+    assert result.delay_profile, 'the local fit from tau = 1 should have failed validation'
     assert abs(result.params['tau'] - 8.0) < 0.05
     for name, value, crlb in [('b0', 12.0, 0.52), ('a1', 4.0, 0.15), ('a0', 4.0, 0.17)]:
         assert abs(result.params[name] - value) < 4 * crlb, result.params
