@@ -18,7 +18,7 @@ best local minima of that profile are then refined by projection iterations.
 from typing import List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import EstimationError, ModelError
-from ctid_ros.residuals import independent_of_input
+from ctid_ros.residuals import CONFIDENCE, independent_of_input, input_correlation
 from ctid_ros.simulation import ContinuousFilter, shifted
 import numpy as np
 from scipy import optimize
@@ -31,6 +31,7 @@ _REFINED_MINIMA = 2
 _REFINEMENT_MARGIN = 3.0
 _COARSE_STRIDE = 3
 _LOCAL_ITERATIONS = 4
+_PREWHITENING_ORDER = 10
 
 
 def _given_values(model, initial) -> Mapping[str, float]:
@@ -71,19 +72,23 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     # A complete guess is a hint for every parameter; a partial one pins the given values.
     pinned = {} if len(given) == len(model.parameters) else given
     delay_index = delay_parameter(model)
-    tau = _initial_delay(problem, given, delay_index, delay_range)
     filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
-    starts = _starts(problem, given, pinned, delay_index, tau)
     free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
-    # Every filter fits from the hint; the random starts of a non-affine structure then look
-    # for other equation-error minima with the filter that simulated best.
-    fit, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
-    if fit is not None and len(starts) > 1:
-        more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
-        fit = _lower_cost(fit, more)
-    best = _lower_cost(fit, best_candidate(problem, starts))
+    taus = _initial_delays(problem, given, pinned, delay_index, delay_range)
+    fit = None
+    for tau in taus:
+        starts = _starts(problem, given, pinned, delay_index, tau)
+        # Every filter fits from the hint; the random starts of a non-affine structure then
+        # look for other equation-error minima with the filter that simulated best.
+        found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
+        if found is not None and len(starts) > 1:
+            more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
+            found = _lower_cost(found, more)
+        fit = _lower_cost(fit, found)
+    best = _lower_cost(fit, best_candidate(
+        problem, _starts(problem, given, pinned, delay_index, taus[0])))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
@@ -144,14 +149,24 @@ def _best_filter_fit(problem, starts, free, tau, filters):
     return best, chosen
 
 
-def _initial_delay(problem, given, delay_index, delay_range) -> float:
+def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[float]:
+    """
+    Return the dead times the equation-error start is fitted at.
+
+    The given one (alone if it is pinned), and the data's own guess from the impulse response
+    unless a given dead time is pinned: a far guess then costs the start nothing.
+
+    """
     if delay_index is None:
-        return 0.0
+        return [0.0]
     name = problem.model.parameters[delay_index]
-    if name in given:
-        return given[name]
-    low, high = _delay_bracket(problem, delay_index, delay_range)
-    return float(np.clip(impulse_delay(problem.data), low, high))
+    taus = [given[name]] if name in given else []
+    if name not in pinned:
+        low, high = _delay_bracket(problem, delay_index, delay_range)
+        guess = float(np.clip(impulse_delay(problem.data), low, high))
+        if not taus or abs(guess - taus[0]) > 0.5 * problem.data.ts:
+            taus.append(guess)
+    return taus
 
 
 def _starts(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
@@ -353,26 +368,35 @@ class _EquationError:
 
 def impulse_delay(data) -> float:
     """
-    Dead-time guess from the cross-correlation of the differenced input and output.
+    Dead-time guess: first lag of significant prewhitened input-output correlation.
 
-    Differencing whitens a held (e.g. PRBS) input, so the correlation approximates the impulse
-    response; the first lag at which it reaches a quarter of its peak, less half a sample (the
-    hold), is a robust bracket centre.
+    An autoregressive model of the input (least squares, order 10) whitens it; the same filter
+    applied to the output leaves a cross-correlation proportional to the impulse response
+    (Box-Jenkins prewhitening), whose first lag above ``CONFIDENCE/sqrt(N)``, less half a
+    sample for the hold, is the guess. A slowly held input that the filter cannot whiten
+    gives an early guess: it only orders the search, it does not bound it from below.
 
     """
-    du = np.diff(data.u)
-    dy = np.diff(data.y)
-    count = du.size
-    if count < 4 or not np.any(du):
+    u = np.asarray(data.u, dtype=float).reshape(len(data), -1)[:, 0]
+    y = np.asarray(data.y, dtype=float)
+    count = u.size
+    order = min(_PREWHITENING_ORDER, count // 10)
+    if order < 1 or not np.ptp(u):
         return 0.0
-    size = 1 << int(np.ceil(np.log2(2 * count)))
-    spectrum = np.fft.rfft(dy, size) * np.conj(np.fft.rfft(du, size))
-    correlation = np.abs(np.fft.irfft(spectrum, size)[:count // 2])
-    peak = np.max(correlation)
-    if peak == 0.0:
+    u, y = u - np.mean(u), y - np.mean(y)
+
+    def lagged(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([values[order - k - 1:count - k - 1] for k in range(order)])
+
+    inputs = lagged(u)
+    coefficients = np.linalg.lstsq(inputs, u[order:], rcond=None)[0]
+    whitened_u = u[order:] - inputs @ coefficients
+    whitened_y = y[order:] - lagged(y) @ coefficients
+    correlation = np.abs(input_correlation(whitened_y, whitened_u, count // 2)[:, 0])
+    significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
+    if significant.size == 0:
         return 0.0
-    first = int(np.argmax(correlation >= 0.25 * peak))
-    return max(first - 0.5, 0.0) * data.ts
+    return max(significant[0] - 0.5, 0.0) * data.ts
 
 
 def _delay_bracket(problem, delay_index, delay_range) -> Tuple[float, float]:

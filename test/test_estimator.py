@@ -97,6 +97,21 @@ def test_iv_stops_at_the_output_error_minimum_within_a_thousandth_of_a_std():
         assert abs(result.params[name] - minimum[index]) < 2e-3 * result.std[name], name
 
 
+def test_dead_time_profile_runs_when_the_local_fit_leaves_dynamics_unexplained():
+    # A slowly held input defeats the prewhitened delay guess (it comes out near 0) and the
+    # start is far too: the local fit fails the residual test and the range is profiled.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(9, 20)[:5000]
+    clean = model.simulate({'K': 2.0, 'T': 1.0, 'tau': 2.0}, u, 0.05)
+    noisy = clean + 0.5 * np.std(clean) * np.random.default_rng(1).standard_normal(u.size)
+    result = estimate(model, Data(u, noisy, 0.05), {'K': 1.0, 'T': 1.0, 'tau': 0.2},
+                      bounds={'T': (1e-3, None), 'tau': (0.0, 5.0)})
+    assert result.delay_profile
+    assert result.params['tau'] == pytest.approx(2.0, abs=0.05)
+    assert result.params['T'] == pytest.approx(1.0, rel=0.1)
+    assert result.params['K'] == pytest.approx(2.0, rel=0.05)
+
+
 def test_dead_time_regression_system_of_the_tdsrivc_demo():
     # 12 e^{-8s}/(s^2 + 4s + 4): without the grid the iteration ends at tau -> 0.
     model = Model('b0*exp(-tau*s)/(s**2 + a1*s + a0)')
@@ -105,7 +120,6 @@ def test_dead_time_regression_system_of_the_tdsrivc_demo():
     noise = np.random.default_rng(5).standard_normal(u.size) * np.std(clean) / 10 ** 0.75
     result = estimate(model, Data(u, clean + noise, 0.1),
                       {'b0': 6.0, 'a1': 2.0, 'a0': 2.0, 'tau': 1.0})
-    assert result.delay_profile, 'the local fit from tau = 1 should have failed validation'
     assert abs(result.params['tau'] - 8.0) < 0.05
     for name, value, crlb in [('b0', 12.0, 0.52), ('a1', 4.0, 0.15), ('a0', 4.0, 0.17)]:
         assert abs(result.params[name] - value) < 4 * crlb, result.params
