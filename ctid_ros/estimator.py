@@ -19,6 +19,7 @@ then estimated jointly (fractional values are exact under a zero-order hold).
 """
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import warnings
 
@@ -30,7 +31,7 @@ from ctid_ros.sensitivity import is_stable, Linearization, SignalBank
 from ctid_ros.simulation import ContinuousFilter
 import numpy as np
 from scipy import linalg
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
@@ -315,6 +316,12 @@ class _State:
     theta: np.ndarray
     structure: Structure
     cost: float
+
+
+@lru_cache(maxsize=1)
+def _thread_pools() -> ThreadpoolController:
+    # Finding the loaded BLAS libraries takes milliseconds: once per process, not per estimate.
+    return ThreadpoolController()
 
 
 def settling_time(structure: Structure) -> float:
@@ -654,7 +661,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     problem = _Problem(fitted_model, fitted_data, lower, upper, intersample,
                        initial_state == 'estimate', output_offset)
     # The matrices are tiny: threaded BLAS only adds spin-waiting (about 6x slower under load).
-    with warnings.catch_warnings(), threadpool_limits(limits=1, user_api='blas'):
+    with warnings.catch_warnings(), _thread_pools().limit(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
         start = initial_estimate(problem, initial, delay_range)
         problem.anchor(start.structure)

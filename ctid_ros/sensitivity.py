@@ -16,12 +16,17 @@ sensitivities that make the instrumental-variable iteration consistent.
 """
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Dict, Hashable, Optional, TypeVar
 
 from ctid_ros.errors import EstimationError
 from ctid_ros.model import Model, Structure
-from ctid_ros.simulation import ContinuousFilter
+from ctid_ros.simulation import ContinuousFilter, DiscreteFilter
 import numpy as np
+
+# An iteration evaluates the cost at a candidate, then linearises there if it is accepted, and
+# the final estimate is simulated again for its fit: a few recent results serve all of these.
+_REMEMBERED = 4
+Value = TypeVar('Value')
 
 
 @dataclass
@@ -44,6 +49,16 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     return bool(np.max(roots.real) < -margin * scale)
 
 
+def _remembered(cache: Dict[Hashable, Value], key: Hashable,
+                compute: Callable[[], Value]) -> Value:
+    """Return ``cache[key]``, computing it if absent; only the latest few keys are kept."""
+    value = cache.pop(key) if key in cache else compute()
+    cache[key] = value
+    if len(cache) > _REMEMBERED:
+        del cache[next(iter(cache))]
+    return value
+
+
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
     return np.concatenate([np.zeros(length - poly.size), poly])
 
@@ -58,13 +73,27 @@ class SignalBank:
         self.y = y
         self.ts = ts
         self.intersample = intersample
+        self._filters: Dict[Hashable, DiscreteFilter] = {}
+        self._outputs: Dict[Hashable, np.ndarray] = {}
+
+    def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
+        return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
+                           lambda: ContinuousFilter(den).discretize(self.ts, delay, intersample))
+
+    @staticmethod
+    def _output_key(structure: Structure) -> Hashable:
+        return structure.den.tobytes(), structure.num.tobytes(), float(structure.delay)
 
     def output(self, structure: Structure) -> np.ndarray:
-        """Model output ``sum_j N_j/D u_j`` at a structure (no sensitivities)."""
-        discrete = ContinuousFilter(structure.den).discretize(
-            self.ts, structure.delay, self.intersample)
-        return sum(discrete.outputs(self.channels[:, j], [num])[0]
-                   for j, num in enumerate(structure.num))
+        """Model output ``sum_j N_j/D u_j`` at a structure (no sensitivities), read-only."""
+        def simulate() -> np.ndarray:
+            discrete = self._discrete(structure.den, structure.delay, self.intersample)
+            output = sum(discrete.outputs(self.channels[:, j], [num])[0]
+                         for j, num in enumerate(structure.num))
+            output.setflags(write=False)
+            return output
+
+        return _remembered(self._outputs, self._output_key(structure), simulate)
 
     def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
         """Return the output, the regressors ``phi`` (if requested) and instruments ``psi``."""
@@ -72,10 +101,9 @@ class SignalBank:
         order = den.size - 1
         params = structure.num_jacobian.shape[0]
         delay_used = np.any(structure.delay_gradient != 0.0)
-        realization = ContinuousFilter(den)
-        bank_u = realization.discretize(self.ts, structure.delay, self.intersample)
-        bank_sensitivity = ContinuousFilter(np.polymul(den, den)).discretize(
-            self.ts, structure.delay, self.intersample)
+        bank_u = self._discrete(den, structure.delay, self.intersample)
+        bank_sensitivity = self._discrete(np.polymul(den, den), structure.delay,
+                                          self.intersample)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         psi = np.zeros((params, self.y.size))
@@ -109,7 +137,9 @@ class SignalBank:
         psi += delay_term
         phi = None
         if regressors:
-            bank_y = realization.discretize(self.ts, 0.0, 'foh')
+            bank_y = self._discrete(den, 0.0, 'foh')
             y_parts = bank_y.outputs(self.y, list(structure.den_jacobian))
             phi = (u_regressors - y_parts + delay_term).T
+        output.setflags(write=False)
+        _remembered(self._outputs, self._output_key(structure), lambda: output)
         return Linearization(output, phi, psi.T)
