@@ -102,7 +102,8 @@ class SignalBank:
         params = structure.num_jacobian.shape[0]
         delay_used = np.any(structure.delay_gradient != 0.0)
         bank_u = self._discrete(den, structure.delay, self.intersample)
-        bank_sensitivity = self._discrete(np.polymul(den, den), structure.delay,
+        # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
+        bank_sensitivity = self._discrete(np.convolve(den, den), structure.delay,
                                           self.intersample)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
@@ -128,9 +129,9 @@ class SignalBank:
                 derivative += u_parts[1]
             if regressors:
                 u_regressors += u_parts[-params:]
+            # Both products have degree 2 deg D: the coefficient arrays align.
             sensitivity_numerators = [
-                np.polysub(np.polymul(num_jac[i], den),
-                           np.polymul(structure.den_jacobian[i], num_full))
+                np.convolve(num_jac[i], den) - np.convolve(structure.den_jacobian[i], num_full)
                 for i in range(params)]
             psi += bank_sensitivity.outputs(signal, sensitivity_numerators)
         delay_term = -np.outer(structure.delay_gradient, derivative)
