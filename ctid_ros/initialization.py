@@ -25,6 +25,7 @@ from scipy import optimize
 
 _FILTER_COUNT = 3
 _START_TOLERANCE = 1e-6
+_START_ITERATIONS = 100
 _RANDOM_STARTS = 4
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
@@ -87,8 +88,10 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
             more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
             found = _lower_cost(found, more)
         fit = _lower_cost(fit, found)
+    given_tau = given.get(model.parameters[delay_index], taus[0]) if delay_index is not None \
+        else 0.0
     best = _lower_cost(fit, best_candidate(
-        problem, _starts(problem, given, pinned, delay_index, taus[0])))
+        problem, _starts(problem, given, pinned, delay_index, given_tau)))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
@@ -154,19 +157,24 @@ def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[fl
     Return the dead times the equation-error start is fitted at.
 
     The given one (alone if it is pinned), and the data's own guess from the impulse response
-    unless a given dead time is pinned: a far guess then costs the start nothing.
+    unless a given dead time is pinned: a far guess then costs the start nothing. Unpinned
+    values are rounded to whole samples (within the bounds), where the filtered input is a
+    shift of one filtering; the iteration resolves the fraction.
 
     """
     if delay_index is None:
         return [0.0]
     name = problem.model.parameters[delay_index]
+    if name in pinned:
+        return [pinned[name]]
+    low, high = _delay_bracket(problem, delay_index, delay_range)
     taus = [given[name]] if name in given else []
-    if name not in pinned:
-        low, high = _delay_bracket(problem, delay_index, delay_range)
-        guess = float(np.clip(impulse_delay(problem.data), low, high))
-        if not taus or abs(guess - taus[0]) > 0.5 * problem.data.ts:
-            taus.append(guess)
-    return taus
+    taus.append(float(np.clip(impulse_delay(problem.data), low, high)))
+    ts = problem.data.ts
+    lower, upper = problem.lower[delay_index], problem.upper[delay_index]
+    whole = [ts * round(tau / ts) for tau in taus]
+    return list(dict.fromkeys(rounded if lower <= rounded <= upper else tau
+                              for tau, rounded in zip(taus, whole)))
 
 
 def _starts(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
@@ -228,13 +236,14 @@ class _StateVariableFilters:
         for lam in lams:
             realization = ContinuousFilter(np.poly(np.full(n, -lam)) if n else np.ones(1))
             y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
-            # Both act on y from t_0, so they are filtered without the input's dead time.
-            undelayed = realization.discretize(data.ts)
             nuisance = []
-            if problem.initial_state:
-                nuisance.append(undelayed.free_responses(len(data)))
-            if problem.output_offset:
-                nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
+            if problem.initial_state or problem.output_offset:
+                # Both act on y from t_0, so they are filtered without the input's dead time.
+                undelayed = realization.discretize(data.ts)
+                if problem.initial_state:
+                    nuisance.append(undelayed.free_responses(len(data)))
+                if problem.output_offset:
+                    nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
             self._filters.append((realization, y_parts.T, nuisance, {}))
 
     def factors(self, tau: float) -> List[np.ndarray]:
@@ -312,12 +321,7 @@ def _equation_error_fits(problem, starts: List[np.ndarray], free: np.ndarray, ta
                 if model.is_affine:
                     theta[free] = equation.linear_solution(start, lower, upper)
                 else:
-                    # Dogbox: half the time of trf on these few-parameter problems; a start
-                    # needs no more digits than the projection iteration corrects.
-                    theta[free] = optimize.least_squares(
-                        equation.residual, start[free], jac=equation.jacobian, args=(start,),
-                        bounds=(lower, upper), method='dogbox', max_nfev=200,
-                        ftol=_START_TOLERANCE, xtol=_START_TOLERANCE, gtol=_START_TOLERANCE).x
+                    theta[free] = equation.local_solution(start, lower, upper)
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
             fits.append(theta)
@@ -351,6 +355,51 @@ class _EquationError:
         gradient = np.hstack([structure.den_jacobian,
                               structure.num_jacobian.reshape(start.size, -1)])[self._free]
         return self._factor @ gradient.T
+
+    def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                       ) -> np.ndarray:
+        """
+        Return a local minimiser from ``start``: Levenberg-Marquardt projected onto the box.
+
+        The problem has a handful of rows and parameters, so scipy's general solvers would spend
+        most of their time on their own bookkeeping; a start needs no more digits than the
+        projection iteration corrects (relative change of parameters or cost below
+        ``_START_TOLERANCE``).
+
+        """
+        values = np.clip(start[self._free], lower, upper)
+        residual = self.residual(values, start)
+        cost = residual @ residual
+        damping = 1e-3
+        for _ in range(_START_ITERATIONS):
+            jacobian = self.jacobian(values, start)
+            gram = jacobian.T @ jacobian
+            gradient = jacobian.T @ residual
+            scaling = np.maximum(np.diag(gram), np.finfo(float).tiny)
+            while True:
+                try:
+                    step = -np.linalg.solve(gram + damping * np.diag(scaling), gradient)
+                except np.linalg.LinAlgError:
+                    step = None
+                if step is not None and np.all(np.isfinite(step)):
+                    trial = np.clip(values + step, lower, upper)
+                    try:
+                        trial_residual = self.residual(trial, start)
+                    except ModelError:
+                        trial_residual = None
+                    if trial_residual is not None and trial_residual @ trial_residual < cost:
+                        break
+                damping *= 4.0
+                if damping > 1e12:
+                    return values
+            change = np.max(np.abs(trial - values) / np.maximum(np.abs(values), 1e-12))
+            decrease = 1.0 - trial_residual @ trial_residual / cost
+            values, residual = trial, trial_residual
+            cost = residual @ residual
+            damping = max(damping / 3.0, 1e-9)
+            if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
+                break
+        return values
 
     def linear_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
                         ) -> np.ndarray:
