@@ -48,6 +48,7 @@ _SYMMETRY_RESTARTS = 3
 # An update smaller than this many standard deviations of the estimate changes nothing a user
 # can see: the iteration stops instead of resolving noise to the last digit.
 _NEGLIGIBLE_STEP = 1e-3
+NO_FULL_STEP = 'no full step decreases the cost'
 
 
 @dataclass
@@ -94,6 +95,10 @@ class Estimate:
         Conditions a user should know about (active bounds, weak excitation, ...).
     delay_profile : list of (tau, cost)
         Costs of the dead-time grid search, if one ran.
+    start : {'initial', 'search'}
+        ``'initial'``: the given values, iterated a few times, explained the data (their
+        residual is independent of the input), so no automatic start was searched;
+        ``'search'``: the automatic start (and, for a dead time, the delay search) was used.
     initial_state, output_offset, integrator_cutoff
         The options of :func:`estimate` that shaped the fit (:meth:`compare` uses the first
         two on validation data).
@@ -115,6 +120,7 @@ class Estimate:
     intersample: str = 'zoh'
     warnings: List[str] = field(default_factory=list)
     delay_profile: List[Tuple[float, float]] = field(default_factory=list)
+    start: str = 'search'
     initial_state: str = 'zero'
     output_offset: bool = False
     integrator_cutoff: Optional[float] = None
@@ -163,6 +169,7 @@ class Estimate:
             'iterations': int(self.iterations),
             'cost': float(self.cost),
             'stop_reason': self.stop_reason,
+            'start': self.start,
             'warnings': list(self.warnings),
         }
 
@@ -412,7 +419,8 @@ def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float
 
 def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarray,
              max_iterations: int, tolerance: float, first_ls: bool = True,
-             trust_first_ls: bool = False) -> Tuple[_State, List[Iteration], str, bool]:
+             trust_first_ls: bool = False, full_steps_only: bool = False
+             ) -> Tuple[_State, List[Iteration], str, bool]:
     """
     Run the controlled projection iteration from ``state``.
 
@@ -423,6 +431,9 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
     ``trust_first_ls`` accepts the first (least-squares) step even if it raises the cost, as
     long as the model stays stable and inside the bounds: for an affine structure that step is
     the exact regression from any start, which is what a profile over frozen parameters needs.
+
+    ``full_steps_only`` gives up (not converged) at the first update that needs a shorter
+    step: a quick check of a start that is either close to a minimum or not worth the halving.
 
     """
     history: List[Iteration] = []
@@ -457,6 +468,8 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
             attempts = attempts[:1]
         else:
             attempts += [('lm', damping, _ALL_STEPS, True) for damping in (1e-2, 1.0, 1e2)]
+        if full_steps_only:
+            attempts = [attempt for attempt in attempts if attempt[2] is _FULL_STEP]
         accepted = None
         tried = set()
         for kind, damping, scales, monotone in attempts:
@@ -468,6 +481,8 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
             if outcome is not None:
                 accepted = (kind, step, outcome)
                 break
+        if accepted is None and full_steps_only:
+            return state, history, NO_FULL_STEP, False
         if accepted is None:
             return state, history, 'no admissible step decreases the cost', True
         kind, step, (new_state, scale) = accepted
@@ -641,7 +656,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         If initial values or bounds do not match the model.
 
     """
-    from ctid_ros.initialization import delay_search, initial_estimate
+    from ctid_ros.initialization import (complete_guess, delay_search, explains_data,
+                                         initial_estimate, local_fit)
 
     if method not in METHODS:
         raise ValueError(f'method must be one of {METHODS}, got {method!r}')
@@ -663,21 +679,31 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     # The matrices are tiny: threaded BLAS only adds spin-waiting (about 6x slower under load).
     with warnings.catch_warnings(), _thread_pools().limit(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
-        start = initial_estimate(problem, initial, delay_range)
-        problem.anchor(start.structure)
-        if transient:
-            problem.exclude_transient(transient, start.structure)
-            start = _State(start.theta, start.structure, problem.cost(start.structure))
+        delay_index = delay_parameter(model)
         profile: List[Tuple[float, float]] = []
         history: List[Iteration] = []
-        delay_index = delay_parameter(model)
-        if delay_index is not None:
-            start, profile, history = delay_search(problem, start, delay_index, delay_range)
+        # A complete guess (a warm start) is iterated first; if that model leaves nothing
+        # correlated with the input there is nothing for the global start and search to find.
+        start = complete_guess(problem, initial)
+        from_initial = False
+        if start is not None:
+            start = _started(problem, start, transient)
+            start, history, held = local_fit(problem, start, method, first_ls=True,
+                                             full_steps_only=True)
+            from_initial = held and explains_data(problem, start, delay_index, delay_range)
+        refined = from_initial
+        if not from_initial:
+            history = []
+            start = _started(problem, initial_estimate(problem, initial, delay_range), transient)
+            if delay_index is not None:
+                start, profile, history = delay_search(problem, start, delay_index,
+                                                       delay_range)
+            refined = delay_index is not None
         frozen = np.zeros(len(model.parameters), dtype=bool)
-        # A start refined by the dead-time search needs no least-squares step.
+        # A start refined by iterations needs no least-squares step.
         final, more, reason, converged = _iterate(
             problem, start, method=method, frozen=frozen, max_iterations=max_iterations,
-            tolerance=tolerance, first_ls=delay_index is None)
+            tolerance=tolerance, first_ls=not refined)
         history.extend(more)
         rng = np.random.default_rng(0)
         for _ in range(_SYMMETRY_RESTARTS):
@@ -702,7 +728,17 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         covariance=covariance, fit=fit, converged=converged, iterations=len(history),
         cost=final.cost, stop_reason=reason, history=history, noise_variance=variance,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
-        initial_state=initial_state, output_offset=output_offset, integrator_cutoff=cutoff)
+        start='initial' if from_initial else 'search', initial_state=initial_state,
+        output_offset=output_offset, integrator_cutoff=cutoff)
+
+
+def _started(problem: _Problem, start: _State, transient: Union[float, str]) -> _State:
+    """Anchor the sign of D's leading coefficient and leave out the transient, from ``start``."""
+    problem.anchor(start.structure)
+    if not transient:
+        return start
+    problem.exclude_transient(transient, start.structure)
+    return _State(start.theta, start.structure, problem.cost(start.structure))
 
 
 def _warnings(problem: _Problem, state: _State, converged: bool, reason: str) -> List[str]:

@@ -100,6 +100,18 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     return best
 
 
+def complete_guess(problem, initial):
+    """Return the state at the given values if they name every parameter and are admissible."""
+    from ctid_ros.estimator import _State
+
+    given = _given_values(problem.model, initial)
+    if len(given) < len(problem.model.parameters):
+        return None
+    theta = problem.model.vector(given)
+    structure = problem.admissible(theta)
+    return None if structure is None else _State(theta, structure, problem.cost(structure))
+
+
 def best_candidate(problem, candidates: List[np.ndarray]):
     """Return the admissible candidate with the lowest output-error cost (a state), or None."""
     from ctid_ros.estimator import _State
@@ -472,6 +484,44 @@ def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
     return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
 
 
+def local_fit(problem, start, method: str, first_ls: bool, full_steps_only: bool = False):
+    """
+    Return the state and history after a few iterations from ``start``, and whether it held.
+
+    It did not hold if ``full_steps_only`` made it give up; otherwise (converged or not) the
+    residual test of :func:`explains_data` judges the result.
+
+    """
+    from ctid_ros.estimator import _iterate, NO_FULL_STEP
+
+    state, history, reason, _ = _iterate(
+        problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
+        max_iterations=_LOCAL_ITERATIONS, tolerance=1e-6, first_ls=first_ls,
+        full_steps_only=full_steps_only)
+    return state, history, reason != NO_FULL_STEP
+
+
+def explains_data(problem, state, delay_index: Optional[int], delay_range) -> bool:
+    """
+    Return True if the model at ``state`` leaves a residual independent of the input.
+
+    The lags tested cover the model's settling time (its dead time included) plus, for a
+    dead-time parameter, the upper end of its search range: a wrong dead time or a missed mode
+    shows there (:mod:`ctid_ros.residuals`).
+
+    """
+    from ctid_ros.estimator import settling_time
+
+    data = problem.data
+    horizon = settling_time(state.structure)
+    if delay_index is not None:
+        horizon += _delay_bracket(problem, delay_index, delay_range)[1]
+    lags = int(np.ceil(horizon / data.ts))
+    residual = np.zeros(len(data))
+    residual[problem.skip:] = problem.measured - problem.prediction(state.structure)
+    return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
+
+
 def delay_search(problem, start, delay_index: int, delay_range):
     """
     Locate the dead time: a local fit if it explains the data, else a profile over a grid.
@@ -494,17 +544,12 @@ def delay_search(problem, start, delay_index: int, delay_range):
     accepted) and the joint iterations that refined the best minimum.
 
     """
-    from ctid_ros.estimator import _iterate, settling_time
+    from ctid_ros.estimator import _iterate
 
     data = problem.data
     low, high = _delay_bracket(problem, delay_index, delay_range)
-    local, history = _iterate(
-        problem, start, method='iv', frozen=np.zeros(start.theta.size, dtype=bool),
-        max_iterations=_LOCAL_ITERATIONS, tolerance=1e-6)[:2]
-    lags = int(np.ceil((high + settling_time(local.structure)) / data.ts))
-    residual = np.zeros(len(data))
-    residual[problem.skip:] = problem.measured - problem.prediction(local.structure)
-    if independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4)):
+    local, history, _ = local_fit(problem, start, 'iv', first_ls=True)
+    if explains_data(problem, local, delay_index, delay_range):
         return local, [], history
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
                       [start.theta[delay_index], impulse_delay(data)])

@@ -112,14 +112,25 @@ def test_dead_time_profile_runs_when_the_local_fit_leaves_dynamics_unexplained()
     assert result.params['K'] == pytest.approx(2.0, rel=0.05)
 
 
+def test_warm_start_that_explains_the_data_is_iterated_without_a_search():
+    system = systems.first_order_dead_time()
+    near = {name: 1.05 * value for name, value in system.truth.items()}
+    result = estimate(system.model, system.data(seed=8), near, bounds=system.bounds)
+    assert result.start == 'initial'
+    assert not result.delay_profile
+    assert_near_truth(result, system)
+
+
 def test_dead_time_regression_system_of_the_tdsrivc_demo():
-    # 12 e^{-8s}/(s^2 + 4s + 4): without the grid the iteration ends at tau -> 0.
+    # 12 e^{-8s}/(s^2 + 4s + 4): without the grid the iteration ends at tau -> 0, and so do
+    # the iterations from the given start: the search is used.
     model = Model('b0*exp(-tau*s)/(s**2 + a1*s + a0)')
     u = prbs(8, 20)
     clean = model.simulate({'b0': 12.0, 'a1': 4.0, 'a0': 4.0, 'tau': 8.0}, u, 0.1)
     noise = np.random.default_rng(5).standard_normal(u.size) * np.std(clean) / 10 ** 0.75
     result = estimate(model, Data(u, clean + noise, 0.1),
                       {'b0': 6.0, 'a1': 2.0, 'a0': 2.0, 'tau': 1.0})
+    assert result.start == 'search'
     assert abs(result.params['tau'] - 8.0) < 0.05
     for name, value, crlb in [('b0', 12.0, 0.52), ('a1', 4.0, 0.15), ('a0', 4.0, 0.17)]:
         assert abs(result.params[name] - value) < 4 * crlb, result.params
