@@ -21,7 +21,7 @@ import time
 from typing import Callable, Dict, List
 import warnings
 
-from ctid_ros import estimate, EstimationError, reference_systems
+from ctid_ros import estimate, EstimationError, ModelError, reference_systems
 from ctid_ros.estimator import bound_vectors
 from ctid_ros.reference_systems import ReferenceSystem
 from ctid_ros.sensitivity import is_stable, SignalBank
@@ -60,8 +60,14 @@ def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: 
     bank = SignalBank(model, data.u, data.y, data.ts)
 
     def residual(theta):
-        with np.errstate(all='ignore'):
-            error = data.y - bank.output(model.structure(theta))
+        # LM has no bounds: a negative dead time is a very bad fit to back off from, not a
+        # crash of the baseline.
+        try:
+            structure = model.structure(theta)
+            with np.errstate(all='ignore'):
+                error = data.y - bank.output(structure)
+        except ModelError:
+            return np.full(data.y.size, 1e12)
         return np.where(np.isfinite(error), error, 1e12)
 
     def jacobian(theta):

@@ -49,6 +49,9 @@ _SYMMETRY_RESTARTS = 3
 # can see: the iteration stops instead of resolving noise to the last digit.
 _NEGLIGIBLE_STEP = 1e-3
 NO_FULL_STEP = 'no full step decreases the cost'
+# Full steps from a complete guess before its residual is tested (FOPDT benchmark, 100 starts
+# within x10: median 13.9 ms with six, 14.7 ms with four that left more of them unconverged).
+_WARM_START_ITERATIONS = 6
 
 
 @dataclass
@@ -689,7 +692,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         if start is not None:
             start = _started(problem, start, transient)
             start, history, held = local_fit(problem, start, method, first_ls=True,
-                                             full_steps_only=True)
+                                             full_steps_only=True,
+                                             iterations=_WARM_START_ITERATIONS)
             from_initial = held and explains_data(problem, start, delay_index, delay_range)
         refined = from_initial
         if not from_initial:

@@ -484,7 +484,8 @@ def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
     return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
 
 
-def local_fit(problem, start, method: str, first_ls: bool, full_steps_only: bool = False):
+def local_fit(problem, start, method: str, first_ls: bool, full_steps_only: bool = False,
+              iterations: int = _LOCAL_ITERATIONS):
     """
     Return the state and history after a few iterations from ``start``, and whether it held.
 
@@ -496,7 +497,7 @@ def local_fit(problem, start, method: str, first_ls: bool, full_steps_only: bool
 
     state, history, reason, _ = _iterate(
         problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
-        max_iterations=_LOCAL_ITERATIONS, tolerance=1e-6, first_ls=first_ls,
+        max_iterations=iterations, tolerance=1e-6, first_ls=first_ls,
         full_steps_only=full_steps_only)
     return state, history, reason != NO_FULL_STEP
 

@@ -73,12 +73,18 @@ class SignalBank:
         self.y = y
         self.ts = ts
         self.intersample = intersample
+        self._realizations: Dict[Hashable, ContinuousFilter] = {}
         self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
+        def discretized() -> DiscreteFilter:
+            realization = _remembered(self._realizations, den.tobytes(),
+                                      lambda: ContinuousFilter(den))
+            return realization.discretize(self.ts, delay, intersample)
+
         return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
-                           lambda: ContinuousFilter(den).discretize(self.ts, delay, intersample))
+                           discretized)
 
     @staticmethod
     def _output_key(structure: Structure) -> Hashable:
