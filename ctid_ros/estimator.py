@@ -16,6 +16,10 @@ estimate ``theta_k`` the output error ``e = y - G(p, theta_k) u`` is projected o
 
 A dead time ``exp(-tau s)`` is located first by a profile over a grid of frozen ``tau`` values,
 then estimated jointly (fractional values are exact under a zero-order hold).
+
+A complete initial guess is iterated first; if the model it reaches leaves a residual
+independent of the input, the automatic start and the dead-time profile are not needed (see
+:mod:`ctid_ros.initialization`).
 """
 
 from dataclasses import dataclass, field
@@ -614,7 +618,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         :meth:`Data.detrend`, ``output_offset`` or a constant term of a model equation.
     initial : dict, 'auto' or None
         Initial values by parameter name. Missing names (or ``'auto'``/None) are initialised
-        automatically from a state-variable-filter least-squares fit with multi-start.
+        automatically from a state-variable-filter least-squares fit with multi-start. A
+        complete set is iterated first and kept if its residual is independent of the input
+        (``Estimate.start == 'initial'``); otherwise it competes with the automatic start.
     bounds : dict, optional
         ``{name: (lower, upper)}``, either side may be None. A dead-time parameter is kept
         non-negative in any case.

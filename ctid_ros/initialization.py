@@ -13,6 +13,10 @@ best.
 The dead time is located by a profile: for each ``tau`` on a grid the other parameters get
 their equation-error fit with ``tau`` frozen and the profile records its output-error cost; the
 best local minima of that profile are then refined by projection iterations.
+
+Both are skipped when a few iterations from a start already give a model whose residual is
+independent of the input (:func:`local_fit`, :func:`explains_data`): the estimator checks a
+complete user guess (a warm start) this way first, the dead-time search its equation-error start.
 """
 
 from typing import List, Mapping, Optional, Tuple
@@ -88,10 +92,11 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
             more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
             found = _lower_cost(found, more)
         fit = _lower_cost(fit, found)
-    given_tau = given.get(model.parameters[delay_index], taus[0]) if delay_index is not None \
-        else 0.0
+    # The user's values compete as given, their dead time not rounded to a sample.
+    hinted_tau = taus[0] if delay_index is None else \
+        given.get(model.parameters[delay_index], taus[0])
     best = _lower_cost(fit, best_candidate(
-        problem, _starts(problem, given, pinned, delay_index, given_tau)))
+        problem, _starts(problem, given, pinned, delay_index, hinted_tau)))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
