@@ -62,11 +62,11 @@ def test_fractional_dead_time_from_poor_start():
 
 
 def test_local_dead_time_fit_that_explains_the_data_needs_no_profile():
-    # A warm start: the local fit leaves a residual independent of the input, so the delay
-    # range is not searched.
+    # From the automatic start (at the prewhitened dead-time guess) the local fit leaves a
+    # residual independent of the input, so the delay range is not searched.
     system = systems.first_order_dead_time()
-    result = estimate(system.model, system.data(seed=5), {'K': 2.2, 'T': 4.5, 'tau': 1.3},
-                      bounds=system.bounds)
+    result = estimate(system.model, system.data(seed=5), 'auto', bounds=system.bounds)
+    assert result.start == 'search'
     assert result.delay_profile == []
     assert_near_truth(result, system)
 
@@ -114,8 +114,8 @@ def test_dead_time_profile_runs_when_the_local_fit_leaves_dynamics_unexplained()
 
 def test_warm_start_that_explains_the_data_is_iterated_without_a_search():
     system = systems.first_order_dead_time()
-    near = {name: 1.05 * value for name, value in system.truth.items()}
-    result = estimate(system.model, system.data(seed=8), near, bounds=system.bounds)
+    result = estimate(system.model, system.data(seed=8), {'K': 2.2, 'T': 4.5, 'tau': 1.3},
+                      bounds=system.bounds)
     assert result.start == 'initial'
     assert not result.delay_profile
     assert_near_truth(result, system)
