@@ -76,6 +76,7 @@ class Update:
             'iterations': self.result.iterations,
             'converged': self.result.converged,
             'stop_reason': self.result.stop_reason,
+            'start': self.result.start,
             'window_start': self.start_ns * 1e-9,
             'window_end': self.end_ns * 1e-9,
             'window_span': (self.end_ns - self.start_ns) * 1e-9,

@@ -44,6 +44,9 @@ def test_successive_windows_recover_the_parameters_in_published_order():
         summary = update.to_dict()
         assert list(summary['params']) == ['tau', 'K', 'T']
     assert updates[1].result.iterations <= updates[0].result.iterations + 2   # warm start
+    # Each warm start explains its window after a few iterations: no start search, no profile.
+    assert [update.diagnostics()['start'] for update in updates] == ['search', 'initial',
+                                                                     'initial']
     assert session.previous is not None
     session.reset()
     assert session.previous is None
