@@ -439,8 +439,9 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
     long as the model stays stable and inside the bounds: for an affine structure that step is
     the exact regression from any start, which is what a profile over frozen parameters needs.
 
-    ``full_steps_only`` gives up (not converged) at the first update that needs a shorter
-    step: a quick check of a start that is either close to a minimum or not worth the halving.
+    ``full_steps_only`` gives up (not converged) at the first update that needs a shorter or
+    damped step: a quick check of a start that is either close to a minimum or not worth the
+    halving.
 
     """
     history: List[Iteration] = []
@@ -476,7 +477,8 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
         else:
             attempts += [('lm', damping, _ALL_STEPS, True) for damping in (1e-2, 1.0, 1e2)]
         if full_steps_only:
-            attempts = [attempt for attempt in attempts if attempt[2] is _FULL_STEP]
+            attempts = [(kind, damping, _FULL_STEP, monotone)
+                        for kind, damping, _, monotone in attempts if kind != 'lm']
         accepted = None
         tried = set()
         for kind, damping, scales, monotone in attempts:
