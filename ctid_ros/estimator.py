@@ -23,7 +23,7 @@ independent of the input, the automatic start and the dead-time profile are not 
 """
 
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import warnings
 
@@ -238,6 +238,14 @@ class _Problem:
         self.skip = 0
         self._leading_sign = None
         self._latest: Optional[Tuple[bytes, Linearization]] = None
+
+    @cached_property
+    def delay_guess(self) -> float:
+        """Return the data's own dead-time guess (initialization.impulse_delay), once."""
+        from ctid_ros.initialization import impulse_delay
+
+        # The start, the delay bracket, the residual checks and the grid all ask for it.
+        return impulse_delay(self.data)
 
     @property
     def measured(self) -> np.ndarray:

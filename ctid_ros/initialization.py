@@ -186,7 +186,7 @@ def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[fl
         return [pinned[name]]
     low, high = _delay_bracket(problem, delay_index, delay_range)
     taus = [given[name]] if name in given else []
-    taus.append(float(np.clip(impulse_delay(problem.data), low, high)))
+    taus.append(float(np.clip(problem.delay_guess, low, high)))
     ts = problem.data.ts
     lower, upper = problem.lower[delay_index], problem.upper[delay_index]
     whole = [ts * round(tau / ts) for tau in taus]
@@ -475,7 +475,7 @@ def _delay_bracket(problem, delay_index, delay_range) -> Tuple[float, float]:
     low = problem.lower[delay_index]
     high = problem.upper[delay_index]
     if not np.isfinite(high):
-        guess = impulse_delay(data)
+        guess = problem.delay_guess
         high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
     return low, max(high, low + data.ts)
 
@@ -558,7 +558,7 @@ def delay_search(problem, start, delay_index: int, delay_range):
     if explains_data(problem, local, delay_index, delay_range):
         return local, [], history
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
-                      [start.theta[delay_index], impulse_delay(data)])
+                      [start.theta[delay_index], problem.delay_guess])
     grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
     frozen = np.zeros(start.theta.size, dtype=bool)
     frozen[delay_index] = True
