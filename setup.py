@@ -55,9 +55,9 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'ctid = ctid_ros.cli:main',
-            'ctid_node = ctid_ros.node:main',
-            'ctid_plant = ctid_ros.plant:main',
+            'ctid = ctid_ros.cli.main:main',
+            'ctid_node = ctid_ros.ros.node:main',
+            'ctid_plant = ctid_ros.ros.plant_node:main',
         ],
     },
 )

@@ -23,9 +23,9 @@ from typing import Callable, Dict, List, Tuple
 import warnings
 
 from ctid_ros import estimate, EstimationError, ModelError, reference_systems
-from ctid_ros.estimator import bound_vectors
-from ctid_ros.reference_systems import ReferenceSystem
-from ctid_ros.sensitivity import is_stable, SignalBank
+from ctid_ros.core.reference_systems import ReferenceSystem
+from ctid_ros.estimation.estimate import bound_vectors
+from ctid_ros.estimation.regressors import is_stable, SignalBank
 import numpy as np
 from scipy import optimize, stats
 from threadpoolctl import threadpool_limits

@@ -2,7 +2,7 @@
 Throughput and latency of ctid_node: two 1 kHz streams, a 10 s window, an estimate every second.
 
 The simulated plant (``ctid_plant``, std_msgs/Float64 on ``u`` and ``y``) runs in its own process,
-as a real publisher would; ``ctid_node`` runs in this one, spun as :func:`ctid_ros.node.main`
+as a real publisher would; ``ctid_node`` runs in this one, spun as :func:`ctid_ros.ros.node.main`
 does, with an observer of ``/diagnostics``. Reported: samples published vs received by the node
 (drops), the time from each update tick to its published estimate (``publish_latency`` of the
 diagnostics), the estimation time, and the CPU use of both processes.
@@ -34,7 +34,7 @@ def _publish(namespace: str, duration: float, ready, go, result) -> None:
     """Run the plant in a child process until ``duration`` seconds of samples are published."""
     import rclpy
     from rclpy.parameter import Parameter
-    from ctid_ros.plant import PlantNode
+    from ctid_ros.ros.plant_node import PlantNode
 
     rclpy.init()
     node = PlantNode(namespace=namespace, parameter_overrides=[
@@ -78,7 +78,7 @@ def run(duration: float = 30.0, sample_time: float = 0.005) -> Dict[str, Any]:
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
-    from ctid_ros.node import IdentificationNode
+    from ctid_ros.ros.node import IdentificationNode
 
     namespace = f'/bench{os.getpid()}'
     spawn = multiprocessing.get_context('spawn')

@@ -1,7 +1,7 @@
 """
 ctid_ros: continuous-time grey-box identification for ROS 2.
 
-The numerical core (this package without :mod:`ctid_ros.node`) imports no ROS code::
+The numerical core (this package without :mod:`ctid_ros.ros.node`) imports no ROS code::
 
     from ctid_ros import Data, Model, estimate
 
@@ -9,11 +9,11 @@ The numerical core (this package without :mod:`ctid_ros.node`) imports no ROS co
     y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.237}, u, ts=0.01)
 """
 
-from ctid_ros.data import Data
+from ctid_ros.core.data import Data
+from ctid_ros.core.model import Model
 from ctid_ros.errors import (BagError, ConfigError, CtidError, DataError, EstimationError,
                              ModelError)
-from ctid_ros.estimator import Estimate, estimate
-from ctid_ros.model import Model
+from ctid_ros.estimation.estimate import Estimate, estimate
 
 __all__ = [
     'BagError', 'ConfigError', 'CtidError', 'Data', 'DataError', 'Estimate', 'EstimationError',

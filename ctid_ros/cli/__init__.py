@@ -1,0 +1,1 @@
+"""The ``ctid`` command: one module per subcommand, text reports and figures."""

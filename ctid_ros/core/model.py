@@ -1,0 +1,413 @@
+"""
+Grey-box continuous-time transfer-function models.
+
+A :class:`Model` is built from safe text (see :mod:`ctid_ros.core.expression`)::
+
+    Model('1/(m*s**2 + d*s + k)')                 # mass-spring-damper, parameters m, d, k
+    Model('K*exp(-tau*s)/(T*s + 1)')              # first order plus dead time
+    Model('K/((T1*s + 1)*(T2*s + 1))')            # not affine in (K, T1, T2)
+    Model('1/(J*s**2 + b*s)', controller='40 + 20/s')   # closed loop r -> y of P K/(1 + P K)
+
+Every name other than ``s`` (and the constant ``pi``) is a parameter. ``model.parameters`` lists
+them in order of first appearance in the plant expression. From the text the model derives the
+coefficients of ``N(s, theta)`` and ``D(s, theta)``, their Jacobians with respect to ``theta``
+(symbolically, then compiled to numpy), the dead time ``tau(theta)`` of an optional factor
+``exp(-tau*s)``, and whether the structure is affine in ``theta`` (Condition 1 of the method).
+"""
+
+from dataclasses import dataclass
+import keyword
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+
+from ctid_ros.core.expression import LAPLACE, MAX_DEGREE, parse_equation, parse_expression
+from ctid_ros.core.simulation import ContinuousFilter, INTERSAMPLE
+from ctid_ros.errors import ModelError
+import numpy as np
+import sympy as sp
+
+ParameterValues = Union[Mapping[str, float], Sequence[float], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Structure:
+    """
+    Numeric model structure at one parameter vector.
+
+    Coefficient arrays are highest power of ``s`` first. ``num`` has one row per numerator
+    channel (the measured inputs in order, then the constant input if the model has one);
+    Jacobians have the parameters on their first axis.
+    """
+
+    num: np.ndarray
+    den: np.ndarray
+    delay: float
+    num_jacobian: np.ndarray
+    den_jacobian: np.ndarray
+    delay_gradient: np.ndarray
+
+
+def _split_delay(expression: sp.Expr, text: str) -> Tuple[sp.Expr, sp.Expr]:
+    """Return ``(rational part, tau)`` with ``expression = rational * exp(-tau*s)``."""
+    exponentials = [atom for atom in expression.atoms(sp.exp) if atom.has(LAPLACE)]
+    if not exponentials:
+        return expression, sp.Integer(0)
+    if len(exponentials) > 1:
+        raise ModelError(f'at most one dead-time factor exp(-tau*s) is allowed in {text!r}')
+    factor = exponentials[0]
+    argument = factor.args[0]
+    slope = sp.cancel(argument / LAPLACE)
+    if slope.has(LAPLACE):
+        raise ModelError(f'exp({argument}) is not a dead time: its argument must be -tau*s with '
+                         'tau independent of s')
+    marker = sp.Dummy('delay')
+    num, den = sp.fraction(sp.together(expression.subs(factor, marker)))
+    if den.has(marker) or sp.Poly(num, marker).monoms() != [(1,)]:
+        raise ModelError(f'the dead time exp({argument}) must multiply the whole transfer '
+                         f'function (a factor), not appear in a sum or a power in {text!r}')
+    tau = -slope
+    if tau.is_number and tau < 0:
+        raise ModelError(f'exp({argument}) is a time advance, not a dead time: write exp(-tau*s)')
+    return sp.cancel(num / marker) / den, tau
+
+
+def _polynomials(rational: sp.Expr, text: str) -> Tuple[sp.Poly, sp.Poly]:
+    if any(atom.has(LAPLACE) for atom in rational.atoms(sp.exp)):
+        raise ModelError(f'{text!r} has exp(...) of s outside a dead-time factor')
+    if not rational.is_rational_function(LAPLACE):
+        raise ModelError(f'{text!r} is not a rational function of s')
+    num, den = sp.fraction(sp.together(rational))
+    num_poly = sp.Poly(sp.expand(num), LAPLACE)
+    den_poly = sp.Poly(sp.expand(den), LAPLACE)
+    if den_poly.is_zero:
+        raise ModelError(f'{text!r} has a zero denominator')
+    return num_poly, den_poly
+
+
+def _check_proper(num: sp.Poly, den: sp.Poly, text: str) -> None:
+    if not num.is_zero and num.degree() > den.degree():
+        raise ModelError(f'{text!r} is improper: numerator degree {num.degree()} exceeds '
+                         f'denominator degree {den.degree()} (a physical plant cannot '
+                         'differentiate its input)')
+
+
+def _numeric_controller(text: str) -> Tuple[sp.Poly, sp.Poly]:
+    expression, symbols = parse_expression(text)
+    if symbols:
+        names = ', '.join(str(symbol) for symbol in symbols)
+        raise ModelError(f'controller {text!r} must have numeric coefficients; it has '
+                         f'parameter(s) {names}')
+    rational, tau = _split_delay(expression, text)
+    if tau != 0:
+        raise ModelError(f'controller {text!r} may not contain a dead time')
+    num, den = _polynomials(rational, text)
+    if num.is_zero:
+        raise ModelError(f'controller {text!r} is identically zero')
+    return num, den
+
+
+def _signal_names(inputs: Sequence[str], output: str) -> Tuple[str, ...]:
+    if isinstance(inputs, str):
+        inputs = (inputs,)
+    names = tuple(inputs)
+    if not names:
+        raise ModelError('a model needs at least one input')
+    for name in names + (output,):
+        if not (isinstance(name, str) and name.isidentifier() and name.isascii()) or \
+                keyword.iskeyword(name) or name in ('s', 'pi', 'exp'):
+            raise ModelError(f'{name!r} cannot name a signal: use a plain identifier other than '
+                             's, pi and exp')
+    if len(set(names + (output,))) != len(names) + 1:
+        raise ModelError(f'signal names must be distinct, got inputs {names} and output '
+                         f'{output!r}')
+    return names
+
+
+def _coefficients(poly: sp.Poly, degree: int) -> list:
+    coefficients = poly.all_coeffs() if not poly.is_zero else [sp.Integer(0)]
+    return [sp.Integer(0)] * (degree + 1 - len(coefficients)) + coefficients
+
+
+class Model:
+    """
+    Continuous-time grey-box model: a transfer function ``G(s, theta)`` or a model equation.
+
+    Parameters
+    ----------
+    expression : str
+        Either a plant transfer function in ``s`` (one input; every other name is a parameter;
+        at most one dead-time factor ``exp(-tau*s)``), or a model equation
+        ``D(s) y = N_1(s) u_1 + ... + c`` with an ``=`` whose terms multiply the output and the
+        declared inputs (``s`` acts on the signal it multiplies) and an optional constant term
+        ``c`` (a constant input, e.g. a force offset). All inputs share ``D``.
+    controller : str, optional
+        Known controller ``K(s)`` with numeric coefficients, e.g. ``'4 + 2/s'``. The model then
+        describes the closed loop from reference ``r`` to output ``y``,
+        ``P K / (1 + P K)``, while the parameters stay those of the plant ``P``.
+    inputs : sequence of str, optional
+        Names of the measured inputs, in the order of the columns of ``Data.u``; default
+        ``('u',)``. In an equation these names are signals, not parameters.
+    output : str
+        Name of the output signal in an equation (default ``'y'``).
+
+    Raises
+    ------
+    ModelError
+        If either text is unsafe, malformed, improper, not linear in the signals, or has a
+        dead time that is not a factor.
+
+    """
+
+    def __init__(self, expression: str, controller: Optional[str] = None, *,
+                 inputs: Optional[Sequence[str]] = None, output: str = 'y'):
+        if controller is not None and not isinstance(controller, str):
+            raise ModelError(f'controller must be a string, got {type(controller).__name__}')
+        self.expression = expression
+        self.controller = controller if controller and controller.strip() else None
+        self.inputs: Tuple[str, ...] = _signal_names(('u',) if inputs is None else inputs,
+                                                     output)
+        self.output = output
+        sides, names = parse_equation(expression)
+        for symbol in names:
+            if keyword.iskeyword(symbol.name):
+                raise ModelError(f'parameter name {symbol.name!r} is a reserved word')
+        if len(sides) == 2:
+            if self.controller is not None:
+                raise ModelError('a controller needs the transfer-function form of the plant; '
+                                 'write it without "=" and with one input')
+            nums, den, tau, self.constant_input = self._equation(sides, names)
+            signals = set(self.inputs) | {output}
+            symbols = tuple(symbol for symbol in names if symbol.name not in signals)
+        else:
+            if len(self.inputs) != 1:
+                raise ModelError(f'a transfer function has one input, {len(self.inputs)} were '
+                                 'declared; write a model equation (with "=") for several '
+                                 'inputs')
+            num, den, tau = self._transfer_function(sides[0])
+            nums, symbols, self.constant_input = [num], names, False
+        self._symbols = symbols
+        self.parameters: Tuple[str, ...] = tuple(symbol.name for symbol in symbols)
+        if not self.parameters:
+            raise ModelError(f'{expression!r} has no parameters to estimate')
+        self._build(nums, den, tau)
+
+    def _transfer_function(self, parsed: sp.Expr) -> Tuple[sp.Poly, sp.Poly, sp.Expr]:
+        expression = self.expression
+        rational, tau = _split_delay(parsed, expression)
+        num, den = _polynomials(rational, expression)
+        _check_proper(num, den, expression)
+        if self.controller is None:
+            return num, den, tau
+        if tau != 0:
+            raise ModelError(
+                'a dead time inside a closed loop makes P K/(1 + P K) irrational; identify '
+                'the plant open loop from its measured input u instead')
+        k_num, k_den = _numeric_controller(self.controller)
+        degree = max(num.degree() + k_num.degree(), den.degree() + k_den.degree())
+        if degree > MAX_DEGREE:
+            raise ModelError(f'the closed loop of {expression!r} with {self.controller!r} '
+                             f'has degree {degree} in s; the limit is {MAX_DEGREE}')
+        num, den = num * k_num, den * k_den + num * k_num
+        _check_proper(num, den, f'closed loop of {expression!r} with {self.controller!r}')
+        return num, den, tau
+
+    def _equation(self, sides: Sequence[sp.Expr], names: Sequence[sp.Symbol]
+                  ) -> Tuple[List[sp.Poly], sp.Poly, sp.Expr, bool]:
+        """Return ``(numerators per input [+ constant], D, 0, has constant)`` of an equation."""
+        text = self.expression
+        by_name = {symbol.name: symbol for symbol in names}
+        missing = [name for name in (self.output,) + self.inputs if name not in by_name]
+        if missing:
+            raise ModelError(f'signal(s) {", ".join(missing)} do not appear in the equation '
+                             f'{text!r} (declared output {self.output!r}, inputs '
+                             f'{", ".join(self.inputs)})')
+        output = by_name[self.output]
+        inputs = [by_name[name] for name in self.inputs]
+        signals = [output] + inputs
+        difference = sides[0] - sides[1]
+        if any(atom.has(LAPLACE) for atom in difference.atoms(sp.exp)):
+            raise ModelError(f'a dead time exp(-tau*s) is not supported in a model equation '
+                             f'({text!r}); use the transfer-function form')
+        numerator, denominator = sp.fraction(sp.together(difference))
+        if denominator.has(*signals):
+            raise ModelError(f'{text!r} divides by a signal: the equation must be linear in '
+                             f'{", ".join(symbol.name for symbol in signals)}')
+        if not numerator.is_polynomial(LAPLACE, *signals):
+            raise ModelError(f'{text!r} is not polynomial in s and the signals')
+        poly = sp.Poly(sp.expand(numerator), *signals)
+        if poly.total_degree() > 1:
+            raise ModelError(f'{text!r} is not linear in the signals '
+                             f'{", ".join(symbol.name for symbol in signals)} (a product or '
+                             'power of signals)')
+        unit = [0] * len(signals)
+
+        def coefficient(index: Optional[int]) -> sp.Expr:
+            monomial = list(unit)
+            if index is not None:
+                monomial[index] = 1
+            return poly.coeff_monomial(tuple(monomial))
+
+        den = sp.Poly(coefficient(0), LAPLACE)
+        if den.is_zero:
+            raise ModelError(f'the output {self.output} cancels out of {text!r}')
+        nums = [sp.Poly(-coefficient(1 + index), LAPLACE) for index in range(len(inputs))]
+        constant = -coefficient(None)
+        if constant.has(LAPLACE):
+            raise ModelError(f'the constant term of {text!r} may not be multiplied by s (the '
+                             'derivative of a constant input is zero)')
+        for name, num in zip(self.inputs, nums):
+            if num.is_zero:
+                raise ModelError(f'input {name} cancels out of {text!r}')
+            _check_proper(num, den, f'{text!r} from input {name}')
+        has_constant = constant != 0
+        if has_constant:
+            nums.append(sp.Poly(constant, LAPLACE))
+        return nums, den, sp.Integer(0), has_constant
+
+    def _build(self, nums: Sequence[sp.Poly], den: sp.Poly, tau: sp.Expr) -> None:
+        self.num_degree = max(0 if num.is_zero else num.degree() for num in nums)
+        self.den_degree = den.degree()
+        num_coefficients = [_coefficients(num, self.num_degree) for num in nums]
+        den_coefficients = _coefficients(den, self.den_degree)
+        self._channels = len(nums)
+        symbols = self._symbols
+        flat_nums = [c for row in num_coefficients for c in row]
+        jacobian = [[sp.diff(c, p) for p in symbols]
+                    for c in flat_nums + den_coefficients + [tau]]
+        absent = [p.name for i, p in enumerate(symbols) if all(row[i] == 0 for row in jacobian)]
+        if absent:
+            raise ModelError(f'parameter(s) {", ".join(absent)} cancel out of the transfer '
+                             'function, so no data can determine them; remove them')
+        self.is_affine = all(not entry.has(*symbols) for row in jacobian for entry in row)
+        self.has_delay = tau != 0
+        self.delay_is_estimated = bool(tau.free_symbols)
+        trailing = 0
+        while trailing < self.den_degree and den_coefficients[-1 - trailing] == 0:
+            trailing += 1
+        # Roots at s = 0 for every theta (integrators): D is never Hurwitz, see integrators.py.
+        self.integrators = trailing
+        flat = flat_nums + den_coefficients + [tau] + [e for row in jacobian for e in row]
+        self._evaluate = sp.lambdify(symbols, flat, modules='numpy', dummify=True, cse=True)
+
+    def __repr__(self) -> str:
+        controller = f', controller={self.controller!r}' if self.controller else ''
+        signals = '' if self.inputs == ('u',) and self.output == 'y' else \
+            f', inputs={self.inputs!r}, output={self.output!r}'
+        return f'Model({self.expression!r}{controller}{signals})'
+
+    def vector(self, params: ParameterValues) -> np.ndarray:
+        """Parameter values as a float vector in :attr:`parameters` order."""
+        if isinstance(params, Mapping):
+            missing = [name for name in self.parameters if name not in params]
+            if missing:
+                raise ModelError(f'missing value(s) for parameter(s) {", ".join(missing)}')
+            unknown = sorted(set(params) - set(self.parameters))
+            if unknown:
+                raise ModelError(f'unknown parameter(s) {", ".join(unknown)}; the model has '
+                                 f'{", ".join(self.parameters)}')
+            values = [params[name] for name in self.parameters]
+        else:
+            values = list(np.ravel(np.asarray(params, dtype=float)))
+            if len(values) != len(self.parameters):
+                raise ModelError(f'expected {len(self.parameters)} parameter values '
+                                 f'({", ".join(self.parameters)}), got {len(values)}')
+        vector = np.asarray(values, dtype=float)
+        if not np.all(np.isfinite(vector)):
+            raise ModelError(f'parameter values must be finite, got {vector}')
+        return vector
+
+    def as_dict(self, theta: Sequence[float]) -> Dict[str, float]:
+        """Map a parameter vector back to ``{name: value}``."""
+        return {name: float(value) for name, value in zip(self.parameters, theta)}
+
+    def structure(self, params: ParameterValues) -> Structure:
+        """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
+        theta = self.vector(params)
+        with np.errstate(all='ignore'):
+            flat = np.asarray(self._evaluate(*theta), dtype=float)
+        channels, n_num = self._channels, self.num_degree + 1
+        n_den, n_par = self.den_degree + 1, theta.size
+        n_nums = channels * n_num
+        values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
+        jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
+        if not np.all(np.isfinite(flat)):
+            raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
+                             '(division by zero in a coefficient)')
+        return Structure(
+            num=values[:n_nums].reshape(channels, n_num), den=values[n_nums:n_nums + n_den],
+            delay=float(values[-1]),
+            num_jacobian=jacobian[:, :n_nums].reshape(n_par, channels, n_num),
+            den_jacobian=jacobian[:, n_nums:n_nums + n_den], delay_gradient=jacobian[:, -1])
+
+    def channel(self, input_name: Optional[str] = None) -> int:
+        """Row of :attr:`Structure.num` that belongs to ``input_name`` (default: the only one)."""
+        if input_name is None:
+            if len(self.inputs) > 1:
+                raise ModelError(f'the model has inputs {", ".join(self.inputs)}: say which one')
+            return 0
+        if input_name not in self.inputs:
+            raise ModelError(f'unknown input {input_name!r}; the model has '
+                             f'{", ".join(self.inputs)}')
+        return self.inputs.index(input_name)
+
+    def transfer_function(self, params: ParameterValues, input_name: Optional[str] = None
+                          ) -> Tuple[np.ndarray, np.ndarray, float]:
+        """``(num, den, delay)`` from ``input_name`` to the output, highest power first."""
+        structure = self.structure(params)
+        return structure.num[self.channel(input_name)], structure.den, structure.delay
+
+    def input_channels(self, u) -> np.ndarray:
+        """
+        Return the channel signals (N x channels): the input columns, then the constant 1.
+
+        ``u`` is 1-D for a single input or has one column per input, in :attr:`inputs` order.
+        """
+        from ctid_ros.core.data import as_inputs
+
+        columns = as_inputs(u, len(self.inputs))
+        if self.constant_input:
+            columns = np.column_stack([columns, np.ones(columns.shape[0])])
+        return columns
+
+    def simulate(self, params: ParameterValues, u, ts: float, *,
+                 intersample: str = 'zoh') -> np.ndarray:
+        """
+        Exact response of the model to sampled input ``u`` (the reference, in closed loop).
+
+        Parameters
+        ----------
+        params : mapping or sequence
+            Parameter values by name, or a vector in :attr:`parameters` order.
+        u : array_like
+            Input samples at ``t_k = k*ts``, shape (N,) or (N, inputs); the system is at rest
+            before ``t_0`` (a constant input of the equation starts at ``t_0``).
+        ts : float
+            Sample time in seconds.
+        intersample : {'zoh', 'foh'}
+            Input behaviour between samples.
+
+        Returns
+        -------
+        ndarray
+            Output samples at ``t_k``.
+
+        """
+        if intersample not in INTERSAMPLE:
+            raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
+        structure = self.structure(params)
+        if structure.delay < 0.0:
+            raise ModelError(f'the dead time is negative ({structure.delay:g} s) at '
+                             f'{self.as_dict(self.vector(params))}: that is a time advance')
+        if structure.den[0] == 0.0:
+            raise ModelError(f'the leading denominator coefficient vanishes at '
+                             f'{self.as_dict(self.vector(params))}: the model order drops')
+        discrete = ContinuousFilter(structure.den).discretize(ts, structure.delay, intersample)
+        channels = self.input_channels(u)
+        return sum(discrete.outputs(channels[:, index], [num])[0]
+                   for index, num in enumerate(structure.num))
+
+    def frequency_response(self, params: ParameterValues, omega,
+                           input_name: Optional[str] = None) -> np.ndarray:
+        """Complex ``G(j omega)`` from ``input_name`` (including the dead time) at ``omega``."""
+        num, den, delay = self.transfer_function(params, input_name)
+        s = 1j * np.asarray(omega, dtype=float)
+        return np.polyval(num, s) / np.polyval(den, s) * np.exp(-delay * s)

@@ -1,0 +1,1 @@
+"""``make demo``: a wheel drive identified live on ROS 2, recorded, replayed and plotted."""

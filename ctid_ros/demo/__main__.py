@@ -1,0 +1,7 @@
+"""Run the demo: ``python -m ctid_ros.demo`` (what ``make demo`` does)."""
+
+import sys
+
+from ctid_ros.demo.wheel import main
+
+sys.exit(main())

@@ -1,0 +1,152 @@
+"""
+Filtered signals of one iteration of the projection method.
+
+At the current estimate ``theta`` with ``G = N/D * exp(-tau s)`` this module computes, from the
+sampled input ``u`` and output ``y``, with three state simulations sharing one denominator
+(per input channel: a model with several inputs sums the terms of its numerators ``N_j``):
+
+* the model output ``yhat = G u`` (u through ``1/D``, with the dead time);
+* the regressors ``phi_i = [dN/dtheta_i e^{-tau s} u - dD/dtheta_i y] / D`` (y through ``1/D``,
+  first-order hold), minus ``dtau/dtheta_i * s G u`` for a dead time;
+* the instruments ``psi_i = d yhat / d theta_i = (dN_i D - dD_i N)/D^2 e^{-tau s} u - ...``
+  (u through ``1/D^2``), which carry no measurement noise.
+
+``phi`` makes the error decomposition exact (one-step property); ``psi`` are the output
+sensitivities that make the instrumental-variable iteration consistent.
+"""
+
+from dataclasses import dataclass
+from typing import Callable, Dict, Hashable, Optional, TypeVar
+
+from ctid_ros.core.model import Model, Structure
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
+from ctid_ros.errors import EstimationError
+import numpy as np
+
+# An iteration evaluates the cost at a candidate, then linearises there if it is accepted, and
+# the final estimate is simulated again for its fit: a few recent results serve all of these.
+_REMEMBERED = 4
+Value = TypeVar('Value')
+
+
+@dataclass
+class Linearization:
+    """Model output and its regressors/instruments at one parameter vector."""
+
+    output: np.ndarray
+    phi: Optional[np.ndarray]
+    psi: np.ndarray
+
+
+def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
+    """Return True if every root of ``den`` lies left of ``-margin * max|root|``."""
+    if den.size < 2:
+        return den.size == 1 and den[0] != 0.0
+    if den[0] == 0.0 or not np.all(np.isfinite(den)):
+        return False
+    roots = np.roots(den)
+    scale = max(np.max(np.abs(roots)), np.finfo(float).tiny)
+    return bool(np.max(roots.real) < -margin * scale)
+
+
+def _remembered(cache: Dict[Hashable, Value], key: Hashable,
+                compute: Callable[[], Value]) -> Value:
+    """Return ``cache[key]``, computing it if absent; only the latest few keys are kept."""
+    value = cache.pop(key) if key in cache else compute()
+    cache[key] = value
+    if len(cache) > _REMEMBERED:
+        del cache[next(iter(cache))]
+    return value
+
+
+def _pad(poly: np.ndarray, length: int) -> np.ndarray:
+    return np.concatenate([np.zeros(length - poly.size), poly])
+
+
+class SignalBank:
+    """Computes outputs and sensitivities of a model on one data record."""
+
+    def __init__(self, model: Model, u: np.ndarray, y: np.ndarray, ts: float,
+                 intersample: str = 'zoh'):
+        self.model = model
+        self.channels = model.input_channels(u)
+        self.y = y
+        self.ts = ts
+        self.intersample = intersample
+        self._realizations: Dict[Hashable, ContinuousFilter] = {}
+        self._filters: Dict[Hashable, DiscreteFilter] = {}
+        self._outputs: Dict[Hashable, np.ndarray] = {}
+
+    def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
+        def discretized() -> DiscreteFilter:
+            realization = _remembered(self._realizations, den.tobytes(),
+                                      lambda: ContinuousFilter(den))
+            return realization.discretize(self.ts, delay, intersample)
+
+        return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
+                           discretized)
+
+    @staticmethod
+    def _output_key(structure: Structure) -> Hashable:
+        return structure.den.tobytes(), structure.num.tobytes(), float(structure.delay)
+
+    def output(self, structure: Structure) -> np.ndarray:
+        """Model output ``sum_j N_j/D u_j`` at a structure (no sensitivities), read-only."""
+        def simulate() -> np.ndarray:
+            discrete = self._discrete(structure.den, structure.delay, self.intersample)
+            output = sum(discrete.outputs(self.channels[:, j], [num])[0]
+                         for j, num in enumerate(structure.num))
+            output.setflags(write=False)
+            return output
+
+        return _remembered(self._outputs, self._output_key(structure), simulate)
+
+    def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
+        """Return the output, the regressors ``phi`` (if requested) and instruments ``psi``."""
+        den = structure.den
+        order = den.size - 1
+        params = structure.num_jacobian.shape[0]
+        delay_used = np.any(structure.delay_gradient != 0.0)
+        bank_u = self._discrete(den, structure.delay, self.intersample)
+        # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
+        bank_sensitivity = self._discrete(np.convolve(den, den), structure.delay,
+                                          self.intersample)
+        output = np.zeros(self.y.size)
+        derivative = np.zeros(self.y.size)
+        psi = np.zeros((params, self.y.size))
+        u_regressors = np.zeros((params, self.y.size))
+        for j, num in enumerate(structure.num):
+            signal = self.channels[:, j]
+            num_full = _pad(num, order + 1)
+            num_jac = np.array([_pad(row, order + 1) for row in structure.num_jacobian[:, j]])
+            if delay_used and num_full[0] != 0.0:
+                raise EstimationError(
+                    'cannot estimate the dead time of a biproper model (numerator and '
+                    'denominator of equal degree): its output jumps with the held input; fix '
+                    'the dead time or use a strictly proper model')
+            u_numerators = [num_full]
+            if delay_used:
+                u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
+            if regressors:
+                u_numerators.extend(num_jac)
+            u_parts = bank_u.outputs(signal, u_numerators)
+            output += u_parts[0]
+            if delay_used:
+                derivative += u_parts[1]
+            if regressors:
+                u_regressors += u_parts[-params:]
+            # Both products have degree 2 deg D: the coefficient arrays align.
+            sensitivity_numerators = [
+                np.convolve(num_jac[i], den) - np.convolve(structure.den_jacobian[i], num_full)
+                for i in range(params)]
+            psi += bank_sensitivity.outputs(signal, sensitivity_numerators)
+        delay_term = -np.outer(structure.delay_gradient, derivative)
+        psi += delay_term
+        phi = None
+        if regressors:
+            bank_y = self._discrete(den, 0.0, 'foh')
+            y_parts = bank_y.outputs(self.y, list(structure.den_jacobian))
+            phi = (u_regressors - y_parts + delay_term).T
+        output.setflags(write=False)
+        _remembered(self._outputs, self._output_key(structure), lambda: output)
+        return Linearization(output, phi, psi.T)

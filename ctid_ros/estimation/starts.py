@@ -1,0 +1,613 @@
+"""
+Starting points for the projection iteration: automatic initialisation and dead-time search.
+
+Automatic initialisation needs no user guess. For a few state-variable filters
+``E(p) = (p + lam)^n`` it fits the equation error ``[D(p, theta) y - N(p, theta) u] / E`` by
+least squares directly in the grey-box parameters (a small problem: the filtered signals are
+computed once per filter and reduce to a triangular factor) and keeps the candidate with the
+lowest output-error cost. For affine structures this is one linear solve, the exact one-step
+regression of the method with a fixed filter, so any start works; a non-affine structure is
+fitted from the hint with every filter, then from random starts with the filter that simulated
+best.
+
+The dead time is located by a profile: for each ``tau`` on a grid the other parameters get
+their equation-error fit with ``tau`` frozen and the profile records its output-error cost; the
+best local minima of that profile are then refined by projection iterations.
+
+Both are skipped when a few iterations from a start already give a model whose residual is
+independent of the input (:func:`local_fit`, :func:`explains_data`): the estimator checks a
+complete user guess (a warm start) this way first, the dead-time search its equation-error start.
+"""
+
+from typing import List, Mapping, Optional, Tuple
+
+from ctid_ros.core.simulation import ContinuousFilter, shifted
+from ctid_ros.errors import EstimationError, ModelError
+from ctid_ros.estimation.correlation import CONFIDENCE, independent_of_input, input_correlation
+import numpy as np
+from scipy import optimize
+
+_FILTER_COUNT = 3
+_START_TOLERANCE = 1e-6
+_START_ITERATIONS = 100
+_RANDOM_STARTS = 4
+_GRID_POINTS = 30
+_REFINED_MINIMA = 2
+_REFINEMENT_MARGIN = 3.0
+_COARSE_STRIDE = 3
+_LOCAL_ITERATIONS = 4
+_PREWHITENING_ORDER = 10
+
+
+def _given_values(model, initial) -> Mapping[str, float]:
+    if initial is None or (isinstance(initial, str) and initial == 'auto'):
+        return {}
+    if isinstance(initial, str):
+        raise ModelError(f"initial must be a dict of values or 'auto', got {initial!r}")
+    unknown = sorted(set(initial) - set(model.parameters))
+    if unknown:
+        raise ModelError(f'initial values given for unknown parameter(s) {", ".join(unknown)}; '
+                         f'the model has {", ".join(model.parameters)}')
+    values = {name: float(value) for name, value in initial.items()}
+    bad = [name for name, value in values.items() if not np.isfinite(value)]
+    if bad:
+        raise ModelError(f'initial value(s) of {", ".join(bad)} are not finite')
+    return values
+
+
+def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]]):
+    """
+    Return the starting state of the iteration.
+
+    The user's values compete with the equation-error multi-start described in the module
+    docstring (missing values are fitted, given ones serve as hints, or stay fixed while others
+    are missing); the candidate with the lowest output-error cost wins. A far or unstable guess
+    therefore costs robustness nothing.
+
+    """
+    from ctid_ros.estimation.estimate import delay_parameter
+
+    model = problem.model
+    given = _given_values(model, initial)
+    for name, value in given.items():
+        index = model.parameters.index(name)
+        if not problem.lower[index] <= value <= problem.upper[index]:
+            raise ModelError(f'initial value {name}={value:g} lies outside its bounds '
+                             f'[{problem.lower[index]:g}, {problem.upper[index]:g}]')
+    # A complete guess is a hint for every parameter; a partial one pins the given values.
+    pinned = {} if len(given) == len(model.parameters) else given
+    delay_index = delay_parameter(model)
+    filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
+    free = np.array([name not in pinned for name in model.parameters])
+    if delay_index is not None:
+        free[delay_index] = False
+    taus = _initial_delays(problem, given, pinned, delay_index, delay_range)
+    fit = None
+    for tau in taus:
+        starts = _starts(problem, given, pinned, delay_index, tau)
+        # Every filter fits from the hint; the random starts of a non-affine structure then
+        # look for other equation-error minima with the filter that simulated best.
+        found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
+        if found is not None and len(starts) > 1:
+            more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
+            found = _lower_cost(found, more)
+        fit = _lower_cost(fit, found)
+    # The user's values compete as given, their dead time not rounded to a sample.
+    hinted_tau = taus[0] if delay_index is None else \
+        given.get(model.parameters[delay_index], taus[0])
+    best = _lower_cost(fit, best_candidate(
+        problem, _starts(problem, given, pinned, delay_index, hinted_tau)))
+    if best is None:
+        raise EstimationError(
+            'no stable starting model was found: the initial values give an unstable or '
+            'out-of-bounds D(s), and the automatic initialisation found none either; give '
+            'initial values that make the model stable, or check the bounds')
+    return best
+
+
+def complete_guess(problem, initial):
+    """Return the state at the given values if they name every parameter and are admissible."""
+    from ctid_ros.estimation.estimate import _State
+
+    given = _given_values(problem.model, initial)
+    if len(given) < len(problem.model.parameters):
+        return None
+    theta = problem.model.vector(given)
+    structure = problem.admissible(theta)
+    return None if structure is None else _State(theta, structure, problem.cost(structure))
+
+
+def best_candidate(problem, candidates: List[np.ndarray]):
+    """Return the admissible candidate with the lowest output-error cost (a state), or None."""
+    from ctid_ros.estimation.estimate import _State
+
+    best = None
+    for theta in candidates:
+        structure = problem.admissible(theta)
+        if structure is None:
+            continue
+        cost = problem.cost(structure)
+        if best is None or cost < best.cost:
+            best = _State(theta, structure, cost)
+    return best
+
+
+def _lower_cost(first, second):
+    """Return the state of lower cost; either may be None."""
+    if first is None or (second is not None and second.cost < first.cost):
+        return second
+    return first
+
+
+def _distinct(thetas: List[np.ndarray]) -> List[np.ndarray]:
+    """
+    Drop parameter vectors equal (to 1e-6 relative) to an earlier one.
+
+    Fits from different starts often reach the same minimum, which need not be simulated twice.
+
+    """
+    kept: List[np.ndarray] = []
+    for theta in thetas:
+        if not any(np.allclose(theta, other, rtol=1e-6, atol=0.0) for other in kept):
+            kept.append(theta)
+    return kept
+
+
+def _best_filter_fit(problem, starts, free, tau, filters):
+    """
+    Return the equation-error fit that simulates best over all filters, and its filter index.
+
+    Returns ``(None, None)`` if no fit gives an admissible model.
+
+    """
+    best, chosen = None, None
+    for index in range(filters.count):
+        state = best_candidate(problem, _distinct(_equation_error_fits(
+            problem, starts, free, tau, filters.select(index))))
+        if state is not None and (best is None or state.cost < best.cost):
+            best, chosen = state, index
+    return best, chosen
+
+
+def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[float]:
+    """
+    Return the dead times the equation-error start is fitted at.
+
+    The given one (alone if it is pinned), and the data's own guess from the impulse response
+    unless a given dead time is pinned: a far guess then costs the start nothing. Unpinned
+    values are rounded to whole samples (within the bounds), where the filtered input is a
+    shift of one filtering; the iteration resolves the fraction.
+
+    """
+    if delay_index is None:
+        return [0.0]
+    name = problem.model.parameters[delay_index]
+    if name in pinned:
+        return [pinned[name]]
+    low, high = _delay_bracket(problem, delay_index, delay_range)
+    taus = [given[name]] if name in given else []
+    taus.append(float(np.clip(problem.delay_guess, low, high)))
+    ts = problem.data.ts
+    lower, upper = problem.lower[delay_index], problem.upper[delay_index]
+    whole = [ts * round(tau / ts) for tau in taus]
+    return list(dict.fromkeys(rounded if lower <= rounded <= upper else tau
+                              for tau, rounded in zip(taus, whole)))
+
+
+def _starts(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
+    """
+    Return starting points: the user's hints first, then random draws.
+
+    Draws are log-uniform over 1e-2..1e2, or over the box where it is finite (uniform when the
+    box includes zero), seeded so a fit is reproducible. Pinned values and the dead time are the
+    same in every start.
+
+    """
+    model = problem.model
+    rng = np.random.default_rng(20131)
+    count = len(model.parameters)
+    lower, upper = problem.lower, problem.upper
+    boxed = np.isfinite(lower) & np.isfinite(upper)
+    positive_box = boxed & (lower > 0)
+    hinted = np.array([hints.get(name, np.nan) for name in model.parameters])
+    fixed = np.array([pinned.get(name, np.nan) for name in model.parameters])
+    starts = []
+    # The equation error of an affine structure is linear in theta: one start finds its optimum.
+    for draw in range(1 if model.is_affine else _RANDOM_STARTS + 1):
+        if draw == 0:
+            guess = np.where(np.isnan(hinted), 1.0, hinted)
+        else:
+            guess = 10.0 ** rng.uniform(-2.0, 2.0, count)
+            in_log_box = np.exp(rng.uniform(np.log(np.where(positive_box, lower, 1.0)),
+                                            np.log(np.where(positive_box, upper, 1.0))))
+            guess = np.where(positive_box, in_log_box, guess)
+            guess = np.where(boxed & ~positive_box, rng.uniform(np.where(boxed, lower, 0.0),
+                                                                np.where(boxed, upper, 1.0)),
+                             guess)
+        guess = np.clip(guess, lower, upper)
+        guess = np.where(np.isnan(fixed), guess, fixed)
+        if delay_index is not None:
+            guess[delay_index] = tau
+        starts.append(guess)
+    return starts
+
+
+class _StateVariableFilters:
+    """
+    Signals ``p^j/E`` of the data for the state-variable filters ``E = (p + lam)^n``.
+
+    The output, initial-state and offset parts do not depend on the dead time and are filtered
+    once. The input parts of a dead time of whole samples are shifts of one undelayed filtering
+    (exact: the filters start at rest), so a delay grid on the sample lattice filters the input
+    once per filter.
+
+    """
+
+    def __init__(self, problem, lams: np.ndarray):
+        model, data = problem.model, problem.data
+        n, m = model.den_degree, model.num_degree
+        powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
+        self._u_powers = powers[m::-1]
+        self._problem = problem
+        self._filters = []
+        for lam in lams:
+            realization = ContinuousFilter(np.poly(np.full(n, -lam)) if n else np.ones(1))
+            y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
+            nuisance = []
+            if problem.initial_state or problem.output_offset:
+                # Both act on y from t_0, so they are filtered without the input's dead time.
+                undelayed = realization.discretize(data.ts)
+                if problem.initial_state:
+                    nuisance.append(undelayed.free_responses(len(data)))
+                if problem.output_offset:
+                    nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
+            self._filters.append((realization, y_parts.T, nuisance, {}))
+
+    def factors(self, tau: float) -> List[np.ndarray]:
+        """
+        Triangular factors ``R`` of ``[p^j/E y, -p^j/E u_c]`` ordered like ``(den, num)``.
+
+        Initial-state and offset components of the equation error (if the problem estimates
+        them) are projected out first.
+
+        """
+        ts = self._problem.data.ts
+        whole = int(round(tau / ts))
+        on_lattice = abs(tau - whole * ts) <= 1e-9 * ts
+        factors = []
+        for realization, y_parts, nuisance, undelayed_inputs in self._filters:
+            if on_lattice:
+                if not undelayed_inputs:
+                    undelayed_inputs[0] = self._input_parts(realization, 0.0)
+                u_parts = shifted(undelayed_inputs[0], -whole)
+            else:
+                u_parts = self._input_parts(realization, tau)
+            columns = np.hstack(nuisance + [y_parts, -u_parts])
+            scales = np.linalg.norm(columns, axis=0)
+            scales[scales == 0.0] = 1.0
+            # columns / scales = Q R_s, so |columns c| = |(R_s * scales) c|.
+            triangular = np.linalg.qr(columns / scales, mode='r') * scales
+            leading = sum(part.shape[1] for part in nuisance)
+            factors.append(triangular[leading:, leading:])
+        return factors
+
+    @property
+    def count(self) -> int:
+        """Return the number of filters."""
+        return len(self._filters)
+
+    def select(self, index: int) -> '_StateVariableFilters':
+        """Return the same signals for filter ``index`` only."""
+        chosen = object.__new__(_StateVariableFilters)
+        chosen.__dict__.update(self.__dict__)
+        chosen._filters = self._filters[index:index + 1]
+        return chosen
+
+    def _input_parts(self, realization: ContinuousFilter, tau: float) -> np.ndarray:
+        """Return ``p^j/E e^{-tau p} u_c`` for every channel, as columns."""
+        problem = self._problem
+        discrete = realization.discretize(problem.data.ts, tau, problem.bank.intersample)
+        return np.vstack([discrete.outputs(channel, self._u_powers)
+                          for channel in problem.bank.channels.T]).T
+
+
+def filter_bandwidths(data, count: int) -> np.ndarray:
+    """Return ``count`` filter corners from ten per record to 0.3 of the Nyquist frequency."""
+    return np.geomspace(10.0 / (data.ts * len(data)), 0.3 * np.pi / data.ts, count)
+
+
+def _equation_error_fits(problem, starts: List[np.ndarray], free: np.ndarray, tau: float,
+                         filters: _StateVariableFilters) -> List[np.ndarray]:
+    """
+    Return the equation-error fits of every filter from every start.
+
+    Only the ``free`` parameters are fitted; the others (the dead time ``tau`` among them) keep
+    their start values.
+
+    """
+    model = problem.model
+    if not np.any(free):
+        return []
+    lower, upper = problem.lower[free], problem.upper[free]
+    fits = []
+    for factor in filters.factors(tau):
+        equation = _EquationError(model, factor, free)
+        for start in starts:
+            theta = start.copy()
+            try:
+                if model.is_affine:
+                    theta[free] = equation.linear_solution(start, lower, upper)
+                else:
+                    theta[free] = equation.local_solution(start, lower, upper)
+            except (ValueError, ModelError, np.linalg.LinAlgError):
+                continue
+            fits.append(theta)
+    return fits
+
+
+class _EquationError:
+    """Residual ``R [den; num]`` of one filter as a function of the free parameters."""
+
+    def __init__(self, model, factor: np.ndarray, free: np.ndarray):
+        self._model = model
+        self._factor = factor
+        self._free = free
+        self._latest = None
+
+    def _structure(self, values: np.ndarray, start: np.ndarray):
+        # least_squares asks for the Jacobian where it has just evaluated the residual.
+        key = values.tobytes() + start.tobytes()
+        if self._latest is None or self._latest[0] != key:
+            theta = start.copy()
+            theta[self._free] = values
+            self._latest = (key, self._model.structure(theta))
+        return self._latest[1]
+
+    def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
+        structure = self._structure(values, start)
+        return self._factor @ np.concatenate([structure.den, structure.num.ravel()])
+
+    def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
+        structure = self._structure(values, start)
+        gradient = np.hstack([structure.den_jacobian,
+                              structure.num_jacobian.reshape(start.size, -1)])[self._free]
+        return self._factor @ gradient.T
+
+    def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                       ) -> np.ndarray:
+        """
+        Return a local minimiser from ``start``: Levenberg-Marquardt projected onto the box.
+
+        The problem has a handful of rows and parameters, so scipy's general solvers would spend
+        most of their time on their own bookkeeping; a start needs no more digits than the
+        projection iteration corrects (relative change of parameters or cost below
+        ``_START_TOLERANCE``).
+
+        """
+        values = np.clip(start[self._free], lower, upper)
+        residual = self.residual(values, start)
+        cost = residual @ residual
+        damping = 1e-3
+        for _ in range(_START_ITERATIONS):
+            jacobian = self.jacobian(values, start)
+            gram = jacobian.T @ jacobian
+            gradient = jacobian.T @ residual
+            scaling = np.maximum(np.diag(gram), np.finfo(float).tiny)
+            while True:
+                try:
+                    step = -np.linalg.solve(gram + damping * np.diag(scaling), gradient)
+                except np.linalg.LinAlgError:
+                    step = None
+                if step is not None and np.all(np.isfinite(step)):
+                    trial = np.clip(values + step, lower, upper)
+                    try:
+                        trial_residual = self.residual(trial, start)
+                    except ModelError:
+                        trial_residual = None
+                    if trial_residual is not None and trial_residual @ trial_residual < cost:
+                        break
+                damping *= 4.0
+                if damping > 1e12:
+                    return values
+            change = np.max(np.abs(trial - values) / np.maximum(np.abs(values), 1e-12))
+            decrease = 1.0 - trial_residual @ trial_residual / cost
+            values, residual = trial, trial_residual
+            cost = residual @ residual
+            damping = max(damping / 3.0, 1e-9)
+            if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
+                break
+        return values
+
+    def linear_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                        ) -> np.ndarray:
+        """Exact minimiser for an affine structure (the residual is linear), within bounds."""
+        values = start[self._free]
+        jacobian = self.jacobian(values, start)
+        residual = self.residual(values, start)
+        step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
+        if np.all(values + step >= lower) and np.all(values + step <= upper):
+            return values + step
+        return values + optimize.lsq_linear(jacobian, -residual,
+                                            bounds=(lower - values, upper - values),
+                                            method='bvls').x
+
+
+def impulse_delay(data) -> float:
+    """
+    Dead-time guess: first lag of significant prewhitened input-output correlation.
+
+    An autoregressive model of the input (least squares, order 10) whitens it; the same filter
+    applied to the output leaves a cross-correlation proportional to the impulse response
+    (Box-Jenkins prewhitening), whose first lag above ``CONFIDENCE/sqrt(N)``, less half a
+    sample for the hold, is the guess. A slowly held input that the filter cannot whiten
+    gives an early guess: it only orders the search, it does not bound it from below.
+
+    """
+    u = np.asarray(data.u, dtype=float).reshape(len(data), -1)[:, 0]
+    y = np.asarray(data.y, dtype=float)
+    count = u.size
+    order = min(_PREWHITENING_ORDER, count // 10)
+    if order < 1 or not np.ptp(u):
+        return 0.0
+    u, y = u - np.mean(u), y - np.mean(y)
+
+    def lagged(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([values[order - k - 1:count - k - 1] for k in range(order)])
+
+    inputs = lagged(u)
+    coefficients = np.linalg.lstsq(inputs, u[order:], rcond=None)[0]
+    whitened_u = u[order:] - inputs @ coefficients
+    whitened_y = y[order:] - lagged(y) @ coefficients
+    correlation = np.abs(input_correlation(whitened_y, whitened_u, count // 2)[:, 0])
+    significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
+    if significant.size == 0:
+        return 0.0
+    return max(significant[0] - 0.5, 0.0) * data.ts
+
+
+def _delay_bracket(problem, delay_index, delay_range) -> Tuple[float, float]:
+    data = problem.data
+    if delay_range is not None:
+        low, high = float(delay_range[0]), float(delay_range[1])
+        if not (0.0 <= low < high):
+            raise ModelError(f'delay range must satisfy 0 <= min < max, got {delay_range}')
+        return max(low, problem.lower[delay_index]), min(high, problem.upper[delay_index])
+    low = problem.lower[delay_index]
+    high = problem.upper[delay_index]
+    if not np.isfinite(high):
+        guess = problem.delay_guess
+        high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
+    return low, max(high, low + data.ts)
+
+
+def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
+    costs = np.array([cost for _, cost, _ in profile])
+    indices = [i for i in range(len(costs))
+               if (i == 0 or costs[i] <= costs[i - 1])
+               and (i == len(costs) - 1 or costs[i] <= costs[i + 1])]
+    indices.sort(key=lambda i: costs[i])
+    return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
+
+
+def local_fit(problem, start, method: str, first_ls: bool, full_steps_only: bool = False,
+              iterations: int = _LOCAL_ITERATIONS):
+    """
+    Return the state and history after a few iterations from ``start``, and whether it held.
+
+    It did not hold if ``full_steps_only`` made it give up; otherwise (converged or not) the
+    residual test of :func:`explains_data` judges the result.
+
+    """
+    from ctid_ros.estimation.estimate import _iterate, NO_FULL_STEP
+
+    state, history, reason, _ = _iterate(
+        problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
+        max_iterations=iterations, tolerance=1e-6, first_ls=first_ls,
+        full_steps_only=full_steps_only)
+    return state, history, reason != NO_FULL_STEP
+
+
+def explains_data(problem, state, delay_index: Optional[int], delay_range) -> bool:
+    """
+    Return True if the model at ``state`` leaves a residual independent of the input.
+
+    The lags tested cover the model's settling time (its dead time included) plus, for a
+    dead-time parameter, the upper end of its search range: a wrong dead time or a missed mode
+    shows there (:mod:`ctid_ros.estimation.correlation`).
+
+    """
+    from ctid_ros.estimation.estimate import settling_time
+
+    data = problem.data
+    horizon = settling_time(state.structure)
+    if delay_index is not None:
+        horizon += _delay_bracket(problem, delay_index, delay_range)[1]
+    lags = int(np.ceil(horizon / data.ts))
+    residual = np.zeros(len(data))
+    residual[problem.skip:] = problem.measured - problem.prediction(state.structure)
+    return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
+
+
+def delay_search(problem, start, delay_index: int, delay_range):
+    """
+    Locate the dead time: a local fit if it explains the data, else a profile over a grid.
+
+    A few joint iterations from the start come first. If they reach a model whose residual is
+    independent of the input over the lags of the delay range plus the settling time
+    (:mod:`ctid_ros.estimation.correlation`), the data show no dynamics the model misses and the
+    search ends there (a warm start in the live node takes this path).
+
+    Otherwise the search profiles the whole range and refines its best minima jointly.
+    At each grid ``tau`` (on whole samples where the search bracket allows, so the filtered
+    input is a shift) the other parameters get their equation-error fit and the profile
+    records the output-error cost of that fit. Every third grid point tries every
+    state-variable filter; the filter that gave the lowest cost there serves the whole profile
+    (one filter throughout, so the profile's minima are not artefacts of switching filters).
+    The best local minima of the profile get a few projection iterations with ``tau`` frozen,
+    then joint ones.
+
+    Returns the best state, the profile as ``[(tau, cost), ...]`` (empty if the local fit was
+    accepted) and the joint iterations that refined the best minimum.
+
+    """
+    from ctid_ros.estimation.estimate import _iterate
+
+    data = problem.data
+    low, high = _delay_bracket(problem, delay_index, delay_range)
+    local, history, _ = local_fit(problem, start, 'iv', first_ls=True)
+    if explains_data(problem, local, delay_index, delay_range):
+        return local, [], history
+    grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
+                      [start.theta[delay_index], problem.delay_guess])
+    grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
+    frozen = np.zeros(start.theta.size, dtype=bool)
+    frozen[delay_index] = True
+    filters = _StateVariableFilters(problem, filter_bandwidths(data, _FILTER_COUNT))
+    coarse = np.zeros(grid.size, dtype=bool)
+    coarse[::_COARSE_STRIDE] = True
+
+    lowest = [start]
+
+    def fitted(tau: float, chosen: _StateVariableFilters):
+        # A non-affine fit starts from the hint and from the best fit so far (moved to this
+        # tau), not from random draws: the start's multi-start has been done at its own tau.
+        sources = [start] if problem.model.is_affine else [start, lowest[0]]
+        starts = _distinct([np.where(frozen, tau, state.theta) for state in sources])
+        state = best_candidate(problem, _distinct(_equation_error_fits(
+            problem, starts, ~frozen, tau, chosen)))
+        if state is not None and state.cost < lowest[0].cost:
+            lowest[0] = state
+        return state
+
+    trials = {tau: [fitted(tau, filters.select(index)) for index in range(filters.count)]
+              for tau in grid[coarse]}
+    costs = np.array([[np.inf if state is None else state.cost for state in row]
+                      for row in trials.values()]).reshape(-1, filters.count)
+    index = int(np.argmin(np.min(costs, axis=0))) if np.isfinite(costs).any() \
+        else filters.count // 2
+    states = {tau: row[index] for tau, row in trials.items()}
+    chosen = filters.select(index)
+    states.update({tau: fitted(tau, chosen) for tau in grid[~coarse]})
+    # A grid point without an admissible fit (an unstable D, as often past the true dead time,
+    # where the fit would have to anticipate the input) drops out of the profile.
+    profile = [(float(tau), states[tau].cost, states[tau]) for tau in grid
+               if states[tau] is not None]
+    if not profile:
+        return start, [], []
+    # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
+    frozen_iterations = 2 if problem.model.is_affine else 3
+    best, history, margin = None, [], np.inf
+    for state in _local_minima(profile):
+        # Refinement lowered the best minimum's cost by some amount; a minimum whose profile
+        # cost exceeds the best refined cost by three times that amount cannot compete.
+        if best is not None and state.cost - _REFINEMENT_MARGIN * margin > best.cost:
+            continue
+        profiled = state.cost
+        state = _iterate(problem, state, method='iv', frozen=frozen,
+                         max_iterations=frozen_iterations, tolerance=1e-6,
+                         trust_first_ls=True)[0]
+        state, iterations = _iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+                                     max_iterations=10, tolerance=1e-6, first_ls=False)[:2]
+        if best is None or state.cost < best.cost:
+            best, history, margin = state, iterations, profiled - state.cost
+    return best, [(tau, cost) for tau, cost, _ in profile], history

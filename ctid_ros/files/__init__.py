@@ -1,0 +1,1 @@
+"""Files: CSV records, rosbag2 and MCAP reading, MCAP writing (no rclpy)."""

@@ -1,0 +1,5 @@
+"""
+The ROS 2 adapters: the identification node and the simulated plant node.
+
+The only subpackage that imports rclpy.
+"""

@@ -1,0 +1,499 @@
+"""
+The live identification node ``ctid_node``: ROS in, :class:`IdentificationSession` in the middle.
+
+Inputs: the input and output topics of the configuration (any installed message type, learnt
+from the ROS graph once a publisher appears), one number per message read by a field path; one
+subscription serves both when they share a topic. Each sample is stamped with ``header.stamp``
+(``stamp_source: header`` and a non-zero stamp), else the DDS source timestamp of the message,
+else its reception time; under ``use_sim_time`` the node's clock replaces the DDS times, which
+are wall-clock.
+
+Every ``update_period`` (node clock) a timer takes the latest window from the
+:class:`~ctid_ros.streaming.buffer.SampleBuffer` and calls
+:meth:`IdentificationSession.update`. The timer only wakes a dedicated estimation thread, so
+samples keep being buffered while an estimate is computed, whatever the executor.
+:func:`main` spins a single-threaded executor: with two 1 kHz Float64 streams
+(``bench/node_throughput.py``), rclpy's ``MultiThreadedExecutor`` lost messages even without
+estimating, the single-threaded one took all. The services share a mutually exclusive
+callback group and the subscriptions a reentrant one, so the node works in a multi-threaded
+executor as well; under the single-threaded one ``~/estimate_now`` holds up the intake while
+it computes.
+
+Outputs (``~`` is the node's name, e.g. ``/ctid_node``):
+
+* ``~/estimate``, ``~/estimate_std``: ``std_msgs/Float64MultiArray`` in ``parameter_names`` order,
+  the comma-separated names in ``layout.dim[0].label`` (as
+  :class:`ctid_ros.files.bag_reader.EstimateWriter`);
+* ``~/params/<name>``: ``std_msgs/Float64`` per parameter;
+* ``~/prediction`` (if ``publish_prediction``): ``std_msgs/Float64MultiArray`` with the model
+  output at every grid instant of the window, label ``prediction``; the window's first and last
+  instants are ``window_start``/``window_end`` of the diagnostics published with it;
+* ``/diagnostics``: one ``diagnostic_msgs/DiagnosticStatus`` per update or failed update: OK,
+  WARN (estimate with warnings, not converged, or not enough data yet) or ERROR (estimation
+  failed), with the estimate's diagnostics and the per-stream sample counters;
+* services ``~/reset`` and ``~/estimate_now`` (``std_srvs/Trigger``).
+"""
+
+import argparse
+import functools
+import importlib
+import math
+import signal
+import sys
+import threading
+import time
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+from ctid_ros.errors import ConfigError, CtidError, DataError
+from ctid_ros.streaming.buffer import NANOSECONDS, SampleBuffer, StreamStats
+from ctid_ros.streaming.config import (find_config, IdentificationConfig, PARAMETER_NAMES,
+                                       PARAMETERS)
+from ctid_ros.streaming.message_fields import extract_values, sample_stamp
+from ctid_ros.streaming.session import (buffer_capacity, format_diagnostic,
+                                        IdentificationSession, Update)
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import ParameterException, ParameterUninitializedException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_srvs.srv import Trigger
+
+NODE_NAME = 'ctid_node'
+INPUT, OUTPUT = 'input', 'output'
+# Highest message rate the ring buffer is sized for when it exceeds 1/sample_time.
+MAX_RATE = 1000.0
+TOPIC_CHECK_PERIOD = 0.5
+ERROR_LOG_PERIOD = 10.0
+_INT64_MAX = 2 ** 63 - 1
+# Changing one of these rebuilds the sample buffer (its gap rules or size depend on them).
+_BUFFER_PARAMETERS = ('window', 'sample_time', 'max_gap', 'reorder_horizon')
+_ARRAY_TYPES = {'string_array': Parameter.Type.STRING_ARRAY,
+                'double_array': Parameter.Type.DOUBLE_ARRAY}
+
+
+def _descriptor(spec) -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(
+        name=spec.name, type=getattr(ParameterType, spec.type_name),
+        description=spec.description, additional_constraints=spec.constraints,
+        read_only=spec.read_only)
+    if spec.minimum is not None and spec.kind == 'double':
+        descriptor.floating_point_range = [FloatingPointRange(
+            from_value=float(spec.minimum), to_value=math.inf, step=0.0)]
+    elif spec.minimum is not None and spec.kind == 'integer':
+        descriptor.integer_range = [IntegerRange(
+            from_value=int(spec.minimum), to_value=_INT64_MAX, step=0)]
+    return descriptor
+
+
+def _initial_value(spec) -> Any:
+    """Return the declaration default; arrays are declared by type (rclpy types [] as bytes)."""
+    return _ARRAY_TYPES.get(spec.kind, spec.default)
+
+
+def parameter_value(node: Node, name: str, default: Any = None) -> Any:
+    """Return a declared parameter's value, or ``default`` if it was declared by type only."""
+    try:
+        return node.get_parameter(name).value
+    except ParameterUninitializedException:
+        return default
+
+
+def import_message(type_name: str) -> type:
+    """
+    Import a message class from its graph name, e.g. ``'sensor_msgs/msg/JointState'``.
+
+    Raises
+    ------
+    ConfigError
+        If the name is malformed or the package is not installed.
+
+    """
+    package, _, name = type_name.rpartition('/')
+    module_name = package.replace('/', '.')
+    try:
+        return getattr(importlib.import_module(module_name), name)
+    except (ImportError, AttributeError, ValueError):
+        raise ConfigError(f'message type {type_name} is not installed: install the package '
+                          f'{package.split("/")[0]} in this environment') from None
+
+
+def _array(names: Tuple[str, ...], values, label: Optional[str] = None) -> Float64MultiArray:
+    size = len(values)
+    dimension = MultiArrayDimension(label=','.join(names) if label is None else label,
+                                    size=size, stride=size)
+    message = Float64MultiArray(data=[float(value) for value in values])
+    message.layout.dim = [dimension]
+    return message
+
+
+class IdentificationNode(Node):
+    """Identify a grey-box model from two live topics; publish estimates and diagnostics."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        for spec in PARAMETERS:
+            self.declare_parameter(spec.name, _initial_value(spec), _descriptor(spec))
+        self._config = IdentificationConfig.from_dict(
+            {spec.name: parameter_value(self, spec.name, spec.default) for spec in PARAMETERS})
+        self._session = IdentificationSession(self._config)
+        # Guards the session and the buffer swap against the parameter callback.
+        self._lock = threading.Lock()
+        self._buffer = self._new_buffer(self._config)
+        self._field_errors = {INPUT: 0, OUTPUT: 0}
+        self._last_received: Dict[str, Optional[int]] = {INPUT: None, OUTPUT: None}
+        self._logged_fields = set()
+        self._topic_subscriptions: Dict[str, Any] = {}
+        self._waiting: Dict[str, str] = {}
+        self._estimation_group = MutuallyExclusiveCallbackGroup()
+        self._sample_group = ReentrantCallbackGroup()
+        self._qos = QoSProfile(depth=self._config.qos_depth, reliability=(
+            ReliabilityPolicy.RELIABLE if self._config.qos_reliability == 'reliable'
+            else ReliabilityPolicy.BEST_EFFORT))
+        self._estimate_publisher = self.create_publisher(Float64MultiArray, '~/estimate', 10)
+        self._std_publisher = self.create_publisher(Float64MultiArray, '~/estimate_std', 10)
+        self._prediction_publisher = self.create_publisher(Float64MultiArray, '~/prediction',
+                                                           10)
+        self._param_publishers: Dict[str, Any] = {}
+        self._diagnostics_publisher = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._status_name = f'{self.get_fully_qualified_name()[1:]}: estimate'
+        self.create_service(Trigger, '~/reset', self._reset,
+                            callback_group=self._estimation_group)
+        self.create_service(Trigger, '~/estimate_now', self._estimate_now,
+                            callback_group=self._estimation_group)
+        self._wakeup = threading.Event()
+        self._stopping = False
+        self._tick: Optional[float] = None
+        # Estimation runs in its own thread, so even a single-threaded executor keeps taking
+        # samples while an estimate is computed.
+        self._worker = threading.Thread(target=self._work, name='ctid_estimator', daemon=True)
+        self._worker.start()
+        self._timer = self._create_update_timer()
+        self._topic_timer = self.create_timer(TOPIC_CHECK_PERIOD, self._connect,
+                                              callback_group=self._sample_group)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.last_update: Optional[Update] = None
+        self._connect()
+
+    @property
+    def config(self) -> IdentificationConfig:
+        """Return the configuration in use."""
+        return self._config
+
+    @property
+    def buffer(self) -> SampleBuffer:
+        """Return the sample buffer."""
+        return self._buffer
+
+    def _new_buffer(self, config: IdentificationConfig) -> SampleBuffer:
+        rate = max(1.0 / config.sample_time, MAX_RATE)
+        return SampleBuffer(buffer_capacity(config, rate), max_gap=config.max_gap,
+                            reorder_horizon=config.reorder_horizon,
+                            names=(f'{config.input_topic} {", ".join(config.input_fields)}',
+                                   f'{config.output_topic} {config.output_field}'),
+                            inputs=len(config.input_fields))
+
+    def _create_update_timer(self):
+        return self.create_timer(self._config.update_period, self._on_timer,
+                                 callback_group=self._estimation_group)
+
+    # Input ---------------------------------------------------------------------------------
+
+    def _topics(self) -> Dict[str, Tuple[str, ...]]:
+        """Map each resolved topic to the roles it carries (input, output or both)."""
+        topics: Dict[str, Tuple[str, ...]] = {}
+        for role, topic in ((INPUT, self._config.input_topic),
+                            (OUTPUT, self._config.output_topic)):
+            resolved = self.resolve_topic_name(topic)
+            topics[resolved] = topics.get(resolved, ()) + (role,)
+        return topics
+
+    def _connect(self) -> None:
+        """Subscribe to every topic whose type the graph now knows; note the others."""
+        pending = {topic: roles for topic, roles in self._topics().items()
+                   if topic not in self._topic_subscriptions}
+        if not pending:
+            self._topic_timer.cancel()
+            return
+        graph = dict(self.get_topic_names_and_types())
+        for topic, roles in pending.items():
+            types = graph.get(topic)
+            if not types:
+                self._waiting[topic] = (f'no publisher on {topic} yet: waiting to learn its '
+                                        'message type')
+                continue
+            try:
+                message_type = import_message(types[0])
+            except ConfigError as error:
+                self._waiting[topic] = str(error)
+                continue
+            callback = functools.partial(self._on_message, roles)
+            self._topic_subscriptions[topic] = self.create_subscription(
+                message_type, topic, callback, self._qos, callback_group=self._sample_group)
+            self._waiting.pop(topic, None)
+            self.get_logger().info(f'subscribed to {topic} ({types[0]}) for the '
+                                   f'{" and ".join(roles)}')
+
+    def _stamp(self, message, info: Dict[str, Any]) -> int:
+        return sample_stamp(message, self._receive_stamp(info), self._config.stamp_source)
+
+    def _receive_stamp(self, info: Dict[str, Any]) -> int:
+        clock = self.get_clock()
+        if clock.ros_time_is_active:
+            return clock.now().nanoseconds
+        return info.get('source_timestamp') or info.get('received_timestamp') or \
+            clock.now().nanoseconds
+
+    def _value(self, message, role: str):
+        config = self._config
+        paths = config.input_fields if role == INPUT else (config.output_field,)
+        try:
+            return extract_values(message, paths)
+        except ConfigError as error:
+            self._field_errors[role] += 1
+            if (role, paths) not in self._logged_fields:
+                self._logged_fields.add((role, paths))
+                self.get_logger().error(f'{role}: {error}')
+            return None
+
+    def _on_message(self, roles: Tuple[str, ...], message, info: Dict[str, Any]) -> None:
+        received = self.get_clock().now().nanoseconds
+        for role in roles:
+            self._last_received[role] = received
+        stamp = self._stamp(message, info)
+        buffer = self._buffer
+        values = {role: self._value(message, role) for role in roles}
+        for role, value in values.items():
+            if value is not None:
+                (buffer.add_input if role == INPUT else buffer.add_output)(stamp, value)
+
+    # Estimation ----------------------------------------------------------------------------
+
+    def _on_timer(self) -> None:
+        self._tick = time.perf_counter()
+        self._wakeup.set()
+
+    def _work(self) -> None:
+        while True:
+            self._wakeup.wait()
+            self._wakeup.clear()
+            if self._stopping:
+                return
+            try:
+                self.estimate(self._tick)
+            except Exception as error:  # noqa: B902 - a bug must not stop the estimates
+                self.get_logger().error(f'estimation failed: {error!r}')
+                self._publish_status(DiagnosticStatus.ERROR, f'internal error: {error!r}', {})
+
+    def destroy_node(self) -> None:
+        """Stop the estimation thread, then destroy the node."""
+        self._stopping = True
+        self._wakeup.set()
+        self._worker.join()
+        super().destroy_node()
+
+    def estimate(self, started: Optional[float] = None) -> Tuple[Optional[Update], str]:
+        """
+        Estimate on the latest window now and publish the result and diagnostics.
+
+        Parameters
+        ----------
+        started : float, optional
+            ``time.perf_counter()`` of the request (the timer tick), for ``publish_latency``.
+
+        Returns
+        -------
+        (Update or None, str)
+            The update (None if it failed) and a one-line summary or the error.
+
+        """
+        started = time.perf_counter() if started is None else started
+        with self._lock:
+            config, buffer = self._config, self._buffer
+            try:
+                self._check_silence(config, buffer)
+                window = self._session.take_window(buffer)
+                update = self._session.update(window)
+            except DataError as error:
+                return None, self._failed(DiagnosticStatus.WARN, error)
+            except CtidError as error:
+                return None, self._failed(DiagnosticStatus.ERROR, error)
+        self.last_update = update
+        self._publish(update, config)
+        summary = ', '.join(f'{name}={value:.6g} (std {std:.3g})' for name, value, std in
+                            zip(update.names, update.values, update.stds))
+        diagnostics = update.diagnostics()
+        diagnostics['publish_latency'] = time.perf_counter() - started
+        warnings = diagnostics['warnings']
+        if warnings:
+            level, text = DiagnosticStatus.WARN, '; '.join(warnings)
+        elif not diagnostics['converged']:
+            level, text = DiagnosticStatus.WARN, 'not converged'
+        else:
+            level, text = DiagnosticStatus.OK, summary
+        self._publish_status(level, text, diagnostics)
+        return update, summary
+
+    def _check_silence(self, config: IdentificationConfig, buffer: SampleBuffer) -> None:
+        """
+        Refuse to estimate again from stale data when a stream stopped.
+
+        The buffer's windows end at its newest data, so without this check a dead publisher
+        would go unnoticed: the same last window would be estimated over and over.
+        """
+        now = self.get_clock().now().nanoseconds
+        limit = max(config.max_gap, config.update_period)
+        for role, name in zip((INPUT, OUTPUT), buffer.names):
+            last = self._last_received[role]
+            if last is not None and now - last > limit * NANOSECONDS:
+                raise DataError(f'{name} silent: no message for {(now - last) * 1e-9:.3g} s '
+                                f'(more than {limit:g} s); check its publisher')
+
+    def _failed(self, level: bytes, error: Exception) -> str:
+        text = str(error)
+        self.get_logger().warning(f'no estimate: {text}', throttle_duration_sec=ERROR_LOG_PERIOD)
+        self._publish_status(level, text, {})
+        return text
+
+    def _publish(self, update: Update, config: IdentificationConfig) -> None:
+        self._estimate_publisher.publish(_array(update.names, update.values))
+        self._std_publisher.publish(_array(update.names, update.stds))
+        for name, value in zip(update.names, update.values):
+            if name not in self._param_publishers:
+                self._param_publishers[name] = self.create_publisher(
+                    Float64, f'~/params/{name}', 10)
+            self._param_publishers[name].publish(Float64(data=float(value)))
+        if config.publish_prediction:
+            self._prediction_publisher.publish(
+                _array(update.names, update.prediction, label='prediction'))
+
+    def _stream_values(self, role: str, stats: StreamStats) -> Dict[str, Any]:
+        return {f'{role}_{key}': value for key, value in (
+            ('received', stats.received), ('accepted', stats.accepted),
+            ('duplicates', stats.duplicates), ('late', stats.late),
+            ('non_finite', stats.non_finite), ('evicted', stats.evicted),
+            ('field_errors', self._field_errors[role]))}
+
+    def _publish_status(self, level: bytes, text: str, values: Dict[str, Any]) -> None:
+        stats = self._buffer.stats()
+        values = {**values, **self._stream_values(INPUT, stats.u),
+                  **self._stream_values(OUTPUT, stats.y)}
+        if self._waiting:
+            level = max(level, DiagnosticStatus.WARN)
+            text = '; '.join([*self._waiting.values(), text])
+        status = DiagnosticStatus(level=level, name=self._status_name, message=text,
+                                  hardware_id=self.get_name(),
+                                  values=[KeyValue(key=key, value=format_diagnostic(value))
+                                          for key, value in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self._diagnostics_publisher.publish(array)
+
+    # Services and parameters ---------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget all samples, counters and the warm start."""
+        with self._lock:
+            self._buffer.clear()
+            self._session.reset()
+            self._field_errors = {INPUT: 0, OUTPUT: 0}
+            self._last_received = {INPUT: None, OUTPUT: None}
+
+    def _reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self.reset()
+        response.success, response.message = True, 'buffer cleared, warm start forgotten'
+        return response
+
+    def _estimate_now(self, request: Trigger.Request,
+                      response: Trigger.Response) -> Trigger.Response:
+        update, response.message = self.estimate()
+        response.success = update is not None
+        return response
+
+    def _on_set_parameters(self, parameters: List[Parameter]) -> SetParametersResult:
+        spec_defaults = {spec.name: spec.default for spec in PARAMETERS}
+        changes = {parameter.name: spec_defaults[parameter.name] if parameter.value is None
+                   else parameter.value
+                   for parameter in parameters if parameter.name in PARAMETER_NAMES}
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:
+            config = self._config.updated(changes)
+        except ConfigError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        self._apply(config)
+        return SetParametersResult(successful=True)
+
+    def _apply(self, config: IdentificationConfig) -> None:
+        old = self._config
+        with self._lock:
+            if any(getattr(config, name) != getattr(old, name) for name in _BUFFER_PARAMETERS):
+                self._buffer = self._new_buffer(config)
+            self._session.reconfigure(config)
+            self._config = config
+        if config.update_period != old.update_period:
+            self.destroy_timer(self._timer)
+            self._timer = self._create_update_timer()
+        self.get_logger().info('configuration updated')
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the ``ctid node`` arguments; ROS arguments (``--ros-args ...``) pass through."""
+    parser.add_argument('config', nargs='?', default=None,
+                        help='params file or name of an example configuration (e.g. '
+                        'open_loop_delay); same as --ros-args --params-file FILE')
+
+
+def run(arguments: argparse.Namespace) -> int:
+    """Run the node for ``ctid node``."""
+    ros_arguments = list(getattr(arguments, 'ros_arguments', None) or [])
+    if arguments.config:
+        ros_arguments = ['--ros-args', '--params-file', str(find_config(arguments.config)),
+                         *ros_arguments]
+    return main([NODE_NAME, *ros_arguments])
+
+
+def _interrupt(signal_number: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] = None) -> int:
+    """
+    Spin the node made by ``factory`` until Ctrl-C or SIGTERM.
+
+    Both signals interrupt the spinning thread, which then destroys the node before the context
+    goes, so no callback or publication meets an invalid context.
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
+    executor = SingleThreadedExecutor()
+    try:
+        executor.add_node(factory())
+        executor.spin()
+    except (ConfigError, ParameterException) as error:
+        print(f'{name}: error: {error}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
+    finally:
+        executor.shutdown()
+        for node in executor.get_nodes():
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Run ``ctid_node`` until Ctrl-C or SIGTERM; return the exit status."""
+    return run_node(IdentificationNode, NODE_NAME, args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

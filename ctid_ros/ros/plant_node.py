@@ -1,0 +1,166 @@
+"""
+``ctid_plant``: a simulated plant published on ROS, for tests and demonstrations.
+
+The simulation itself is :class:`ctid_ros.core.plant.PlantSimulator` (exact, ROS-free).
+
+:class:`PlantNode` (``ctid_plant``) drives a simulator with a PRBS and publishes, per sample:
+
+* ``message_type: float64``: ``std_msgs/Float64`` on ``input_topic`` (``u`` open loop, the
+  reference ``r`` closed loop), ``output_topic`` (``y``) and, closed loop, ``control_topic``
+  (the plant input ``u``). Float64 has no header: a subscriber stamps it on reception.
+* ``message_type: point_stamped``: the same topics as ``geometry_msgs/PointStamped`` with the
+  value in ``point.x`` and ``header.stamp`` = the simulated sample instant.
+* ``message_type: joint_state``: one ``sensor_msgs/JointState`` on ``joint_state_topic`` with
+  ``effort[0]`` = excitation (``u`` or ``r``), ``position[0]`` = ``y``, ``velocity[0]`` = plant
+  input ``u`` and ``header.stamp`` = the simulated sample instant.
+
+A wall timer (the node clock) checks at least every 10 ms how many sample instants
+``start + k*sample_time`` have passed and publishes those samples, so timer jitter delays a
+sample but never distorts the simulated data. ``start`` is a multiple of ``sample_time``, so
+header stamps fall on the estimator's grid. Optionally the parameters jump to
+``drift_values`` at ``drift_time`` seconds after the start (see
+:meth:`~ctid_ros.core.plant.PlantSimulator.retune`).
+
+Run it with ``ctid_plant --ros-args --params-file config/plant_sim.yaml``.
+"""
+
+import sys
+from typing import Dict, List, Optional
+
+from ctid_ros.core.plant import excitation, PlantSimulator
+from ctid_ros.errors import ConfigError
+from ctid_ros.ros.node import parameter_value, run_node
+from geometry_msgs.msg import PointStamped
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+
+__all__ = ['MESSAGE_TYPES', 'PlantNode', 'main']
+
+NANOSECONDS = 1_000_000_000
+MESSAGE_TYPES = ('float64', 'point_stamped', 'joint_state')
+
+
+class PlantNode(Node):
+    """Simulated plant publishing its excitation, input and output at every sample."""
+
+    def __init__(self, **kwargs):
+        super().__init__('ctid_plant', **kwargs)
+        double_array = rclpy.Parameter.Type.DOUBLE_ARRAY
+        self.declare_parameters('', [
+            ('model', 'K*exp(-tau*s)/(T*s + 1)'), ('parameter_names', ['K', 'T', 'tau']),
+            ('parameter_values', [2.0, 0.5, 0.137]), ('controller', ''),
+            ('pi_gains', double_array),
+            ('sample_time', 0.005), ('noise_std', 0.01), ('seed', 0),
+            ('prbs_bits', 9), ('prbs_clock', 20), ('amplitude', 1.0), ('offset', 0.0),
+            ('message_type', 'float64'), ('input_topic', 'u'), ('output_topic', 'y'),
+            ('control_topic', 'u_plant'), ('joint_state_topic', 'joint_states'),
+            ('reliable', True), ('drift_time', -1.0), ('drift_values', double_array)])
+        value = self._value
+        self._message_type = value('message_type')
+        if self._message_type not in MESSAGE_TYPES:
+            raise ConfigError(f'message_type must be one of {", ".join(MESSAGE_TYPES)}, got '
+                              f'{self._message_type!r}')
+        names = list(value('parameter_names'))
+        self._params = dict(zip(names, value('parameter_values')))
+        drift = value('drift_values')
+        self._drift_time = value('drift_time')
+        # A negative drift_time disables the drift, whatever drift_values say.
+        self._drift = dict(zip(names, drift)) if drift and self._drift_time >= 0 else None
+        self.simulator = PlantSimulator(value('model'), self._params, value('sample_time'),
+                                        controller=value('controller'),
+                                        pi_gains=value('pi_gains'),
+                                        noise_std=value('noise_std'), seed=value('seed'))
+        self._excitation = excitation(value('prbs_bits'), value('prbs_clock'),
+                                      value('amplitude'), value('offset'))
+        self._step_ns = round(self.simulator.sample_time * NANOSECONDS)
+        # Deep: a starved timer catches up in a burst, which must not overflow the history.
+        self._qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE
+                               if value('reliable') else ReliabilityPolicy.BEST_EFFORT)
+        self._topic_publishers: Dict[str, rclpy.publisher.Publisher] = {}
+        self.create_publishers()
+        self.restart()
+        self._timer = self.create_timer(min(self.simulator.sample_time, 0.01), self._tick)
+
+    def _value(self, name: str):
+        return parameter_value(self, name, ())
+
+    def create_publishers(self) -> None:
+        """(Re)create the publishers, e.g. to test a subscriber against a publisher restart."""
+        for publisher in self._topic_publishers.values():
+            self.destroy_publisher(publisher)
+        if self._message_type == 'joint_state':
+            topics = {'joint_state': (JointState, self._value('joint_state_topic'))}
+        else:
+            kind = PointStamped if self._message_type == 'point_stamped' else Float64
+            topics = {'input': (kind, self._value('input_topic')),
+                      'output': (kind, self._value('output_topic'))}
+            if self.simulator.closed_loop:
+                topics['control'] = (kind, self._value('control_topic'))
+        self._topic_publishers = {role: self.create_publisher(kind, topic, self._qos)
+                                  for role, (kind, topic) in topics.items()}
+
+    def subscription_counts(self) -> Dict[str, int]:
+        """Return the number of matched subscriptions of each published topic."""
+        return {publisher.topic_name: publisher.get_subscription_count()
+                for publisher in self._topic_publishers.values()}
+
+    def matched(self) -> bool:
+        """Return True when every publisher has at least one subscriber."""
+        return all(self.subscription_counts().values())
+
+    @property
+    def start_ns(self) -> int:
+        """Return the stamp (node clock, ns) of sample 0: the simulation starts at rest there."""
+        return self._start_ns
+
+    def restart(self) -> None:
+        """Count samples from zero, the next one due now (e.g. once subscribers matched)."""
+        now = self.get_clock().now().nanoseconds
+        self._start_ns = -(-now // self._step_ns) * self._step_ns
+        self.published = 0
+
+    def _tick(self) -> None:
+        now = self.get_clock().now().nanoseconds
+        while self._start_ns + self.published * self._step_ns <= now:
+            stamp = self._start_ns + self.published * self._step_ns
+            if self._drift and stamp - self._start_ns >= self._drift_time * NANOSECONDS:
+                self.simulator.retune({**self._params, **self._drift})
+                self._drift = None
+            excitation_value = next(self._excitation)
+            u, y = self.simulator.step(excitation_value)
+            self._publish(stamp, excitation_value, u, y)
+            self.published += 1
+
+    def _publish(self, stamp: int, excitation_value: float, u: float, y: float) -> None:
+        publishers = self._topic_publishers
+        if 'joint_state' in publishers:
+            message = JointState(name=['joint'], position=[y], velocity=[u],
+                                 effort=[excitation_value])
+            _set_stamp(message, stamp)
+            publishers['joint_state'].publish(message)
+            return
+        for role, value in (('input', excitation_value), ('control', u), ('output', y)):
+            if role in publishers:
+                if self._message_type == 'point_stamped':
+                    message = PointStamped()
+                    message.point.x = value
+                    _set_stamp(message, stamp)
+                else:
+                    message = Float64(data=value)
+                publishers[role].publish(message)
+
+
+def _set_stamp(message, stamp: int) -> None:
+    message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, NANOSECONDS)
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Run the simulated plant until Ctrl-C or SIGTERM."""
+    return run_node(PlantNode, 'ctid_plant', args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

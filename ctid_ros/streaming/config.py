@@ -1,0 +1,650 @@
+"""
+Configuration shared by the live identification node and the offline replay.
+
+Every parameter is declared once, as a field of :class:`IdentificationConfig` with its default,
+ROS type, help text and range; :data:`PARAMETERS` exposes them as :class:`ParameterSpec`
+records so that the node can declare its ROS parameters in a loop::
+
+    for spec in PARAMETERS:
+        descriptor = ParameterDescriptor(
+            type=getattr(ParameterType, spec.type_name), description=spec.description,
+            additional_constraints=spec.constraints, read_only=spec.read_only)
+        ...
+
+(declare array parameters by type: rclpy types an empty default ``[]`` as a byte array).
+
+Values are checked and converted in one place (construction), so a params file, a runtime
+parameter change (:meth:`IdentificationConfig.updated`) and the replay's arguments all get the
+same errors. Integers are accepted for doubles (YAML ``5`` for ``5.0``, which rclpy itself would
+refuse for a double parameter).
+"""
+
+from dataclasses import dataclass, field, fields, replace
+import functools
+import math
+import os
+from pathlib import Path
+import re
+import sys
+from typing import Any, Dict, List, Mapping, Optional, Tuple
+
+from ctid_ros.core.model import Model
+from ctid_ros.core.simulation import INTERSAMPLE
+from ctid_ros.errors import ConfigError, ModelError
+from ctid_ros.estimation.estimate import INITIAL_STATES, METHODS
+from ctid_ros.streaming.message_fields import parse_field_path
+import numpy as np
+import yaml
+
+PACKAGE = 'ctid_ros'
+DEFAULT_NODE_NAME = 'ctid_node'
+STAMP_SOURCES = ('header', 'receive')
+RELIABILITIES = ('best_effort', 'reliable')
+MIN_WINDOW_SAMPLES = 10
+# Every ROS 2 node has these; a params file may set them for ctid_node, so they are not errors.
+ROS_STANDARD_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+_ROS_STANDARD_PREFIXES = ('qos_overrides.',)
+
+_TOPIC = re.compile(r'(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """
+    One configuration parameter, as the node declares it.
+
+    Attributes
+    ----------
+    name : str
+        Parameter name (a field of :class:`IdentificationConfig`).
+    kind : str
+        One of ``string``, ``double``, ``integer``, ``bool``, ``string_array``,
+        ``double_array``.
+    default : object
+        Default value (arrays as tuples).
+    description : str
+        Help text.
+    minimum : float or None
+        Inclusive lower limit (for a descriptor range); stricter rules such as > 0 are in the
+        description and enforced by validation.
+    choices : tuple of str
+        Allowed values of a string parameter (empty: any).
+    read_only : bool
+        True for parameters that only take effect at start-up (topics, QoS).
+
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    minimum: Optional[float] = None
+    choices: Tuple[str, ...] = ()
+    read_only: bool = False
+
+    @property
+    def type_name(self) -> str:
+        """Return the ``rcl_interfaces/ParameterType`` constant name, e.g. PARAMETER_DOUBLE."""
+        return 'PARAMETER_' + self.kind.upper()
+
+    @property
+    def constraints(self) -> str:
+        """Return the constraints in words, for ``ParameterDescriptor.additional_constraints``."""
+        if self.choices:
+            return 'one of: ' + ', '.join(self.choices)
+        if self.minimum is not None:
+            return f'value >= {self.minimum}'
+        return ''
+
+
+def _param(default: Any, kind: str, description: str, *, minimum: Optional[float] = None,
+           choices: Tuple[str, ...] = (), read_only: bool = False):
+    spec = {'kind': kind, 'description': description, 'minimum': minimum, 'choices': choices,
+            'read_only': read_only}
+    return field(default=default, metadata={'spec': spec})
+
+
+@functools.lru_cache(maxsize=16)
+def _compile_model(expression: str, controller: str, inputs: Tuple[str, ...],
+                   output: str) -> Model:
+    """Parse the plant, then the closed loop, so that an error names the text at fault."""
+    try:
+        plant = Model(expression, inputs=inputs, output=output)
+    except ModelError as error:
+        raise ConfigError(f'model {expression!r} is invalid: {error}') from None
+    if not controller:
+        return plant
+    try:
+        return Model(expression, controller, inputs=inputs, output=output)
+    except ModelError as error:
+        raise ConfigError(f'controller {controller!r} is invalid: {error}') from None
+
+
+@dataclass(frozen=True)
+class IdentificationConfig:
+    """
+    Validated configuration of an identification run (live node or replay).
+
+    Construct it with keyword arguments, :meth:`from_dict` or :func:`load_params_file`; change
+    it with :meth:`updated`. Invalid values raise :class:`ConfigError` naming the parameter.
+    The field metadata (see :data:`PARAMETERS`) documents each parameter.
+    """
+
+    input_topic: str = _param(
+        'u', 'string', 'Topic of the input u (the reference r in closed loop); relative names '
+        'follow the node namespace.', read_only=True)
+    input_field: str = _param(
+        'data', 'string', "Field of the input message holding the value, e.g. 'data', "
+        "'effort[0]', 'twist.linear.x'.")
+    output_topic: str = _param(
+        'y', 'string', 'Topic of the measured output y; may equal input_topic when one '
+        'message carries both (e.g. /joint_states).', read_only=True)
+    output_field: str = _param(
+        'data', 'string', "Field of the output message holding the value, e.g. 'position[0]'.")
+    extra_input_fields: Tuple[str, ...] = _param(
+        (), 'string_array', 'Fields of the input message holding the further inputs of a '
+        "model equation, in input_names order after the first, e.g. ['effort[1]'].")
+    model: str = _param(
+        '', 'string', 'Plant transfer function in s; every other name is a parameter, e.g. '
+        "'K*exp(-tau*s)/(T*s + 1)'; or a model equation such as "
+        "'M*s**2*y + Fv*s*y = 35.2*u - Fc*w - off' with its signals named by input_names and "
+        'output_name. Required.')
+    input_names: Tuple[str, ...] = _param(
+        ('u',), 'string_array', 'Names of the inputs in a model equation: the first is read '
+        'from input_field, the others from extra_input_fields.')
+    output_name: str = _param(
+        'y', 'string', 'Name of the output in a model equation.')
+    controller: str = _param(
+        '', 'string', "Known controller K(s) with numeric coefficients, e.g. '20 + 10/s': the "
+        "data are then the closed loop from the reference (input_topic) to y. '' = open loop.")
+    parameter_names: Tuple[str, ...] = _param(
+        (), 'string_array', 'Order of the parameters in initial/lower/upper and in all published '
+        'arrays; a permutation of the model parameters. Empty = order of first appearance in '
+        'the model.')
+    initial: Tuple[float, ...] = _param(
+        (), 'double_array', 'Initial values in parameter_names order; NaN entries (and an empty '
+        'array) are initialised automatically.')
+    lower: Tuple[float, ...] = _param(
+        (), 'double_array', 'Lower bounds in parameter_names order (-.inf = none); empty = '
+        'no bounds.')
+    upper: Tuple[float, ...] = _param(
+        (), 'double_array', 'Upper bounds in parameter_names order (.inf = none); empty = '
+        'no bounds.')
+    sample_time: float = _param(
+        0.01, 'double', 'Sample time (s, > 0) of the uniform grid the messages are resampled '
+        'onto; use the actuator update period for a zero-order-hold input.', minimum=0.0)
+    window: float = _param(
+        10.0, 'double', f'Length (s) of the data window used by each estimate; at least '
+        f'{MIN_WINDOW_SAMPLES} sample times.', minimum=0.0)
+    update_period: float = _param(
+        1.0, 'double', 'Seconds (> 0) between successive estimates.', minimum=0.0)
+    method: str = _param(
+        'iv', 'string', "'iv': least squares then instrumental-variable iterations "
+        "(consistent under noise); 'ls': least-squares iterations only; 'gn': Gauss-Newton on "
+        'the output error.', choices=METHODS)
+    intersample: str = _param(
+        'zoh', 'string', "Input behaviour between samples: 'zoh' (held, e.g. a digital "
+        "actuator command) or 'foh' (linear).", choices=INTERSAMPLE)
+    stamp_source: str = _param(
+        'header', 'string', "'header': use header.stamp when the message has a non-zero one, "
+        "else the receive time; 'receive': always the receive time.", choices=STAMP_SOURCES,
+        read_only=True)
+    qos_reliability: str = _param(
+        'best_effort', 'string', 'Subscription reliability; best_effort also matches reliable '
+        'publishers.', choices=RELIABILITIES, read_only=True)
+    qos_depth: int = _param(
+        500, 'integer', 'Subscription queue depth (keep last); deep, so bursts are not lost.',
+        minimum=1, read_only=True)
+    max_gap: float = _param(
+        0.5, 'double', 'Seconds (> 0) without a sample after which a stream counts as missing: '
+        'data are never interpolated or held across such a gap.', minimum=0.0)
+    reorder_horizon: float = _param(
+        0.05, 'double', 'Seconds a sample may arrive out of order and still be used; older '
+        'late samples are dropped and counted.', minimum=0.0)
+    delay_min: float = _param(
+        0.0, 'double', 'Lower end (s) of the dead-time search range; delay_min = delay_max = 0 '
+        'means automatic.', minimum=0.0)
+    delay_max: float = _param(
+        0.0, 'double', 'Upper end (s) of the dead-time search range (see delay_min).',
+        minimum=0.0)
+    max_iterations: int = _param(
+        100, 'integer', 'Largest number of iterations of one estimate.', minimum=1)
+    tolerance: float = _param(
+        1e-8, 'double', 'Stop when the largest relative parameter change falls below it (> 0).',
+        minimum=0.0)
+    transient: float = _param(
+        -1.0, 'double', 'Seconds at the start of each window that are simulated but not fitted, '
+        'because a window cut from a running plant does not start at rest. Negative = '
+        'automatic (five slowest time constants plus the dead time, at most half the window).')
+    initial_state: str = _param(
+        'zero', 'string', "'zero': each window is treated as starting at rest (with the "
+        "transient excluded); 'estimate': the initial state is estimated as well.",
+        choices=INITIAL_STATES)
+    output_offset: bool = _param(
+        False, 'bool', 'Estimate a constant offset of the output (an unknown operating point).')
+    warm_start: bool = _param(
+        True, 'bool', 'Start each estimate from the previous one instead of initial.')
+    publish_prediction: bool = _param(
+        False, 'bool', 'Publish the model output predicted over the window.')
+
+    def __post_init__(self):
+        for item in fields(self):
+            object.__setattr__(self, item.name,
+                               _coerce(item.name, item.metadata['spec']['kind'],
+                                       getattr(self, item.name)))
+        object.__setattr__(self, '_model', self._validate())
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> 'IdentificationConfig':
+        """
+        Build a configuration from ``{parameter name: value}`` (unset names take defaults).
+
+        Raises
+        ------
+        ConfigError
+            On an unknown name (the message lists the valid ones), a wrong type or an invalid
+            value.
+
+        """
+        _check_names(values)
+        return cls(**values)
+
+    def updated(self, changes: Mapping[str, Any]) -> 'IdentificationConfig':
+        """
+        Return a new configuration with ``changes`` applied; ``self`` is left unchanged.
+
+        For a runtime parameter change: on :class:`ConfigError` reject the change and keep the
+        current configuration.
+        """
+        _check_names(changes)
+        return replace(self, **changes)
+
+    def to_dict(self) -> Dict[str, Any]:
+        """Return ``{name: value}`` with arrays as lists, as in a params file."""
+        return {item.name: list(value) if isinstance(value, tuple) else value
+                for item in fields(self) for value in [getattr(self, item.name)]}
+
+    @property
+    def compiled_model(self) -> Model:
+        """Return the parsed :class:`ctid_ros.Model` (closed loop if a controller is set)."""
+        return self._model
+
+    @property
+    def names(self) -> Tuple[str, ...]:
+        """Return the parameter order of all arrays (``parameter_names`` or the model's)."""
+        return self.parameter_names or self._model.parameters
+
+    @property
+    def model_index(self) -> Tuple[int, ...]:
+        """
+        Return, for each name in :attr:`names`, its index in ``compiled_model.parameters``.
+
+        ``theta[list(config.model_index)]`` reorders a model-ordered vector for publishing.
+        """
+        return tuple(self._model.parameters.index(name) for name in self.names)
+
+    @property
+    def delay_range(self) -> Optional[Tuple[float, float]]:
+        """Return the dead-time search range, or None for automatic."""
+        if self.delay_min == 0.0 and self.delay_max == 0.0:
+            return None
+        return self.delay_min, self.delay_max
+
+    def initial_values(self) -> Dict[str, float]:
+        """Return the configured initial values by name (NaN/automatic entries left out)."""
+        return {name: value for name, value in zip(self.names, self.initial)
+                if not math.isnan(value)}
+
+    def bounds(self) -> Dict[str, Tuple[Optional[float], Optional[float]]]:
+        """Return ``{name: (lower, upper)}`` for bounded parameters (None = unbounded side)."""
+        lower = self.lower or (-math.inf,) * len(self.names)
+        upper = self.upper or (math.inf,) * len(self.names)
+        return {name: (low if math.isfinite(low) else None,
+                       high if math.isfinite(high) else None)
+                for name, low, high in zip(self.names, lower, upper)
+                if math.isfinite(low) or math.isfinite(high)}
+
+    @property
+    def input_fields(self) -> Tuple[str, ...]:
+        """Return the field paths of all inputs in the input message, in input_names order."""
+        return (self.input_field,) + self.extra_input_fields
+
+    def estimator_options(self) -> Dict[str, Any]:
+        """Return keyword arguments for :func:`ctid_ros.estimate` (without model and data)."""
+        return {'initial': self.initial_values() or 'auto', 'bounds': self.bounds() or None,
+                'method': self.method, 'intersample': self.intersample,
+                'max_iterations': self.max_iterations, 'tolerance': self.tolerance,
+                'delay_range': self.delay_range,
+                'transient': 'auto' if self.transient < 0 else self.transient,
+                'initial_state': self.initial_state, 'output_offset': self.output_offset}
+
+    def _validate(self) -> Model:
+        for name in ('input_topic', 'output_topic'):
+            topic = getattr(self, name)
+            if not _TOPIC.fullmatch(topic):
+                raise ConfigError(
+                    f'{name} {topic!r} is not a valid topic name: tokens of letters, digits '
+                    "and underscores (not starting with a digit) separated by '/', optionally "
+                    "starting with '/' or '~/'")
+        for name, path in [('input_field', self.input_field),
+                           ('output_field', self.output_field)] + [
+                ('extra_input_fields', path) for path in self.extra_input_fields]:
+            try:
+                parse_field_path(path)
+            except ConfigError as error:
+                raise ConfigError(f'{name}: {error}') from None
+        if len(self.extra_input_fields) != len(self.input_names) - 1:
+            raise ConfigError(f'input_names has {len(self.input_names)} name(s), so '
+                              f'extra_input_fields needs {len(self.input_names) - 1} field(s), '
+                              f'got {len(self.extra_input_fields)}')
+        if (self.input_topic, self.input_field) == (self.output_topic, self.output_field):
+            raise ConfigError('input and output are the same field of the same topic: '
+                              'set output_topic or output_field')
+        if not self.model.strip():
+            raise ConfigError('model is required: a transfer function in s such as '
+                              "'K/(T*s + 1)'")
+        model = _compile_model(self.model, self.controller, self.input_names, self.output_name)
+        self._check_names(model)
+        self._check_vectors(self.parameter_names or model.parameters)
+        self._check_choices()
+        self._check_times(model)
+        return model
+
+    def _check_names(self, model: Model) -> None:
+        if not self.parameter_names:
+            return
+        given, expected = self.parameter_names, model.parameters
+        repeated = sorted({name for name in given if given.count(name) > 1})
+        unknown = [name for name in given if name not in expected]
+        missing = [name for name in expected if name not in given]
+        if repeated or unknown or missing:
+            problems = [f'{label} {", ".join(names)}' for label, names in
+                        (('repeated', repeated), ('not in the model', unknown),
+                         ('missing', missing)) if names]
+            raise ConfigError(f'parameter_names must be a permutation of the model parameters '
+                              f'({", ".join(expected)}): {"; ".join(problems)}')
+
+    def _check_vectors(self, order: Tuple[str, ...]) -> None:
+        count = len(order)
+        for name in ('initial', 'lower', 'upper'):
+            values = getattr(self, name)
+            if values and len(values) != count:
+                raise ConfigError(f'{name} has {len(values)} values but the model has {count} '
+                                  f'parameters ({", ".join(order)}); give one per parameter, '
+                                  'or none')
+        if any(math.isinf(value) for value in self.initial):
+            raise ConfigError(f'initial values must be finite or NaN (automatic), got '
+                              f'{list(self.initial)}')
+        for name in ('lower', 'upper'):
+            if any(math.isnan(value) for value in getattr(self, name)):
+                raise ConfigError(f'{name} may not contain NaN; use -.inf / .inf for no bound')
+        lower = np.asarray(self.lower or [-math.inf] * count)
+        upper = np.asarray(self.upper or [math.inf] * count)
+        empty = np.flatnonzero(~(lower < upper))
+        if empty.size:
+            index = empty[0]
+            raise ConfigError(f'lower must be < upper: for {order[index]} lower = '
+                              f'{lower[index]} >= upper = {upper[index]}')
+        initial = np.asarray(self.initial or [math.nan] * count)
+        outside = np.flatnonzero((initial < lower) | (initial > upper))
+        if outside.size:
+            index = outside[0]
+            raise ConfigError(f'initial value of {order[index]} = {initial[index]} is outside '
+                              f'its bounds [{lower[index]}, {upper[index]}]')
+
+    def _check_choices(self) -> None:
+        for item in fields(self):
+            choices = item.metadata['spec']['choices']
+            value = getattr(self, item.name)
+            if choices and value not in choices:
+                raise ConfigError(f'{item.name} must be one of {", ".join(choices)}; got '
+                                  f'{value!r}')
+
+    def _check_times(self, model: Model) -> None:
+        for name in ('sample_time', 'window', 'update_period', 'max_gap', 'tolerance'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f'{name} must be positive and finite, got {value}')
+        for name in ('reorder_horizon', 'delay_min', 'delay_max'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f'{name} must be non-negative and finite, got {value}')
+        for name in ('qos_depth', 'max_iterations'):
+            if getattr(self, name) < 1:
+                raise ConfigError(f'{name} must be at least 1, got {getattr(self, name)}')
+        if self.window < MIN_WINDOW_SAMPLES * self.sample_time:
+            raise ConfigError(f'window ({self.window} s) must hold at least '
+                              f'{MIN_WINDOW_SAMPLES} samples of sample_time '
+                              f'({self.sample_time} s): at least '
+                              f'{MIN_WINDOW_SAMPLES * self.sample_time:g} s')
+        if self.reorder_horizon >= self.window:
+            raise ConfigError(f'reorder_horizon ({self.reorder_horizon} s) must be shorter than '
+                              f'the window ({self.window} s)')
+        if self.delay_range is not None:
+            if not model.delay_is_estimated:
+                raise ConfigError('delay_min/delay_max set a dead-time search range but the '
+                                  f'model {self.model!r} has no estimated dead time '
+                                  'exp(-tau*s); set both to 0.0')
+            if not self.delay_min < self.delay_max:
+                raise ConfigError(f'delay_min ({self.delay_min} s) must be < delay_max '
+                                  f'({self.delay_max} s), or both 0.0 for automatic')
+            if self.delay_max >= self.window:
+                raise ConfigError(f'delay_max ({self.delay_max} s) must be shorter than the '
+                                  f'window ({self.window} s)')
+
+
+def _coerce(name: str, kind: str, value: Any) -> Any:
+    """Convert a value to the parameter's kind, refusing anything ROS would not mean by it."""
+    def wrong(expected: str) -> ConfigError:
+        return ConfigError(f'{name} must be {expected}, got {value!r} '
+                           f'({type(value).__name__})')
+
+    if kind == 'string':
+        if not isinstance(value, str):
+            raise wrong('a string')
+        return value
+    if kind == 'bool':
+        if not isinstance(value, (bool, np.bool_)):
+            raise wrong('true or false')
+        return bool(value)
+    if kind == 'integer':
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise wrong('an integer (write 500, not 500.0)')
+        return int(value)
+    if kind == 'double':
+        if not _is_number(value):
+            raise wrong('a number')
+        return float(value)
+    expected = 'a list of strings' if kind == 'string_array' else 'a list of numbers'
+    if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, '__iter__'):
+        raise wrong(expected)
+    items = list(value)
+    check = (lambda item: isinstance(item, str)) if kind == 'string_array' else _is_number
+    if not all(check(item) for item in items):
+        raise wrong(expected)
+    return tuple(items) if kind == 'string_array' else tuple(float(item) for item in items)
+
+
+def _is_number(value: Any) -> bool:
+    return (isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, (bool, np.bool_)))
+
+
+PARAMETERS: Tuple[ParameterSpec, ...] = tuple(
+    ParameterSpec(name=item.name, default=item.default, **item.metadata['spec'])
+    for item in fields(IdentificationConfig))
+PARAMETER_NAMES: Tuple[str, ...] = tuple(spec.name for spec in PARAMETERS)
+
+
+def _check_names(values: Mapping[str, Any]) -> None:
+    unknown = sorted(set(values) - set(PARAMETER_NAMES))
+    if unknown:
+        raise ConfigError(f'unknown parameter(s) {", ".join(unknown)}; valid names: '
+                          f'{", ".join(PARAMETER_NAMES)}')
+
+
+def _flatten(values: Mapping[str, Any], prefix: str = '') -> Dict[str, Any]:
+    """Turn nested YAML mappings into dotted names, as ROS does for parameters."""
+    flat: Dict[str, Any] = {}
+    for key, value in values.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, name + '.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+def _key_pattern(key: str) -> 're.Pattern[str]':
+    """Compile a node key (``/**``, ``/ns/*``, ``/**/name``) to a regex on qualified names."""
+    escaped = re.escape(key).replace(r'/\*\*', '(/[^/]+)*').replace(r'\*', '[^/]+')
+    return re.compile(escaped)
+
+
+def node_parameters(document: Any, node_name: str = DEFAULT_NODE_NAME,
+                    source: str = 'params file') -> Dict[str, Any]:
+    """
+    Select the parameters of one node from a parsed ROS 2 params file.
+
+    Sections whose key matches the node are merged: wildcard keys (``/**``, ``/**/ctid_node``,
+    ``/ns/*``) first, in file order, then exact keys, which therefore take precedence. A plain
+    ``node_name`` matches the node in any namespace; pass a fully qualified one
+    (``/plant1/ctid_node``) when the file configures several namespaces.
+
+    Returns
+    -------
+    dict
+        ``{name: value}`` with nested mappings flattened to dotted names and the standard ROS
+        parameters (``use_sim_time``, ``qos_overrides.*``, ...) left out.
+
+    Raises
+    ------
+    ConfigError
+        If no section matches, several namespaces match a plain name, a section is malformed,
+        or a value is an empty list (which rcl would not accept either).
+
+    """
+    if not isinstance(document, Mapping):
+        raise ConfigError(f'{source}: expected a mapping of node names to sections, got '
+                          f'{type(document).__name__}')
+    qualified = node_name.startswith('/')
+    base = node_name.rsplit('/', 1)[-1]
+    wildcard, exact = [], []
+    for key, section in document.items():
+        key = str(key)
+        full = key if key.startswith('/') else '/' + key
+        if qualified:
+            matches = bool(_key_pattern(full).fullmatch(node_name))
+        else:
+            matches = full.rstrip('/').rsplit('/', 1)[-1] in (base, '*', '**')
+        if matches:
+            (wildcard if '*' in full else exact).append((full, section))
+    namespaces = sorted({full for full, _ in exact})
+    if len(namespaces) > 1:
+        raise ConfigError(f'{source} has sections for several nodes named {base!r} '
+                          f'({", ".join(namespaces)}): pass the fully qualified node name')
+    if not wildcard and not exact:
+        keys = ', '.join(str(key) for key in document) or 'none'
+        raise ConfigError(f'{source} has no section for node {node_name!r} (top-level keys: '
+                          f'{keys}); write "{base}:" or "/**:" with "ros__parameters:" under it')
+    merged: Dict[str, Any] = {}
+    for key, section in wildcard + exact:
+        if not isinstance(section, Mapping) or set(section) != {'ros__parameters'}:
+            found = list(section) if isinstance(section, Mapping) else type(section).__name__
+            raise ConfigError(f'{source}: section {key!r} must contain exactly '
+                              f'"ros__parameters:", found {found}')
+        parameters = section['ros__parameters'] or {}
+        if not isinstance(parameters, Mapping):
+            raise ConfigError(f'{source}: {key}.ros__parameters must be a mapping of names to '
+                              f'values')
+        merged.update(_flatten(parameters))
+    for name, value in merged.items():
+        if isinstance(value, list) and not value:
+            raise ConfigError(f'{source}: {name} is an empty list, which ROS 2 cannot type (rcl '
+                              f'reads [] as "not set"): leave {name} out to keep its default')
+    return {name: value for name, value in merged.items()
+            if name not in ROS_STANDARD_PARAMETERS and not name.startswith(_ROS_STANDARD_PREFIXES)}
+
+
+def load_params_file(path, node_name: str = DEFAULT_NODE_NAME) -> IdentificationConfig:
+    """
+    Read the configuration from a ROS 2 params YAML file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file, as passed to ``--ros-args --params-file``.
+    node_name : str
+        Node whose section to read: ``ctid_node`` (any namespace) or ``/ns/ctid_node``.
+
+    Returns
+    -------
+    IdentificationConfig
+        The validated configuration; parameters not in the file keep their defaults.
+
+    Raises
+    ------
+    ConfigError
+        If the file cannot be read or parsed, has no section for the node, names an unknown
+        parameter (the message lists the valid ones), or has a wrong type or invalid value.
+
+    """
+    try:
+        text = Path(path).read_text(encoding='utf-8')
+    except OSError as error:
+        raise ConfigError(f'cannot read params file {path}: {error.strerror or error}') from None
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f'params file {path} is not valid YAML: {error}') from None
+    values = node_parameters(document, node_name, source=str(path))
+    try:
+        return IdentificationConfig.from_dict(values)
+    except ConfigError as error:
+        raise ConfigError(f'{path}: {error}') from None
+
+
+def config_directories() -> List[Path]:
+    """
+    List where example configurations are looked for, in order.
+
+    ``<prefix>/share/ctid_ros/config`` for each ``AMENT_PREFIX_PATH`` entry (a sourced ROS
+    workspace), then for ``sys.prefix`` (``pip install .`` into a venv), then the ``config/``
+    directory of the source checkout (editable installs do not install data files).
+    """
+    prefixes = [entry for entry in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)
+                if entry]
+    prefixes.append(sys.prefix)
+    directories = [Path(prefix) / 'share' / PACKAGE / 'config' for prefix in prefixes]
+    directories.append(Path(__file__).resolve().parents[2] / 'config')
+    return list(dict.fromkeys(directories))
+
+
+def find_config(name: str) -> Path:
+    """
+    Locate an example configuration by name (``'closed_loop_pi'`` or ``'closed_loop_pi.yaml'``).
+
+    An existing file path is returned as it is, so command lines can take either.
+
+    Raises
+    ------
+    ConfigError
+        If no directory of :func:`config_directories` has it; the message lists those searched
+        and the names available.
+
+    """
+    candidate = Path(name)
+    if candidate.is_file():
+        return candidate
+    filename = name if name.endswith(('.yaml', '.yml')) else name + '.yaml'
+    if Path(filename).name != filename:
+        raise ConfigError(f'configuration {name!r} is neither an existing file nor a bare name')
+    directories = config_directories()
+    for directory in directories:
+        if (directory / filename).is_file():
+            return directory / filename
+    available = sorted({path.stem for directory in directories if directory.is_dir()
+                        for path in directory.glob('*.yaml')})
+    raise ConfigError(f'configuration {filename!r} not found in '
+                      f'{", ".join(str(directory) for directory in directories)}; available: '
+                      f'{", ".join(available) or "none"}')

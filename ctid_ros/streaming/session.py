@@ -1,0 +1,236 @@
+"""
+Repeated identification on windows of streaming data.
+
+:class:`IdentificationSession` is the engine shared by the live node and the offline replay:
+both resample their messages with :mod:`ctid_ros.streaming.buffer` and hand each
+:class:`~ctid_ros.streaming.buffer.Window` to :meth:`IdentificationSession.update`, which estimates
+(warm-started from the previous window) and returns an :class:`Update` holding everything that
+is published: estimates and standard deviations in ``parameter_names`` order, diagnostics and
+the predicted output. Because both front ends go through this one class, the replay of a bag
+gives the same numbers as the live node fed the same samples.
+"""
+
+from dataclasses import dataclass
+import time
+from typing import Any, Dict, Optional, Tuple
+
+from ctid_ros.estimation.estimate import Estimate, estimate, settling_time
+from ctid_ros.streaming.buffer import capacity_for, SampleBuffer, Window
+from ctid_ros.streaming.config import IdentificationConfig
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Update:
+    """
+    One estimate over one window, in the order of ``parameter_names``.
+
+    Attributes
+    ----------
+    end_ns, start_ns : int
+        Last and first grid instant of the window used (nanoseconds).
+    names : tuple of str
+        Parameter names in publishing order.
+    values, stds : ndarray
+        Estimates and their standard deviations.
+    prediction : ndarray
+        Model output over the window, one value per grid instant.
+    result : Estimate
+        The full estimator result.
+    window : Window
+        The window it was computed from.
+    compute_time : float
+        Wall-clock seconds spent estimating.
+
+    """
+
+    end_ns: int
+    start_ns: int
+    names: Tuple[str, ...]
+    values: np.ndarray
+    stds: np.ndarray
+    prediction: np.ndarray
+    result: Estimate
+    window: Window
+    compute_time: float
+
+    @property
+    def prediction_times_ns(self) -> np.ndarray:
+        """Return the grid instants of :attr:`prediction` in nanoseconds."""
+        step = int(round(self.window.data.ts * 1e9))
+        return self.start_ns + step * np.arange(self.prediction.size, dtype=np.int64)
+
+    @property
+    def warnings(self) -> Tuple[str, ...]:
+        """Return what a user should know about this estimate (gaps, bounds, convergence)."""
+        notes = list(self.result.warnings)
+        if self.window.dropped:
+            notes.append(f'{self.window.dropped} of {self.window.requested} samples left out '
+                         f'by {len(self.window.gaps)} gap(s) in the data')
+        return tuple(notes)
+
+    def diagnostics(self) -> Dict[str, Any]:
+        """Return the key/value pairs published on ``/diagnostics``."""
+        return {
+            'fit_percent': self.result.fit,
+            'iterations': self.result.iterations,
+            'converged': self.result.converged,
+            'stop_reason': self.result.stop_reason,
+            'start': self.result.start,
+            'window_start': self.start_ns * 1e-9,
+            'window_end': self.end_ns * 1e-9,
+            'window_span': (self.end_ns - self.start_ns) * 1e-9,
+            'samples': int(self.prediction.size),
+            'compute_time': self.compute_time,
+            'warnings': list(self.warnings),
+        }
+
+    def to_dict(self) -> Dict[str, Any]:
+        """Return the ``ctid fit --json`` object of this window plus its end time (s)."""
+        summary = self.result.to_dict()
+        summary['params'] = {name: float(value) for name, value in zip(self.names, self.values)}
+        summary['std'] = {name: float(value) for name, value in zip(self.names, self.stds)}
+        summary['warnings'] = list(self.warnings)
+        summary['time'] = self.end_ns * 1e-9
+        return summary
+
+
+def format_diagnostic(value: Any) -> str:
+    """
+    Format a value of :meth:`Update.diagnostics` as a ``diagnostic_msgs/KeyValue`` string.
+
+    Floats keep every digit (the shortest text that reads back exactly): ``window_start`` and
+    ``window_end`` are seconds since the epoch, which six significant digits would round to
+    hours.
+    """
+    if isinstance(value, (bool, np.bool_)):
+        return 'true' if value else 'false'
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (list, tuple)):
+        return '; '.join(format_diagnostic(item) for item in value)
+    return str(value)
+
+
+def history_span(config: IdentificationConfig) -> float:
+    """
+    Return the longest span (s) of data a session asks for.
+
+    It is the fitted window plus the transient before it that only settles the model's state
+    (a window cut from a running plant does not start at rest); an automatic transient is at
+    most one window long.
+
+    """
+    return config.window + (config.transient if config.transient >= 0 else config.window)
+
+
+def buffer_capacity(config: IdentificationConfig, rate_hz: float) -> int:
+    """Size a buffer for :func:`history_span` plus ``max_gap`` and the reorder horizon."""
+    return capacity_for(history_span(config) + config.max_gap + config.reorder_horizon, rate_hz)
+
+
+class IdentificationSession:
+    """
+    Estimate a configured model on successive windows, warm-starting each from the last.
+
+    Parameters
+    ----------
+    config : IdentificationConfig
+        Model, bounds, estimator options and publishing order.
+
+    """
+
+    def __init__(self, config: IdentificationConfig):
+        self._config = config
+        self._previous: Optional[Dict[str, float]] = None
+        self._settling: Optional[float] = None
+
+    @property
+    def config(self) -> IdentificationConfig:
+        """Return the configuration in use."""
+        return self._config
+
+    @property
+    def previous(self) -> Optional[Dict[str, float]]:
+        """Return the last estimate by name (the next warm start), if any."""
+        return None if self._previous is None else dict(self._previous)
+
+    def reconfigure(self, config: IdentificationConfig) -> None:
+        """Switch configuration; the warm start survives only if the model is unchanged."""
+        old = self._config
+        same_model = (config.model, config.controller) == (old.model, old.controller)
+        self._config = config
+        if not same_model:
+            self.reset()
+
+    def reset(self) -> None:
+        """Forget the warm start: the next estimate starts from the configured initial values."""
+        self._previous = None
+        self._settling = None
+
+    def window_length(self) -> float:
+        """
+        Return the seconds of data to take for the next update.
+
+        That is the window plus a settling transient: the configured one, else the settling
+        time of the previous estimate (at most one window), else one window.
+
+        """
+        config = self._config
+        if config.transient >= 0 or self._settling is None:
+            return history_span(config)
+        return config.window + min(self._settling, config.window)
+
+    def take_window(self, buffer: SampleBuffer, end_ns: Optional[int] = None) -> Window:
+        """
+        Resample the data for the next update from ``buffer`` (live node and replay alike).
+
+        Asks for :meth:`window_length` seconds and accepts half a window at least, so the first
+        estimate comes as soon as that much contiguous data has arrived.
+
+        """
+        config = self._config
+        return buffer.window(self.window_length(), config.sample_time, end_ns,
+                             min_length=0.5 * config.window)
+
+    def update(self, window: Window) -> Update:
+        """
+        Estimate on one window.
+
+        Raises
+        ------
+        CtidError
+            Any :class:`~ctid_ros.errors.EstimationError` or data problem, for the caller to
+            report; the session keeps its previous warm start.
+
+        """
+        config = self._config
+        options = config.estimator_options()
+        if config.warm_start and self._previous is not None:
+            options['initial'] = self._previous
+        record = len(window.data) * window.data.ts
+        if config.transient < 0 and self._settling is not None and record > config.window:
+            # Everything before the last `window` seconds only settles the model's state, and
+            # at least the settling time does (a record barely longer than the window would
+            # otherwise be fitted from an unsettled state). Without a previous estimate the
+            # estimator's 'auto' transient settles the starting model instead.
+            options['transient'] = max(record - config.window, self._settling)
+        started = time.perf_counter()
+        result = estimate(config.compiled_model, window.data, **options)
+        elapsed = time.perf_counter() - started
+        self._previous = dict(result.params)
+        self._settling = settling_time(result.model.structure(result.params))
+        order = [result.model.parameters[index] for index in config.model_index]
+        data = window.data
+        step_ns = int(round(data.ts * 1e9))
+        # Grid instants are whole multiples of the sample time (see buffer.SampleBuffer.window).
+        start_ns = int(round(data.t0 * 1e9 / step_ns)) * step_ns
+        return Update(
+            end_ns=start_ns + step_ns * (len(data) - 1), start_ns=start_ns,
+            names=config.names,
+            values=np.array([result.params[name] for name in order]),
+            stds=np.array([result.std[name] for name in order]),
+            prediction=result.simulate(data), result=result, window=window,
+            compute_time=elapsed)

@@ -1,0 +1,106 @@
+"""Figures: fit, parameters over time against the truth, Bode plot with its uncertainty band."""
+
+from ctid_ros import Data, estimate, Model
+from ctid_ros.cli.plots import bode, bode_data, fit_figure, parameters_figure
+from ctid_ros.core.excitation import prbs
+import matplotlib
+import numpy as np
+import pytest
+
+PNG = b'\x89PNG\r\n\x1a\n'
+TRUTH = {'K': 2.0, 'T': 1.5, 'tau': 0.237}
+
+
+@pytest.fixture(scope='module')
+def result():
+    """Return an estimate of a first order with dead time from 20 s of noisy data."""
+    u = prbs(9, 20)[:2000]
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    y = model.simulate(TRUTH, u, 0.01)
+    y = y + 0.02 * np.std(y) * np.random.default_rng(0).standard_normal(y.size)
+    return estimate(model, Data(u, y, 0.01))
+
+
+def written(path):
+    data = path.read_bytes()
+    return data[:8] == PNG and len(data) > 10_000
+
+
+def test_fit_figure(tmp_path, result):
+    backend = matplotlib.get_backend()
+    data = Data(prbs(9, 20)[:2000], np.zeros(2000), 0.01)
+    figure = fit_figure(data.time, result.simulate(data) + 0.01, result.simulate(data),
+                        fit=93.456, path=tmp_path / 'fit.png')
+    assert written(tmp_path / 'fit.png')
+    (axes,) = figure.axes
+    assert axes.get_xlabel() == 'time (s)' and axes.get_ylabel() == 'output y'
+    assert '93.5 %' in axes.get_title()
+    assert [text.get_text() for text in axes.get_legend().get_texts()] == [
+        'measured', 'simulated (fit 93.5 %)']
+    assert matplotlib.get_backend() == backend     # no global backend switch
+
+
+def test_parameters_figure_against_a_drifting_truth(tmp_path):
+    times = np.arange(5.0, 60.0, 5.0)
+    drift = np.where(times < 30.0, 1.5, 2.5)
+    values = np.column_stack([np.full_like(times, 2.0), drift, np.full_like(times, 0.24)])
+    stds = np.full_like(values, 0.05)
+    stds[0, :] = np.nan       # an estimate without a known uncertainty draws no band
+
+    def truth(time):
+        return {'K': 2.0, 'T': np.where(time < 30.0, 1.5, 2.5)}
+
+    figure = parameters_figure(times, ['K', 'T', 'tau'], values, stds, truth=truth,
+                               path=tmp_path / 'params.png')
+    assert written(tmp_path / 'params.png')
+    assert [axes.get_ylabel() for axes in figure.axes] == ['K', 'T', 'tau']
+    assert figure.axes[-1].get_xlabel().startswith('time (s)')
+    labels = [[text.get_text() for text in axes.get_legend().get_texts()]
+              for axes in figure.axes]
+    assert set(labels[1]) == {'estimate', 'truth', '±2σ'}
+    assert 'truth' not in labels[2]
+    constant = parameters_figure(times, ['K', 'T', 'tau'], values, stds, truth=TRUTH)
+    assert len(constant.axes[2].get_lines()) == 2
+
+
+def test_bode_band_contains_the_estimate(tmp_path, result):
+    data = bode_data(result, draws=100, seed=1)
+    assert data.draws == 100
+    assert data.omega[0] < 1 / TRUTH['T'] / 10 and data.omega[-1] > 1 / TRUTH['tau']
+    assert np.all(data.magnitude_band[0] <= data.magnitude_db + 1e-9)
+    assert np.all(data.magnitude_db <= data.magnitude_band[1] + 1e-9)
+    assert np.all(data.phase_band[0] <= data.phase_deg + 1e-9)
+    assert np.all(data.phase_deg <= data.phase_band[1] + 1e-9)
+    # Low-frequency gain 20 log10(K) and a phase lag growing with the dead time.
+    assert data.magnitude_db[0] == pytest.approx(20 * np.log10(TRUTH['K']), abs=0.1)
+    assert data.phase_deg[-1] < -360.0
+    again = bode_data(result, draws=100, seed=1)
+    assert np.array_equal(again.magnitude_band, data.magnitude_band)   # seeded
+    figure = bode(result, path=tmp_path / 'bode.png')
+    assert written(tmp_path / 'bode.png')
+    top, bottom = figure.axes
+    assert top.get_ylabel() == 'magnitude (dB)' and bottom.get_ylabel() == 'phase (deg)'
+    assert bottom.get_xlabel() == 'angular frequency (rad/s)'
+    assert bottom.get_xscale() == 'log'
+
+
+def test_bode_stops_at_max_omega_and_gives_the_band_width(result):
+    assert bode_data(result, draws=0).omega[-1] == pytest.approx(100.0)  # 1/tau: 4.2 rad/s
+    data = bode_data(result, draws=20, max_omega=20.0)
+    assert data.omega[-1] == pytest.approx(20.0) and data.omega[0] < 1 / TRUTH['T'] / 10
+    legend = bode(result, draws=20, max_omega=20.0).axes[0].get_legend()
+    width = np.max(data.magnitude_band[1] - data.magnitude_band[0])
+    assert f'at most {width:.2g} dB wide' in legend.get_texts()[0].get_text()
+
+
+def test_bode_of_a_closed_loop_estimate_shows_the_plant():
+    model = Model('1/(m*s**2 + d*s + k)', controller='20 + 10/s')
+    u = prbs(9, 20)[:2000]
+    y = model.simulate({'m': 1.0, 'd': 2.0, 'k': 10.0}, u, 0.01)
+    closed = estimate(model, Data(u, y + 1e-3 * np.sin(np.arange(y.size)), 0.01),
+                      {'m': 0.5, 'd': 1.0, 'k': 5.0})
+    plant = bode_data(closed, np.array([1e-3]), draws=0)
+    assert plant.magnitude_db[0] == pytest.approx(20 * np.log10(1 / 10.0), abs=0.05)
+    loop = bode_data(closed, np.array([1e-3]), draws=0, closed_loop=True)
+    assert loop.magnitude_db[0] == pytest.approx(0.0, abs=0.05)     # integral action
+    assert 'plant' in bode(closed, draws=10).axes[0].get_title()

@@ -1,0 +1,325 @@
+"""Exact sampled simulation against independent references (solve_ivp, lsim)."""
+
+from ctid_ros import DataError, Model, ModelError
+from ctid_ros.core.simulation import response, responses
+import numpy as np
+import pytest
+from scipy import signal
+from scipy.integrate import solve_ivp
+
+ZOH_TOLERANCE = 1e-9
+
+RAO_GARNIER = ([-6400.0, 1600.0], np.polymul([1.0, 1.0, 4.0], [1.0, 4.0, 400.0]))
+# Poles from 0.1 to 100 rad/s, sampled far faster than the fastest time constant.
+STIFF = ([1.0, 2.0, 0.5], np.poly([-0.1, -0.5, -2.0, -10.0, -30.0, -100.0]))
+
+# name: (num, den, ts); orders 1 to 6, biproper, lightly damped, well-separated, unstable.
+SYSTEMS = {
+    'first order': ([2.0], [1.5, 1.0], 0.1),
+    'msd (Test 2)': ([1.0], [0.5, 1.0, 50.0], 0.01),
+    'lightly damped': ([1.0], [1.0, 0.004, 4.0], 0.1),
+    'third order, integrator': ([3.0, 1.0], [1.0, 3.0, 2.0, 0.0], 0.05),
+    'Rao-Garnier': (*RAO_GARNIER, 0.01),
+    'fifth order, separated': ([0.5, 1.0, 4.0],
+                               np.poly([-0.2, -1.0 + 5.0j, -1.0 - 5.0j, -8.0, -40.0]), 0.02),
+    'sixth order, stiff': (*STIFF, 1e-3),
+    'biproper first order (all-pass)': ([-1.0, 1.0], [1.0, 1.0], 0.1),
+    'biproper second order': ([2.0, 1.0, 3.0], [1.0, 0.4, 5.0], 0.05),
+    'biproper fourth order': (np.poly([-1.0, -3.0, 2.0 + 1.0j, 2.0 - 1.0j]),
+                              np.polymul([1.0, 1.0, 4.0], [1.0, 4.0, 400.0]), 0.01),
+    'unstable (Test 3 plant)': ([1.0], [1.0, 0.5, -2.0], 0.01),
+    # Repeated poles (the sensitivity filters 1/D^2) have no eigenvector basis: Schur form.
+    'repeated complex pair': ([1.0, 0.0], np.polymul([0.5, 1.0, 50.0], [0.5, 1.0, 50.0]), 0.01),
+    'triple real pole': ([1.0], [1.0, 3.0, 3.0, 1.0], 0.1),
+}
+
+
+def relative_error(value, reference):
+    return np.max(np.abs(value - reference)) / np.max(np.abs(reference))
+
+
+def test_input(rng, count, hold=5):
+    """Random input: held +-1 levels plus Gaussian noise."""
+    levels = np.repeat(rng.choice([-1.0, 1.0], count // hold + 1), hold)[:count]
+    return levels + 0.5 * rng.standard_normal(count)
+
+
+test_input.__test__ = False
+
+
+def lsim_reference(num, den, u, ts, interp):
+    _, y, _ = signal.lsim((num, den), u, ts * np.arange(u.size), interp=interp)
+    return y
+
+
+def ivp_reference(num, den, u, ts, delay=0.0):
+    """
+    Integrate the ODE of an independent realisation (tf2ss) with solve_ivp.
+
+    The input is the delayed piecewise-constant signal u(t - delay), zero before t = delay;
+    every interval on which it is constant is integrated separately.
+    """
+    a, b, c, d = signal.tf2ss(num, den)
+    b, c, d = b[:, 0], c[0], float(np.atleast_2d(d)[0, 0])
+    end = ts * (u.size - 1)
+    grid = {round(k * ts, 12) for k in range(u.size)}
+    grid |= {round(j * ts + delay, 12) for j in range(u.size) if j * ts + delay < end}
+    grid = sorted(grid)
+
+    def held(t):
+        j = int(np.floor((t - delay) / ts + 1e-9))
+        return u[j] if 0 <= j < u.size else 0.0
+
+    x = np.zeros(a.shape[0])
+    y = np.zeros(u.size)
+    y[0] = d * held(0.0)
+    for start, stop in zip(grid[:-1], grid[1:]):
+        value = held(start)
+        x = solve_ivp(lambda t, x: a @ x + b * value, (start, stop), x, method='DOP853',
+                      rtol=1e-12, atol=1e-15).y[:, -1]
+        k = int(round(stop / ts))
+        if abs(stop - k * ts) < 1e-9 * ts:
+            y[k] = c @ x + d * held(stop)
+    return y
+
+
+def fine_reference(num, den, u, ts, delay, factor, interp):
+    """
+    Exact response by lsim on a grid ``factor`` times finer, shifted by the delay.
+
+    The delay must be a multiple of the fine step: the fine grid then contains every switching
+    (ZOH) or break (FOH) instant of the delayed signal, so lsim on it is exact as well.
+    """
+    step = ts / factor
+    shift = int(round(delay / step))
+    assert abs(shift * step - delay) < 1e-9 * step
+    count = (u.size - 1) * factor + 1
+    fine_time = step * np.arange(count)
+    if interp:
+        fine_u = np.interp(fine_time, ts * np.arange(u.size), u)
+    else:
+        fine_u = np.repeat(u, factor)[:count]
+    _, fine_y, _ = signal.lsim((num, den), fine_u, fine_time, interp=interp)
+    index = factor * np.arange(u.size) - shift
+    return np.where(index >= 0, fine_y[np.maximum(index, 0)], 0.0)
+
+
+@pytest.mark.parametrize('name', list(SYSTEMS))
+def test_zoh_matches_lsim(name):
+    num, den, ts = SYSTEMS[name]
+    u = test_input(np.random.default_rng(1), 2000)
+    reference = lsim_reference(num, den, u, ts, interp=False)
+    assert relative_error(response(num, den, u, ts), reference) < ZOH_TOLERANCE
+
+
+@pytest.mark.parametrize('name', list(SYSTEMS))
+def test_zoh_matches_solve_ivp(name):
+    num, den, ts = SYSTEMS[name]
+    u = test_input(np.random.default_rng(2), 150)
+    reference = ivp_reference(num, den, u, ts)
+    assert relative_error(response(num, den, u, ts), reference) < ZOH_TOLERANCE
+
+
+@pytest.mark.parametrize('name', list(SYSTEMS))
+def test_foh_matches_lsim_interp(name):
+    num, den, ts = SYSTEMS[name]
+    u = test_input(np.random.default_rng(3), 2000)
+    reference = lsim_reference(num, den, u, ts, interp=True)
+    value = response(num, den, u, ts, intersample='foh')
+    assert relative_error(value, reference) < ZOH_TOLERANCE
+
+
+def test_stiff_sixth_order_over_a_long_record():
+    """Ts = 1 ms against poles from 0.1 to 100 rad/s, over 30 s (the slow mode settles)."""
+    num, den = STIFF
+    ts = 1e-3
+    u = np.repeat(np.random.default_rng(4).choice([-1.0, 1.0], 60), 500)
+    for interp, intersample in ((False, 'zoh'), (True, 'foh')):
+        reference = lsim_reference(num, den, u, ts, interp=interp)
+        value = response(num, den, u, ts, intersample=intersample)
+        assert relative_error(value, reference) < ZOH_TOLERANCE
+
+
+@pytest.mark.parametrize('num,den,ts,delay,factor', [
+    ([2.0], [1.5, 1.0], 0.1, 0.237, 100),                  # tau = 2.37 samples
+    ([2.0], [5.0, 1.0], 0.1, 1.234, 100),                  # Test 4: tau = 12.34 samples
+    ([1.0, 0.4, 3.0], [1.0, 0.4, 4.0], 0.1, 0.037, 100),   # biproper, tau < one sample
+    (*RAO_GARNIER, 0.01, 0.0037, 100),                     # tau = 0.37 samples
+    ([1.0], [1.0, 0.2, 1.0], 0.1, 0.3, 1),                 # a whole number of samples
+])
+def test_fractional_delay_matches_fine_lsim(num, den, ts, delay, factor):
+    u = test_input(np.random.default_rng(5), 120, hold=3)
+    for interp, intersample in ((False, 'zoh'), (True, 'foh')):
+        reference = fine_reference(num, den, u, ts, delay, factor, interp)
+        value = response(num, den, u, ts, delay=delay, intersample=intersample)
+        assert relative_error(value, reference) < ZOH_TOLERANCE, intersample
+
+
+@pytest.mark.parametrize('num,den,ts,delay', [
+    ([2.0], [1.5, 1.0], 0.1, 0.237),
+    ([2.0], [5.0, 1.0], 0.1, 1.234),
+    ([1.0, 0.4, 3.0], [1.0, 0.4, 4.0], 0.1, 0.037),
+    (*RAO_GARNIER, 0.01, 0.0037),
+])
+def test_fractional_delay_matches_solve_ivp(num, den, ts, delay):
+    u = test_input(np.random.default_rng(6), 100, hold=3)
+    reference = ivp_reference(num, den, u, ts, delay)
+    assert relative_error(response(num, den, u, ts, delay=delay), reference) < ZOH_TOLERANCE
+
+
+@pytest.mark.parametrize('intersample', ['zoh', 'foh'])
+@pytest.mark.parametrize('num,den', [([1.0], [1.0, 0.3, 2.0]), ([1.0, 2.0], [1.0, 1.0]),
+                                     ([3.0], [2.0])])
+def test_whole_sample_delay_shifts_the_response(num, den, intersample):
+    u = test_input(np.random.default_rng(7), 300)
+    ts = 0.05
+    undelayed = response(num, den, u, ts, intersample=intersample)
+    for samples in (1, 3, 17):
+        delayed = response(num, den, u, ts, delay=samples * ts, intersample=intersample)
+        np.testing.assert_array_equal(delayed[:samples], 0.0)
+        np.testing.assert_allclose(delayed[samples:], undelayed[:-samples], rtol=0,
+                                   atol=1e-12 * np.max(np.abs(undelayed)))
+        if len(num) == len(den):
+            continue        # the sampled output of a biproper system jumps with the delay
+        # Strictly proper: continuous in the delay on both sides of a whole number of samples.
+        for nearby in (samples * ts * (1 - 1e-9), samples * ts * (1 + 1e-9)):
+            close = response(num, den, u, ts, delay=nearby, intersample=intersample)
+            assert relative_error(close, delayed) < 1e-6
+
+
+def test_delay_longer_than_the_record_gives_zeros():
+    u = np.ones(50)
+    for intersample in ('zoh', 'foh'):
+        y = response([1.0], [1.0, 1.0], u, 0.1, delay=7.33, intersample=intersample)
+        np.testing.assert_array_equal(y, np.zeros(50))
+
+
+def test_static_gain_with_fractional_delay():
+    u = np.arange(6.0)
+    zoh = response([3.0], [2.0], u, 0.1, delay=0.15)
+    foh = response([3.0], [2.0], u, 0.1, delay=0.15, intersample='foh')
+    # y_k = 1.5 u(t_k - 0.15): held previous sample (ZOH) or the interpolated value (FOH).
+    np.testing.assert_allclose(zoh, [0.0, 0.0, 0.0, 1.5, 3.0, 4.5], atol=1e-15)
+    np.testing.assert_allclose(foh, [0.0, 0.0, 0.75, 2.25, 3.75, 5.25], atol=1e-15)
+
+
+def test_foh_delay_below_one_sample_starts_with_a_jump():
+    """The FOH signal is zero before t0: y(t) = 1 - exp(-(t - tau)) for a unit input."""
+    ts, delay = 0.1, 0.04
+    y = response([1.0], [1.0, 1.0], np.ones(5), ts, delay=delay, intersample='foh')
+    t = ts * np.arange(5)
+    np.testing.assert_allclose(y, np.where(t >= delay, 1.0 - np.exp(-(t - delay)), 0.0),
+                               rtol=1e-13, atol=1e-15)
+
+
+def test_model_simulate_first_order_plus_dead_time():
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    params = {'K': 2.0, 'T': 1.5, 'tau': 0.237}
+    ts = 0.1
+    u = test_input(np.random.default_rng(8), 120, hold=4)
+    y = model.simulate(params, u, ts)
+    assert relative_error(y, ivp_reference([2.0], [1.5, 1.0], u, ts, 0.237)) < ZOH_TOLERANCE
+    assert relative_error(y, fine_reference([2.0], [1.5, 1.0], u, ts, 0.237, 100, False)) \
+        < ZOH_TOLERANCE
+    foh = model.simulate([2.0, 0.237, 1.5], u, ts, intersample='foh')
+    assert relative_error(foh, fine_reference([2.0], [1.5, 1.0], u, ts, 0.237, 100, True)) \
+        < ZOH_TOLERANCE
+
+
+def test_model_simulate_closed_loop_against_hand_built_loop():
+    m, d, k = 0.5, 1.0, 50.0
+    model = Model('1/(m*s**2 + d*s + k)', controller='4 + 2/s')
+    plant_num, plant_den = np.array([1.0]), np.array([m, d, k])
+    controller_num, controller_den = np.array([4.0, 2.0]), np.array([1.0, 0.0])
+    open_num = np.polymul(plant_num, controller_num)
+    loop_den = np.polyadd(np.polymul(plant_den, controller_den), open_num)
+    ts = 0.01
+    r = test_input(np.random.default_rng(9), 3000, hold=50)
+    y = model.simulate({'m': m, 'd': d, 'k': k}, r, ts)
+    assert relative_error(y, lsim_reference(open_num, loop_den, r, ts, False)) < ZOH_TOLERANCE
+
+
+def test_model_simulate_unstable_plant_under_pid():
+    model = Model('1/(m*s**2 + d*s + k)', controller='(5*s**2 + 20*s + 10)/(s*(0.02*s + 1))')
+    num = [5.0, 20.0, 10.0]
+    den = [0.02, 1.01, 5.46, 18.0, 10.0]
+    ts = 0.01
+    r = np.repeat(np.random.default_rng(10).choice([-1.0, 1.0], 40), 20)
+    y = model.simulate([1.0, 0.5, -2.0], r, ts)
+    assert relative_error(y, lsim_reference(num, den, r, ts, False)) < ZOH_TOLERANCE
+    assert relative_error(y[:150], ivp_reference(num, den, r[:150], ts)) < ZOH_TOLERANCE
+
+
+def test_shared_denominator_bank_matches_single_responses():
+    num_list = [[1.0], [1.0, 0.0], [1.0, 0.0, 0.0], [2.0, -1.0, 0.5, 3.0]]
+    den = np.poly([-0.5, -1.0 + 3.0j, -1.0 - 3.0j])
+    u = test_input(np.random.default_rng(11), 500)
+    for intersample in ('zoh', 'foh'):
+        bank = responses(num_list, den, u, 0.05, delay=0.125, intersample=intersample)
+        assert bank.shape == (4, 500)
+        for row, num in zip(bank, num_list):
+            single = response(num, den, u, 0.05, delay=0.125, intersample=intersample)
+            np.testing.assert_allclose(row, single, rtol=0, atol=1e-14 * np.max(np.abs(single)))
+            reference = fine_reference(num, den, u, 0.05, 0.125, 10, intersample == 'foh')
+            assert relative_error(row, reference) < ZOH_TOLERANCE
+
+
+def test_linearity_and_causality():
+    num, den, ts = SYSTEMS['Rao-Garnier']
+    rng = np.random.default_rng(12)
+    u1, u2 = rng.standard_normal(800), rng.standard_normal(800)
+    for intersample in ('zoh', 'foh'):
+        y1 = response(num, den, u1, ts, delay=0.0123, intersample=intersample)
+        y2 = response(num, den, u2, ts, delay=0.0123, intersample=intersample)
+        y12 = response(num, den, 2.0 * u1 - 3.0 * u2, ts, delay=0.0123,
+                       intersample=intersample)
+        np.testing.assert_allclose(y12, 2.0 * y1 - 3.0 * y2, rtol=0,
+                                   atol=1e-11 * np.max(np.abs(y12)))
+        head = response(num, den, u1[:300], ts, delay=0.0123, intersample=intersample)
+        np.testing.assert_allclose(head, y1[:300], rtol=0, atol=1e-12 * np.max(np.abs(y1)))
+
+
+def test_long_record_through_fourth_order():
+    num, den, ts = SYSTEMS['Rao-Garnier']
+    u = test_input(np.random.default_rng(13), 100_000, hold=7)
+    y = response(num, den, u, ts, delay=0.0042)
+    assert y.shape == (100_000,)
+    assert np.all(np.isfinite(y))
+    assert np.std(y) > 0.1
+
+
+def test_coefficient_scaling_and_leading_zeros_do_not_matter():
+    u = test_input(np.random.default_rng(14), 400)
+    base = response([1.0, 3.0], [1.0, 2.0, 5.0], u, 0.05)
+    np.testing.assert_allclose(response([0.0, 1e-6, 3e-6], [0.0, 0.0, 1e-6, 2e-6, 5e-6], u, 0.05),
+                               base, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(response([0.0], [1.0, 1.0], u, 0.05), np.zeros(400))
+
+
+@pytest.mark.parametrize('kwargs,error', [
+    ({'num': [1.0, 0.0, 0.0], 'den': [1.0, 1.0]}, ModelError),       # improper
+    ({'den': [0.0, 0.0]}, ModelError),
+    ({'den': [1.0, np.nan]}, ModelError),
+    ({'num': []}, ModelError),
+    ({'ts': 0.0}, DataError),
+    ({'ts': -0.1}, DataError),
+    ({'ts': np.nan}, DataError),
+    ({'ts': np.inf}, DataError),
+    ({'delay': -0.01}, ModelError),
+    ({'delay': np.nan}, ModelError),
+    ({'intersample': 'linear'}, ModelError),
+    ({'values': np.ones((10, 2))}, DataError),
+])
+def test_invalid_arguments(kwargs, error):
+    arguments = {'num': [1.0], 'den': [1.0, 1.0], 'values': np.ones(10), 'ts': 0.1}
+    arguments.update(kwargs)
+    extra = {key: arguments.pop(key) for key in ('delay', 'intersample') if key in arguments}
+    with pytest.raises(error):
+        response(arguments['num'], arguments['den'], arguments['values'], arguments['ts'],
+                 **extra)
+
+
+def test_tiny_records():
+    assert response([1.0], [1.0, 1.0], np.zeros(0), 0.1).shape == (0,)
+    np.testing.assert_array_equal(response([1.0], [1.0, 1.0], [5.0], 0.1), [0.0])
+    np.testing.assert_array_equal(response([2.0, 1.0], [1.0, 1.0], [5.0], 0.1), [10.0])

@@ -1,0 +1,56 @@
+"""Residual analysis: correlation of what a model leaves with the input."""
+
+from ctid_ros import Model
+from ctid_ros.core.excitation import prbs
+from ctid_ros.estimation.correlation import CONFIDENCE, independent_of_input, input_correlation
+import numpy as np
+
+
+def test_white_noise_is_independent_of_a_held_input():
+    # Over 200 seeds the largest of these 51 correlations exceeds CONFIDENCE/sqrt(N) in about
+    # 1 %; with this seed it is 3.3/sqrt(N).
+    u = prbs(9, 4)
+    noise = np.random.default_rng(0).standard_normal(u.size)
+    correlation = input_correlation(noise, u, 50)
+    assert correlation.shape == (51, 1)
+    assert np.max(np.abs(correlation)) < CONFIDENCE / np.sqrt(u.size)
+    assert independent_of_input(noise, u, 50)
+
+
+def test_a_shifted_input_correlates_at_its_lag_only():
+    u = np.random.default_rng(2).standard_normal(4000)
+    residual = np.concatenate([np.zeros(7), u[:-7]])
+    correlation = input_correlation(residual, u, 20)[:, 0]
+    assert np.argmax(np.abs(correlation)) == 7
+    assert correlation[7] > 0.99
+    assert np.max(np.abs(np.delete(correlation, 7))) < 0.07
+
+
+def test_missed_dynamics_are_detected_under_noise():
+    # A wrong dead time leaves the response to the input in the residual.
+    u = prbs(8, 10)
+    model = Model('2*exp(-tau*s)/(5*s + 1)')
+    truth = model.simulate({'tau': 1.2}, u, 0.1)
+    wrong = model.simulate({'tau': 0.6}, u, 0.1)
+    noise = 0.3 * np.std(truth) * np.random.default_rng(3).standard_normal(u.size)
+    assert not independent_of_input(truth + noise - wrong, u, 100)
+    assert independent_of_input(noise, u, 100)
+
+
+def test_leading_zeros_mark_samples_left_out():
+    u = prbs(9, 4)
+    noise = np.random.default_rng(4).standard_normal(u.size)
+    noise[:300] = 0.0
+    assert independent_of_input(noise, u, 30)
+    assert not independent_of_input(noise + np.where(np.arange(u.size) >= 300, u, 0.0), u, 30)
+
+
+def test_each_input_of_several_is_tested():
+    rng = np.random.default_rng(5)
+    inputs = rng.standard_normal((3000, 2))
+    residual = rng.standard_normal(3000) + 0.2 * np.concatenate([[0.0] * 3, inputs[:-3, 1]])
+    correlation = input_correlation(residual, inputs, 10)
+    assert correlation.shape == (11, 2)
+    assert np.max(np.abs(correlation[:, 0])) < CONFIDENCE / np.sqrt(3000)
+    assert abs(correlation[3, 1]) > CONFIDENCE / np.sqrt(3000)
+    assert not independent_of_input(residual, inputs, 10)

@@ -1,0 +1,159 @@
+"""
+The `make demo` scenario: digital PI loop with a fractional dead time, recording, replay.
+
+The loop is checked against a recursion written out by hand; the shortened demo (8 s, the
+payload picked up at 4 s, 2 s windows every 1.5 s) runs plant and node on real DDS, and its
+recording is checked sample by sample against the ROS-free simulation of the same plant.
+"""
+
+from dataclasses import replace
+import math
+import re
+
+from ctid_ros.core.plant import excitation, PlantSimulator
+from ctid_ros.demo.wheel import copy_to_docs, main, PLANT_CONFIG, Scenario
+from ctid_ros.errors import BagError, ConfigError
+from ctid_ros.files.bag_reader import BagReader, RecordingWriter
+from ctid_ros.streaming.config import find_config
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
+import yaml
+
+WHEEL = 'exp(-tau*s)/(J*s + b)'
+TRUTH = {'J': 0.05, 'b': 0.2, 'tau': 0.0373}
+
+
+def test_digital_pi_loop_matches_a_hand_written_recursion():
+    # tau = 3.73 samples: over [k, k+1) the plant sees u[k-4] for 0.73 and u[k-3] for 0.27
+    # of the sample, so y[k+1] = a y[k] + (early u[k-d-1] + late u[k-d]) / b.
+    ts, kp, ki = 0.01, 1.0, 4.0
+    simulator = PlantSimulator(WHEEL, TRUTH, ts, pi_gains=(kp, ki))
+    reference = 2.0 + np.sign(np.sin(0.05 * np.arange(300)))
+    simulated = np.array([simulator.step(r) for r in reference])
+    whole = math.floor(TRUTH['tau'] / ts)
+    fraction = TRUTH['tau'] / ts - whole
+    pole = TRUTH['b'] / TRUTH['J']
+    late = 1.0 - math.exp(-pole * (1.0 - fraction) * ts)
+    early = math.exp(-pole * (1.0 - fraction) * ts) * (1.0 - math.exp(-pole * fraction * ts))
+    y, integral, commands, expected = 0.0, 0.0, [], []
+    for k, r in enumerate(reference):
+        integral += ki * ts * (r - y)
+        commands.append(kp * (r - y) + integral)
+        expected.append((commands[-1], y))
+        held = [commands[k - lag] if k >= lag else 0.0 for lag in (whole, whole + 1)]
+        y = math.exp(-pole * ts) * y + (late * held[0] + early * held[1]) / TRUTH['b']
+    np.testing.assert_allclose(simulated, expected, rtol=0, atol=1e-12)
+    assert simulated[-1, 1] == pytest.approx(reference[-1], abs=0.05)  # the PI tracks
+
+
+def test_digital_pi_needs_a_strictly_proper_plant_and_no_second_controller():
+    with pytest.raises(ConfigError, match='strictly proper'):
+        PlantSimulator('(T*s + 2)/(T*s + 1)', {'T': 1.0}, 0.01, pi_gains=(1.0, 1.0))
+    with pytest.raises(ConfigError, match='exclude a continuous'):
+        PlantSimulator('1/(T*s + 1)', {'T': 1.0}, 0.01, controller='2 + 1/s',
+                       pi_gains=(1.0, 1.0))
+    with pytest.raises(ConfigError, match='two gains'):
+        PlantSimulator('1/(T*s + 1)', {'T': 1.0}, 0.01, pi_gains=(1.0,))
+
+
+def test_recording_writer_output_reads_back_with_both_readers(tmp_path):
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    point = typestore.types['geometry_msgs/msg/PointStamped']
+    header = typestore.types['std_msgs/msg/Header']
+    stamp = typestore.types['builtin_interfaces/msg/Time']
+    vector = typestore.types['geometry_msgs/msg/Point']
+    path = tmp_path / 'run.mcap'
+    with RecordingWriter(path) as writer:
+        writer.add_topic('/wheel/y', 'geometry_msgs/msg/PointStamped')
+        with pytest.raises(BagError, match='not a standard'):
+            writer.add_topic('/x', 'my_pkg/msg/Unknown')
+        for k in range(5):
+            msg = point(header(stamp(100, 10_000_000 * k), 'base'), vector(0.5 * k, 0.0, 0.0))
+            writer.write('/wheel/y', 1_000 + k, typestore.serialize_cdr(
+                msg, 'geometry_msgs/msg/PointStamped'))
+        with pytest.raises(BagError, match='not declared'):
+            writer.write('/wheel/u', 2_000, b'')
+    with pytest.raises(BagError, match='closed'):
+        writer.write('/wheel/y', 3_000, b'')
+    with BagReader(path) as bag:
+        assert bag.topics() == {'/wheel/y': 'geometry_msgs/msg/PointStamped'}
+        messages = list(bag.messages())
+    assert [message.log_time_ns for message in messages] == [1_000 + k for k in range(5)]
+    assert [message.msg.point.x for message in messages] == [0.5 * k for k in range(5)]
+    assert messages[3].msg.header.stamp.nanosec == 30_000_000
+    with AnyReader([path]) as reader:
+        decoded = [reader.deserialize(data, connection.msgtype)
+                   for connection, _, data in reader.messages()]
+    assert [msg.point.x for msg in decoded] == [0.5 * k for k in range(5)]
+
+
+def _simulate(scenario: Scenario, samples: int) -> np.ndarray:
+    """Return ``(r, u, y)`` of the scenario's plant, simulated without ROS."""
+    settings = yaml.safe_load(scenario.params_file.read_text())['ctid_plant']['ros__parameters']
+    simulator = PlantSimulator(scenario.model, scenario.before, scenario.sample_time,
+                               pi_gains=scenario.pi_gains, noise_std=scenario.noise_std,
+                               seed=settings['seed'])
+    references = excitation(settings['prbs_bits'], settings['prbs_clock'],
+                            settings['amplitude'], settings['offset'])
+    rows = []
+    for k in range(samples):
+        if k == round(scenario.drift_time / scenario.sample_time):
+            simulator.retune(scenario.after)
+        r = next(references)
+        rows.append((r, *simulator.step(r)))
+    return np.array(rows)
+
+
+@pytest.mark.ros
+def test_shortened_demo_records_replays_and_recovers_the_drift(tmp_path, capsys):
+    node_file = tmp_path / 'node.yaml'
+    node_file.write_text(find_config('wheel_demo').read_text()
+                         .replace('window: 4.0', 'window: 2.0')
+                         .replace('update_period: 2.0', 'update_period: 1.5'))
+    output = tmp_path / 'out'
+    assert main(['--output', str(output), '--duration', '8', '--params-file',
+                 str(node_file)]) == 0
+    printed = capsys.readouterr().out
+    # How many estimates the live node gets out in 8 s depends on the machine's load.
+    table = printed[printed.index('live estimates'):printed.index('recorded 800 samples')]
+    assert re.search(r'^ +\d+\.\d\d +0\.0\d+ ± ', table, re.MULTILINE), table
+    assert 'before the payload' in printed and 'after the payload' in printed
+
+    # The recording: every sample of the loop, exactly as simulated without ROS.
+    scenario = Scenario.load(find_config(PLANT_CONFIG))
+    scenario = replace(scenario, drift_time=4.0)
+    with BagReader(output / 'wheel.mcap') as bag:
+        assert set(bag.topics()) == {'/wheel/r', '/wheel/u', '/wheel/y', '/ctid_node/estimate',
+                                     '/ctid_node/estimate_std', '/diagnostics'}
+        assert {topic: bag.message_count(topic) for topic in scenario.topics.values()} == \
+            dict.fromkeys(scenario.topics.values(), 800)
+        signals = {}
+        for topic, _, msg in bag.messages(list(scenario.topics.values())):
+            stamp = msg.header.stamp.sec * 10 ** 9 + msg.header.stamp.nanosec
+            signals.setdefault(topic, []).append((stamp, msg.point.x))
+        assert bag.message_count('/ctid_node/estimate') >= 1
+    expected = _simulate(scenario, 800)
+    for column, role in enumerate('ruy'):
+        stamps, values = zip(*sorted(signals[scenario.topics[role]]))
+        assert np.all(np.diff(stamps) == 10_000_000) and stamps[0] % 10_000_000 == 0, role
+        np.testing.assert_allclose(values, expected[:, column], rtol=0, atol=1e-12,
+                                   err_msg=role)
+
+    # The replay: estimates on both sides of the drift; the figures.
+    report = (output / 'replay.txt').read_text()
+    assert report.startswith('ctid replay ') and 'samples used of 800' in report
+    summary = printed[printed.index('before the payload'):]
+    before, after = summary.split('after the payload')
+    for block, truth in ((before, scenario.before), (after, scenario.after)):
+        for name, tolerance in (('J', 0.03), ('b', 0.03), ('tau', 0.06)):
+            line = next(line.split() for line in block.splitlines()
+                        if line.split()[:1] == [name])
+            assert float(line[1]) == truth[name]
+            assert float(line[2]) == pytest.approx(truth[name], rel=tolerance), (name, block)
+    copied = copy_to_docs(output, tmp_path / 'docs')
+    assert [path.name for path in copied] == ['demo_fit.png', 'demo_parameters.png',
+                                              'demo_bode.png']
+    for path in copied:
+        assert path.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'

@@ -1,0 +1,71 @@
+"""
+Acceptance on real measurements: the EMPS positioning stage and the hair dryer.
+
+Published reference values (``test/data/README.md``, ``shared/data/README.md``): EMPS IDIM-LS
+M = 95.1089 kg, Fv = 203.5034 N s/m, Fc = 20.3935 N, offset = -3.1648 N; the dryer has a dead
+time of about three samples (0.24 s including the hold).
+"""
+
+import json
+from pathlib import Path
+
+from ctid_ros import Data, estimate, Model
+from ctid_ros.cli.main import main
+from ctid_ros.files.csv_file import load_csv
+import numpy as np
+import pytest
+
+DATA = Path(__file__).parent.parent / 'data'
+EMPS_GAIN = 35.15065           # N/V, known motor/drive gain
+PUBLISHED = {'M': 95.1089, 'Fv': 203.5034, 'Fc': 20.3935}
+TOLERANCE = {'M': 0.05, 'Fv': 0.10, 'Fc': 0.15}
+CRUDE_START = {'M': 50.0, 'Fv': 100.0, 'Fc': 5.0, 'off': 0.0}
+
+
+def emps_data(name: str) -> Data:
+    """Voltage u, friction sign w = sign(dq/dt) of the measured position, position q."""
+    record = load_csv(DATA / f'{name}.csv.gz', input_column='u', output_column='y')
+    sign = np.sign(np.gradient(record.y, record.ts))
+    return Data(np.column_stack([record.u, sign]), record.y, record.ts)
+
+
+@pytest.mark.parametrize('name', ['emps_train', 'emps_pulses'])
+def test_emps_direct_identification_from_measured_voltage(name):
+    model = Model(f'M*s**2*q + Fv*s*q = {EMPS_GAIN}*u - Fc*w - off', inputs=('u', 'w'),
+                  output='q')
+    assert model.integrators == 1 and model.constant_input
+    data = emps_data(name)
+    result = estimate(model, data, CRUDE_START)
+    assert result.converged, result.stop_reason
+    for parameter, published in PUBLISHED.items():
+        error = abs(result.params[parameter] / published - 1.0)
+        assert error < TOLERANCE[parameter], (parameter, result.params[parameter])
+    assert -3.5 < result.params['off'] < -2.8
+    # Open-loop simulation of the position from the measured voltage (drift included).
+    assert result.compare(data) > 90.0
+
+
+def test_dryer_second_order_dead_time_through_the_command_line(capsys):
+    code = main(['fit', str(DATA / 'dryer_daisy.csv'),
+                 '--model', 'K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))',
+                 '--initial', 'K=1,T1=1,T2=1,tau=0', '--detrend', 'mean',
+                 '--estimate-range', '1:500', '--validate-range', '501:1000', '--json'])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary['converged']
+    assert summary['validation_fit'] >= 88.0
+    assert 0.1 <= summary['params']['tau'] <= 0.3
+    time_constants = sorted([summary['params']['T1'], summary['params']['T2']])
+    assert 0.08 < time_constants[0] < 0.18 and 0.2 < time_constants[1] < 0.35
+    assert 0.85 < summary['params']['K'] < 1.0
+
+
+def test_dryer_validation_fit_improves_with_an_estimated_initial_state():
+    data = load_csv(DATA / 'dryer_daisy.csv')
+    estimation, validation = data.segment(0, 500).detrend(), data.segment(500).detrend()
+    model = Model('K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))')
+    start = {'K': 1.0, 'T1': 1.0, 'T2': 1.0, 'tau': 0.0}
+    at_rest = estimate(model, estimation, start)
+    free = estimate(model, estimation, start, initial_state='estimate')
+    assert free.compare(validation) > at_rest.compare(validation) + 0.5
+    assert abs(free.params['tau'] - at_rest.params['tau']) < 0.01

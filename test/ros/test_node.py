@@ -1,0 +1,331 @@
+"""
+Launch-free tests of ctid_node against the simulated plant, on real DDS over loopback.
+
+Each test has its own rclpy context, executor and namespace; the nodes run in this process in one
+multi-threaded executor. Tolerances follow from the noise: the plant adds white noise of std
+0.01 to outputs of amplitude ~1, so over windows of thousands of samples the standard
+deviations of the estimates are a few 0.1 % (see the published ``estimate_std``); the bounds
+below are several of those plus, for Float64 topics stamped on reception, the time resolution
+of one sample time on the dead time.
+"""
+
+import itertools
+import json
+import math
+import re
+import subprocess
+import sys
+import threading
+import time
+
+from ctid_ros.ros.node import IdentificationNode
+from ctid_ros.ros.plant_node import PlantNode
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64, Float64MultiArray
+from std_srvs.srv import Trigger
+import yaml
+
+_COUNTER = itertools.count()
+
+
+class _QuotingDumper(yaml.SafeDumper):
+    """Quote every string: rcl's params parser reads a bare y (as in topic y) as a boolean."""
+
+
+_QuotingDumper.add_representer(
+    str, lambda dumper, text: dumper.represent_scalar('tag:yaml.org,2002:str', text, style="'"))
+
+
+class Harness:
+    """
+    Nodes of one test, each spun by its own executor thread, and what the observer received.
+
+    One single-threaded executor per node, as ``ctid_node`` runs in production: in one shared
+    multi-threaded executor the plant's 200 Hz timer was starved for up to 2 s at a time.
+    """
+
+    def __init__(self, tmp_path):
+        self.tmp_path = tmp_path
+        self.namespace = f'/t{next(_COUNTER)}_{int(time.time() * 1000) % 100000}'
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.estimates = []
+        self.processes = []
+        self.statuses = []
+        self._lock = threading.Lock()
+        self._spinning = []
+        self.observer = self.spin(rclpy.create_node('observer', namespace=self.namespace,
+                                                    context=self.context))
+
+    def spin(self, node):
+        executor = SingleThreadedExecutor(context=self.context)
+        executor.add_node(node)
+        thread = threading.Thread(target=executor.spin, daemon=True)
+        thread.start()
+        self._spinning.append((executor, node, thread))
+        return node
+
+    def plant(self, **parameters) -> PlantNode:
+        overrides = [Parameter(name, value=value) for name, value in parameters.items()]
+        return self.spin(PlantNode(context=self.context, namespace=self.namespace,
+                                   parameter_overrides=overrides))
+
+    def spawn_plant(self, **parameters) -> subprocess.Popen:
+        """
+        Run ctid_plant in its own process, as in a real system.
+
+        Float64 samples are stamped when published: a plant sharing the test's interpreter lock
+        with an estimate being computed would publish late and in bursts.
+        """
+        arguments = [sys.executable, '-m', 'ctid_ros.ros.plant_node', '--ros-args', '-r',
+                     f'__ns:={self.namespace}', '--log-level', 'warn']
+        for name, value in parameters.items():
+            arguments += ['-p', f'{name}:={json.dumps(value)}']
+        process = subprocess.Popen(arguments)
+        self.processes.append(process)
+        return process
+
+    def identifier(self, **parameters) -> IdentificationNode:
+        """Start ctid_node from a params file, as a user would."""
+        path = self.tmp_path / 'params.yaml'
+        key = f'{self.namespace}/ctid_node'
+        path.write_text(yaml.dump({key: {'ros__parameters': parameters}}, Dumper=_QuotingDumper))
+        node = IdentificationNode(context=self.context, namespace=self.namespace,
+                                  cli_args=['--ros-args', '--params-file', str(path)])
+        prefix = f'{self.namespace}/ctid_node'
+        self.observer.create_subscription(
+            Float64MultiArray, f'{prefix}/estimate',
+            lambda message: self._record(self.estimates, message), 10)
+        self.observer.create_subscription(
+            DiagnosticArray, '/diagnostics', lambda message: self._record(
+                self.statuses, *[status for status in message.status
+                                 if status.name == f'{prefix[1:]}: estimate']), 10)
+        return self.spin(node)
+
+    def _record(self, into, *messages):
+        with self._lock:
+            into.extend(messages)
+
+    def latest(self, into):
+        with self._lock:
+            return into[-1] if into else None
+
+    def call(self, service_type, name, request, timeout=30.0):
+        client = self.observer.create_client(service_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+        future = client.call_async(request)
+        wait_for(future.done, timeout, f'no answer from {name}')
+        return future.result()
+
+    def close(self):
+        for process in self.processes:
+            process.terminate()
+            process.wait(timeout=10)
+        for executor, node, _ in self._spinning:
+            executor.shutdown()
+            node.destroy_node()
+        rclpy.shutdown(context=self.context)
+        for _, _, thread in self._spinning:
+            thread.join(timeout=10)
+
+
+@pytest.fixture
+def ros(tmp_path):
+    harness = Harness(tmp_path)
+    yield harness
+    harness.close()
+
+
+def wait_for(predicate, timeout, what):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, \
+            f'timed out after {timeout} s: {what() if callable(what) else what}'
+        time.sleep(0.05)
+
+
+def named(message: Float64MultiArray):
+    names = message.layout.dim[0].label.split(',')
+    assert message.layout.dim[0].size == message.layout.dim[0].stride == len(names)
+    return dict(zip(names, message.data))
+
+
+def keys(status: DiagnosticStatus):
+    return {pair.key: pair.value for pair in status.values}
+
+
+def converge(ros, truth, tolerance, timeout):
+    """Wait for an estimate within tolerance of the truth; return it (or fail with the last)."""
+    def close_enough():
+        message = ros.latest(ros.estimates)
+        return message is not None and all(
+            abs(named(message)[name] - value) <= tolerance[name] for name, value in truth.items())
+    wait_for(close_enough, timeout, lambda: f'estimates {[named(m) for m in ros.estimates]}')
+    return named(ros.latest(ros.estimates))
+
+
+def first_order(**extra):
+    """ctid_node parameters for K*exp(-tau*s)/(T*s + 1) from Float64 topics u and y."""
+    parameters = {
+        'input_topic': 'u', 'output_topic': 'y', 'model': 'K*exp(-tau*s)/(T*s + 1)',
+        'parameter_names': ['K', 'T', 'tau'], 'initial': [1.0, 1.0, math.nan],
+        'lower': [0.001, 0.01, 0.0], 'upper': [100.0, 100.0, 1.0], 'sample_time': 0.005,
+        'window': 6.0, 'update_period': 1.0, 'qos_reliability': 'reliable'}
+    parameters.update(extra)
+    return parameters
+
+
+# Float64 has no header: samples are stamped when published, which on a loaded machine can be
+# late by a few ms (more than a 5 ms sample at times), so these estimates are looser.
+FLOAT64_TRUTH = ({'K': 2.0, 'T': 0.5}, {'K': 0.1, 'T': 0.05})
+
+
+def test_open_loop_fractional_delay(ros):
+    # tau = 27.4 samples of 5 ms, stamped in the headers: exact sampled data.
+    truth = {'K': 2.0, 'T': 0.5, 'tau': 0.137}
+    ros.plant(parameter_values=[2.0, 0.5, 0.137], sample_time=0.005,
+              message_type='point_stamped')
+    ros.identifier(**first_order(input_field='point.x', output_field='point.x'))
+    estimate = converge(ros, truth, {'K': 0.02, 'T': 0.015, 'tau': 0.006}, timeout=20.0)
+    assert estimate.keys() == truth.keys()
+    # The diagnostics of an update follow its estimate.
+    wait_for(lambda: 'fit_percent' in keys(ros.latest(ros.statuses)), 10.0, 'diagnostics')
+    values = keys(ros.latest(ros.statuses))
+    assert float(values['fit_percent']) > 95.0
+    assert int(values['input_received']) > 500 and int(values['output_received']) > 500
+
+
+def test_closed_loop_pi(ros):
+    truth = {'m': 1.0, 'd': 2.0, 'k': 3.0}
+    ros.plant(model='1/(m*s**2 + d*s + k)', parameter_names=['m', 'd', 'k'],
+              parameter_values=[1.0, 2.0, 3.0], controller='20 + 10/s', sample_time=0.005,
+              input_topic='r', prbs_clock=40, message_type='point_stamped')
+    ros.identifier(input_topic='r', output_topic='y', input_field='point.x',
+                   output_field='point.x', model='1/(m*s**2 + d*s + k)',
+                   controller='20 + 10/s', parameter_names=['m', 'd', 'k'],
+                   initial=[math.nan] * 3, lower=[0.001, 0.0, 0.0],
+                   upper=[100.0, 100.0, 1000.0], sample_time=0.005, window=6.0,
+                   update_period=1.0)
+    converge(ros, truth, {'m': 0.05, 'd': 0.1, 'k': 0.15}, timeout=20.0)
+
+
+def test_joint_state_single_topic_with_header_stamps(ros):
+    truth = {'J': 0.2, 'b': 1.0, 'k': 4.0}
+    plant = ros.plant(model='1/(J*s**2 + b*s + k)', parameter_names=['J', 'b', 'k'],
+                      parameter_values=[0.2, 1.0, 4.0], sample_time=0.01,
+                      message_type='joint_state', joint_state_topic='joint_states')
+    node = ros.identifier(input_topic='joint_states', input_field='effort[0]',
+                          output_topic='joint_states', output_field='position[0]',
+                          model='1/(J*s**2 + b*s + k)', parameter_names=['J', 'b', 'k'],
+                          sample_time=0.01, window=5.0, update_period=1.0, max_gap=0.1)
+    # A message without an effort entry: the field path cannot be read, counted not fatal.
+    broken = plant.create_publisher(JointState, 'joint_states', 10)
+    wait_for(lambda: broken.get_subscription_count() > 0, 20.0, 'subscriber of joint_states')
+    for _ in range(3):
+        broken.publish(JointState(name=['joint'], position=[0.0]))
+    converge(ros, truth, {'J': 0.004, 'b': 0.02, 'k': 0.04}, timeout=20.0)
+    # Header stamps on the sample instants: input and output come in pairs, none refused.
+    stats = node.buffer.stats()
+    assert stats.u.duplicates == stats.u.late == stats.y.late == 0
+    wait_for(lambda: keys(ros.latest(ros.statuses))['input_field_errors'] == '3', 10.0,
+             lambda: f'3 field errors counted: {ros.latest(ros.statuses)}')
+    assert keys(ros.latest(ros.statuses))['output_field_errors'] == '0'
+
+
+def test_invalid_parameter_updates_rejected(ros):
+    node = ros.identifier(**first_order())
+    client = AsyncParameterClient(ros.observer, f'{ros.namespace}/ctid_node')
+    assert client.wait_for_services(timeout_sec=30.0)
+
+    def set_parameters(*parameters):
+        future = client.set_parameters(list(parameters))
+        wait_for(future.done, 30.0, 'set_parameters')
+        return future.result().results[0]
+
+    before = node.config
+    for parameter, reason in (
+            (Parameter('model', value="__import__('os')"), 'model'),
+            (Parameter('lower', value=[0.001, 200.0, 0.0]), 'lower must be < upper'),
+            (Parameter('upper', value=[1.0, 2.0]), 'upper has 2 values'),
+            (Parameter('window', value=0.01), 'window'),
+            (Parameter('method', value='magic'), 'method must be one of')):
+        result = set_parameters(parameter)
+        assert not result.successful
+        assert reason in result.reason, result.reason
+    assert node.config == before
+    assert node.get_parameter('model').value == 'K*exp(-tau*s)/(T*s + 1)'
+    # Read-only parameters are refused by rclpy itself.
+    assert not set_parameters(Parameter('input_topic', value='other')).successful
+    result = set_parameters(Parameter('upper', value=[50.0, 20.0, 0.5]))
+    assert result.successful, result.reason
+    assert node.config.upper == (50.0, 20.0, 0.5)
+    assert node.config.bounds()['tau'] == (0.0, 0.5)
+
+
+def test_garbage_silence_and_publisher_restart(ros):
+    node = ros.identifier(**first_order(model='K/(T*s + 1)', parameter_names=['K', 'T'],
+                                        initial=[1.0, 1.0], lower=[0.001, 0.01],
+                                        upper=[100.0, 100.0], window=5.0))
+    wait_for(lambda: ros.latest(ros.statuses) is not None, 20.0, 'diagnostics')
+    silent = ros.latest(ros.statuses)
+    assert silent.level == DiagnosticStatus.WARN
+    assert f'no publisher on {ros.namespace}/u yet' in silent.message
+    plant = {'model': 'K/(T*s + 1)', 'parameter_names': ['K', 'T'],
+             'parameter_values': [2.0, 0.5]}
+    process = ros.spawn_plant(**plant)
+    converge(ros, *FLOAT64_TRUTH, timeout=20.0)
+    # NaN on both topics from a second publisher: refused, counted, estimation goes on.
+    garbage = {topic: ros.observer.create_publisher(Float64, topic, 10) for topic in 'uy'}
+    wait_for(lambda: all(p.get_subscription_count() for p in garbage.values()), 20.0, 'match')
+    for _ in range(5):
+        for publisher in garbage.values():
+            publisher.publish(Float64(data=math.nan))
+    count = len(ros.estimates)
+    wait_for(lambda: len(ros.estimates) > count + 1, 20.0, 'estimates after NaN')
+    values = keys(ros.latest(ros.statuses))
+    assert int(values['input_non_finite']) == 5 and int(values['output_non_finite']) == 5
+    # Float64 is stamped on publication: under load an estimate may carry a warning.
+    assert ros.latest(ros.statuses).level != DiagnosticStatus.ERROR, ros.latest(ros.statuses)
+    # The plant's publishers go away: the node reports the silence and keeps running.
+    process.terminate()
+    process.wait(timeout=10)
+    wait_for(lambda: 'silent: no message for' in ros.latest(ros.statuses).message, 20.0,
+             'silence reported')
+    assert ros.latest(ros.statuses).level == DiagnosticStatus.WARN
+    received = node.buffer.stats().y.received
+    ros.spawn_plant(**plant)
+    count = len(ros.estimates)
+    wait_for(lambda: len(ros.estimates) > count, 20.0, 'estimates after the restart')
+    assert node.buffer.stats().y.received > received
+    converge(ros, *FLOAT64_TRUTH, timeout=20.0)
+
+
+def test_reset_and_estimate_now(ros):
+    ros.plant(model='K/(T*s + 1)', parameter_names=['K', 'T'], parameter_values=[2.0, 0.5],
+              message_type='point_stamped')
+    node = ros.identifier(**first_order(model='K/(T*s + 1)', parameter_names=['K', 'T'],
+                                        initial=[1.0, 1.0], lower=[0.001, 0.01],
+                                        upper=[100.0, 100.0], window=5.0,
+                                        update_period=100.0, input_field='point.x',
+                                        output_field='point.x'))
+    estimate_now = f'{ros.namespace}/ctid_node/estimate_now'
+    wait_for(lambda: node.buffer.stats().y.span > 5.5, 20.0, 'a window of data')
+    response = ros.call(Trigger, estimate_now, Trigger.Request())
+    assert response.success, response.message
+    found = dict(re.findall(r'(\w+)=([-0-9.e]+)', response.message))
+    assert abs(float(found['K']) - 2.0) < 0.02 and abs(float(found['T']) - 0.5) < 0.01, \
+        response.message
+    wait_for(lambda: ros.estimates, 10.0, 'estimate published by estimate_now')
+    response = ros.call(Trigger, f'{ros.namespace}/ctid_node/reset', Trigger.Request())
+    assert response.success
+    assert node.buffer.stats().y.received < 50
+    response = ros.call(Trigger, estimate_now, Trigger.Request())
+    assert not response.success
+    assert 'not enough' in response.message or 'no samples' in response.message

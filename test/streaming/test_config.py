@@ -1,0 +1,357 @@
+"""Configuration: params files as ROS 2 reads them, types, validation, runtime changes."""
+
+import dataclasses
+import math
+import textwrap
+
+from ctid_ros.errors import ConfigError
+from ctid_ros.streaming.config import (config_directories, find_config, IdentificationConfig,
+                                       load_params_file, node_parameters, PARAMETER_NAMES,
+                                       PARAMETERS)
+import pytest
+import yaml
+
+CONTRACT = (
+    'input_topic', 'input_field', 'output_topic', 'output_field', 'extra_input_fields', 'model',
+    'input_names', 'output_name', 'controller', 'parameter_names', 'initial', 'lower', 'upper',
+    'sample_time', 'window', 'update_period',
+    'method', 'intersample', 'stamp_source', 'qos_reliability', 'qos_depth', 'max_gap',
+    'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance', 'transient',
+    'initial_state', 'output_offset', 'warm_start', 'publish_prediction')
+FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
+
+
+def write(tmp_path, text, name='params.yaml'):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+@pytest.fixture(scope='module')
+def base():
+    return IdentificationConfig(model=FOPDT, input_topic='/plant/u', output_topic='/plant/y')
+
+
+def test_parameter_specs_follow_the_contract():
+    assert PARAMETER_NAMES == CONTRACT
+    kinds = {spec.name: spec.kind for spec in PARAMETERS}
+    assert {name for name, kind in kinds.items() if kind == 'integer'} == {
+        'qos_depth', 'max_iterations'}
+    assert {name for name, kind in kinds.items() if kind == 'bool'} == {
+        'output_offset', 'warm_start', 'publish_prediction'}
+    assert {name for name, kind in kinds.items() if kind == 'double_array'} == {
+        'initial', 'lower', 'upper'}
+    assert kinds['parameter_names'] == 'string_array'
+    assert all(kinds[name] == 'double' for name in (
+        'sample_time', 'window', 'update_period', 'max_gap', 'reorder_horizon', 'delay_min',
+        'delay_max', 'tolerance', 'transient'))
+    defaults = IdentificationConfig(model='1/(T*s + 1)')
+    for spec in PARAMETERS:
+        assert len(spec.description) > 20, spec.name
+        if spec.name != 'model':
+            assert getattr(defaults, spec.name) == spec.default
+    by_name = {spec.name: spec for spec in PARAMETERS}
+    assert by_name['input_field'].default == 'data' and by_name['qos_depth'].default == 500
+    assert by_name['stamp_source'].default == 'header'
+    assert by_name['controller'].default == ''
+    assert by_name['window'].type_name == 'PARAMETER_DOUBLE'
+    assert by_name['initial'].type_name == 'PARAMETER_DOUBLE_ARRAY'
+    assert by_name['method'].constraints == 'one of: iv, ls, gn'
+    assert by_name['qos_depth'].constraints == 'value >= 1'
+    assert by_name['input_topic'].read_only and not by_name['model'].read_only
+
+
+@pytest.mark.parametrize('name, checks', [
+    ('open_loop_delay', {'input_topic': '/plant/u', 'output_topic': '/plant/y',
+                         'input_field': 'data', 'model': 'K*exp(-tau*s)/(T*s + 1)',
+                         'controller': '', 'parameter_names': ('K', 'T', 'tau'),
+                         'delay_max': 1.0}),
+    ('closed_loop_pi', {'input_topic': '/plant/r', 'output_topic': '/plant/y',
+                        'model': '1/(m*s**2 + d*s + k)', 'controller': '20 + 10/s',
+                        'parameter_names': ('m', 'd', 'k'), 'initial': (1.0, 1.0, 1.0)}),
+    ('joint_states', {'input_topic': '/joint_states', 'output_topic': '/joint_states',
+                      'input_field': 'effort[0]', 'output_field': 'position[0]',
+                      'model': '1/(J*s**2 + b*s + k)', 'parameter_names': ('J', 'b', 'k')}),
+    ('wheel_demo', {'input_topic': '/wheel/u', 'output_topic': '/wheel/y',
+                    'input_field': 'point.x', 'model': 'exp(-tau*s)/(J*s + b)',
+                    'controller': '', 'parameter_names': ('J', 'b', 'tau'), 'delay_max': 0.2}),
+])
+def test_example_files_load(name, checks):
+    path = find_config(name)
+    assert path.name == f'{name}.yaml'
+    config = load_params_file(path)
+    for key, value in checks.items():
+        assert getattr(config, key) == value, key
+    assert set(config.compiled_model.parameters) == set(config.names)
+    # Every parameter is set and commented, with doubles written as doubles.
+    section = yaml.safe_load(path.read_text())['ctid_node']['ros__parameters']
+    text = path.read_text()
+    # An empty list cannot be typed by ROS 2: such a parameter is shown commented out.
+    empty = [name for name in CONTRACT if name not in section]
+    assert empty == ['extra_input_fields'] and '    # extra_input_fields: [' in text
+    assert tuple(section) == tuple(name for name in CONTRACT if name in section)
+    for parameter in CONTRACT:
+        line = text.index(f'    {parameter}:') if parameter in section else \
+            text.index(f'    # {parameter}:')
+        assert text[:line].rstrip().splitlines()[-1].strip().startswith('#'), parameter
+    for spec in PARAMETERS:
+        if spec.kind == 'double':
+            assert isinstance(section[spec.name], float), spec.name
+        if spec.kind == 'double_array':
+            assert all(isinstance(value, float) for value in section[spec.name]), spec.name
+
+
+def test_example_closed_loop_is_a_closed_loop():
+    config = load_params_file(find_config('closed_loop_pi.yaml'))
+    assert config.compiled_model.controller == '20 + 10/s'
+    assert config.estimator_options()['initial'] == {'m': 1.0, 'd': 1.0, 'k': 1.0}
+
+
+def test_find_config_prefers_a_workspace_prefix(tmp_path, monkeypatch):
+    installed = tmp_path / 'install' / 'share' / 'ctid_ros' / 'config'
+    installed.mkdir(parents=True)
+    (installed / 'joint_states.yaml').write_text('ctid_node: {}\n')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path / 'install'))
+    assert config_directories()[0] == installed
+    assert find_config('joint_states') == installed / 'joint_states.yaml'
+    # Not in the workspace: found in the source checkout.
+    assert find_config('closed_loop_pi').parent.name == 'config'
+    assert find_config(str(installed / 'joint_states.yaml')) == installed / 'joint_states.yaml'
+    with pytest.raises(ConfigError, match='available: closed_loop_pi, joint_states, '
+                                          'open_loop_delay'):
+        find_config('nonexistent')
+    with pytest.raises(ConfigError, match='neither an existing file nor a bare name'):
+        find_config('some/dir/x.yaml')
+
+
+def test_fully_qualified_and_wildcard_keys(tmp_path):
+    path = write(tmp_path, """
+        /**:
+          ros__parameters:
+            model: K/(T*s + 1)
+            window: 30
+            use_sim_time: true
+        /plant1/ctid_node:
+          ros__parameters:
+            input_topic: u1
+            window: 20.0
+        /plant2/ctid_node:
+          ros__parameters:
+            input_topic: u2
+        other_node:
+          ros__parameters:
+            input_topic: never
+        """)
+    first = load_params_file(path, '/plant1/ctid_node')
+    # The node's own section overrides the wildcard one.
+    assert (first.model, first.input_topic, first.window) == ('K/(T*s + 1)', 'u1', 20.0)
+    second = load_params_file(path, '/plant2/ctid_node')
+    assert (second.input_topic, second.window) == ('u2', 30.0)
+    assert load_params_file(path, '/elsewhere/ctid_node').input_topic == 'u'
+    with pytest.raises(ConfigError, match='several nodes named .ctid_node. '
+                                          r'\(/plant1/ctid_node, /plant2/ctid_node\)'):
+        load_params_file(path)
+
+
+def test_plain_and_namespaced_keys_match_a_plain_node_name(tmp_path):
+    for key in ('ctid_node', '/ctid_node', '/robot/ctid_node', '/**/ctid_node', '/robot/*'):
+        path = write(tmp_path, f"""
+            {key}:
+              ros__parameters:
+                model: 1/(J*s**2 + b*s + k)
+            """)
+        assert load_params_file(path).model == '1/(J*s**2 + b*s + k)', key
+    assert load_params_file(path, '/robot/ctid_node').compiled_model.parameters == (
+        'J', 'b', 'k')
+    with pytest.raises(ConfigError, match="no section for node '/arm/ctid_node' .*/robot/\\*"):
+        load_params_file(path, '/arm/ctid_node')
+
+
+def test_integers_are_accepted_for_doubles(tmp_path):
+    path = write(tmp_path, """
+        ctid_node:
+          ros__parameters:
+            model: K/(T*s + 1)
+            sample_time: 1
+            window: 20
+            max_gap: 2
+            lower: [0, 1]
+            upper: [10, 5]
+            initial: [1, 2]
+        """)
+    config = load_params_file(path)
+    assert (config.sample_time, config.window, config.max_gap) == (1.0, 20.0, 2.0)
+    assert all(isinstance(value, float) for value in
+               (config.sample_time, config.window, *config.lower, *config.upper))
+    assert config.bounds() == {'K': (0.0, 10.0), 'T': (1.0, 5.0)}
+    assert config.to_dict()['initial'] == [1.0, 2.0]
+
+
+@pytest.mark.parametrize('yaml_text, message', [
+    ('window: true', 'window must be a number, got True'),
+    ('window: "10"', "window must be a number, got '10'"),
+    ('qos_depth: 500.0', r'qos_depth must be an integer \(write 500, not 500.0\)'),
+    ('qos_depth: true', 'qos_depth must be an integer'),
+    ('warm_start: 1', 'warm_start must be true or false'),
+    ('model: 3', 'model must be a string'),
+    ('initial: 1.0', 'initial must be a list of numbers'),
+    ('initial: [1.0, "a"]', 'initial must be a list of numbers'),
+    ('parameter_names: [K, 1]', 'parameter_names must be a list of strings'),
+    ('parameter_names: K', 'parameter_names must be a list of strings'),
+    ('lower: []', 'lower is an empty list, which ROS 2 cannot type'),
+    ('windw: 5.0', 'unknown parameter.s. windw; valid names: input_topic, input_field'),
+    ('qos: {depth: 5}', r'unknown parameter\(s\) qos.depth'),
+])
+def test_wrong_types_and_names_in_a_file(tmp_path, yaml_text, message):
+    path = write(tmp_path, f"""
+        ctid_node:
+          ros__parameters:
+            model: K/(T*s + 1)
+            {yaml_text}
+        """)
+    with pytest.raises(ConfigError, match=message):
+        load_params_file(path)
+
+
+def test_ros_standard_parameters_are_not_errors(tmp_path):
+    path = write(tmp_path, """
+        ctid_node:
+          ros__parameters:
+            model: K/(T*s + 1)
+            use_sim_time: true
+            qos_overrides:
+              /plant/y:
+                subscription:
+                  reliability: reliable
+        """)
+    assert load_params_file(path).model == 'K/(T*s + 1)'
+
+
+@pytest.mark.parametrize('document, message', [
+    ('[1, 2]', 'expected a mapping of node names'),
+    ('ctid_node: {parameters: {}}', 'must contain exactly "ros__parameters:"'),
+    ('ctid_node: {ros__parameters: [1]}', 'ros__parameters must be a mapping'),
+    ('other: {ros__parameters: {}}', r'no section for node .ctid_node. \(top-level keys: '
+                                     'other\\); write "ctid_node:" or "/\\*\\*:"'),
+    ('ctid_node: {ros__parameters: {model: "K/(T*s+1)"', 'is not valid YAML'),
+])
+def test_malformed_files(tmp_path, document, message):
+    with pytest.raises(ConfigError, match=message):
+        load_params_file(write(tmp_path, document))
+
+
+def test_unreadable_file(tmp_path):
+    with pytest.raises(ConfigError, match='cannot read params file .*missing.yaml'):
+        load_params_file(tmp_path / 'missing.yaml')
+
+
+def test_node_parameters_flattens_nested_names():
+    document = {'/**': {'ros__parameters': {'a': {'b': 1, 'c': {'d': 2}}}}}
+    assert node_parameters(document) == {'a.b': 1, 'a.c.d': 2}
+
+
+def test_parameter_order_and_estimator_options(base):
+    config = base.updated({'parameter_names': ['tau', 'K', 'T'],
+                           'initial': [0.2, math.nan, 1.5],
+                           'lower': [0.0, -math.inf, 0.1], 'upper': [1.0, math.inf, 10.0],
+                           'delay_min': 0.05, 'delay_max': 0.5, 'method': 'ls'})
+    assert config.compiled_model.parameters == ('K', 'tau', 'T')
+    assert config.names == ('tau', 'K', 'T')
+    assert config.model_index == (1, 0, 2)
+    assert config.estimator_options() == {
+        'initial': {'tau': 0.2, 'T': 1.5}, 'bounds': {'tau': (0.0, 1.0), 'T': (0.1, 10.0)},
+        'method': 'ls', 'intersample': 'zoh', 'max_iterations': 100, 'tolerance': 1e-8,
+        'delay_range': (0.05, 0.5), 'transient': 'auto', 'initial_state': 'zero',
+        'output_offset': False}
+    assert base.updated({'transient': 2.0}).estimator_options()['transient'] == 2.0
+    assert base.names == ('K', 'tau', 'T')
+    assert base.estimator_options()['initial'] == 'auto'
+    assert base.estimator_options()['bounds'] is None
+    assert base.delay_range is None
+
+
+def test_runtime_change_leaves_the_current_configuration_intact(base):
+    changed = base.updated({'window': 5, 'model': 'K/(T*s + 1)', 'publish_prediction': True})
+    assert (changed.window, changed.model, changed.publish_prediction) == (
+        5.0, 'K/(T*s + 1)', True)
+    assert changed.compiled_model.parameters == ('K', 'T')
+    assert (base.window, base.model, base.publish_prediction) == (10.0, FOPDT, False)
+    with pytest.raises(ConfigError, match='window .* must hold at least 10 samples'):
+        base.updated({'window': 0.05})
+    with pytest.raises(ConfigError, match='unknown parameter.s. modle'):
+        base.updated({'modle': 'K/s'})
+    assert base.window == 10.0 and base.compiled_model.parameters == ('K', 'tau', 'T')
+    assert dataclasses.replace(base) == base
+
+
+@pytest.mark.parametrize('changes, message', [
+    ({'model': ''}, 'model is required'),
+    ({'model': 'K/(T*s + 1'}, "model 'K/\\(T\\*s \\+ 1' is invalid"),
+    ({'model': 's/(T + 1)'}, 'is invalid: .*improper'),
+    ({'model': '1/(m*s**2 + k)', 'controller': '20 + x/s'},
+     "controller '20 \\+ x/s' is invalid: .*numeric coefficients"),
+    ({'parameter_names': ['K', 'T']}, r'permutation of the model parameters \(K, tau, T\): '
+                                      'missing tau'),
+    ({'parameter_names': ['K', 'T', 'tau', 'x']}, 'not in the model x'),
+    ({'parameter_names': ['K', 'K', 'T', 'tau']}, 'repeated K'),
+    ({'initial': [1.0, 2.0]}, r'initial has 2 values but the model has 3 parameters '
+                              r'\(K, tau, T\)'),
+    ({'upper': [1.0]}, 'upper has 1 values'),
+    ({'lower': [0.0, 1.0, 0.0], 'upper': [1.0, 1.0, 1.0]},
+     'lower must be < upper: for tau lower = 1.0 >= upper = 1.0'),
+    ({'initial': [5.0, 0.1, 1.0], 'upper': [2.0, 1.0, 1.0]},
+     r'initial value of K = 5.0 is outside its bounds \[-inf, 2.0\]'),
+    ({'initial': [math.inf, 0.1, 1.0]}, 'initial values must be finite or NaN'),
+    ({'lower': [math.nan, 0.0, 0.0]}, 'lower may not contain NaN'),
+    ({'sample_time': 0.0}, 'sample_time must be positive and finite'),
+    ({'sample_time': -0.01}, 'sample_time must be positive'),
+    ({'window': math.inf}, 'window must be positive and finite'),
+    ({'window': 0.05}, r'window \(0.05 s\) must hold at least 10 samples .* at least 0.1 s'),
+    ({'update_period': 0.0}, 'update_period must be positive'),
+    ({'max_gap': 0.0}, 'max_gap must be positive'),
+    ({'tolerance': 0.0}, 'tolerance must be positive'),
+    ({'reorder_horizon': -0.1}, 'reorder_horizon must be non-negative'),
+    ({'reorder_horizon': 10.0}, r'reorder_horizon \(10.0 s\) must be shorter than the window'),
+    ({'qos_depth': 0}, 'qos_depth must be at least 1'),
+    ({'max_iterations': 0}, 'max_iterations must be at least 1'),
+    ({'method': 'gradient'}, "method must be one of iv, ls, gn; got 'gradient'"),
+    ({'intersample': 'spline'}, 'intersample must be one of zoh, foh'),
+    ({'stamp_source': 'now'}, 'stamp_source must be one of header, receive'),
+    ({'qos_reliability': 'sometimes'}, 'qos_reliability must be one of best_effort, reliable'),
+    ({'delay_min': -1.0}, 'delay_min must be non-negative'),
+    ({'delay_min': 0.5, 'delay_max': 0.2}, r'delay_min \(0.5 s\) must be < delay_max'),
+    ({'delay_max': 20.0}, r'delay_max \(20.0 s\) must be shorter than the window'),
+    ({'model': 'K/(T*s + 1)', 'delay_max': 1.0}, 'model .* has no estimated dead time'),
+    ({'input_topic': 'plant u'}, "input_topic 'plant u' is not a valid topic name"),
+    ({'output_topic': '/plant//y'}, 'output_topic .* is not a valid topic name'),
+    ({'output_topic': ''}, 'output_topic .* is not a valid topic name'),
+    ({'input_field': 'data.__class__'}, 'input_field: invalid field path'),
+    ({'output_field': 'position[-1]'}, 'output_field: invalid field path'),
+    ({'output_topic': '/plant/u'}, 'input and output are the same field of the same topic'),
+])
+def test_each_validation_error(base, changes, message):
+    with pytest.raises(ConfigError, match=message):
+        base.updated(changes)
+
+
+def test_valid_edge_cases(base):
+    assert base.updated({'reorder_horizon': 0.0, 'window': 0.1}).window == 0.1
+    assert base.updated({'input_topic': '~/u', 'output_topic': 'y_1'}).input_topic == '~/u'
+    same_topic = base.updated({'output_topic': '/plant/u', 'output_field': 'position[0]'})
+    assert same_topic.output_field == 'position[0]'
+    assert IdentificationConfig.from_dict({'model': FOPDT}).model == FOPDT
+
+
+def test_model_equation_with_extra_inputs():
+    config = IdentificationConfig(
+        model='M*s**2*q + F*s*q = v - c*w', input_names=('v', 'w'), output_name='q',
+        extra_input_fields=('effort[1]',), input_field='effort[0]', output_field='position[0]',
+        input_topic='/joint_states', output_topic='/joint_states')
+    assert config.compiled_model.inputs == ('v', 'w')
+    assert config.compiled_model.parameters == ('M', 'F', 'c')
+    with pytest.raises(ConfigError, match='extra_input_fields needs 1 field'):
+        config.updated({'extra_input_fields': []})
+    with pytest.raises(ConfigError, match='extra_input_fields'):
+        config.updated({'extra_input_fields': ['effort[']})
+    with pytest.raises(ConfigError, match='do not appear'):
+        config.updated({'input_names': ['v', 'z']})
