@@ -22,7 +22,8 @@ import time
 from typing import Callable, Dict, List, Tuple
 import warnings
 
-from ctid_ros import estimate, EstimationError, ModelError, reference_systems
+from ctid_ros import estimate, EstimationError, ModelError
+from ctid_ros.core import reference_systems
 from ctid_ros.core.reference_systems import ReferenceSystem
 from ctid_ros.estimation.estimate import bound_vectors
 from ctid_ros.estimation.regressors import is_stable, SignalBank
@@ -39,7 +40,7 @@ def crlb(system: ReferenceSystem) -> np.ndarray:
     clean = system.noise_free()
     sigma = np.std(clean) / 10.0 ** (system.snr_db / 20.0)
     bank = SignalBank(model, system.u, clean, system.ts)
-    psi = bank.linearize(model.structure(system.truth), regressors=False).psi
+    psi = bank.linearize(model.coefficients(system.truth), regressors=False).psi
     return sigma ** 2 * np.linalg.inv(psi.T @ psi)
 
 
@@ -66,7 +67,7 @@ def draw_start(system: ReferenceSystem, rng: np.random.Generator) -> np.ndarray:
     lower, upper = bound_vectors(model, system.bounds)
     while True:
         start = np.clip(truth * 10.0 ** rng.uniform(-1.0, 1.0, truth.size), lower, upper)
-        if is_stable(model.structure(start).den):
+        if is_stable(model.coefficients(start).den):
             return start
 
 
@@ -80,16 +81,16 @@ def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: 
         # LM has no bounds: a negative dead time is a very bad fit to back off from, not a
         # crash of the baseline.
         try:
-            structure = model.structure(theta)
+            coefficients = model.coefficients(theta)
             with np.errstate(all='ignore'):
-                error = data.y - bank.output(structure)
+                error = data.y - bank.output(coefficients)
         except ModelError:
             return np.full(data.y.size, 1e12)
         return np.where(np.isfinite(error), error, 1e12)
 
     def jacobian(theta):
         with np.errstate(all='ignore'):
-            psi = -bank.linearize(model.structure(theta), regressors=False).psi
+            psi = -bank.linearize(model.coefficients(theta), regressors=False).psi
         return np.where(np.isfinite(psi), psi, 0.0)
 
     bounds = (-np.inf, np.inf)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import keyword
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
+from ctid_ros.core.data import as_inputs
 from ctid_ros.core.expression import LAPLACE, MAX_DEGREE, parse_equation, parse_expression
 from ctid_ros.core.simulation import ContinuousFilter, INTERSAMPLE
 from ctid_ros.errors import ModelError
@@ -29,13 +30,14 @@ ParameterValues = Union[Mapping[str, float], Sequence[float], np.ndarray]
 
 
 @dataclass(frozen=True)
-class Structure:
+class Coefficients:
     """
-    Numeric model structure at one parameter vector.
+    Numeric ``N``, ``D``, dead time and their Jacobians at one parameter vector.
 
-    Coefficient arrays are highest power of ``s`` first. ``num`` has one row per numerator
-    channel (the measured inputs in order, then the constant input if the model has one);
-    Jacobians have the parameters on their first axis.
+    :meth:`Model.coefficients` evaluates them; the model structure (the parameterised family)
+    is the :class:`Model` itself. Coefficient arrays are highest power of ``s`` first. ``num``
+    has one row per numerator channel (the measured inputs in order, then the constant input if
+    the model has one); Jacobians have the parameters on their first axis.
     """
 
     num: np.ndarray
@@ -122,7 +124,7 @@ def _signal_names(inputs: Sequence[str], output: str) -> Tuple[str, ...]:
     return names
 
 
-def _coefficients(poly: sp.Poly, degree: int) -> list:
+def _padded_coefficients(poly: sp.Poly, degree: int) -> list:
     coefficients = poly.all_coeffs() if not poly.is_zero else [sp.Integer(0)]
     return [sp.Integer(0)] * (degree + 1 - len(coefficients)) + coefficients
 
@@ -266,8 +268,8 @@ class Model:
     def _build(self, nums: Sequence[sp.Poly], den: sp.Poly, tau: sp.Expr) -> None:
         self.num_degree = max(0 if num.is_zero else num.degree() for num in nums)
         self.den_degree = den.degree()
-        num_coefficients = [_coefficients(num, self.num_degree) for num in nums]
-        den_coefficients = _coefficients(den, self.den_degree)
+        num_coefficients = [_padded_coefficients(num, self.num_degree) for num in nums]
+        den_coefficients = _padded_coefficients(den, self.den_degree)
         self._channels = len(nums)
         symbols = self._symbols
         flat_nums = [c for row in num_coefficients for c in row]
@@ -319,7 +321,7 @@ class Model:
         """Map a parameter vector back to ``{name: value}``."""
         return {name: float(value) for name, value in zip(self.parameters, theta)}
 
-    def structure(self, params: ParameterValues) -> Structure:
+    def coefficients(self, params: ParameterValues) -> Coefficients:
         """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
         theta = self.vector(params)
         with np.errstate(all='ignore'):
@@ -332,14 +334,14 @@ class Model:
         if not np.all(np.isfinite(flat)):
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')
-        return Structure(
+        return Coefficients(
             num=values[:n_nums].reshape(channels, n_num), den=values[n_nums:n_nums + n_den],
             delay=float(values[-1]),
             num_jacobian=jacobian[:, :n_nums].reshape(n_par, channels, n_num),
             den_jacobian=jacobian[:, n_nums:n_nums + n_den], delay_gradient=jacobian[:, -1])
 
     def channel(self, input_name: Optional[str] = None) -> int:
-        """Row of :attr:`Structure.num` that belongs to ``input_name`` (default: the only one)."""
+        """Row of :attr:`Coefficients.num` that belongs to ``input_name`` (default: the only)."""
         if input_name is None:
             if len(self.inputs) > 1:
                 raise ModelError(f'the model has inputs {", ".join(self.inputs)}: say which one')
@@ -352,8 +354,8 @@ class Model:
     def transfer_function(self, params: ParameterValues, input_name: Optional[str] = None
                           ) -> Tuple[np.ndarray, np.ndarray, float]:
         """``(num, den, delay)`` from ``input_name`` to the output, highest power first."""
-        structure = self.structure(params)
-        return structure.num[self.channel(input_name)], structure.den, structure.delay
+        coefficients = self.coefficients(params)
+        return coefficients.num[self.channel(input_name)], coefficients.den, coefficients.delay
 
     def input_channels(self, u) -> np.ndarray:
         """
@@ -361,8 +363,6 @@ class Model:
 
         ``u`` is 1-D for a single input or has one column per input, in :attr:`inputs` order.
         """
-        from ctid_ros.core.data import as_inputs
-
         columns = as_inputs(u, len(self.inputs))
         if self.constant_input:
             columns = np.column_stack([columns, np.ones(columns.shape[0])])
@@ -393,17 +393,18 @@ class Model:
         """
         if intersample not in INTERSAMPLE:
             raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
-        structure = self.structure(params)
-        if structure.delay < 0.0:
-            raise ModelError(f'the dead time is negative ({structure.delay:g} s) at '
+        coefficients = self.coefficients(params)
+        if coefficients.delay < 0.0:
+            raise ModelError(f'the dead time is negative ({coefficients.delay:g} s) at '
                              f'{self.as_dict(self.vector(params))}: that is a time advance')
-        if structure.den[0] == 0.0:
+        if coefficients.den[0] == 0.0:
             raise ModelError(f'the leading denominator coefficient vanishes at '
                              f'{self.as_dict(self.vector(params))}: the model order drops')
-        discrete = ContinuousFilter(structure.den).discretize(ts, structure.delay, intersample)
+        discrete = ContinuousFilter(coefficients.den).discretize(ts, coefficients.delay,
+                                                                 intersample)
         channels = self.input_channels(u)
         return sum(discrete.outputs(channels[:, index], [num])[0]
-                   for index, num in enumerate(structure.num))
+                   for index, num in enumerate(coefficients.num))
 
     def frequency_response(self, params: ParameterValues, omega,
                            input_name: Optional[str] = None) -> np.ndarray:

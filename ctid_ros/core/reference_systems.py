@@ -9,8 +9,9 @@ and the demo all draw on them.
 from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
-from ctid_ros import Data, Model
+from ctid_ros.core.data import Data
 from ctid_ros.core.excitation import prbs
+from ctid_ros.core.model import Model
 import numpy as np
 
 

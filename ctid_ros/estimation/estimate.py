@@ -28,7 +28,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import warnings
 
 from ctid_ros.core.data import Data
-from ctid_ros.core.model import Model, Structure
+from ctid_ros.core.model import Coefficients, Model
 from ctid_ros.core.simulation import ContinuousFilter
 from ctid_ros.errors import DataError, EstimationError, ModelError
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
@@ -158,7 +158,7 @@ class Estimate:
         output = self.simulate(data)
         if self.model.integrators:
             output = output + data.y[0]
-        columns = nuisance_columns(self.model.structure(self.params).den, len(data), data.ts,
+        columns = nuisance_columns(self.model.coefficients(self.params).den, len(data), data.ts,
                                    self.initial_state == 'estimate', self.output_offset)
         return _fitted(data.y, output, _orthonormal(columns))
 
@@ -252,17 +252,17 @@ class _Problem:
         """Output samples that are fitted (after the excluded transient)."""
         return self.data.y[self.skip:]
 
-    def _basis(self, structure: Structure) -> Optional[np.ndarray]:
-        columns = nuisance_columns(structure.den, len(self.data), self.data.ts,
+    def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
+        columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
                                    self.initial_state, self.output_offset)
         return None if columns is None else _orthonormal(columns[self.skip:])
 
-    def prediction(self, structure: Structure) -> np.ndarray:
+    def prediction(self, coefficients: Coefficients) -> np.ndarray:
         """Model output on the fitted samples, with the fitted initial state and offset."""
-        return _fitted(self.measured, self.bank.output(structure)[self.skip:],
-                       self._basis(structure))
+        return _fitted(self.measured, self.bank.output(coefficients)[self.skip:],
+                       self._basis(coefficients))
 
-    def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
+    def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
         """
         Output, regressors and instruments on the fitted samples (nuisance projected out).
 
@@ -271,21 +271,21 @@ class _Problem:
 
         """
         key = b''.join(np.ascontiguousarray(part).tobytes() for part in (
-            structure.den, structure.num, structure.delay, structure.den_jacobian,
-            structure.num_jacobian, structure.delay_gradient, self.skip))
+            coefficients.den, coefficients.num, coefficients.delay, coefficients.den_jacobian,
+            coefficients.num_jacobian, coefficients.delay_gradient, self.skip))
         if self._latest is not None and self._latest[0] == key and (
                 self._latest[1].phi is not None or not regressors):
             return self._latest[1]
-        lin = self._linearized(structure, regressors)
+        lin = self._linearized(coefficients, regressors)
         self._latest = (key, lin)
         return lin
 
-    def _linearized(self, structure: Structure, regressors: bool) -> Linearization:
-        lin = self.bank.linearize(structure, regressors)
+    def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:
+        lin = self.bank.linearize(coefficients, regressors)
         output, phi, psi = (lin.output[self.skip:],
                             None if lin.phi is None else lin.phi[self.skip:],
                             lin.psi[self.skip:])
-        basis = self._basis(structure)
+        basis = self._basis(coefficients)
         if basis is not None:
             output = _fitted(self.measured, output, basis)
             psi = psi - basis @ (basis.T @ psi)
@@ -293,50 +293,50 @@ class _Problem:
                 phi = phi - basis @ (basis.T @ phi)
         return Linearization(output, phi, psi)
 
-    def exclude_transient(self, seconds: Union[float, str], structure: Structure) -> None:
+    def exclude_transient(self, seconds: Union[float, str], coefficients: Coefficients) -> None:
         """
         Leave the first samples out of every sum, so data that do not start at rest fit.
 
-        ``'auto'`` takes five times the slowest time constant of ``structure`` plus its dead
+        ``'auto'`` takes five times the slowest time constant of ``coefficients`` plus its dead
         time, at most half of the record.
 
         """
         if seconds == 'auto':
-            seconds = settling_time(structure)
+            seconds = settling_time(coefficients)
         seconds = float(seconds)
         if not (np.isfinite(seconds) and seconds >= 0.0):
             raise ValueError(f"transient must be 'auto' or a non-negative time, got {seconds}")
         self.skip = int(min(np.ceil(seconds / self.data.ts), len(self.data) // 2))
 
-    def admissible(self, theta: np.ndarray) -> Optional[Structure]:
-        """Structure at theta if it is inside the bounds with a stable ``D``, else None."""
+    def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
+        """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
         if np.any(theta < self.lower) or np.any(theta > self.upper):
             return None
         try:
-            structure = self.model.structure(theta)
+            coefficients = self.model.coefficients(theta)
         except ModelError:
             return None
-        if structure.delay < 0.0 or not is_stable(structure.den):
+        if coefficients.delay < 0.0 or not is_stable(coefficients.den):
             return None
-        sign = np.sign(structure.den[0])
+        sign = np.sign(coefficients.den[0])
         if self._leading_sign is not None and sign != self._leading_sign:
             return None
-        return structure
+        return coefficients
 
-    def anchor(self, structure: Structure) -> None:
+    def anchor(self, coefficients: Coefficients) -> None:
         """Fix the sign of D's leading coefficient: crossing zero would change the order."""
-        self._leading_sign = np.sign(structure.den[0])
+        self._leading_sign = np.sign(coefficients.den[0])
 
-    def cost(self, structure: Structure) -> float:
+    def cost(self, coefficients: Coefficients) -> float:
         self.evaluations += 1
-        error = self.measured - self.prediction(structure)
+        error = self.measured - self.prediction(coefficients)
         return 0.5 * float(error @ error)
 
 
 @dataclass
 class _State:
     theta: np.ndarray
-    structure: Structure
+    coefficients: Coefficients
     cost: float
 
 
@@ -346,11 +346,11 @@ def _thread_pools() -> ThreadpoolController:
     return ThreadpoolController()
 
 
-def settling_time(structure: Structure) -> float:
+def settling_time(coefficients: Coefficients) -> float:
     """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
-    roots = np.roots(structure.den) if structure.den.size > 1 else np.zeros(0)
+    roots = np.roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
     slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
-    return 5.0 * slowest + max(structure.delay, 0.0)
+    return 5.0 * slowest + max(coefficients.delay, 0.0)
 
 
 def _column_scales(psi: np.ndarray) -> np.ndarray:
@@ -415,11 +415,11 @@ def _try_step(problem: _Problem, state: _State, step: np.ndarray, monotone: bool
     limit = _box_limit(state.theta, step, problem.lower, problem.upper)
     for scale in scales:
         candidate = state.theta + limit * scale * step
-        structure = problem.admissible(candidate)
-        if structure is not None:
-            cost = problem.cost(structure)
+        coefficients = problem.admissible(candidate)
+        if coefficients is not None:
+            cost = problem.cost(coefficients)
             if not monotone or cost <= state.cost:
-                return _State(candidate, structure, cost), limit * scale
+                return _State(candidate, coefficients, cost), limit * scale
     return None
 
 
@@ -454,7 +454,7 @@ def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarra
     """
     history: List[Iteration] = []
     for iteration in range(max_iterations):
-        lin = problem.linearize(state.structure, regressors=method != 'gn')
+        lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
         free = _free_mask(state.theta, lin, error, problem, frozen)
         if not np.any(free):
@@ -540,7 +540,7 @@ def delay_parameter(model: Model) -> Optional[int]:
     """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
     if not model.delay_is_estimated:
         return None
-    probe = model.structure(np.ones(len(model.parameters)))
+    probe = model.coefficients(np.ones(len(model.parameters)))
     gradient = probe.delay_gradient
     nonzero = np.flatnonzero(gradient)
     if nonzero.size == 1 and gradient[nonzero[0]] == 1.0:
@@ -566,7 +566,7 @@ def _check_excitation(model: Model, data: Data) -> None:
 
 def _blind_combination(problem: _Problem, state: _State) -> Optional[str]:
     """Explain why the output is (almost) blind to a parameter combination, or None."""
-    lin = problem.linearize(state.structure, regressors=False)
+    lin = problem.linearize(state.coefficients, regressors=False)
     norms = np.linalg.norm(lin.psi, axis=0)
     if np.any(norms == 0.0):
         dead = ', '.join(problem.model.parameters[i] for i in np.flatnonzero(norms == 0.0))
@@ -587,14 +587,14 @@ def _nudged(problem: _Problem, state: _State, rng: np.random.Generator) -> Optio
     for _ in range(_HALVINGS):
         theta = state.theta * (1.0 + 0.05 * rng.standard_normal(state.theta.size))
         theta = np.clip(theta, problem.lower, problem.upper)
-        structure = problem.admissible(theta)
-        if structure is not None:
-            return _State(theta, structure, problem.cost(structure))
+        coefficients = problem.admissible(theta)
+        if coefficients is not None:
+            return _State(theta, coefficients, problem.cost(coefficients))
     return None
 
 
 def _covariance(problem: _Problem, state: _State) -> Tuple[np.ndarray, float, float]:
-    lin = problem.linearize(state.structure, regressors=False)
+    lin = problem.linearize(state.coefficients, regressors=False)
     error = problem.measured - lin.output
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
@@ -742,7 +742,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         covariance, variance, condition = _covariance(problem, final)
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     notes = _warnings(problem, final, converged, reason)
-    fit = fit_percent(problem.measured, problem.prediction(final.structure))
+    fit = fit_percent(problem.measured, problem.prediction(final.coefficients))
     return Estimate(
         model=model, params=model.as_dict(final.theta), std=model.as_dict(std),
         covariance=covariance, fit=fit, converged=converged, iterations=len(history),
@@ -754,11 +754,11 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
 
 def _started(problem: _Problem, start: _State, transient: Union[float, str]) -> _State:
     """Anchor the sign of D's leading coefficient and leave out the transient, from ``start``."""
-    problem.anchor(start.structure)
+    problem.anchor(start.coefficients)
     if not transient:
         return start
-    problem.exclude_transient(transient, start.structure)
-    return _State(start.theta, start.structure, problem.cost(start.structure))
+    problem.exclude_transient(transient, start.coefficients)
+    return _State(start.theta, start.coefficients, problem.cost(start.coefficients))
 
 
 def _warnings(problem: _Problem, state: _State, converged: bool, reason: str) -> List[str]:

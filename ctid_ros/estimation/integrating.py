@@ -15,7 +15,7 @@ to it as it is. The high pass removes what an integrator cannot be fitted on: th
 position and slow drift (``y`` is filtered from rest at its first sample).
 """
 
-from ctid_ros.core.model import Model, Structure
+from ctid_ros.core.model import Coefficients, Model
 from ctid_ros.core.simulation import response
 import numpy as np
 
@@ -30,7 +30,7 @@ class StabilizedModel:
     The model ``N / (D' (s + cutoff)^k)`` equivalent to an integrating ``N / (s^k D')``.
 
     It stands in for the :class:`~ctid_ros.core.model.Model` during estimation: it has the same
-    parameters, inputs and attributes, and only :meth:`structure` differs.
+    parameters, inputs and attributes, and only :meth:`coefficients` differs.
     """
 
     def __init__(self, model: Model, cutoff: float):
@@ -46,15 +46,15 @@ class StabilizedModel:
     def __getattr__(self, name: str):
         return getattr(self.model, name)
 
-    def structure(self, params) -> Structure:
-        """Return the structure of the stabilised model at ``params``."""
-        original = self.model.structure(params)
+    def coefficients(self, params) -> Coefficients:
+        """Return the coefficients of the stabilised model at ``params``."""
+        original = self.model.coefficients(params)
         order = self._order
         den = np.convolve(original.den[:-order], self._factor)
         den_jacobian = np.array([np.convolve(row[:-order], self._factor)
                                  for row in original.den_jacobian])
-        return Structure(original.num, den, original.delay, original.num_jacobian,
-                         den_jacobian, original.delay_gradient)
+        return Coefficients(original.num, den, original.delay, original.num_jacobian,
+                            den_jacobian, original.delay_gradient)
 
     def filtered_output(self, y: np.ndarray, ts: float) -> np.ndarray:
         """Return ``(s / (s + cutoff))^k y`` (``y`` linear between samples, at rest at y[0])."""

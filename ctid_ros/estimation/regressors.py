@@ -18,7 +18,7 @@ sensitivities that make the instrumental-variable iteration consistent.
 from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, Optional, TypeVar
 
-from ctid_ros.core.model import Model, Structure
+from ctid_ros.core.model import Coefficients, Model
 from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
 from ctid_ros.errors import EstimationError
 import numpy as np
@@ -87,38 +87,38 @@ class SignalBank:
                            discretized)
 
     @staticmethod
-    def _output_key(structure: Structure) -> Hashable:
-        return structure.den.tobytes(), structure.num.tobytes(), float(structure.delay)
+    def _output_key(coefficients: Coefficients) -> Hashable:
+        return coefficients.den.tobytes(), coefficients.num.tobytes(), float(coefficients.delay)
 
-    def output(self, structure: Structure) -> np.ndarray:
-        """Model output ``sum_j N_j/D u_j`` at a structure (no sensitivities), read-only."""
+    def output(self, coefficients: Coefficients) -> np.ndarray:
+        """Model output ``sum_j N_j/D u_j`` at given coefficients (no sensitivities), read-only."""
         def simulate() -> np.ndarray:
-            discrete = self._discrete(structure.den, structure.delay, self.intersample)
+            discrete = self._discrete(coefficients.den, coefficients.delay, self.intersample)
             output = sum(discrete.outputs(self.channels[:, j], [num])[0]
-                         for j, num in enumerate(structure.num))
+                         for j, num in enumerate(coefficients.num))
             output.setflags(write=False)
             return output
 
-        return _remembered(self._outputs, self._output_key(structure), simulate)
+        return _remembered(self._outputs, self._output_key(coefficients), simulate)
 
-    def linearize(self, structure: Structure, regressors: bool = True) -> Linearization:
+    def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
         """Return the output, the regressors ``phi`` (if requested) and instruments ``psi``."""
-        den = structure.den
+        den = coefficients.den
         order = den.size - 1
-        params = structure.num_jacobian.shape[0]
-        delay_used = np.any(structure.delay_gradient != 0.0)
-        bank_u = self._discrete(den, structure.delay, self.intersample)
+        params = coefficients.num_jacobian.shape[0]
+        delay_used = np.any(coefficients.delay_gradient != 0.0)
+        bank_u = self._discrete(den, coefficients.delay, self.intersample)
         # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
-        bank_sensitivity = self._discrete(np.convolve(den, den), structure.delay,
+        bank_sensitivity = self._discrete(np.convolve(den, den), coefficients.delay,
                                           self.intersample)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         psi = np.zeros((params, self.y.size))
         u_regressors = np.zeros((params, self.y.size))
-        for j, num in enumerate(structure.num):
+        for j, num in enumerate(coefficients.num):
             signal = self.channels[:, j]
             num_full = _pad(num, order + 1)
-            num_jac = np.array([_pad(row, order + 1) for row in structure.num_jacobian[:, j]])
+            num_jac = np.array([_pad(row, order + 1) for row in coefficients.num_jacobian[:, j]])
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -137,16 +137,16 @@ class SignalBank:
                 u_regressors += u_parts[-params:]
             # Both products have degree 2 deg D: the coefficient arrays align.
             sensitivity_numerators = [
-                np.convolve(num_jac[i], den) - np.convolve(structure.den_jacobian[i], num_full)
+                np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
                 for i in range(params)]
             psi += bank_sensitivity.outputs(signal, sensitivity_numerators)
-        delay_term = -np.outer(structure.delay_gradient, derivative)
+        delay_term = -np.outer(coefficients.delay_gradient, derivative)
         psi += delay_term
         phi = None
         if regressors:
             bank_y = self._discrete(den, 0.0, 'foh')
-            y_parts = bank_y.outputs(self.y, list(structure.den_jacobian))
+            y_parts = bank_y.outputs(self.y, list(coefficients.den_jacobian))
             phi = (u_regressors - y_parts + delay_term).T
         output.setflags(write=False)
-        _remembered(self._outputs, self._output_key(structure), lambda: output)
+        _remembered(self._outputs, self._output_key(coefficients), lambda: output)
         return Linearization(output, phi, psi.T)

@@ -113,8 +113,10 @@ def complete_guess(problem, initial):
     if len(given) < len(problem.model.parameters):
         return None
     theta = problem.model.vector(given)
-    structure = problem.admissible(theta)
-    return None if structure is None else _State(theta, structure, problem.cost(structure))
+    coefficients = problem.admissible(theta)
+    if coefficients is None:
+        return None
+    return _State(theta, coefficients, problem.cost(coefficients))
 
 
 def best_candidate(problem, candidates: List[np.ndarray]):
@@ -123,12 +125,12 @@ def best_candidate(problem, candidates: List[np.ndarray]):
 
     best = None
     for theta in candidates:
-        structure = problem.admissible(theta)
-        if structure is None:
+        coefficients = problem.admissible(theta)
+        if coefficients is None:
             continue
-        cost = problem.cost(structure)
+        cost = problem.cost(coefficients)
         if best is None or cost < best.cost:
-            best = _State(theta, structure, cost)
+            best = _State(theta, coefficients, cost)
     return best
 
 
@@ -354,23 +356,23 @@ class _EquationError:
         self._free = free
         self._latest = None
 
-    def _structure(self, values: np.ndarray, start: np.ndarray):
+    def _coefficients(self, values: np.ndarray, start: np.ndarray):
         # least_squares asks for the Jacobian where it has just evaluated the residual.
         key = values.tobytes() + start.tobytes()
         if self._latest is None or self._latest[0] != key:
             theta = start.copy()
             theta[self._free] = values
-            self._latest = (key, self._model.structure(theta))
+            self._latest = (key, self._model.coefficients(theta))
         return self._latest[1]
 
     def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        structure = self._structure(values, start)
-        return self._factor @ np.concatenate([structure.den, structure.num.ravel()])
+        coefficients = self._coefficients(values, start)
+        return self._factor @ np.concatenate([coefficients.den, coefficients.num.ravel()])
 
     def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        structure = self._structure(values, start)
-        gradient = np.hstack([structure.den_jacobian,
-                              structure.num_jacobian.reshape(start.size, -1)])[self._free]
+        coefficients = self._coefficients(values, start)
+        gradient = np.hstack([coefficients.den_jacobian,
+                              coefficients.num_jacobian.reshape(start.size, -1)])[self._free]
         return self._factor @ gradient.T
 
     def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
@@ -519,12 +521,12 @@ def explains_data(problem, state, delay_index: Optional[int], delay_range) -> bo
     from ctid_ros.estimation.estimate import settling_time
 
     data = problem.data
-    horizon = settling_time(state.structure)
+    horizon = settling_time(state.coefficients)
     if delay_index is not None:
         horizon += _delay_bracket(problem, delay_index, delay_range)[1]
     lags = int(np.ceil(horizon / data.ts))
     residual = np.zeros(len(data))
-    residual[problem.skip:] = problem.measured - problem.prediction(state.structure)
+    residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
     return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
 
 

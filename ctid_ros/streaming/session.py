@@ -221,7 +221,7 @@ class IdentificationSession:
         result = estimate(config.compiled_model, window.data, **options)
         elapsed = time.perf_counter() - started
         self._previous = dict(result.params)
-        self._settling = settling_time(result.model.structure(result.params))
+        self._settling = settling_time(result.model.coefficients(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
         data = window.data
         step_ns = int(round(data.ts * 1e9))

@@ -1,4 +1,4 @@
-"""Grey-box Model: structure, Jacobians, affinity, delays, closed loop and rejected models."""
+"""Grey-box Model: coefficients, Jacobians, affinity, delays, closed loop and rejected models."""
 
 from ctid_ros import DataError, Model, ModelError
 import numpy as np
@@ -70,22 +70,22 @@ def test_models_without_parameters_are_rejected():
         Model('2*pi/(s+pi)')
 
 
-def test_mass_spring_damper_structure():
+def test_mass_spring_damper_coefficients():
     model = Model(MSD)
     assert model.parameters == ('m', 'd', 'k')
     assert model.is_affine
     assert not model.has_delay
     assert (model.num_degree, model.den_degree) == (0, 2)
-    structure = model.structure({'m': 0.5, 'd': 1.0, 'k': 50.0})
-    np.testing.assert_array_equal(structure.num[0], [1.0])
-    np.testing.assert_array_equal(structure.den, [0.5, 1.0, 50.0])
-    assert structure.delay == 0.0
-    np.testing.assert_array_equal(structure.num_jacobian[:, 0], np.zeros((3, 1)))
-    np.testing.assert_array_equal(structure.den_jacobian, np.eye(3))
-    np.testing.assert_array_equal(structure.delay_gradient, np.zeros(3))
-    # The same structure with '^' as power and a vector of values.
-    same = Model('1/(m*s^2 + d*s + k)').structure([0.5, 1.0, 50.0])
-    np.testing.assert_array_equal(same.den, structure.den)
+    coefficients = model.coefficients({'m': 0.5, 'd': 1.0, 'k': 50.0})
+    np.testing.assert_array_equal(coefficients.num[0], [1.0])
+    np.testing.assert_array_equal(coefficients.den, [0.5, 1.0, 50.0])
+    assert coefficients.delay == 0.0
+    np.testing.assert_array_equal(coefficients.num_jacobian[:, 0], np.zeros((3, 1)))
+    np.testing.assert_array_equal(coefficients.den_jacobian, np.eye(3))
+    np.testing.assert_array_equal(coefficients.delay_gradient, np.zeros(3))
+    # The same coefficients with '^' as power and a vector of values.
+    same = Model('1/(m*s^2 + d*s + k)').coefficients([0.5, 1.0, 50.0])
+    np.testing.assert_array_equal(same.den, coefficients.den)
 
 
 def test_parameter_order_is_order_of_first_appearance():
@@ -96,80 +96,80 @@ def test_parameter_order_is_order_of_first_appearance():
     assert Model('K/(s + 2*pi*f)').parameters == ('K', 'f')
 
 
-def test_rao_garnier_black_box_structure():
+def test_rao_garnier_black_box_coefficients():
     model = Model('(b1*s + b0)/(s**4 + a3*s**3 + a2*s**2 + a1*s + a0)')
     theta = {'b1': -6400.0, 'b0': 1600.0, 'a3': 5.0, 'a2': 408.0, 'a1': 416.0, 'a0': 1600.0}
-    structure = model.structure(theta)
-    np.testing.assert_array_equal(structure.num[0], [-6400.0, 1600.0])
-    np.testing.assert_array_equal(structure.den, [1.0, 5.0, 408.0, 416.0, 1600.0])
-    np.testing.assert_allclose(np.polymul([1, 1, 4], [1, 4, 400]), structure.den)
+    coefficients = model.coefficients(theta)
+    np.testing.assert_array_equal(coefficients.num[0], [-6400.0, 1600.0])
+    np.testing.assert_array_equal(coefficients.den, [1.0, 5.0, 408.0, 416.0, 1600.0])
+    np.testing.assert_allclose(np.polymul([1, 1, 4], [1, 4, 400]), coefficients.den)
     assert model.is_affine
 
 
 def test_non_affine_structures():
     model = Model('K/((T1*s + 1)*(T2*s + 1))')
     assert not model.is_affine
-    structure = model.structure({'K': 2.0, 'T1': 3.0, 'T2': 5.0})
-    np.testing.assert_allclose(structure.num[0], [2.0])
-    np.testing.assert_allclose(structure.den, [15.0, 8.0, 1.0])
+    coefficients = model.coefficients({'K': 2.0, 'T1': 3.0, 'T2': 5.0})
+    np.testing.assert_allclose(coefficients.num[0], [2.0])
+    np.testing.assert_allclose(coefficients.den, [15.0, 8.0, 1.0])
     model = Model('K*w**2/(s**2 + 2*z*w*s + w**2)')
     assert not model.is_affine
     assert model.parameters == ('K', 'w', 'z')
-    structure = model.structure({'K': 1.5, 'w': 3.0, 'z': 0.2})
-    np.testing.assert_allclose(structure.num[0], [13.5])
-    np.testing.assert_allclose(structure.den, [1.0, 1.2, 9.0])
+    coefficients = model.coefficients({'K': 1.5, 'w': 3.0, 'z': 0.2})
+    np.testing.assert_allclose(coefficients.num[0], [13.5])
+    np.testing.assert_allclose(coefficients.den, [1.0, 1.2, 9.0])
     # Section 8, test 5: dN/dK = w^2, dN/dw = 2 K w, dD/dw = 2 z s + 2 w, dD/dz = 2 w s.
-    np.testing.assert_allclose(structure.num_jacobian[:, 0], [[9.0], [9.0], [0.0]])
-    np.testing.assert_allclose(structure.den_jacobian,
+    np.testing.assert_allclose(coefficients.num_jacobian[:, 0], [[9.0], [9.0], [0.0]])
+    np.testing.assert_allclose(coefficients.den_jacobian,
                                [[0.0, 0.0, 0.0], [0.0, 0.4, 6.0], [0.0, 6.0, 0.0]])
 
 
 def test_first_order_plus_dead_time():
     model = Model('K*exp(-tau*s)/(T*s + 1)')
     assert model.has_delay and model.delay_is_estimated and model.is_affine
-    structure = model.structure({'K': 2.0, 'T': 5.0, 'tau': 1.234})
-    np.testing.assert_array_equal(structure.num[0], [2.0])
-    np.testing.assert_array_equal(structure.den, [5.0, 1.0])
-    assert structure.delay == 1.234
-    np.testing.assert_array_equal(structure.delay_gradient, [0.0, 1.0, 0.0])
+    coefficients = model.coefficients({'K': 2.0, 'T': 5.0, 'tau': 1.234})
+    np.testing.assert_array_equal(coefficients.num[0], [2.0])
+    np.testing.assert_array_equal(coefficients.den, [5.0, 1.0])
+    assert coefficients.delay == 1.234
+    np.testing.assert_array_equal(coefficients.delay_gradient, [0.0, 1.0, 0.0])
     known = Model('K*exp(-0.5*s)/(T*s + 1)')
     assert known.has_delay and not known.delay_is_estimated
-    assert known.structure([2.0, 5.0]).delay == 0.5
+    assert known.coefficients([2.0, 5.0]).delay == 0.5
     twice = Model('K*exp(-tau*s)*exp(-tau*s)/(T*s + 1)')     # one factor exp(-2 tau s)
-    assert twice.structure([1.0, 0.3, 1.0]).delay == pytest.approx(0.6, rel=1e-15)
+    assert twice.coefficients([1.0, 0.3, 1.0]).delay == pytest.approx(0.6, rel=1e-15)
 
 
-def test_closed_loop_structure_matches_hand_computation():
+def test_closed_loop_coefficients_match_hand_computation():
     model = Model(MSD, controller='4 + 2/s')
     assert model.parameters == ('m', 'd', 'k')
     m, d, k = 0.5, 1.0, 50.0
-    structure = model.structure({'m': m, 'd': d, 'k': k})
+    coefficients = model.coefficients({'m': m, 'd': d, 'k': k})
     np_, dp = np.array([1.0]), np.array([m, d, k])                 # plant
     kn, kd = np.array([4.0, 2.0]), np.array([1.0, 0.0])            # 4 + 2/s = (4s + 2)/s
     num = np.polymul(np_, kn)
     den = np.polyadd(np.polymul(dp, kd), np.polymul(np_, kn))
-    np.testing.assert_allclose(structure.num[0], num, rtol=1e-15)
-    np.testing.assert_allclose(structure.den, den, rtol=1e-15)
-    np.testing.assert_allclose(structure.den, [m, d, k + 4.0, 2.0], rtol=1e-15)
+    np.testing.assert_allclose(coefficients.num[0], num, rtol=1e-15)
+    np.testing.assert_allclose(coefficients.den, den, rtol=1e-15)
+    np.testing.assert_allclose(coefficients.den, [m, d, k + 4.0, 2.0], rtol=1e-15)
     assert model.is_affine
 
 
 def test_closed_loop_pid_matches_section_8_test_3():
     controller = '(5*s**2 + 20*s + 10)/(s*(0.02*s + 1))'
     model = Model(MSD, controller=controller)
-    structure = model.structure({'m': 1.0, 'd': 0.5, 'k': -2.0})
+    coefficients = model.coefficients({'m': 1.0, 'd': 0.5, 'k': -2.0})
     den = np.array([0.02, 1.01, 5.46, 18.0, 10.0])
     num = np.array([5.0, 20.0, 10.0])
-    scale = structure.den[0] / den[0]          # N and D are defined up to a common factor
-    np.testing.assert_allclose(structure.den, scale * den, rtol=1e-13)
-    np.testing.assert_allclose(structure.num[0], scale * num, rtol=1e-13)
-    poles = np.sort_complex(np.roots(structure.den))
+    scale = coefficients.den[0] / den[0]          # N and D are defined up to a common factor
+    np.testing.assert_allclose(coefficients.den, scale * den, rtol=1e-13)
+    np.testing.assert_allclose(coefficients.num[0], scale * num, rtol=1e-13)
+    poles = np.sort_complex(np.roots(coefficients.den))
     np.testing.assert_allclose(poles.real, [-44.86, -2.48, -2.48, -0.678], atol=0.006)
     # D_m = Tf s^4 + s^3, D_d = Tf s^3 + s^2, D_k = Tf s^2 + s (times the same factor).
-    np.testing.assert_allclose(structure.den_jacobian / scale, [
+    np.testing.assert_allclose(coefficients.den_jacobian / scale, [
         [0.02, 1.0, 0.0, 0.0, 0.0], [0.0, 0.02, 1.0, 0.0, 0.0], [0.0, 0.0, 0.02, 1.0, 0.0]],
         atol=1e-15)
-    np.testing.assert_array_equal(structure.num_jacobian[:, 0], np.zeros((3, 3)))
+    np.testing.assert_array_equal(coefficients.num_jacobian[:, 0], np.zeros((3, 3)))
 
 
 JACOBIAN_CASES = [
@@ -185,18 +185,18 @@ JACOBIAN_CASES = [
 def test_jacobians_match_central_differences(text, theta):
     model = Model(text)
     theta = np.array(theta)
-    structure = model.structure(theta)
+    coefficients = model.coefficients(theta)
     for index in range(theta.size):
         step = 1e-6 * max(1.0, abs(theta[index]))
         up, down = theta.copy(), theta.copy()
         up[index] += step
         down[index] -= step
-        plus, minus = model.structure(up), model.structure(down)
+        plus, minus = model.coefficients(up), model.coefficients(down)
         for field in ('num', 'den', 'delay'):
             difference = (np.asarray(getattr(plus, field))
                           - np.asarray(getattr(minus, field))) / (2 * step)
-            exact = {'num': structure.num_jacobian, 'den': structure.den_jacobian,
-                     'delay': structure.delay_gradient}[field][index]
+            exact = {'num': coefficients.num_jacobian, 'den': coefficients.den_jacobian,
+                     'delay': coefficients.delay_gradient}[field][index]
             np.testing.assert_allclose(exact, difference, rtol=1e-7, atol=1e-7,
                                        err_msg=f'{text}: d{field}/d{model.parameters[index]}')
 
@@ -204,29 +204,29 @@ def test_jacobians_match_central_differences(text, theta):
 def test_closed_loop_jacobian_matches_central_differences():
     model = Model('K*w**2/(s**2 + 2*z*w*s + w**2)', controller='(3*s + 2)/(s*(0.1*s + 1))')
     theta = np.array([1.5, 3.0, 0.2])
-    structure = model.structure(theta)
+    coefficients = model.coefficients(theta)
     for index in range(3):
         step = 1e-6 * theta[index]
         up, down = theta.copy(), theta.copy()
         up[index] += step
         down[index] -= step
-        difference = (model.structure(up).den - model.structure(down).den) / (2 * step)
-        np.testing.assert_allclose(structure.den_jacobian[index], difference, rtol=1e-7,
+        difference = (model.coefficients(up).den - model.coefficients(down).den) / (2 * step)
+        np.testing.assert_allclose(coefficients.den_jacobian[index], difference, rtol=1e-7,
                                    atol=1e-7)
 
 
 def test_parameter_values_are_validated():
     model = Model('K*exp(-tau*s)/(T*s + 1)')
     with pytest.raises(ModelError, match='missing'):
-        model.structure({'K': 1.0, 'T': 1.0})
+        model.coefficients({'K': 1.0, 'T': 1.0})
     with pytest.raises(ModelError, match='unknown'):
-        model.structure({'K': 1.0, 'T': 1.0, 'tau': 0.1, 'L': 2.0})
+        model.coefficients({'K': 1.0, 'T': 1.0, 'tau': 0.1, 'L': 2.0})
     with pytest.raises(ModelError, match='expected 3'):
-        model.structure([1.0, 2.0])
+        model.coefficients([1.0, 2.0])
     with pytest.raises(ModelError, match='finite'):
-        model.structure([1.0, np.nan, 2.0])
+        model.coefficients([1.0, np.nan, 2.0])
     with pytest.raises(ModelError, match='undefined'):
-        Model('K/(s + exp(1/T))').structure({'K': 1.0, 'T': 0.0})
+        Model('K/(s + exp(1/T))').coefficients({'K': 1.0, 'T': 0.0})
     assert model.as_dict(model.vector({'tau': 0.1, 'T': 2.0, 'K': 3.0})) == {
         'K': 3.0, 'tau': 0.1, 'T': 2.0}
 

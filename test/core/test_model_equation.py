@@ -12,10 +12,10 @@ def test_equation_with_two_inputs_and_a_constant():
     assert model.parameters == ('M', 'Fv', 'Fc', 'off')
     assert model.inputs == ('u', 'w') and model.constant_input
     assert model.integrators == 1 and model.is_affine
-    structure = model.structure({'M': 2.0, 'Fv': 3.0, 'Fc': 4.0, 'off': 5.0})
-    np.testing.assert_array_equal(structure.den, [2.0, 3.0, 0.0])
-    np.testing.assert_array_equal(structure.num, [[35.0], [-4.0], [-5.0]])
-    np.testing.assert_array_equal(structure.num_jacobian[2], [[0.0], [-1.0], [0.0]])
+    coefficients = model.coefficients({'M': 2.0, 'Fv': 3.0, 'Fc': 4.0, 'off': 5.0})
+    np.testing.assert_array_equal(coefficients.den, [2.0, 3.0, 0.0])
+    np.testing.assert_array_equal(coefficients.num, [[35.0], [-4.0], [-5.0]])
+    np.testing.assert_array_equal(coefficients.num_jacobian[2], [[0.0], [-1.0], [0.0]])
     num, den, delay = model.transfer_function([2.0, 3.0, 4.0, 5.0], 'w')
     np.testing.assert_array_equal(num, [-4.0])
     assert delay == 0.0
@@ -32,9 +32,9 @@ def test_equation_equals_the_transfer_function_form():
 
 def test_rational_terms_and_output_on_both_sides():
     model = Model('a*s*y = b*u/(s + 1) - y', inputs=['u'])
-    structure = model.structure({'a': 2.0, 'b': 3.0})
-    np.testing.assert_allclose(structure.den, [2.0, 3.0, 1.0])
-    np.testing.assert_allclose(structure.num, [[3.0]])
+    coefficients = model.coefficients({'a': 2.0, 'b': 3.0})
+    np.testing.assert_allclose(coefficients.den, [2.0, 3.0, 1.0])
+    np.testing.assert_allclose(coefficients.num, [[3.0]])
 
 
 def test_simulation_sums_the_inputs():

@@ -90,8 +90,8 @@ def test_iv_stops_at_the_output_error_minimum_within_a_thousandth_of_a_std():
     assert result.stop_reason.startswith('update below')
     bank = SignalBank(system.model, data.u, data.y, data.ts)
     minimum = optimize.least_squares(
-        lambda theta: data.y - bank.output(system.model.structure(theta)), result.theta,
-        jac=lambda theta: -bank.linearize(system.model.structure(theta), False).psi,
+        lambda theta: data.y - bank.output(system.model.coefficients(theta)), result.theta,
+        jac=lambda theta: -bank.linearize(system.model.coefficients(theta), False).psi,
         xtol=1e-14, ftol=1e-14, gtol=1e-14).x
     for index, name in enumerate(system.model.parameters):
         assert abs(result.params[name] - minimum[index]) < 2e-3 * result.std[name], name
