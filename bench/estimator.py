@@ -25,7 +25,7 @@ import warnings
 from ctid_ros import estimate, EstimationError, ModelError
 from ctid_ros.core import reference_systems
 from ctid_ros.core.reference_systems import ReferenceSystem
-from ctid_ros.estimation.estimate import bound_vectors
+from ctid_ros.estimation.problem import bound_vectors
 from ctid_ros.estimation.regressors import is_stable, SignalBank
 import numpy as np
 from scipy import optimize, stats

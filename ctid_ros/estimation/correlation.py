@@ -1,17 +1,24 @@
 """
-Residual analysis: does a model leave anything correlated with the input.
+Input-output correlation: does a model leave anything correlated with the input.
 
 A model that captures the dynamics leaves a residual uncorrelated with past inputs, whatever the
 colour of the noise (the test behind MATLAB's ``resid``). A wrong dead time or a missed mode
-leaves correlation at the lags it gets wrong. The estimator uses this to accept a local fit of a
-dead time without searching the whole delay range.
+leaves correlation at the lags it gets wrong. The estimator uses this to accept a local fit
+without the automatic start or the dead-time search (``docs/algorithm.md``, section 11).
+
+The same correlation of the data themselves, after prewhitening the input, gives the data's own
+dead-time guess (:func:`prewhitened_delay`, section 12).
 """
 
+from ctid_ros.core.data import Data
 import numpy as np
+
+__all__ = ['CONFIDENCE', 'independent_of_input', 'input_correlation', 'prewhitened_delay']
 
 # Standard deviations of a correlation under independence: about 1 % false alarms over a
 # hundred lags (two-sided normal tail 6e-5 per lag).
 CONFIDENCE = 4.0
+_PREWHITENING_ORDER = 10
 
 
 def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) -> np.ndarray:
@@ -66,3 +73,36 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     count = residual.size - used[0]
     correlation = input_correlation(residual, inputs, max_lag)
     return bool(np.max(np.abs(correlation)) <= confidence / np.sqrt(count))
+
+
+def prewhitened_delay(data: Data) -> float:
+    """
+    Dead-time guess: first lag of significant prewhitened input-output correlation.
+
+    An autoregressive model of the (first) input (least squares, order 10) whitens it; the same
+    filter applied to the output leaves a cross-correlation proportional to the impulse response
+    (Box-Jenkins prewhitening), whose first lag above ``CONFIDENCE/sqrt(N)``, less half a
+    sample for the hold, is the guess. A slowly held input that the filter cannot whiten
+    gives an early guess: it only orders the search, it does not bound it from below.
+
+    """
+    u = np.asarray(data.u, dtype=float).reshape(len(data), -1)[:, 0]
+    y = np.asarray(data.y, dtype=float)
+    count = u.size
+    order = min(_PREWHITENING_ORDER, count // 10)
+    if order < 1 or not np.ptp(u):
+        return 0.0
+    u, y = u - np.mean(u), y - np.mean(y)
+
+    def lagged(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([values[order - k - 1:count - k - 1] for k in range(order)])
+
+    inputs = lagged(u)
+    coefficients = np.linalg.lstsq(inputs, u[order:], rcond=None)[0]
+    whitened_u = u[order:] - inputs @ coefficients
+    whitened_y = y[order:] - lagged(y) @ coefficients
+    correlation = np.abs(input_correlation(whitened_y, whitened_u, count // 2)[:, 0])
+    significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
+    if significant.size == 0:
+        return 0.0
+    return max(significant[0] - 0.5, 0.0) * data.ts

@@ -1,7 +1,7 @@
 """
-Projection-based iterative estimation of grey-box continuous-time models.
+Grey-box continuous-time estimation: :func:`estimate` and its result :class:`Estimate`.
 
-Implements the method of Maruta & Sugie (see ``shared/docs/algorithm.md``): at the current
+Implements the method of Maruta & Sugie as described in ``docs/algorithm.md``: at the current
 estimate ``theta_k`` the output error ``e = y - G(p, theta_k) u`` is projected onto regressors
 ``phi`` built by filtering ``u`` and ``y`` through ``1/D(p, theta_k)``:
 
@@ -18,54 +18,47 @@ A dead time ``exp(-tau s)`` is located first by a profile over a grid of frozen 
 then estimated jointly (fractional values are exact under a zero-order hold).
 
 A complete initial guess is iterated first; if the model it reaches leaves a residual
-independent of the input, the automatic start and the dead-time profile are not needed (see
-:mod:`ctid_ros.estimation.starts`).
+independent of the input, the automatic start and the dead-time profile are not needed.
+
+The layers below: :mod:`~ctid_ros.estimation.problem` (data, bounds, cost),
+:mod:`~ctid_ros.estimation.iteration` (the controlled iteration),
+:mod:`~ctid_ros.estimation.starts` (automatic start, warm-start check) and
+:mod:`~ctid_ros.estimation.delay_search`. This module adds the orchestration, the
+identifiability check and the covariance (``docs/algorithm.md`` sections 1, 14 and 15).
 """
 
 from dataclasses import dataclass, field
-from functools import cached_property, lru_cache
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from functools import lru_cache
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 import warnings
 
 from ctid_ros.core.data import Data
-from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import ContinuousFilter
-from ctid_ros.errors import DataError, EstimationError, ModelError
+from ctid_ros.core.model import Model
+from ctid_ros.errors import DataError, EstimationError
+from ctid_ros.estimation.delay_search import delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
-from ctid_ros.estimation.regressors import is_stable, Linearization, SignalBank
+from ctid_ros.estimation.iteration import (column_scales, iterate, Iteration, IterationResult,
+                                           StopReason)
+from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
+                                         nuisance_columns, orthonormal_basis, Problem, State,
+                                         with_fitted_nuisance)
+from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
+                                        initial_estimate, local_fit)
 import numpy as np
-from scipy import linalg
 from threadpoolctl import ThreadpoolController
+
+__all__ = ['Estimate', 'INITIAL_STATES', 'METHODS', 'covariance', 'estimate', 'fit_percent']
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
-Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
-Initial = Union[str, None, Mapping[str, float]]
-
-_HALVINGS = 14
-_FULL_STEP = (1.0,)
-_HALVED_STEPS = tuple(0.5 ** np.arange(1, _HALVINGS))
-_ALL_STEPS = _FULL_STEP + _HALVED_STEPS
-_IV_CONDITION_LIMIT = 1e10
 _IDENTIFIABILITY_LIMIT = 1e10
 _SYMMETRY_RESTARTS = 3
-# An update smaller than this many standard deviations of the estimate changes nothing a user
-# can see: the iteration stops instead of resolving noise to the last digit.
-_NEGLIGIBLE_STEP = 1e-3
-NO_FULL_STEP = 'no full step decreases the cost'
-# Full steps from a complete guess before its residual is tested (FOPDT benchmark, 100 starts
-# within x10: median 13.9 ms with six, 14.7 ms with four that left more of them unconverged).
+# Random perturbations tried at a point where symmetric parameters coincide.
+_NUDGES = 14
+# Full steps from a complete guess before its residual is tested. Fewer leave more good guesses
+# unconverged, which then pay for the automatic start and search; more only delay the search
+# for a guess that cannot explain the data.
 _WARM_START_ITERATIONS = 6
-
-
-@dataclass
-class Iteration:
-    """One accepted update: parameters after it, cost, step length and the direction used."""
-
-    theta: np.ndarray
-    cost: float
-    step: float
-    direction: str
 
 
 @dataclass
@@ -91,7 +84,8 @@ class Estimate:
     cost : float
         Output-error cost ``0.5 |y - yhat|^2``.
     stop_reason : str
-        Which stopping rule fired.
+        Which stopping rule of the final iteration fired: the text of a
+        :class:`~ctid_ros.estimation.iteration.StopReason`.
     history : list of Iteration
         Parameter vector and cost after every accepted update.
     noise_variance : float
@@ -160,7 +154,7 @@ class Estimate:
             output = output + data.y[0]
         columns = nuisance_columns(self.model.coefficients(self.params).den, len(data), data.ts,
                                    self.initial_state == 'estimate', self.output_offset)
-        return _fitted(data.y, output, _orthonormal(columns))
+        return with_fitted_nuisance(data.y, output, orthonormal_basis(columns))
 
     def compare(self, data: Data) -> float:
         """Fit in percent of the identified model on (validation) ``data``, see :meth:`predict`."""
@@ -189,363 +183,10 @@ def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
     return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / spread))
 
 
-def nuisance_columns(den: np.ndarray, count: int, ts: float, initial_state: bool,
-                     output_offset: bool) -> Optional[np.ndarray]:
-    """
-    Return the output components fitted besides ``G u`` as columns, or None.
-
-    ``initial_state``: the free responses of ``1/D`` (a nonzero initial state, algorithm notes
-    section 5.8); ``output_offset``: a constant. Their coefficients enter linearly, so they are
-    projected out of every residual, regressor and instrument (variable projection).
-    """
-    columns = []
-    if initial_state:
-        columns.append(ContinuousFilter(den).discretize(ts).free_responses(count))
-    if output_offset:
-        columns.append(np.ones((count, 1)))
-    return np.hstack(columns) if columns else None
-
-
-def _orthonormal(columns: Optional[np.ndarray]) -> Optional[np.ndarray]:
-    """Orthonormal basis of the span of ``columns`` (None stays None)."""
-    if columns is None:
-        return None
-    norms = np.linalg.norm(columns, axis=0)
-    return linalg.orth(columns / np.where(norms > 0.0, norms, 1.0))
-
-
-def _fitted(measured: np.ndarray, output: np.ndarray, basis: Optional[np.ndarray]
-            ) -> np.ndarray:
-    """Model output plus its least-squares fitted nuisance part."""
-    if basis is None:
-        return output
-    return output + basis @ (basis.T @ (measured - output))
-
-
-class _Problem:
-    """Data, model and constraints of one estimation; evaluates costs and directions."""
-
-    def __init__(self, model: Model, data: Data, lower: np.ndarray, upper: np.ndarray,
-                 intersample: str, initial_state: bool = False, output_offset: bool = False):
-        self.model = model
-        self.data = data
-        self.lower = lower
-        self.upper = upper
-        self.bank = SignalBank(model, data.u, data.y, data.ts, intersample)
-        self.initial_state = initial_state
-        self.output_offset = output_offset
-        self.evaluations = 0
-        self.skip = 0
-        self._leading_sign = None
-        self._latest: Optional[Tuple[bytes, Linearization]] = None
-
-    @cached_property
-    def delay_guess(self) -> float:
-        """Return the data's own dead-time guess (initialization.impulse_delay), once."""
-        from ctid_ros.estimation.starts import impulse_delay
-
-        # The start, the delay bracket, the residual checks and the grid all ask for it.
-        return impulse_delay(self.data)
-
-    @property
-    def measured(self) -> np.ndarray:
-        """Output samples that are fitted (after the excluded transient)."""
-        return self.data.y[self.skip:]
-
-    def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
-        columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
-                                   self.initial_state, self.output_offset)
-        return None if columns is None else _orthonormal(columns[self.skip:])
-
-    def prediction(self, coefficients: Coefficients) -> np.ndarray:
-        """Model output on the fitted samples, with the fitted initial state and offset."""
-        return _fitted(self.measured, self.bank.output(coefficients)[self.skip:],
-                       self._basis(coefficients))
-
-    def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
-        """
-        Output, regressors and instruments on the fitted samples (nuisance projected out).
-
-        The latest result is kept: the final estimate is linearised once for the stopping
-        rule, the identifiability check and the covariance.
-
-        """
-        key = b''.join(np.ascontiguousarray(part).tobytes() for part in (
-            coefficients.den, coefficients.num, coefficients.delay, coefficients.den_jacobian,
-            coefficients.num_jacobian, coefficients.delay_gradient, self.skip))
-        if self._latest is not None and self._latest[0] == key and (
-                self._latest[1].phi is not None or not regressors):
-            return self._latest[1]
-        lin = self._linearized(coefficients, regressors)
-        self._latest = (key, lin)
-        return lin
-
-    def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:
-        lin = self.bank.linearize(coefficients, regressors)
-        output, phi, psi = (lin.output[self.skip:],
-                            None if lin.phi is None else lin.phi[self.skip:],
-                            lin.psi[self.skip:])
-        basis = self._basis(coefficients)
-        if basis is not None:
-            output = _fitted(self.measured, output, basis)
-            psi = psi - basis @ (basis.T @ psi)
-            if phi is not None:
-                phi = phi - basis @ (basis.T @ phi)
-        return Linearization(output, phi, psi)
-
-    def exclude_transient(self, seconds: Union[float, str], coefficients: Coefficients) -> None:
-        """
-        Leave the first samples out of every sum, so data that do not start at rest fit.
-
-        ``'auto'`` takes five times the slowest time constant of ``coefficients`` plus its dead
-        time, at most half of the record.
-
-        """
-        if seconds == 'auto':
-            seconds = settling_time(coefficients)
-        seconds = float(seconds)
-        if not (np.isfinite(seconds) and seconds >= 0.0):
-            raise ValueError(f"transient must be 'auto' or a non-negative time, got {seconds}")
-        self.skip = int(min(np.ceil(seconds / self.data.ts), len(self.data) // 2))
-
-    def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
-        """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
-        if np.any(theta < self.lower) or np.any(theta > self.upper):
-            return None
-        try:
-            coefficients = self.model.coefficients(theta)
-        except ModelError:
-            return None
-        if coefficients.delay < 0.0 or not is_stable(coefficients.den):
-            return None
-        sign = np.sign(coefficients.den[0])
-        if self._leading_sign is not None and sign != self._leading_sign:
-            return None
-        return coefficients
-
-    def anchor(self, coefficients: Coefficients) -> None:
-        """Fix the sign of D's leading coefficient: crossing zero would change the order."""
-        self._leading_sign = np.sign(coefficients.den[0])
-
-    def cost(self, coefficients: Coefficients) -> float:
-        self.evaluations += 1
-        error = self.measured - self.prediction(coefficients)
-        return 0.5 * float(error @ error)
-
-
-@dataclass
-class _State:
-    theta: np.ndarray
-    coefficients: Coefficients
-    cost: float
-
-
 @lru_cache(maxsize=1)
 def _thread_pools() -> ThreadpoolController:
-    # Finding the loaded BLAS libraries takes milliseconds: once per process, not per estimate.
+    # Finding the loaded BLAS libraries is slow: once per process, not per estimate.
     return ThreadpoolController()
-
-
-def settling_time(coefficients: Coefficients) -> float:
-    """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
-    roots = np.roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
-    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
-    return 5.0 * slowest + max(coefficients.delay, 0.0)
-
-
-def _column_scales(psi: np.ndarray) -> np.ndarray:
-    scales = np.linalg.norm(psi, axis=0)
-    return np.where(scales > 0.0, scales, 1.0)
-
-
-def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-               damping: float = 0.0) -> Optional[np.ndarray]:
-    """Update direction on the free parameters (zeros elsewhere), or None if singular."""
-    psi = lin.psi[:, free]
-    scales = _column_scales(psi)
-    psi_s = psi / scales
-    if kind == 'ls':
-        phi_s = lin.phi[:, free] / scales
-        step = np.linalg.lstsq(phi_s, error, rcond=None)[0]
-    elif kind == 'iv':
-        phi_s = lin.phi[:, free] / scales
-        matrix = psi_s.T @ phi_s
-        if np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
-            return None
-        step = np.linalg.solve(matrix, psi_s.T @ error)
-    elif kind == 'gn':
-        step = np.linalg.lstsq(psi_s, error, rcond=None)[0]
-    else:
-        gram = psi_s.T @ psi_s
-        try:
-            step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), psi_s.T @ error)
-        except np.linalg.LinAlgError:
-            return None
-    if not np.all(np.isfinite(step)):
-        return None
-    full = np.zeros(free.size)
-    full[free] = step / scales
-    return full
-
-
-def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray,
-               upper: np.ndarray) -> float:
-    """Largest fraction (<= 1) of ``step`` that keeps theta inside the box."""
-    limit = 1.0
-    with np.errstate(divide='ignore', invalid='ignore'):
-        up = np.where(step > 0, (upper - theta) / step, np.inf)
-        down = np.where(step < 0, (lower - theta) / step, np.inf)
-    limit = min(limit, float(np.min(up, initial=np.inf)), float(np.min(down, initial=np.inf)))
-    return limit if limit >= 1.0 else 0.999 * limit
-
-
-def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
-               problem: _Problem, frozen: np.ndarray) -> np.ndarray:
-    """Active set: drop parameters that sit on a bound and whose gradient pushes outward."""
-    gradient = lin.psi.T @ error                     # -dV/dtheta
-    span = np.maximum(np.abs(theta), 1.0)
-    at_lower = (theta - problem.lower <= 1e-9 * span) & (gradient < 0)
-    at_upper = (problem.upper - theta <= 1e-9 * span) & (gradient > 0)
-    return ~(frozen | at_lower | at_upper)
-
-
-def _try_step(problem: _Problem, state: _State, step: np.ndarray, monotone: bool,
-              scales: Sequence[float]) -> Optional[Tuple[_State, float]]:
-    """First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V."""
-    limit = _box_limit(state.theta, step, problem.lower, problem.upper)
-    for scale in scales:
-        candidate = state.theta + limit * scale * step
-        coefficients = problem.admissible(candidate)
-        if coefficients is not None:
-            cost = problem.cost(coefficients)
-            if not monotone or cost <= state.cost:
-                return _State(candidate, coefficients, cost), limit * scale
-    return None
-
-
-def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float:
-    """Length of ``step`` in standard deviations of the estimate, ``|Psi step| / sigma``."""
-    count, params = lin.psi.shape
-    variance = float(error @ error) / max(count - params, 1)
-    if variance == 0.0:
-        return np.inf
-    return float(np.linalg.norm(lin.psi @ step) / np.sqrt(variance))
-
-
-def _iterate(problem: _Problem, state: _State, *, method: str, frozen: np.ndarray,
-             max_iterations: int, tolerance: float, first_ls: bool = True,
-             trust_first_ls: bool = False, full_steps_only: bool = False
-             ) -> Tuple[_State, List[Iteration], str, bool]:
-    """
-    Run the controlled projection iteration from ``state``.
-
-    Each update tries the full primary step, then the full Gauss-Newton step, and only then
-    halves them and falls back to Levenberg-Marquardt: a biased first least-squares step then
-    costs one cost evaluation, not a whole halving sequence.
-
-    ``trust_first_ls`` accepts the first (least-squares) step even if it raises the cost, as
-    long as the model stays stable and inside the bounds: for an affine structure that step is
-    the exact regression from any start, which is what a profile over frozen parameters needs.
-
-    ``full_steps_only`` gives up (not converged) at the first update that needs a shorter or
-    damped step: a quick check of a start that is either close to a minimum or not worth the
-    halving.
-
-    """
-    history: List[Iteration] = []
-    for iteration in range(max_iterations):
-        lin = problem.linearize(state.coefficients, regressors=method != 'gn')
-        error = problem.measured - lin.output
-        free = _free_mask(state.theta, lin, error, problem, frozen)
-        if not np.any(free):
-            return state, history, 'all parameters fixed at bounds', True
-        primary = 'gn' if method == 'gn' else ('ls' if method == 'ls' or (
-            iteration == 0 and first_ls) else 'iv')
-        directions = {}
-
-        def direction(kind: str, damping: float) -> Optional[np.ndarray]:
-            if (kind, damping) not in directions:
-                directions[kind, damping] = _direction(kind, lin, error, free, damping)
-            return directions[kind, damping]
-
-        first = direction(primary, 0.0)
-        if primary != 'ls' and first is not None and \
-                _step_size(lin, error, first) < _NEGLIGIBLE_STEP:
-            return state, history, \
-                f'update below {_NEGLIGIBLE_STEP:g} standard deviations', True
-        # Pure P-LS follows its own fixed point, not the output-error descent.
-        trusted = method == 'ls' or (trust_first_ls and iteration == 0 and primary == 'ls')
-        if trusted:
-            attempts = [(primary, 0.0, _ALL_STEPS, False), ('gn', 0.0, _ALL_STEPS, True)]
-        else:
-            attempts = [(primary, 0.0, _FULL_STEP, True), ('gn', 0.0, _FULL_STEP, True),
-                        (primary, 0.0, _HALVED_STEPS, True), ('gn', 0.0, _HALVED_STEPS, True)]
-        if method == 'ls':
-            attempts = attempts[:1]
-        else:
-            attempts += [('lm', damping, _ALL_STEPS, True) for damping in (1e-2, 1.0, 1e2)]
-        if full_steps_only:
-            attempts = [(kind, damping, _FULL_STEP, monotone)
-                        for kind, damping, _, monotone in attempts if kind != 'lm']
-        accepted = None
-        tried = set()
-        for kind, damping, scales, monotone in attempts:
-            step = direction(kind, damping)
-            if step is None or (kind, damping, scales) in tried:
-                continue
-            tried.add((kind, damping, scales))
-            outcome = _try_step(problem, state, step, monotone, scales)
-            if outcome is not None:
-                accepted = (kind, step, outcome)
-                break
-        if accepted is None and full_steps_only:
-            return state, history, NO_FULL_STEP, False
-        if accepted is None:
-            return state, history, 'no admissible step decreases the cost', True
-        kind, step, (new_state, scale) = accepted
-        change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
-        decrease = (state.cost - new_state.cost) / max(state.cost, np.finfo(float).tiny)
-        state = new_state
-        history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
-        if change < tolerance:
-            return state, history, f'relative parameter change below {tolerance:g}', True
-        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls':
-            return state, history, 'relative cost decrease below resolution', True
-        if state.cost <= 1e-30 * max(float(problem.measured @ problem.measured), 1e-300):
-            return state, history, 'output reproduced exactly', True
-    return state, history, f'iteration limit ({max_iterations}) reached', False
-
-
-def bound_vectors(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, np.ndarray]:
-    """Return lower and upper bound vectors in parameter order (a dead time >= 0)."""
-    lower = np.full(len(model.parameters), -np.inf)
-    upper = np.full(len(model.parameters), np.inf)
-    for name, pair in (bounds or {}).items():
-        if name not in model.parameters:
-            raise ModelError(f'bounds given for unknown parameter {name!r}; the model has '
-                             f'{", ".join(model.parameters)}')
-        index = model.parameters.index(name)
-        low, high = pair
-        lower[index] = -np.inf if low is None else float(low)
-        upper[index] = np.inf if high is None else float(high)
-        if not lower[index] < upper[index]:
-            raise ModelError(f'bounds for {name} are empty: {low} >= {high}')
-    delay_index = delay_parameter(model)
-    if delay_index is not None:
-        lower[delay_index] = max(lower[delay_index], 0.0)
-    return lower, upper
-
-
-def delay_parameter(model: Model) -> Optional[int]:
-    """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
-    if not model.delay_is_estimated:
-        return None
-    probe = model.coefficients(np.ones(len(model.parameters)))
-    gradient = probe.delay_gradient
-    nonzero = np.flatnonzero(gradient)
-    if nonzero.size == 1 and gradient[nonzero[0]] == 1.0:
-        return int(nonzero[0])
-    return None
 
 
 def _check_excitation(model: Model, data: Data) -> None:
@@ -564,7 +205,7 @@ def _check_excitation(model: Model, data: Data) -> None:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
 
 
-def _blind_combination(problem: _Problem, state: _State) -> Optional[str]:
+def _blind_combination(problem: Problem, state: State) -> Optional[str]:
     """Explain why the output is (almost) blind to a parameter combination, or None."""
     lin = problem.linearize(state.coefficients, regressors=False)
     norms = np.linalg.norm(lin.psi, axis=0)
@@ -582,23 +223,31 @@ def _blind_combination(problem: _Problem, state: _State) -> Optional[str]:
             f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
 
 
-def _nudged(problem: _Problem, state: _State, rng: np.random.Generator) -> Optional[_State]:
+def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optional[State]:
     """Perturb a point where symmetric parameters coincide (e.g. T1 = T2) so they can split."""
-    for _ in range(_HALVINGS):
+    for _ in range(_NUDGES):
         theta = state.theta * (1.0 + 0.05 * rng.standard_normal(state.theta.size))
         theta = np.clip(theta, problem.lower, problem.upper)
         coefficients = problem.admissible(theta)
         if coefficients is not None:
-            return _State(theta, coefficients, problem.cost(coefficients))
+            return State(theta, coefficients, problem.cost(coefficients))
     return None
 
 
-def _covariance(problem: _Problem, state: _State) -> Tuple[np.ndarray, float, float]:
+def covariance(problem: Problem, state: State) -> Tuple[np.ndarray, float, float]:
+    """
+    Return the parameter covariance, the noise variance and the condition number at ``state``.
+
+    ``sigma^2 (Psi^T Psi)^-1`` with ``sigma^2 = |e|^2 / (N - n_theta)``, computed from the
+    singular values of the column-scaled instruments ``Psi`` (the output sensitivities), whose
+    condition number is the third value (``docs/algorithm.md`` section 15).
+
+    """
     lin = problem.linearize(state.coefficients, regressors=False)
     error = problem.measured - lin.output
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    scales = _column_scales(lin.psi)
+    scales = column_scales(lin.psi)
     _, singular, vt = np.linalg.svd(lin.psi / scales, full_matrices=False)
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
     inverse = (vt.T / singular ** 2) @ vt
@@ -609,7 +258,7 @@ def _covariance(problem: _Problem, state: _State) -> Tuple[np.ndarray, float, fl
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
              bounds: Optional[Bounds] = None, method: str = 'iv', intersample: str = 'zoh',
              max_iterations: int = 100, tolerance: float = 1e-8,
-             delay_range: Optional[Tuple[float, float]] = None,
+             delay_range: DelayRange = None,
              transient: Union[float, str] = 0.0, initial_state: str = 'zero',
              output_offset: bool = False, integrator_cutoff: Optional[float] = None
              ) -> Estimate:
@@ -675,9 +324,6 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         If initial values or bounds do not match the model.
 
     """
-    from ctid_ros.estimation.starts import (complete_guess, delay_search, explains_data,
-                                            initial_estimate, local_fit)
-
     if method not in METHODS:
         raise ValueError(f'method must be one of {METHODS}, got {method!r}')
     if max_iterations < 1:
@@ -693,9 +339,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         fitted_model = StabilizedModel(model, cutoff)
         fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
                            data.t0)
-    problem = _Problem(fitted_model, fitted_data, lower, upper, intersample,
-                       initial_state == 'estimate', output_offset)
-    # The matrices are tiny: threaded BLAS only adds spin-waiting (about 6x slower under load).
+    problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
+                      initial_state == 'estimate', output_offset)
+    # The matrices are tiny: threaded BLAS only adds spin-waiting, which dominates under load.
     with warnings.catch_warnings(), _thread_pools().limit(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
         delay_index = delay_parameter(model)
@@ -706,62 +352,65 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start = complete_guess(problem, initial)
         from_initial = False
         if start is not None:
-            start = _started(problem, start, transient)
-            start, history, held = local_fit(problem, start, method, first_ls=True,
-                                             full_steps_only=True,
-                                             iterations=_WARM_START_ITERATIONS)
-            from_initial = held and explains_data(problem, start, delay_index, delay_range)
+            warm = local_fit(problem, _started(problem, start, transient), method,
+                             first_ls=True, full_steps_only=True,
+                             iterations=_WARM_START_ITERATIONS)
+            start, history = warm.state, warm.history
+            from_initial = warm.reason is not StopReason.NO_FULL_STEP and \
+                explains_data(problem, start, delay_index, delay_range)
         refined = from_initial
         if not from_initial:
             history = []
             start = _started(problem, initial_estimate(problem, initial, delay_range), transient)
             if delay_index is not None:
-                start, profile, history = delay_search(problem, start, delay_index,
-                                                       delay_range)
+                search = delay_search(problem, start, delay_index, delay_range)
+                start, profile, history = search.state, search.profile, search.history
             refined = delay_index is not None
         frozen = np.zeros(len(model.parameters), dtype=bool)
         # A start refined by iterations needs no least-squares step.
-        final, more, reason, converged = _iterate(
-            problem, start, method=method, frozen=frozen, max_iterations=max_iterations,
-            tolerance=tolerance, first_ls=not refined)
-        history.extend(more)
+        final = iterate(problem, start, method=method, frozen=frozen,
+                        max_iterations=max_iterations, tolerance=tolerance,
+                        first_ls=not refined)
+        history.extend(final.history)
         rng = np.random.default_rng(0)
         for _ in range(_SYMMETRY_RESTARTS):
-            if _blind_combination(problem, final) is None:
+            if _blind_combination(problem, final.state) is None:
                 break
-            nudged = _nudged(problem, final, rng)
+            nudged = _nudged(problem, final.state, rng)
             if nudged is None:
                 break
-            final, more, reason, converged = _iterate(
-                problem, nudged, method=method, frozen=frozen,
-                max_iterations=max_iterations, tolerance=tolerance, first_ls=False)
-            history.extend(more)
-        blind = _blind_combination(problem, final)
+            final = iterate(problem, nudged, method=method, frozen=frozen,
+                            max_iterations=max_iterations, tolerance=tolerance, first_ls=False)
+            history.extend(final.history)
+        blind = _blind_combination(problem, final.state)
         if blind is not None:
             raise EstimationError(blind)
-        covariance, variance, condition = _covariance(problem, final)
-    std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
-    notes = _warnings(problem, final, converged, reason)
-    fit = fit_percent(problem.measured, problem.prediction(final.coefficients))
+        parameter_covariance, variance, condition = covariance(problem, final.state)
+    std = np.sqrt(np.maximum(np.diag(parameter_covariance), 0.0))
+    notes = _warnings(problem, final)
+    fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     return Estimate(
-        model=model, params=model.as_dict(final.theta), std=model.as_dict(std),
-        covariance=covariance, fit=fit, converged=converged, iterations=len(history),
-        cost=final.cost, stop_reason=reason, history=history, noise_variance=variance,
+        model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
+        covariance=parameter_covariance, fit=fit, converged=final.converged,
+        iterations=len(history), cost=final.state.cost, stop_reason=final.message,
+        history=history, noise_variance=variance,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff)
 
 
-def _started(problem: _Problem, start: _State, transient: Union[float, str]) -> _State:
+def _started(problem: Problem, start: State, transient: Union[float, str]) -> State:
     """Anchor the sign of D's leading coefficient and leave out the transient, from ``start``."""
     problem.anchor(start.coefficients)
     if not transient:
         return start
     problem.exclude_transient(transient, start.coefficients)
-    return _State(start.theta, start.coefficients, problem.cost(start.coefficients))
+    return State(start.theta, start.coefficients, problem.cost(start.coefficients))
 
 
-def _warnings(problem: _Problem, state: _State, converged: bool, reason: str) -> List[str]:
+def _warnings(problem: Problem, result: IterationResult) -> List[str]:
+    """Return the active bounds and, if it did not converge, why the final iteration stopped."""
+    state = result.state
     notes = []
     span = np.maximum(np.abs(state.theta), 1.0)
     for index, name in enumerate(problem.model.parameters):
@@ -769,6 +418,6 @@ def _warnings(problem: _Problem, state: _State, converged: bool, reason: str) ->
             notes.append(f'{name} is at its lower bound {problem.lower[index]:g}')
         elif problem.upper[index] - state.theta[index] <= 1e-6 * span[index]:
             notes.append(f'{name} is at its upper bound {problem.upper[index]:g}')
-    if not converged:
-        notes.append(f'not converged: {reason}')
+    if not result.converged:
+        notes.append(f'not converged: {result.message}')
     return notes

@@ -19,6 +19,8 @@ from ctid_ros.core.model import Coefficients, Model
 from ctid_ros.core.simulation import response
 import numpy as np
 
+__all__ = ['StabilizedModel', 'default_cutoff']
+
 
 def default_cutoff(duration: float) -> float:
     """Corner (rad/s) of the high pass for a record of ``duration`` seconds: ten periods."""

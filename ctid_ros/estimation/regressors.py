@@ -23,6 +23,8 @@ from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
 from ctid_ros.errors import EstimationError
 import numpy as np
 
+__all__ = ['Linearization', 'SignalBank', 'is_stable']
+
 # An iteration evaluates the cost at a candidate, then linearises there if it is accepted, and
 # the final estimate is simulated again for its fit: a few recent results serve all of these.
 _REMEMBERED = 4

@@ -1,5 +1,5 @@
 """
-Starting points for the projection iteration: automatic initialisation and dead-time search.
+Starting points for the projection iteration, and the check that a start needs no search.
 
 Automatic initialisation needs no user guess. For a few state-variable filters
 ``E(p) = (p + lam)^n`` it fits the equation error ``[D(p, theta) y - N(p, theta) u] / E`` by
@@ -10,36 +10,45 @@ regression of the method with a fixed filter, so any start works; a non-affine s
 fitted from the hint with every filter, then from random starts with the filter that simulated
 best.
 
-The dead time is located by a profile: for each ``tau`` on a grid the other parameters get
-their equation-error fit with ``tau`` frozen and the profile records its output-error cost; the
-best local minima of that profile are then refined by projection iterations.
+The automatic start and the dead-time search (:mod:`ctid_ros.estimation.delay_search`) are
+skipped when a few iterations from a start already give a model whose residual is independent
+of the input (:func:`local_fit`, :func:`explains_data`): the estimator checks a complete user
+guess (a warm start) this way first, the dead-time search its equation-error start.
 
-Both are skipped when a few iterations from a start already give a model whose residual is
-independent of the input (:func:`local_fit`, :func:`explains_data`): the estimator checks a
-complete user guess (a warm start) this way first, the dead-time search its equation-error start.
+The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
-from typing import List, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
+from ctid_ros.core.data import Data
+from ctid_ros.core.model import Coefficients
 from ctid_ros.core.simulation import ContinuousFilter, shifted
 from ctid_ros.errors import EstimationError, ModelError
-from ctid_ros.estimation.correlation import CONFIDENCE, independent_of_input, input_correlation
+from ctid_ros.estimation.correlation import independent_of_input
+from ctid_ros.estimation.iteration import iterate, IterationResult
+from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
+                                         settling_time, State)
 import numpy as np
 from scipy import optimize
 
-_FILTER_COUNT = 3
+__all__ = [
+    'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
+    'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths', 'initial_estimate',
+    'local_fit',
+]
+
+# Initial values by parameter name, or 'auto'/None for none.
+Initial = Union[str, None, Mapping[str, float]]
+
+FILTER_COUNT = 3
 _START_TOLERANCE = 1e-6
 _START_ITERATIONS = 100
 _RANDOM_STARTS = 4
-_GRID_POINTS = 30
-_REFINED_MINIMA = 2
-_REFINEMENT_MARGIN = 3.0
-_COARSE_STRIDE = 3
 _LOCAL_ITERATIONS = 4
-_PREWHITENING_ORDER = 10
 
 
-def _given_values(model, initial) -> Mapping[str, float]:
+def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
+    """Return the given initial values by name, checked against the model."""
     if initial is None or (isinstance(initial, str) and initial == 'auto'):
         return {}
     if isinstance(initial, str):
@@ -55,7 +64,7 @@ def _given_values(model, initial) -> Mapping[str, float]:
     return values
 
 
-def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]]):
+def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange) -> State:
     """
     Return the starting state of the iteration.
 
@@ -65,8 +74,6 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     therefore costs robustness nothing.
 
     """
-    from ctid_ros.estimation.estimate import delay_parameter
-
     model = problem.model
     given = _given_values(model, initial)
     for name, value in given.items():
@@ -77,14 +84,14 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     # A complete guess is a hint for every parameter; a partial one pins the given values.
     pinned = {} if len(given) == len(model.parameters) else given
     delay_index = delay_parameter(model)
-    filters = _StateVariableFilters(problem, filter_bandwidths(problem.data, _FILTER_COUNT))
+    filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
     free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
     taus = _initial_delays(problem, given, pinned, delay_index, delay_range)
     fit = None
     for tau in taus:
-        starts = _starts(problem, given, pinned, delay_index, tau)
+        starts = _start_points(problem, given, pinned, delay_index, tau)
         # Every filter fits from the hint; the random starts of a non-affine structure then
         # look for other equation-error minima with the filter that simulated best.
         found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
@@ -96,7 +103,7 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     hinted_tau = taus[0] if delay_index is None else \
         given.get(model.parameters[delay_index], taus[0])
     best = _lower_cost(fit, best_candidate(
-        problem, _starts(problem, given, pinned, delay_index, hinted_tau)))
+        problem, _start_points(problem, given, pinned, delay_index, hinted_tau)))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
@@ -105,10 +112,8 @@ def initial_estimate(problem, initial, delay_range: Optional[Tuple[float, float]
     return best
 
 
-def complete_guess(problem, initial):
+def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
     """Return the state at the given values if they name every parameter and are admissible."""
-    from ctid_ros.estimation.estimate import _State
-
     given = _given_values(problem.model, initial)
     if len(given) < len(problem.model.parameters):
         return None
@@ -116,13 +121,11 @@ def complete_guess(problem, initial):
     coefficients = problem.admissible(theta)
     if coefficients is None:
         return None
-    return _State(theta, coefficients, problem.cost(coefficients))
+    return State(theta, coefficients, problem.cost(coefficients))
 
 
-def best_candidate(problem, candidates: List[np.ndarray]):
+def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Optional[State]:
     """Return the admissible candidate with the lowest output-error cost (a state), or None."""
-    from ctid_ros.estimation.estimate import _State
-
     best = None
     for theta in candidates:
         coefficients = problem.admissible(theta)
@@ -130,18 +133,18 @@ def best_candidate(problem, candidates: List[np.ndarray]):
             continue
         cost = problem.cost(coefficients)
         if best is None or cost < best.cost:
-            best = _State(theta, coefficients, cost)
+            best = State(theta, coefficients, cost)
     return best
 
 
-def _lower_cost(first, second):
+def _lower_cost(first: Optional[State], second: Optional[State]) -> Optional[State]:
     """Return the state of lower cost; either may be None."""
     if first is None or (second is not None and second.cost < first.cost):
         return second
     return first
 
 
-def _distinct(thetas: List[np.ndarray]) -> List[np.ndarray]:
+def distinct(thetas: Sequence[np.ndarray]) -> List[np.ndarray]:
     """
     Drop parameter vectors equal (to 1e-6 relative) to an earlier one.
 
@@ -155,7 +158,9 @@ def _distinct(thetas: List[np.ndarray]) -> List[np.ndarray]:
     return kept
 
 
-def _best_filter_fit(problem, starts, free, tau, filters):
+def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
+                     tau: float, filters: 'StateVariableFilters'
+                     ) -> Tuple[Optional[State], Optional[int]]:
     """
     Return the equation-error fit that simulates best over all filters, and its filter index.
 
@@ -164,14 +169,15 @@ def _best_filter_fit(problem, starts, free, tau, filters):
     """
     best, chosen = None, None
     for index in range(filters.count):
-        state = best_candidate(problem, _distinct(_equation_error_fits(
+        state = best_candidate(problem, distinct(equation_error_fits(
             problem, starts, free, tau, filters.select(index))))
         if state is not None and (best is None or state.cost < best.cost):
             best, chosen = state, index
     return best, chosen
 
 
-def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[float]:
+def _initial_delays(problem: Problem, given: Mapping[str, float], pinned: Mapping[str, float],
+                    delay_index: Optional[int], delay_range: DelayRange) -> List[float]:
     """
     Return the dead times the equation-error start is fitted at.
 
@@ -186,7 +192,7 @@ def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[fl
     name = problem.model.parameters[delay_index]
     if name in pinned:
         return [pinned[name]]
-    low, high = _delay_bracket(problem, delay_index, delay_range)
+    low, high = problem.delay_bracket(delay_index, delay_range)
     taus = [given[name]] if name in given else []
     taus.append(float(np.clip(problem.delay_guess, low, high)))
     ts = problem.data.ts
@@ -196,7 +202,8 @@ def _initial_delays(problem, given, pinned, delay_index, delay_range) -> List[fl
                               for tau, rounded in zip(taus, whole)))
 
 
-def _starts(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
+def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[str, float],
+                  delay_index: Optional[int], tau: float) -> List[np.ndarray]:
     """
     Return starting points: the user's hints first, then random draws.
 
@@ -234,7 +241,7 @@ def _starts(problem, hints, pinned, delay_index, tau) -> List[np.ndarray]:
     return starts
 
 
-class _StateVariableFilters:
+class StateVariableFilters:
     """
     Signals ``p^j/E`` of the data for the state-variable filters ``E = (p + lam)^n``.
 
@@ -245,7 +252,7 @@ class _StateVariableFilters:
 
     """
 
-    def __init__(self, problem, lams: np.ndarray):
+    def __init__(self, problem: Problem, lams: np.ndarray):
         model, data = problem.model, problem.data
         n, m = model.den_degree, model.num_degree
         powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
@@ -298,9 +305,9 @@ class _StateVariableFilters:
         """Return the number of filters."""
         return len(self._filters)
 
-    def select(self, index: int) -> '_StateVariableFilters':
+    def select(self, index: int) -> 'StateVariableFilters':
         """Return the same signals for filter ``index`` only."""
-        chosen = object.__new__(_StateVariableFilters)
+        chosen = object.__new__(StateVariableFilters)
         chosen.__dict__.update(self.__dict__)
         chosen._filters = self._filters[index:index + 1]
         return chosen
@@ -313,13 +320,13 @@ class _StateVariableFilters:
                           for channel in problem.bank.channels.T]).T
 
 
-def filter_bandwidths(data, count: int) -> np.ndarray:
+def filter_bandwidths(data: Data, count: int) -> np.ndarray:
     """Return ``count`` filter corners from ten per record to 0.3 of the Nyquist frequency."""
     return np.geomspace(10.0 / (data.ts * len(data)), 0.3 * np.pi / data.ts, count)
 
 
-def _equation_error_fits(problem, starts: List[np.ndarray], free: np.ndarray, tau: float,
-                         filters: _StateVariableFilters) -> List[np.ndarray]:
+def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
+                        tau: float, filters: StateVariableFilters) -> List[np.ndarray]:
     """
     Return the equation-error fits of every filter from every start.
 
@@ -350,13 +357,13 @@ def _equation_error_fits(problem, starts: List[np.ndarray], free: np.ndarray, ta
 class _EquationError:
     """Residual ``R [den; num]`` of one filter as a function of the free parameters."""
 
-    def __init__(self, model, factor: np.ndarray, free: np.ndarray):
+    def __init__(self, model: FittedModel, factor: np.ndarray, free: np.ndarray):
         self._model = model
         self._factor = factor
         self._free = free
         self._latest = None
 
-    def _coefficients(self, values: np.ndarray, start: np.ndarray):
+    def _coefficients(self, values: np.ndarray, start: np.ndarray) -> Coefficients:
         # least_squares asks for the Jacobian where it has just evaluated the residual.
         key = values.tobytes() + start.tobytes()
         if self._latest is None or self._latest[0] != key:
@@ -434,182 +441,36 @@ class _EquationError:
                                             method='bvls').x
 
 
-def impulse_delay(data) -> float:
+def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
+              full_steps_only: bool = False, iterations: int = _LOCAL_ITERATIONS
+              ) -> IterationResult:
     """
-    Dead-time guess: first lag of significant prewhitened input-output correlation.
+    Return the outcome of a few iterations from ``start``, unfrozen, to a loose tolerance.
 
-    An autoregressive model of the input (least squares, order 10) whitens it; the same filter
-    applied to the output leaves a cross-correlation proportional to the impulse response
-    (Box-Jenkins prewhitening), whose first lag above ``CONFIDENCE/sqrt(N)``, less half a
-    sample for the hold, is the guess. A slowly held input that the filter cannot whiten
-    gives an early guess: it only orders the search, it does not bound it from below.
-
-    """
-    u = np.asarray(data.u, dtype=float).reshape(len(data), -1)[:, 0]
-    y = np.asarray(data.y, dtype=float)
-    count = u.size
-    order = min(_PREWHITENING_ORDER, count // 10)
-    if order < 1 or not np.ptp(u):
-        return 0.0
-    u, y = u - np.mean(u), y - np.mean(y)
-
-    def lagged(values: np.ndarray) -> np.ndarray:
-        return np.column_stack([values[order - k - 1:count - k - 1] for k in range(order)])
-
-    inputs = lagged(u)
-    coefficients = np.linalg.lstsq(inputs, u[order:], rcond=None)[0]
-    whitened_u = u[order:] - inputs @ coefficients
-    whitened_y = y[order:] - lagged(y) @ coefficients
-    correlation = np.abs(input_correlation(whitened_y, whitened_u, count // 2)[:, 0])
-    significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
-    if significant.size == 0:
-        return 0.0
-    return max(significant[0] - 0.5, 0.0) * data.ts
-
-
-def _delay_bracket(problem, delay_index, delay_range) -> Tuple[float, float]:
-    data = problem.data
-    if delay_range is not None:
-        low, high = float(delay_range[0]), float(delay_range[1])
-        if not (0.0 <= low < high):
-            raise ModelError(f'delay range must satisfy 0 <= min < max, got {delay_range}')
-        return max(low, problem.lower[delay_index]), min(high, problem.upper[delay_index])
-    low = problem.lower[delay_index]
-    high = problem.upper[delay_index]
-    if not np.isfinite(high):
-        guess = problem.delay_guess
-        high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
-    return low, max(high, low + data.ts)
-
-
-def _local_minima(profile: List[Tuple[float, float, object]]) -> List[object]:
-    costs = np.array([cost for _, cost, _ in profile])
-    indices = [i for i in range(len(costs))
-               if (i == 0 or costs[i] <= costs[i - 1])
-               and (i == len(costs) - 1 or costs[i] <= costs[i + 1])]
-    indices.sort(key=lambda i: costs[i])
-    return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
-
-
-def local_fit(problem, start, method: str, first_ls: bool, full_steps_only: bool = False,
-              iterations: int = _LOCAL_ITERATIONS):
-    """
-    Return the state and history after a few iterations from ``start``, and whether it held.
-
-    It did not hold if ``full_steps_only`` made it give up; otherwise (converged or not) the
-    residual test of :func:`explains_data` judges the result.
+    With ``full_steps_only`` its reason is :attr:`StopReason.NO_FULL_STEP` if it gave up;
+    otherwise (converged or not) the residual test of :func:`explains_data` judges the result.
 
     """
-    from ctid_ros.estimation.estimate import _iterate, NO_FULL_STEP
-
-    state, history, reason, _ = _iterate(
-        problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
-        max_iterations=iterations, tolerance=1e-6, first_ls=first_ls,
-        full_steps_only=full_steps_only)
-    return state, history, reason != NO_FULL_STEP
+    return iterate(problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
+                   max_iterations=iterations, tolerance=1e-6, first_ls=first_ls,
+                   full_steps_only=full_steps_only)
 
 
-def explains_data(problem, state, delay_index: Optional[int], delay_range) -> bool:
+def explains_data(problem: Problem, state: State, delay_index: Optional[int],
+                  delay_range: DelayRange) -> bool:
     """
     Return True if the model at ``state`` leaves a residual independent of the input.
 
     The lags tested cover the model's settling time (its dead time included) plus, for a
     dead-time parameter, the upper end of its search range: a wrong dead time or a missed mode
-    shows there (:mod:`ctid_ros.estimation.correlation`).
+    shows there (:mod:`ctid_ros.estimation.correlation`, ``docs/algorithm.md`` section 11).
 
     """
-    from ctid_ros.estimation.estimate import settling_time
-
     data = problem.data
     horizon = settling_time(state.coefficients)
     if delay_index is not None:
-        horizon += _delay_bracket(problem, delay_index, delay_range)[1]
+        horizon += problem.delay_bracket(delay_index, delay_range)[1]
     lags = int(np.ceil(horizon / data.ts))
     residual = np.zeros(len(data))
     residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
     return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
-
-
-def delay_search(problem, start, delay_index: int, delay_range):
-    """
-    Locate the dead time: a local fit if it explains the data, else a profile over a grid.
-
-    A few joint iterations from the start come first. If they reach a model whose residual is
-    independent of the input over the lags of the delay range plus the settling time
-    (:mod:`ctid_ros.estimation.correlation`), the data show no dynamics the model misses and the
-    search ends there (a warm start in the live node takes this path).
-
-    Otherwise the search profiles the whole range and refines its best minima jointly.
-    At each grid ``tau`` (on whole samples where the search bracket allows, so the filtered
-    input is a shift) the other parameters get their equation-error fit and the profile
-    records the output-error cost of that fit. Every third grid point tries every
-    state-variable filter; the filter that gave the lowest cost there serves the whole profile
-    (one filter throughout, so the profile's minima are not artefacts of switching filters).
-    The best local minima of the profile get a few projection iterations with ``tau`` frozen,
-    then joint ones.
-
-    Returns the best state, the profile as ``[(tau, cost), ...]`` (empty if the local fit was
-    accepted) and the joint iterations that refined the best minimum.
-
-    """
-    from ctid_ros.estimation.estimate import _iterate
-
-    data = problem.data
-    low, high = _delay_bracket(problem, delay_index, delay_range)
-    local, history, _ = local_fit(problem, start, 'iv', first_ls=True)
-    if explains_data(problem, local, delay_index, delay_range):
-        return local, [], history
-    grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
-                      [start.theta[delay_index], problem.delay_guess])
-    grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
-    frozen = np.zeros(start.theta.size, dtype=bool)
-    frozen[delay_index] = True
-    filters = _StateVariableFilters(problem, filter_bandwidths(data, _FILTER_COUNT))
-    coarse = np.zeros(grid.size, dtype=bool)
-    coarse[::_COARSE_STRIDE] = True
-
-    lowest = [start]
-
-    def fitted(tau: float, chosen: _StateVariableFilters):
-        # A non-affine fit starts from the hint and from the best fit so far (moved to this
-        # tau), not from random draws: the start's multi-start has been done at its own tau.
-        sources = [start] if problem.model.is_affine else [start, lowest[0]]
-        starts = _distinct([np.where(frozen, tau, state.theta) for state in sources])
-        state = best_candidate(problem, _distinct(_equation_error_fits(
-            problem, starts, ~frozen, tau, chosen)))
-        if state is not None and state.cost < lowest[0].cost:
-            lowest[0] = state
-        return state
-
-    trials = {tau: [fitted(tau, filters.select(index)) for index in range(filters.count)]
-              for tau in grid[coarse]}
-    costs = np.array([[np.inf if state is None else state.cost for state in row]
-                      for row in trials.values()]).reshape(-1, filters.count)
-    index = int(np.argmin(np.min(costs, axis=0))) if np.isfinite(costs).any() \
-        else filters.count // 2
-    states = {tau: row[index] for tau, row in trials.items()}
-    chosen = filters.select(index)
-    states.update({tau: fitted(tau, chosen) for tau in grid[~coarse]})
-    # A grid point without an admissible fit (an unstable D, as often past the true dead time,
-    # where the fit would have to anticipate the input) drops out of the profile.
-    profile = [(float(tau), states[tau].cost, states[tau]) for tau in grid
-               if states[tau] is not None]
-    if not profile:
-        return start, [], []
-    # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
-    frozen_iterations = 2 if problem.model.is_affine else 3
-    best, history, margin = None, [], np.inf
-    for state in _local_minima(profile):
-        # Refinement lowered the best minimum's cost by some amount; a minimum whose profile
-        # cost exceeds the best refined cost by three times that amount cannot compete.
-        if best is not None and state.cost - _REFINEMENT_MARGIN * margin > best.cost:
-            continue
-        profiled = state.cost
-        state = _iterate(problem, state, method='iv', frozen=frozen,
-                         max_iterations=frozen_iterations, tolerance=1e-6,
-                         trust_first_ls=True)[0]
-        state, iterations = _iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
-                                     max_iterations=10, tolerance=1e-6, first_ls=False)[:2]
-        if best is None or state.cost < best.cost:
-            best, history, margin = state, iterations, profiled - state.cost
-    return best, [(tau, cost) for tau, cost, _ in profile], history

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import time
 from typing import Any, Dict, Optional, Tuple
 
-from ctid_ros.estimation.estimate import Estimate, estimate, settling_time
+from ctid_ros.estimation.estimate import Estimate, estimate
+from ctid_ros.estimation.problem import settling_time
 from ctid_ros.streaming.buffer import capacity_for, SampleBuffer, Window
 from ctid_ros.streaming.config import IdentificationConfig
 import numpy as np

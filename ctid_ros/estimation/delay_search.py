@@ -1,0 +1,140 @@
+"""
+Dead-time search: a local fit if it explains the data, else a profile over a grid of dead times.
+
+The output-error cost is multimodal in the dead time ``tau``. A few joint iterations from the
+start come first; if their residual is independent of the input the search ends there.
+Otherwise, for each ``tau`` on a grid the other parameters get their equation-error fit with
+``tau`` frozen (:mod:`ctid_ros.estimation.starts`) and the profile records its output-error
+cost; the best local minima of that profile are then refined by projection iterations, first
+with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.md``.
+"""
+
+from dataclasses import dataclass, field
+from typing import List, Optional, Tuple
+
+from ctid_ros.estimation.iteration import iterate, Iteration
+from ctid_ros.estimation.problem import DelayRange, Problem, State
+from ctid_ros.estimation.starts import (best_candidate, distinct, equation_error_fits,
+                                        explains_data, filter_bandwidths, FILTER_COUNT,
+                                        local_fit, StateVariableFilters)
+import numpy as np
+
+__all__ = ['DelaySearch', 'delay_search']
+
+_GRID_POINTS = 30
+_REFINED_MINIMA = 2
+_REFINEMENT_MARGIN = 3.0
+_COARSE_STRIDE = 3
+_JOINT_ITERATIONS = 10
+
+
+@dataclass
+class DelaySearch:
+    """
+    Outcome of :func:`delay_search`.
+
+    Attributes
+    ----------
+    state : State
+        The best state found.
+    profile : list of (tau, cost)
+        The profile over the grid (empty if the local fit was accepted).
+    history : list of Iteration
+        The joint iterations that led to ``state``.
+
+    """
+
+    state: State
+    profile: List[Tuple[float, float]] = field(default_factory=list)
+    history: List[Iteration] = field(default_factory=list)
+
+
+def _local_minima(profile: List[Tuple[float, float, State]]) -> List[State]:
+    """Return the states of the lowest local minima of the profile, best first."""
+    costs = np.array([cost for _, cost, _ in profile])
+    indices = [i for i in range(len(costs))
+               if (i == 0 or costs[i] <= costs[i - 1])
+               and (i == len(costs) - 1 or costs[i] <= costs[i + 1])]
+    indices.sort(key=lambda i: costs[i])
+    return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
+
+
+def delay_search(problem: Problem, start: State, delay_index: int, delay_range: DelayRange
+                 ) -> DelaySearch:
+    """
+    Locate the dead time: a local fit if it explains the data, else a profile over a grid.
+
+    A few joint iterations from the start come first. If they reach a model whose residual is
+    independent of the input over the lags of the delay range plus the settling time
+    (:func:`~ctid_ros.estimation.starts.explains_data`), the data show no dynamics the model
+    misses and the search ends there (a warm start in the live node takes this path).
+
+    Otherwise the search profiles the whole range and refines its best minima jointly.
+    At each grid ``tau`` (on whole samples where the search bracket allows, so the filtered
+    input is a shift) the other parameters get their equation-error fit and the profile
+    records the output-error cost of that fit. Every third grid point tries every
+    state-variable filter; the filter that gave the lowest cost there serves the whole profile
+    (one filter throughout, so the profile's minima are not artefacts of switching filters).
+    The best local minima of the profile get a few projection iterations with ``tau`` frozen,
+    then joint ones.
+
+    """
+    data = problem.data
+    low, high = problem.delay_bracket(delay_index, delay_range)
+    local = local_fit(problem, start, 'iv', first_ls=True)
+    if explains_data(problem, local.state, delay_index, delay_range):
+        return DelaySearch(local.state, [], local.history)
+    grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
+                      [start.theta[delay_index], problem.delay_guess])
+    grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
+    frozen = np.zeros(start.theta.size, dtype=bool)
+    frozen[delay_index] = True
+    filters = StateVariableFilters(problem, filter_bandwidths(data, FILTER_COUNT))
+    coarse = np.zeros(grid.size, dtype=bool)
+    coarse[::_COARSE_STRIDE] = True
+
+    lowest = [start]
+
+    def fitted(tau: float, chosen: StateVariableFilters) -> Optional[State]:
+        # A non-affine fit starts from the hint and from the best fit so far (moved to this
+        # tau), not from random draws: the start's multi-start has been done at its own tau.
+        sources = [start] if problem.model.is_affine else [start, lowest[0]]
+        starts = distinct([np.where(frozen, tau, state.theta) for state in sources])
+        state = best_candidate(problem, distinct(equation_error_fits(
+            problem, starts, ~frozen, tau, chosen)))
+        if state is not None and state.cost < lowest[0].cost:
+            lowest[0] = state
+        return state
+
+    trials = {tau: [fitted(tau, filters.select(index)) for index in range(filters.count)]
+              for tau in grid[coarse]}
+    costs = np.array([[np.inf if state is None else state.cost for state in row]
+                      for row in trials.values()]).reshape(-1, filters.count)
+    index = int(np.argmin(np.min(costs, axis=0))) if np.isfinite(costs).any() \
+        else filters.count // 2
+    states = {tau: row[index] for tau, row in trials.items()}
+    chosen = filters.select(index)
+    states.update({tau: fitted(tau, chosen) for tau in grid[~coarse]})
+    # A grid point without an admissible fit (an unstable D, as often past the true dead time,
+    # where the fit would have to anticipate the input) drops out of the profile.
+    profile = [(float(tau), states[tau].cost, states[tau]) for tau in grid
+               if states[tau] is not None]
+    if not profile:
+        return DelaySearch(start)
+    # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
+    frozen_iterations = 2 if problem.model.is_affine else 3
+    best, history, margin = None, [], np.inf
+    for state in _local_minima(profile):
+        # Refinement lowered the best minimum's cost by some amount; a minimum whose profile
+        # cost exceeds the best refined cost by three times that amount cannot compete.
+        if best is not None and state.cost - _REFINEMENT_MARGIN * margin > best.cost:
+            continue
+        profiled = state.cost
+        state = iterate(problem, state, method='iv', frozen=frozen,
+                        max_iterations=frozen_iterations, tolerance=1e-6,
+                        trust_first_ls=True).state
+        joint = iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+                        max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+        if best is None or joint.state.cost < best.cost:
+            best, history, margin = joint.state, joint.history, profiled - joint.state.cost
+    return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)

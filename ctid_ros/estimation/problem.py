@@ -1,0 +1,266 @@
+"""
+One estimation problem: data, model and bounds, and what they give at a parameter vector.
+
+:class:`Problem` evaluates the output-error cost of a parameter vector and linearises the model
+there (output, regressors ``phi``, instruments ``psi`` on the fitted samples, with an initial
+state and an output offset projected out when they are estimated). A :class:`State` is a
+parameter vector with its coefficients and cost. The equations are those of ``docs/algorithm.md``
+(sections 2-4 and 9); the bounds and the admissible set are section 7.
+"""
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Mapping, Optional, Tuple, Union
+
+from ctid_ros.core.data import Data
+from ctid_ros.core.model import Coefficients, Model
+from ctid_ros.core.simulation import ContinuousFilter
+from ctid_ros.errors import ModelError
+from ctid_ros.estimation.correlation import prewhitened_delay
+from ctid_ros.estimation.integrating import StabilizedModel
+from ctid_ros.estimation.regressors import is_stable, Linearization, SignalBank
+import numpy as np
+from scipy import linalg
+
+__all__ = [
+    'Bounds', 'DelayRange', 'FittedModel', 'Problem', 'State', 'bound_vectors', 'delay_parameter',
+    'nuisance_columns', 'orthonormal_basis', 'settling_time', 'with_fitted_nuisance',
+]
+
+Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
+# Where to search a dead time, in seconds (None: from its bounds, else automatic).
+DelayRange = Optional[Tuple[float, float]]
+# What the estimation fits: the user's model, or its stable reformulation if it integrates.
+FittedModel = Union[Model, StabilizedModel]
+
+
+@dataclass
+class State:
+    """A parameter vector of the iteration, its coefficients and its output-error cost."""
+
+    theta: np.ndarray
+    coefficients: Coefficients
+    cost: float
+
+
+def nuisance_columns(den: np.ndarray, count: int, ts: float, initial_state: bool,
+                     output_offset: bool) -> Optional[np.ndarray]:
+    """
+    Return the output components fitted besides ``G u`` as columns, or None.
+
+    ``initial_state``: the free responses of ``1/D`` (a nonzero initial state);
+    ``output_offset``: a constant. Their coefficients enter linearly, so they are projected out
+    of every residual, regressor and instrument (variable projection, ``docs/algorithm.md``
+    section 9).
+    """
+    columns = []
+    if initial_state:
+        columns.append(ContinuousFilter(den).discretize(ts).free_responses(count))
+    if output_offset:
+        columns.append(np.ones((count, 1)))
+    return np.hstack(columns) if columns else None
+
+
+def orthonormal_basis(columns: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """Orthonormal basis of the span of ``columns`` (None stays None)."""
+    if columns is None:
+        return None
+    norms = np.linalg.norm(columns, axis=0)
+    return linalg.orth(columns / np.where(norms > 0.0, norms, 1.0))
+
+
+def with_fitted_nuisance(measured: np.ndarray, output: np.ndarray,
+                         basis: Optional[np.ndarray]) -> np.ndarray:
+    """Model output plus the part of ``measured - output`` in the span of ``basis``."""
+    if basis is None:
+        return output
+    return output + basis @ (basis.T @ (measured - output))
+
+
+def settling_time(coefficients: Coefficients) -> float:
+    """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
+    roots = np.roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
+    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
+    return 5.0 * slowest + max(coefficients.delay, 0.0)
+
+
+def bound_vectors(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, np.ndarray]:
+    """Return lower and upper bound vectors in parameter order (a dead time >= 0)."""
+    lower = np.full(len(model.parameters), -np.inf)
+    upper = np.full(len(model.parameters), np.inf)
+    for name, pair in (bounds or {}).items():
+        if name not in model.parameters:
+            raise ModelError(f'bounds given for unknown parameter {name!r}; the model has '
+                             f'{", ".join(model.parameters)}')
+        index = model.parameters.index(name)
+        low, high = pair
+        lower[index] = -np.inf if low is None else float(low)
+        upper[index] = np.inf if high is None else float(high)
+        if not lower[index] < upper[index]:
+            raise ModelError(f'bounds for {name} are empty: {low} >= {high}')
+    delay_index = delay_parameter(model)
+    if delay_index is not None:
+        lower[delay_index] = max(lower[delay_index], 0.0)
+    return lower, upper
+
+
+def delay_parameter(model: Model) -> Optional[int]:
+    """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
+    if not model.delay_is_estimated:
+        return None
+    probe = model.coefficients(np.ones(len(model.parameters)))
+    gradient = probe.delay_gradient
+    nonzero = np.flatnonzero(gradient)
+    if nonzero.size == 1 and gradient[nonzero[0]] == 1.0:
+        return int(nonzero[0])
+    return None
+
+
+class Problem:
+    """
+    Data, model and constraints of one estimation; evaluates costs and linearisations.
+
+    Parameters
+    ----------
+    model : Model or StabilizedModel
+        The model fitted (for an integrating plant, its stable reformulation).
+    data : Data
+        The data fitted (for an integrating plant, with the high-passed output).
+    lower, upper : ndarray
+        Bound vectors in parameter order (:func:`bound_vectors`).
+    intersample : {'zoh', 'foh'}
+        Behaviour of the input between samples.
+    initial_state, output_offset : bool
+        Whether the response of an unknown initial state and a constant output offset are
+        fitted along with the parameters (``docs/algorithm.md`` section 9).
+
+    """
+
+    def __init__(self, model: FittedModel, data: Data, lower: np.ndarray, upper: np.ndarray,
+                 intersample: str, initial_state: bool = False, output_offset: bool = False):
+        self.model = model
+        self.data = data
+        self.lower = lower
+        self.upper = upper
+        self.bank = SignalBank(model, data.u, data.y, data.ts, intersample)
+        self.initial_state = initial_state
+        self.output_offset = output_offset
+        self.evaluations = 0
+        self.skip = 0
+        self._leading_sign = None
+        self._latest: Optional[Tuple[bytes, Linearization]] = None
+
+    @cached_property
+    def delay_guess(self) -> float:
+        """Return the data's own dead-time guess (:func:`prewhitened_delay`), computed once."""
+        # The start, the delay bracket, the residual checks and the grid all ask for it.
+        return prewhitened_delay(self.data)
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Output samples that are fitted (after the excluded transient)."""
+        return self.data.y[self.skip:]
+
+    def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
+        columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
+                                   self.initial_state, self.output_offset)
+        return None if columns is None else orthonormal_basis(columns[self.skip:])
+
+    def prediction(self, coefficients: Coefficients) -> np.ndarray:
+        """Model output on the fitted samples, with the fitted initial state and offset."""
+        return with_fitted_nuisance(self.measured, self.bank.output(coefficients)[self.skip:],
+                                    self._basis(coefficients))
+
+    def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
+        """
+        Output, regressors and instruments on the fitted samples (nuisance projected out).
+
+        The latest result is kept: the final estimate is linearised once for the stopping
+        rule, the identifiability check and the covariance.
+
+        """
+        key = b''.join(np.ascontiguousarray(part).tobytes() for part in (
+            coefficients.den, coefficients.num, coefficients.delay, coefficients.den_jacobian,
+            coefficients.num_jacobian, coefficients.delay_gradient, self.skip))
+        if self._latest is not None and self._latest[0] == key and (
+                self._latest[1].phi is not None or not regressors):
+            return self._latest[1]
+        lin = self._linearized(coefficients, regressors)
+        self._latest = (key, lin)
+        return lin
+
+    def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:
+        lin = self.bank.linearize(coefficients, regressors)
+        output, phi, psi = (lin.output[self.skip:],
+                            None if lin.phi is None else lin.phi[self.skip:],
+                            lin.psi[self.skip:])
+        basis = self._basis(coefficients)
+        if basis is not None:
+            output = with_fitted_nuisance(self.measured, output, basis)
+            psi = psi - basis @ (basis.T @ psi)
+            if phi is not None:
+                phi = phi - basis @ (basis.T @ phi)
+        return Linearization(output, phi, psi)
+
+    def exclude_transient(self, seconds: Union[float, str], coefficients: Coefficients
+                          ) -> None:
+        """
+        Leave the first samples out of every sum, so data that do not start at rest fit.
+
+        ``'auto'`` takes five times the slowest time constant of ``coefficients`` plus its dead
+        time, at most half of the record.
+
+        """
+        if seconds == 'auto':
+            seconds = settling_time(coefficients)
+        seconds = float(seconds)
+        if not (np.isfinite(seconds) and seconds >= 0.0):
+            raise ValueError(f"transient must be 'auto' or a non-negative time, got {seconds}")
+        self.skip = int(min(np.ceil(seconds / self.data.ts), len(self.data) // 2))
+
+    def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
+        """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
+        if np.any(theta < self.lower) or np.any(theta > self.upper):
+            return None
+        try:
+            coefficients = self.model.coefficients(theta)
+        except ModelError:
+            return None
+        if coefficients.delay < 0.0 or not is_stable(coefficients.den):
+            return None
+        sign = np.sign(coefficients.den[0])
+        if self._leading_sign is not None and sign != self._leading_sign:
+            return None
+        return coefficients
+
+    def anchor(self, coefficients: Coefficients) -> None:
+        """Fix the sign of D's leading coefficient: crossing zero would change the order."""
+        self._leading_sign = np.sign(coefficients.den[0])
+
+    def cost(self, coefficients: Coefficients) -> float:
+        """Return the output-error cost ``0.5 |y - yhat|^2`` on the fitted samples."""
+        self.evaluations += 1
+        error = self.measured - self.prediction(coefficients)
+        return 0.5 * float(error @ error)
+
+    def delay_bracket(self, delay_index: int, delay_range: DelayRange) -> Tuple[float, float]:
+        """
+        Return the interval the dead time is searched in (``docs/algorithm.md`` section 12).
+
+        ``delay_range`` within the bounds if given; else the bounds, with an infinite upper
+        bound replaced by ``max(3 guess, guess + 20 ts)`` (at most half the record), where
+        ``guess`` is :attr:`delay_guess`.
+
+        """
+        data = self.data
+        if delay_range is not None:
+            low, high = float(delay_range[0]), float(delay_range[1])
+            if not (0.0 <= low < high):
+                raise ModelError(f'delay range must satisfy 0 <= min < max, got {delay_range}')
+            return max(low, self.lower[delay_index]), min(high, self.upper[delay_index])
+        low = self.lower[delay_index]
+        high = self.upper[delay_index]
+        if not np.isfinite(high):
+            guess = self.delay_guess
+            high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
+        return low, max(high, low + data.ts)
