@@ -93,3 +93,12 @@ def test_segment_keeps_times():
     np.testing.assert_array_equal(data.segment(-4, -2).time, data.time[-4:-2])
     with pytest.raises(DataError, match='empty'):
         data.segment(5, 5)
+
+
+def test_detrend_removes_the_operating_point():
+    data = Data(np.column_stack([np.arange(4.0), np.ones(4)]), np.array([1.0, 2.0, 3.0, 6.0]),
+                0.1)
+    np.testing.assert_allclose(data.detrend('mean').y, [-2.0, -1.0, 0.0, 3.0])
+    np.testing.assert_allclose(data.detrend('initial').u[:, 0], [0.0, 1.0, 2.0, 3.0])
+    with pytest.raises(DataError, match='detrend'):
+        data.detrend('linear')

@@ -1,9 +1,12 @@
-"""Residual analysis: correlation of what a model leaves with the input."""
+"""Correlation of what a model leaves with the input, and the data's dead-time guess."""
 
-from ctid_ros import Model
+from ctid_ros import Data, Model
+from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.correlation import CONFIDENCE, independent_of_input, input_correlation
+from ctid_ros.estimation.correlation import (CONFIDENCE, independent_of_input,
+                                             input_correlation, prewhitened_delay)
 import numpy as np
+import pytest
 
 
 def test_white_noise_is_independent_of_a_held_input():
@@ -54,3 +57,25 @@ def test_each_input_of_several_is_tested():
     assert np.max(np.abs(correlation[:, 0])) < CONFIDENCE / np.sqrt(3000)
     assert abs(correlation[3, 1]) > CONFIDENCE / np.sqrt(3000)
     assert not independent_of_input(residual, inputs, 10)
+
+
+@pytest.mark.parametrize('tau', [0.3, 0.73, 1.55])
+def test_prewhitened_delay_of_a_white_input_is_within_a_sample(tau):
+    # White input: the cross-correlation is the sampled impulse response, zero before the
+    # first sample after tau; the guess is that lag less half a sample.
+    rng = np.random.default_rng(int(100 * tau))
+    u = rng.standard_normal(3000)
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    y = model.simulate({'K': 2.0, 'T': 1.0, 'tau': tau}, u, 0.1) + 0.3 * rng.standard_normal(3000)
+    assert abs(prewhitened_delay(Data(u, y, 0.1)) - tau) <= 0.1
+
+
+def test_prewhitened_delay_of_a_held_prbs():
+    # A PRBS held 10 samples is whitened well enough under noise (truth 1.234 s).
+    system = systems.first_order_dead_time()
+    assert prewhitened_delay(system.data(seed=1)) == pytest.approx(1.234, abs=0.1)
+
+
+def test_prewhitened_delay_without_information_is_zero():
+    assert prewhitened_delay(Data(np.ones(200), np.arange(200.0), 0.1)) == 0.0       # flat u
+    assert prewhitened_delay(Data(prbs(3), np.arange(7.0), 0.1)) == 0.0             # too short

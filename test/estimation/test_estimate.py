@@ -1,4 +1,4 @@
-"""Estimator tests on the systems of the algorithm notes, against the truth that made the data."""
+"""estimate() on the reference systems (docs/algorithm.md), against the truth of the data."""
 
 from ctid_ros import Data, estimate, EstimationError, Model, ModelError
 from ctid_ros.core import reference_systems as systems
@@ -33,7 +33,8 @@ def test_rao_garnier_from_random_start():
 
 
 def test_mass_spring_damper_where_gauss_newton_stalls():
-    # From this start Gauss-Newton drifts to a near-zero-gain plateau (algorithm notes, test 2).
+    # From this start Gauss-Newton drifts to a near-zero-gain plateau (a finding of the
+    # reconstruction the method was implemented from, for this test system).
     system = systems.mass_spring_damper()
     data = system.data(seed=2)
     result = estimate(system.model, data, {'m': 1.47, 'd': 1.01, 'k': 16.0},
@@ -268,3 +269,14 @@ def test_window_cut_from_a_running_plant_fits_with_transient_exclusion():
     assert settled.fit > at_rest.fit + 5.0
     for name, value in system.truth.items():
         assert settled.params[name] == pytest.approx(value, rel=0.02)
+
+
+@pytest.mark.parametrize('method', ['iv', 'ls', 'gn'])
+def test_stop_reason_and_warning_keep_their_wording(method):
+    system = systems.mass_spring_damper()
+    result = estimate(system.model, system.data(seed=4), {'m': 2.0, 'd': 0.1, 'k': 5.0},
+                      bounds=system.bounds, method=method, max_iterations=1)
+    assert not result.converged
+    assert result.stop_reason == 'iteration limit (1) reached'
+    assert result.to_dict()['stop_reason'] == result.stop_reason
+    assert result.warnings == ['not converged: iteration limit (1) reached']

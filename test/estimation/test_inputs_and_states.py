@@ -81,15 +81,6 @@ def test_output_offset_is_estimated():
     assert result.compare(Data(u, y, TS)) == pytest.approx(result.fit, abs=1e-6)
 
 
-def test_detrend_removes_the_operating_point():
-    data = Data(np.column_stack([np.arange(4.0), np.ones(4)]), np.array([1.0, 2.0, 3.0, 6.0]),
-                0.1)
-    np.testing.assert_allclose(data.detrend('mean').y, [-2.0, -1.0, 0.0, 3.0])
-    np.testing.assert_allclose(data.detrend('initial').u[:, 0], [0.0, 1.0, 2.0, 3.0])
-    with pytest.raises(DataError, match='detrend'):
-        data.detrend('linear')
-
-
 def test_input_columns_must_match_the_model():
     model = Model('T*s*y + y = K1*u + K2*w', inputs=('u', 'w'))
     data = Data(prbs(6)[:60], np.ones(60), TS)

@@ -1,0 +1,152 @@
+"""The controlled projection iteration (docs/algorithm.md sections 5-8)."""
+
+from ctid_ros import Data, Model
+from ctid_ros.core import reference_systems as systems
+from ctid_ros.core.excitation import prbs
+from ctid_ros.estimation.iteration import iterate, IterationResult, StopReason
+from ctid_ros.estimation.problem import bound_vectors, Problem, State
+import numpy as np
+import pytest
+
+
+def problem_for(model, data, bounds=None):
+    lower, upper = bound_vectors(model, bounds)
+    return Problem(model, data, lower, upper, 'zoh')
+
+
+def start_at(problem, values):
+    """Return the state at ``values`` with D's leading sign anchored, as the estimator does."""
+    theta = problem.model.vector(values)
+    coefficients = problem.admissible(theta)
+    problem.anchor(coefficients)
+    return State(theta, coefficients, problem.cost(coefficients))
+
+
+def run(problem, state, **options):
+    settings = {'method': 'iv', 'frozen': np.zeros(state.theta.size, dtype=bool),
+                'max_iterations': 100, 'tolerance': 1e-8}
+    settings.update(options)
+    return iterate(problem, state, **settings)
+
+
+def noise_free_mass_spring_damper():
+    system = systems.mass_spring_damper()
+    return system, problem_for(system.model, Data(system.u, system.noise_free(), system.ts),
+                               system.bounds)
+
+
+def test_stop_reasons_read_as_before_and_say_whether_they_converged():
+    texts = {reason: reason.describe(1e-8, 100) for reason in StopReason}
+    assert texts == {
+        StopReason.ALL_AT_BOUNDS: 'all parameters fixed at bounds',
+        StopReason.NEGLIGIBLE_UPDATE: 'update below 0.001 standard deviations',
+        StopReason.NO_FULL_STEP: 'no full step decreases the cost',
+        StopReason.NO_DECREASE: 'no admissible step decreases the cost',
+        StopReason.PARAMETER_CHANGE: 'relative parameter change below 1e-08',
+        StopReason.COST_DECREASE: 'relative cost decrease below resolution',
+        StopReason.EXACT_FIT: 'output reproduced exactly',
+        StopReason.ITERATION_LIMIT: 'iteration limit (100) reached',
+    }
+    assert {reason for reason in StopReason if not reason.converged} == \
+        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT}
+
+
+def test_first_least_squares_step_lands_next_to_the_truth_from_far_away():
+    # One-step property on noise-free affine data: from a start 4x off in m and 10x in k the
+    # least-squares projection is exact up to the O(ts^2) interpolation of y (1e-3 here).
+    system, problem = noise_free_mass_spring_damper()
+    result = run(problem, start_at(problem, {'m': 2.0, 'd': 0.1, 'k': 5.0}), max_iterations=1)
+    assert result.reason is StopReason.ITERATION_LIMIT and not result.converged
+    assert result.message == 'iteration limit (1) reached'
+    assert [(entry.direction, entry.step) for entry in result.history] == [('ls', 1.0)]
+    truth = system.model.vector(system.truth)
+    np.testing.assert_allclose(result.state.theta, truth, rtol=1e-3)
+    np.testing.assert_array_equal(result.history[0].theta, result.state.theta)
+
+
+def test_instrumental_variable_iterations_then_reach_the_truth_to_rounding():
+    system, problem = noise_free_mass_spring_damper()
+    start = start_at(problem, {'m': 2.0, 'd': 0.1, 'k': 5.0})
+    result = run(problem, start, tolerance=1e-10)
+    assert isinstance(result, IterationResult)
+    assert result.reason is StopReason.PARAMETER_CHANGE and result.converged
+    assert result.message == 'relative parameter change below 1e-10'
+    assert [entry.direction for entry in result.history][:2] == ['ls', 'iv']
+    np.testing.assert_allclose(result.state.theta, system.model.vector(system.truth),
+                               rtol=1e-12)
+    costs = [start.cost] + [entry.cost for entry in result.history]
+    assert all(later <= earlier for earlier, later in zip(costs, costs[1:]))
+    assert result.state.cost == result.history[-1].cost
+
+
+def test_output_reproduced_exactly_stops_the_iteration():
+    # Numerator parameters only: the least-squares step is exact, the cost becomes zero.
+    model = Model('(b1*s + b0)/(s**2 + 3*s + 2)')
+    u = prbs(9, 4)
+    problem = problem_for(model, Data(u, model.simulate([2.0, 1.0], u, 0.01), 0.01))
+    result = run(problem, start_at(problem, [-1.0, 5.0]), tolerance=1e-20)
+    assert result.reason is StopReason.EXACT_FIT
+    np.testing.assert_allclose(result.state.theta, [2.0, 1.0], rtol=1e-13)
+
+
+def test_frozen_parameters_keep_their_values():
+    system, problem = noise_free_mass_spring_damper()
+    frozen = np.array([False, True, False])
+    result = run(problem, start_at(problem, {'m': 2.0, 'd': 0.1, 'k': 5.0}), frozen=frozen)
+    assert result.converged
+    assert all(entry.theta[1] == 0.1 for entry in result.history)
+    assert result.state.theta[1] == 0.1
+
+
+def test_instrumental_variables_and_gauss_newton_reach_the_same_output_error_minimum():
+    # On noisy data the IV fixed points are the output-error stationary points: both end
+    # where the other does, within the 0.001 standard deviations at which they stop.
+    system = systems.mass_spring_damper()
+    data = system.data(seed=3)
+    ends = {}
+    for method in ('iv', 'gn'):
+        problem = problem_for(system.model, data, system.bounds)
+        result = run(problem, start_at(problem, {'m': 1.0, 'd': 2.0, 'k': 30.0}), method=method)
+        assert result.reason is StopReason.NEGLIGIBLE_UPDATE
+        assert result.message == 'update below 0.001 standard deviations'
+        ends[method] = result.state.theta
+    crlb = np.array([system.crlb_std[name] for name in system.model.parameters])
+    assert np.all(np.abs(ends['iv'] - ends['gn']) < 2e-3 * crlb)
+    assert np.all(np.abs(ends['iv'] - system.model.vector(system.truth)) < 4.0 * crlb)
+
+
+def test_bounds_truncate_every_step():
+    system = systems.mass_spring_damper()
+    bounds = {'m': (0.1, 0.4), 'd': (0.0, 100.0), 'k': (0.0, 1e4)}
+    problem = problem_for(system.model, system.data(seed=3), bounds)
+    result = run(problem, start_at(problem, {'m': 0.3, 'd': 0.5, 'k': 30.0}))
+    assert result.converged
+    assert all(0.1 <= entry.theta[0] <= 0.4 for entry in result.history)
+    assert result.state.theta[0] == pytest.approx(0.4, abs=1e-6)     # the truth is 0.5
+
+
+def test_all_parameters_held_by_their_bounds_stop_at_once():
+    model = Model('K/(s + 1)')
+    u = prbs(8, 4)
+    problem = problem_for(model, Data(u, model.simulate([2.0], u, 0.01), 0.01), {'K': (0, 1)})
+    result = run(problem, start_at(problem, [1.0]))
+    assert result.reason is StopReason.ALL_AT_BOUNDS and result.converged
+    assert result.history == []
+
+
+def test_full_steps_only_gives_up_where_the_iteration_needs_a_shorter_step():
+    # From this start neither the full least-squares nor the full Gauss-Newton step is
+    # accepted: the quick check gives up at once, the full iteration halves and converges.
+    system = systems.mass_spring_damper()
+    data = system.data(seed=1)
+    start = {'m': 0.112, 'd': 5.325, 'k': 60.519}
+    problem = problem_for(system.model, data, system.bounds)
+    quick = run(problem, start_at(problem, start), max_iterations=6, full_steps_only=True)
+    assert quick.reason is StopReason.NO_FULL_STEP and not quick.converged
+    assert quick.history == []
+    problem = problem_for(system.model, data, system.bounds)
+    full = run(problem, start_at(problem, start))
+    assert full.converged
+    assert full.history[0].step < 1.0
+    crlb = np.array([system.crlb_std[name] for name in system.model.parameters])
+    assert np.all(np.abs(full.state.theta - system.model.vector(system.truth)) < 4.0 * crlb)

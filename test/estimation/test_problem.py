@@ -1,0 +1,144 @@
+"""One estimation problem: bounds, admissible set, cost, nuisance projection, dead-time bracket."""
+
+from ctid_ros import Data, Model, ModelError
+from ctid_ros.core import reference_systems as systems
+from ctid_ros.core.excitation import prbs
+from ctid_ros.estimation.correlation import prewhitened_delay
+from ctid_ros.estimation.problem import (bound_vectors, delay_parameter, nuisance_columns,
+                                         orthonormal_basis, Problem, settling_time,
+                                         with_fitted_nuisance)
+import numpy as np
+import pytest
+
+FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
+
+
+def problem_for(model, data, bounds=None, **options):
+    lower, upper = bound_vectors(model, bounds)
+    return Problem(model, data, lower, upper, 'zoh', **options)
+
+
+def test_bound_vectors_follow_parameter_order_and_keep_a_dead_time_non_negative():
+    model = Model(FOPDT)                                   # parameters K, tau, T
+    lower, upper = bound_vectors(model, {'T': (1e-3, None), 'K': (None, 5.0)})
+    np.testing.assert_array_equal(lower, [-np.inf, 0.0, 1e-3])
+    np.testing.assert_array_equal(upper, [5.0, np.inf, np.inf])
+    lower, _ = bound_vectors(model, {'tau': (-1.0, 2.0)})
+    assert lower[1] == 0.0
+    with pytest.raises(ModelError, match='unknown parameter'):
+        bound_vectors(model, {'L': (0.0, 1.0)})
+    with pytest.raises(ModelError, match='empty'):
+        bound_vectors(model, {'T': (2.0, 1.0)})
+
+
+def test_delay_parameter_is_only_a_parameter_that_is_the_dead_time_itself():
+    assert delay_parameter(Model(FOPDT)) == 1
+    assert delay_parameter(Model('K*exp(-0.5*s)/(T*s + 1)')) is None
+    assert delay_parameter(Model('K*exp(-2*tau*s)/(T*s + 1)')) is None
+    assert delay_parameter(Model('K/(T*s + 1)')) is None
+
+
+def test_settling_time_is_five_slowest_time_constants_plus_the_dead_time():
+    model = Model(FOPDT)
+    assert settling_time(model.coefficients({'K': 2.0, 'tau': 1.234, 'T': 5.0})) == \
+        pytest.approx(5.0 * 5.0 + 1.234, rel=1e-12)
+    # Poles -1 and -4: the slower one sets it.
+    second = Model('1/(s**2 + a*s + b)').coefficients({'a': 5.0, 'b': 4.0})
+    assert settling_time(second) == pytest.approx(5.0, rel=1e-12)
+
+
+def test_cost_is_half_the_squared_output_error():
+    system = systems.mass_spring_damper()
+    data = system.data(seed=1)
+    problem = problem_for(system.model, data, system.bounds)
+    theta = {'m': 0.6, 'd': 1.5, 'k': 40.0}
+    error = data.y - system.model.simulate(theta, data.u, data.ts)
+    assert problem.cost(system.model.coefficients(theta)) == \
+        pytest.approx(0.5 * error @ error, rel=1e-12)
+    clean = problem_for(system.model, Data(system.u, system.noise_free(), system.ts))
+    assert clean.cost(system.model.coefficients(system.truth)) <= \
+        1e-24 * system.noise_free() @ system.noise_free()
+
+
+def test_admissible_set_is_the_box_with_a_stable_denominator_of_fixed_leading_sign():
+    model = Model('K/(a*s + b)')
+    u = prbs(7, 4)
+    problem = problem_for(model, Data(u, model.simulate([1.0, 1.0, 2.0], u, 0.1), 0.1),
+                          {'K': (0.0, 10.0)})
+    assert problem.admissible(np.array([1.0, 1.0, 2.0])) is not None
+    assert problem.admissible(np.array([11.0, 1.0, 2.0])) is None        # outside the box
+    assert problem.admissible(np.array([1.0, 1.0, -2.0])) is None        # unstable
+    flipped = np.array([1.0, -1.0, -2.0])                                # stable, D = -(s + 2)
+    assert problem.admissible(flipped) is not None
+    problem.anchor(model.coefficients([1.0, 1.0, 2.0]))
+    assert problem.admissible(flipped) is None                           # the order would drop
+
+
+def test_transient_exclusion_drops_the_settling_time_at_most_half_the_record():
+    system = systems.first_order_dead_time()               # N = 2550, ts = 0.1
+    problem = problem_for(system.model, system.data(seed=1), system.bounds)
+    coefficients = system.model.coefficients(system.truth)
+    problem.exclude_transient('auto', coefficients)
+    assert problem.skip == int(np.ceil((25.0 + 1.234) / 0.1))
+    assert problem.measured.size == 2550 - problem.skip
+    problem.exclude_transient(1e6, coefficients)
+    assert problem.skip == 2550 // 2
+    with pytest.raises(ValueError, match='transient'):
+        problem.exclude_transient(-1.0, coefficients)
+
+
+def first_order_away_from_rest(offset):
+    model = Model('K/(T*s + 1)')
+    truth = {'K': 1.5, 'T': 0.4}
+    u = prbs(7, 8)[:400]
+    time = 0.01 * np.arange(u.size)
+    y = model.simulate(truth, u, 0.01) + 2.0 * np.exp(-time / truth['T']) + offset
+    return model, truth, Data(u, y, 0.01)
+
+
+@pytest.mark.parametrize('offset', [0.0, 4.0])
+def test_initial_state_and_offset_are_projected_out_exactly(offset):
+    # y = G u + free response of 1/D (+ a constant): with those components fitted the truth
+    # leaves no error; without them it does.
+    model, truth, data = first_order_away_from_rest(offset)
+    coefficients = model.coefficients(truth)
+    fitted = problem_for(model, data, initial_state=True, output_offset=bool(offset))
+    assert fitted.cost(coefficients) <= 1e-24 * data.y @ data.y
+    assert problem_for(model, data).cost(coefficients) > 1e-3 * data.y @ data.y
+    # The instruments and regressors are orthogonal to the fitted components.
+    lin = fitted.linearize(coefficients)
+    columns = nuisance_columns(coefficients.den, len(data), data.ts, True, bool(offset))
+    assert columns.shape == (len(data), 1 + bool(offset))
+    basis = orthonormal_basis(columns)
+    for signals in (lin.psi, lin.phi):
+        assert np.max(np.abs(basis.T @ signals)) <= 1e-12 * np.max(np.abs(signals))
+
+
+def test_nuisance_helpers():
+    assert nuisance_columns(np.array([1.0, 2.0]), 10, 0.1, False, False) is None
+    assert orthonormal_basis(None) is None
+    output = np.arange(5.0)
+    assert with_fitted_nuisance(np.ones(5), output, None) is output
+    columns = np.column_stack([np.ones(5), np.arange(5.0) * 1e6])
+    basis = orthonormal_basis(columns)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(2), atol=1e-14)
+    # A measured signal in the span is fitted exactly.
+    measured = output + 3.0 - 2.0 * np.arange(5.0)
+    np.testing.assert_allclose(with_fitted_nuisance(measured, output, basis), measured,
+                               atol=1e-12)
+
+
+def test_delay_bracket():
+    system = systems.first_order_dead_time()               # tau in [0, 10]
+    data = system.data(seed=1)
+    problem = problem_for(system.model, data, system.bounds)
+    assert problem.delay_bracket(1, None) == (0.0, 10.0)
+    assert problem.delay_bracket(1, (2.0, 20.0)) == (2.0, 10.0)
+    with pytest.raises(ModelError, match='delay range'):
+        problem.delay_bracket(1, (3.0, 1.0))
+    # No upper bound: three times the data's own guess, at least 20 samples beyond it.
+    unbounded = problem_for(system.model, data)
+    guess = prewhitened_delay(data)
+    assert unbounded.delay_guess == guess
+    assert unbounded.delay_bracket(1, None) == \
+        (0.0, pytest.approx(max(3.0 * guess, guess + 2.0), rel=1e-15))

@@ -1,0 +1,145 @@
+"""Equation-error starts and the warm-start check (docs/algorithm.md sections 10 and 11)."""
+
+from ctid_ros import Data, EstimationError, Model, ModelError
+from ctid_ros.core import reference_systems as systems
+from ctid_ros.core.excitation import prbs
+from ctid_ros.estimation.iteration import StopReason
+from ctid_ros.estimation.problem import bound_vectors, Problem, State
+from ctid_ros.estimation.starts import (best_candidate, complete_guess, distinct,
+                                        explains_data, filter_bandwidths, initial_estimate,
+                                        local_fit, StateVariableFilters)
+import numpy as np
+import pytest
+
+
+def problem_for(model, data, bounds=None):
+    lower, upper = bound_vectors(model, bounds)
+    return Problem(model, data, lower, upper, 'zoh')
+
+
+def state_at(problem, values):
+    theta = problem.model.vector(values)
+    coefficients = problem.admissible(theta)
+    return State(theta, coefficients, problem.cost(coefficients))
+
+
+def crlb(system):
+    return np.array([system.crlb_std[name] for name in system.model.parameters])
+
+
+@pytest.mark.parametrize('factory, tolerance', [
+    (systems.mass_spring_damper, 1e-3), (systems.closed_loop_pid, 1e-3),
+    (systems.second_order_nonaffine, 1e-3), (systems.rao_garnier, 5e-3),
+])
+def test_automatic_start_on_noise_free_data_is_next_to_the_truth(factory, tolerance):
+    # The equation error D y - N u filtered by 1/E is linear in the coefficients and zero at
+    # the truth; only the interpolation of y between samples (O(ts^2)) separates the fit from
+    # it. The non-affine structure is fitted by its local solver from the default hint.
+    system = factory()
+    problem = problem_for(system.model, Data(system.u, system.noise_free(), system.ts),
+                          system.bounds)
+    start = initial_estimate(problem, 'auto', None)
+    np.testing.assert_allclose(start.theta, system.model.vector(system.truth), rtol=tolerance)
+    assert start.cost == problem.cost(start.coefficients)
+
+
+def test_automatic_start_of_a_symmetric_non_affine_model():
+    model = Model('K/((T1*s + 1)*(T2*s + 1))')
+    u = prbs(9, 5)
+    data = Data(u, model.simulate({'K': 1.5, 'T1': 0.3, 'T2': 2.0}, u, 0.02), 0.02)
+    problem = problem_for(model, data, {'T1': (1e-3, None), 'T2': (1e-3, None)})
+    theta = initial_estimate(problem, 'auto', None).theta
+    assert theta[0] == pytest.approx(1.5, rel=1e-4)
+    assert sorted(theta[1:]) == pytest.approx([0.3, 2.0], rel=1e-3)
+
+
+def test_partial_initial_values_are_pinned_and_the_rest_fitted():
+    system = systems.mass_spring_damper()
+    problem = problem_for(system.model, system.data(seed=2), system.bounds)
+    start = initial_estimate(problem, {'m': 0.7}, None)
+    assert start.theta[0] == 0.7
+    assert np.all(np.isfinite(start.theta)) and start.cost < np.inf
+
+
+@pytest.mark.parametrize('initial, fragment', [
+    ({'mass': 1.0}, 'unknown parameter'), ({'m': 500.0}, 'outside its bounds'),
+    ({'m': np.nan}, 'not finite'), ('best', "'auto'"),
+])
+def test_initial_values_are_checked(initial, fragment):
+    system = systems.mass_spring_damper()
+    problem = problem_for(system.model, system.data(seed=2), system.bounds)
+    with pytest.raises(ModelError, match=fragment):
+        initial_estimate(problem, initial, None)
+
+
+def test_no_stable_start_is_an_estimation_error():
+    # d and k pinned negative: no positive m makes m s^2 + d s + k Hurwitz.
+    system = systems.mass_spring_damper()
+    problem = problem_for(system.model, system.data(seed=2), {'m': (1e-3, 100.0)})
+    with pytest.raises(EstimationError, match='no stable starting model'):
+        initial_estimate(problem, {'d': -1.0, 'k': -5.0}, None)
+
+
+def test_complete_guess_is_a_state_only_if_complete_and_admissible():
+    system = systems.mass_spring_damper()
+    problem = problem_for(system.model, system.data(seed=2), system.bounds)
+    assert complete_guess(problem, 'auto') is None
+    assert complete_guess(problem, {'m': 0.5, 'd': 1.0}) is None
+    assert complete_guess(problem, {'m': 0.5, 'd': -1.0, 'k': 50.0}) is None   # unstable
+    state = complete_guess(problem, {'m': 0.5, 'd': 1.0, 'k': 50.0})
+    np.testing.assert_array_equal(state.theta, [0.5, 1.0, 50.0])
+    assert state.cost == problem.cost(system.model.coefficients(state.theta))
+
+
+def test_best_candidate_skips_inadmissible_ones_and_distinct_drops_repeats():
+    system = systems.mass_spring_damper()
+    problem = problem_for(system.model, system.data(seed=2), system.bounds)
+    candidates = [np.array([0.5, -1.0, 50.0]), np.array([0.8, 1.0, 40.0]),
+                  np.array([0.5, 1.0, 50.0]), np.array([0.5, 1.0, 50.0 * (1 + 1e-9)])]
+    best = best_candidate(problem, candidates)
+    np.testing.assert_array_equal(best.theta, [0.5, 1.0, 50.0])
+    assert best_candidate(problem, candidates[:1]) is None
+    assert len(distinct(candidates)) == 3
+
+
+def test_filters_span_ten_periods_per_record_to_three_tenths_of_nyquist():
+    data = systems.first_order_dead_time().data(seed=1)              # 2550 samples of 0.1 s
+    corners = filter_bandwidths(data, 3)
+    np.testing.assert_allclose(corners[[0, -1]], [10.0 / 255.0, 0.3 * np.pi / 0.1],
+                               rtol=1e-14)
+    assert corners[1] == pytest.approx(np.sqrt(corners[0] * corners[2]), rel=1e-14)
+
+
+def test_whole_sample_dead_time_shortcut_matches_direct_filtering():
+    # On the sample lattice the filtered input is a shift of one undelayed filtering; just off
+    # it the input is filtered with the fractional delay. Both give the same normal equations.
+    system = systems.first_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=3), system.bounds)
+    filters = StateVariableFilters(problem, filter_bandwidths(problem.data, 3))
+    assert filters.count == 3 and filters.select(1).count == 1
+    for on, off in zip(filters.factors(1.2), filters.factors(1.2 + 1e-8)):
+        gram_on, gram_off = on.T @ on, off.T @ off
+        assert np.max(np.abs(gram_on - gram_off)) < 1e-7 * np.max(np.abs(gram_on))
+
+
+@pytest.mark.parametrize('seed', range(3, 8))
+def test_residual_test_accepts_the_truth_and_rejects_a_dead_time_two_samples_off(seed):
+    system = systems.first_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=seed), system.bounds)
+    tau = system.model.parameters.index('tau')
+    truth = dict(system.truth)
+    assert explains_data(problem, state_at(problem, truth), tau, None)
+    for wrong in (1.0, 1.5):
+        assert not explains_data(problem, state_at(problem, {**truth, 'tau': wrong}), tau, None)
+
+
+def test_local_fit_from_a_warm_start_converges_near_the_truth():
+    system = systems.first_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=8), system.bounds)
+    start = state_at(problem, {'K': 2.2, 'T': 4.5, 'tau': 1.3})
+    problem.anchor(start.coefficients)
+    result = local_fit(problem, start, 'iv', first_ls=True, full_steps_only=True, iterations=6)
+    assert result.reason is not StopReason.NO_FULL_STEP and result.converged
+    assert np.all(np.abs(result.state.theta - system.model.vector(system.truth))
+                  < 4.0 * crlb(system))
+    assert explains_data(problem, result.state, system.model.parameters.index('tau'), None)
