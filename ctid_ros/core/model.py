@@ -12,7 +12,8 @@ Every name other than ``s`` (and the constant ``pi``) is a parameter. ``model.pa
 them in order of first appearance in the plant expression. From the text the model derives the
 coefficients of ``N(s, theta)`` and ``D(s, theta)``, their Jacobians with respect to ``theta``
 (symbolically, then compiled to numpy), the dead time ``tau(theta)`` of an optional factor
-``exp(-tau*s)``, and whether the structure is affine in ``theta`` (Condition 1 of the method).
+``exp(-tau*s)``, and whether the structure is affine in ``theta`` (``docs/algorithm.md``
+section 2).
 """
 
 from dataclasses import dataclass

@@ -1,7 +1,7 @@
 """
 Reference identification problems with known answers.
 
-The test systems of the algorithm notes (section 8): models, true parameters, inputs, noise
+The test systems of ``docs/algorithm.md`` section 16: models, true parameters, inputs, noise
 levels, physical bounds and the Cramer-Rao standard deviations at the truth. Tests, benchmarks
 and the demo all draw on them.
 """

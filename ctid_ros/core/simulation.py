@@ -13,7 +13,7 @@ The response is exact for that assumption, including dead times that are not a m
 sample time: ``tau = d*ts + eps`` splits each sample interval into two sub-intervals whose
 matrix exponentials are composed (the modified discretisation). Everything starts at rest.
 
-Numerics follow the algorithm notes: the denominator is time-scaled so its roots are O(1),
+Numerics (``docs/algorithm.md`` section 4): the denominator is time-scaled so its roots are O(1),
 realised in controllable canonical form whose states are ``s^j/D(s)`` applied to the signal
 (so any numerator of degree <= deg D is just an output map of one state simulation), diagonally
 balanced, discretised with one matrix exponential per sub-interval, and propagated in modal

@@ -12,7 +12,8 @@ whose output ``y_c`` is the measured output through a fixed high-pass filter wit
 (rad/s) and whose denominator is Hurwitz whenever ``D'`` is. The parameters, the inputs and the
 numerators are unchanged, so the whole method (projections, instruments, covariance) applies
 to it as it is. The high pass removes what an integrator cannot be fitted on: the initial
-position and slow drift (``y`` is filtered from rest at its first sample).
+position and slow drift (``y`` is filtered from rest at its first sample). See
+``docs/algorithm.md`` section 13.
 """
 
 from ctid_ros.core.model import Coefficients, Model

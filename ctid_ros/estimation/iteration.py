@@ -108,7 +108,13 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
 
 def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
                damping: float = 0.0) -> Optional[np.ndarray]:
-    """Update direction on the free parameters (zeros elsewhere), or None if singular."""
+    """
+    Update direction on the free parameters (zeros elsewhere), or None if singular.
+
+    ``kind`` is ``'ls'``, ``'iv'``, ``'gn'`` or ``'lm'``: equations (5.1)-(5.4) of
+    ``docs/algorithm.md``, on columns scaled by the instrument norms.
+
+    """
     psi = lin.psi[:, free]
     scales = column_scales(psi)
     psi_s = psi / scales
@@ -172,7 +178,7 @@ def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
 
 
 def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float:
-    """Length of ``step`` in standard deviations of the estimate, ``|Psi step| / sigma``."""
+    """Length of ``step`` in standard deviations of the estimate, ``|Psi step| / sigma`` (8.1)."""
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
     if variance == 0.0:

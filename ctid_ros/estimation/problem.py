@@ -5,7 +5,7 @@ One estimation problem: data, model and bounds, and what they give at a paramete
 there (output, regressors ``phi``, instruments ``psi`` on the fitted samples, with an initial
 state and an output offset projected out when they are estimated). A :class:`State` is a
 parameter vector with its coefficients and cost. The equations are those of ``docs/algorithm.md``
-(sections 2-4 and 9); the bounds and the admissible set are section 7.
+sections 2-4 and 9; the admissible set and the bounds are sections 6 and 7.
 """
 
 from dataclasses import dataclass

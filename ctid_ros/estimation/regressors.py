@@ -11,8 +11,9 @@ sampled input ``u`` and output ``y``, with three state simulations sharing one d
 * the instruments ``psi_i = d yhat / d theta_i = (dN_i D - dD_i N)/D^2 e^{-tau s} u - ...``
   (u through ``1/D^2``), which carry no measurement noise.
 
-``phi`` makes the error decomposition exact (one-step property); ``psi`` are the output
-sensitivities that make the instrumental-variable iteration consistent.
+``phi`` makes the error decomposition exact (one-step property; on sampled data up to the
+first-order hold of ``y``); ``psi`` are the output sensitivities that make the
+instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and 4).
 """
 
 from dataclasses import dataclass
@@ -104,7 +105,12 @@ class SignalBank:
         return _remembered(self._outputs, self._output_key(coefficients), simulate)
 
     def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
-        """Return the output, the regressors ``phi`` (if requested) and instruments ``psi``."""
+        """
+        Return the output, the regressors ``phi`` (if requested) and instruments ``psi``.
+
+        ``phi`` and ``psi`` are equations (3.2)-(3.4) and (4.1) of ``docs/algorithm.md``, one
+        column per parameter, computed by the three simulations of its section 4.
+        """
         den = coefficients.den
         order = den.size - 1
         params = coefficients.num_jacobian.shape[0]

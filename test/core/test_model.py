@@ -154,7 +154,7 @@ def test_closed_loop_coefficients_match_hand_computation():
     assert model.is_affine
 
 
-def test_closed_loop_pid_matches_section_8_test_3():
+def test_closed_loop_pid_matches_hand_expansion():
     controller = '(5*s**2 + 20*s + 10)/(s*(0.02*s + 1))'
     model = Model(MSD, controller=controller)
     coefficients = model.coefficients({'m': 1.0, 'd': 0.5, 'k': -2.0})

@@ -33,8 +33,8 @@ def test_rao_garnier_from_random_start():
 
 
 def test_mass_spring_damper_where_gauss_newton_stalls():
-    # From this start Gauss-Newton drifts to a near-zero-gain plateau (a finding of the
-    # reconstruction the method was implemented from, for this test system).
+    # From this start Gauss-Newton drifts to a near-zero-gain plateau (docs/algorithm.md
+    # section 16, test_iteration.py).
     system = systems.mass_spring_damper()
     data = system.data(seed=2)
     result = estimate(system.model, data, {'m': 1.47, 'd': 1.01, 'k': 16.0},
