@@ -14,7 +14,7 @@ robot picks up a payload: ``J`` jumps from 0.05 to 0.08 kg m².
    identifies the plant from the measured ``u`` to ``y`` on the last 4 s (direct closed-loop
    identification: a dead time cannot be inside a ``controller=`` model).
 3. This process records the plant's and the node's topics into an MCAP file
-   (:class:`~ctid_ros.files.bag_reader.RecordingWriter`) and prints the node's estimates as
+   (:class:`~ctid_ros.files.mcap_writer.RecordingWriter`) and prints the node's estimates as
    they come.
 4. ``ctid replay --sliding --plot --output`` replays the recording offline through the node's
    code path; the demo adds the estimates over time against the truth and a summary of the
@@ -374,7 +374,7 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from ctid_ros.files.bag_reader import RecordingWriter
+    from ctid_ros.files.mcap_writer import RecordingWriter
     from ctid_ros.ros.node import import_message
 
     recorded = {scenario.topics['r']: POINT, scenario.topics['u']: POINT,

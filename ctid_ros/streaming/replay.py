@@ -41,7 +41,9 @@ from typing import Any, Iterable, Iterator, List, Optional, Sequence, TextIO, Tu
 
 from ctid_ros.cli.report import format_table, json_default
 from ctid_ros.errors import BagError, DataError, EstimationError
-from ctid_ros.files.bag_reader import BagReader, EstimateWriter, open_bag, PathLike
+from ctid_ros.files.bag_reader import BagReader, open_bag
+from ctid_ros.files.mcap_source import PathLike
+from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.buffer import BufferStats, resample, SampleBuffer
 from ctid_ros.streaming.config import DEFAULT_NODE_NAME, IdentificationConfig, load_params_file
 from ctid_ros.streaming.message_fields import extract_values, parse_field_path, sample_stamp

@@ -8,7 +8,8 @@ import shutil
 from bag_fixtures import (assert_fields, DURATION_S, make_records, T0_NS, TOPICS, write_mcap,
                           write_rosbag2, write_unchunked_mcap)
 from ctid_ros.errors import BagError, ConfigError, DataError
-from ctid_ros.files.bag_reader import BagReader, EstimateWriter, open_bag
+from ctid_ros.files.bag_reader import BagReader, open_bag
+from ctid_ros.files.mcap_writer import EstimateWriter
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Message

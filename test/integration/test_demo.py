@@ -13,7 +13,8 @@ import re
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.demo.wheel import copy_to_docs, main, PLANT_CONFIG, Scenario
 from ctid_ros.errors import BagError, ConfigError
-from ctid_ros.files.bag_reader import BagReader, RecordingWriter
+from ctid_ros.files.bag_reader import BagReader
+from ctid_ros.files.mcap_writer import RecordingWriter
 from ctid_ros.streaming.config import find_config
 import numpy as np
 import pytest
