@@ -42,20 +42,17 @@ from ctid_ros.cli import main as cli
 from ctid_ros.errors import CtidError
 from ctid_ros.files.bag_reader import BagReader
 from ctid_ros.streaming.config import find_config, IdentificationConfig, load_params_file
+from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
+                                         FLOAT64_MULTI_ARRAY, NANOSECONDS, NodeTopics)
 from ctid_ros.streaming.replay import format_estimate, series_header, series_row
 import numpy as np
 import yaml
 
-NANOSECONDS = 1_000_000_000
 PLANT_CONFIG = 'wheel_demo_plant'
 NODE_CONFIG = 'wheel_demo'
-NODE_NAME = 'ctid_node'
-ESTIMATE_TOPIC = f'/{NODE_NAME}/estimate'
-ESTIMATE_STD_TOPIC = f'/{NODE_NAME}/estimate_std'
-DIAGNOSTICS_TOPIC = '/diagnostics'
+# The node runs with its default name in the root namespace.
+NODE = NodeTopics.of(DEFAULT_NODE_NAME)
 POINT = 'geometry_msgs/msg/PointStamped'
-ARRAY = 'std_msgs/msg/Float64MultiArray'
-DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
 # Figures of the run and the names the README knows them by.
 DOC_FIGURES = {'replay.png': 'demo_fit.png', 'parameters.png': 'demo_parameters.png',
                'replay_bode.png': 'demo_bode.png'}
@@ -215,7 +212,7 @@ class LiveTable:
         """Take the fit and window end of an update from the node's status."""
         for status in message.status:
             values = {pair.key: pair.value for pair in status.values}
-            if status.name == f'{NODE_NAME}: estimate' and 'fit_percent' in values:
+            if status.name == NODE.status_name and 'fit_percent' in values:
                 self._add('status', (float(values['window_end']), float(values['fit_percent'])))
 
     def _add(self, key: str, value: Any) -> None:
@@ -375,11 +372,11 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from ctid_ros.files.mcap_writer import RecordingWriter
-    from ctid_ros.ros.node import import_message
+    from ctid_ros.ros.messages import import_message
 
     recorded = {scenario.topics['r']: POINT, scenario.topics['u']: POINT,
-                scenario.topics['y']: POINT, ESTIMATE_TOPIC: ARRAY, ESTIMATE_STD_TOPIC: ARRAY,
-                DIAGNOSTICS_TOPIC: DIAGNOSTICS}
+                scenario.topics['y']: POINT, NODE.estimate: FLOAT64_MULTI_ARRAY,
+                NODE.estimate_std: FLOAT64_MULTI_ARRAY, NODE.diagnostics: DIAGNOSTIC_ARRAY}
     context = Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
@@ -400,9 +397,9 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
                     import_message(msgtype), topic,
                     lambda data, info, topic=topic: record(data, info, topic), qos, raw=True)
             for topic, msgtype, callback in (
-                    (ESTIMATE_TOPIC, ARRAY, table.on_estimate),
-                    (ESTIMATE_STD_TOPIC, ARRAY, table.on_std),
-                    (DIAGNOSTICS_TOPIC, DIAGNOSTICS, table.on_diagnostics)):
+                    (NODE.estimate, FLOAT64_MULTI_ARRAY, table.on_estimate),
+                    (NODE.estimate_std, FLOAT64_MULTI_ARRAY, table.on_std),
+                    (NODE.diagnostics, DIAGNOSTIC_ARRAY, table.on_diagnostics)):
                 recorder.create_subscription(import_message(msgtype), topic, callback, qos)
             executor.add_node(recorder)
             spinner.start()
@@ -453,24 +450,24 @@ def run_replay(bag: Path, node_file: Path, output: Path, report: Path) -> int:
 
 def read_estimates(path: Path, names: Sequence[str], start_ns: int) -> Series:
     """Read the estimates, standard deviations and fits of an MCAP written by ``--output``."""
-    rows: Dict[str, List[Any]] = {ESTIMATE_TOPIC: [], ESTIMATE_STD_TOPIC: [],
-                                  DIAGNOSTICS_TOPIC: []}
+    rows: Dict[str, List[Any]] = {NODE.estimate: [], NODE.estimate_std: [],
+                                  NODE.diagnostics: []}
     times = []
     with BagReader(path) as bag:
         for topic, log_time_ns, msg in bag.messages(list(rows)):
-            if topic == ESTIMATE_TOPIC:
+            if topic == NODE.estimate:
                 times.append((log_time_ns - start_ns) / NANOSECONDS)
                 if msg.layout.dim[0].label.split(',') != list(names):
                     raise CtidError(f'{path}: estimates of {msg.layout.dim[0].label}, '
                                     f'expected {",".join(names)}')
-            if topic == DIAGNOSTICS_TOPIC:
+            if topic == NODE.diagnostics:
                 rows[topic].append(next(float(pair.value) for pair in msg.status[0].values
                                         if pair.key == 'fit_percent'))
             else:
                 rows[topic].append(list(msg.data))
-    return Series(np.array(times), np.array(rows[ESTIMATE_TOPIC]).reshape(-1, len(names)),
-                  np.array(rows[ESTIMATE_STD_TOPIC]).reshape(-1, len(names)),
-                  np.array(rows[DIAGNOSTICS_TOPIC]), tuple(names))
+    return Series(np.array(times), np.array(rows[NODE.estimate]).reshape(-1, len(names)),
+                  np.array(rows[NODE.estimate_std]).reshape(-1, len(names)),
+                  np.array(rows[NODE.diagnostics]), tuple(names))
 
 
 def summary(scenario: Scenario, config: IdentificationConfig, replayed: Series,

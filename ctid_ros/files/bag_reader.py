@@ -17,9 +17,10 @@ from pathlib import Path
 from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import BagError
-from ctid_ros.files.mcap_source import (BagMessage, MCAP_MAGIC, McapSource, PathLike,
-                                        reading_errors)
+from ctid_ros.files.mcap_source import (BagMessage, BagRecord, MCAP_MAGIC, McapSource,
+                                        PathLike, reading_errors, TopicSchema)
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.typesys import get_typestore, Stores
 
 __all__ = ['BagReader', 'open_bag']
@@ -49,8 +50,20 @@ class _RosbagsSource:
         else:
             self.start_ns = self.end_ns = None
 
-    def messages(self, topics: Sequence[str], start_ns: Optional[int],
-                 end_ns: Optional[int]) -> Iterator[BagMessage]:
+    def schema(self, topic: str) -> TopicSchema:
+        """Return how the messages of ``topic`` are encoded, as recorded."""
+        conn = next(conn for conn in self._reader.connections if conn.topic == topic)
+        definition = conn.msgdef
+        if definition.format == MessageDefinitionFormat.IDL:
+            return TopicSchema(conn.msgtype, 'ros2idl', definition.data.encode())
+        if definition.format == MessageDefinitionFormat.MSG and definition.data:
+            return TopicSchema(conn.msgtype, 'ros2msg', definition.data.encode())
+        # Bags from before Iron store no definitions: take the standard one.
+        text, _ = self._reader.typestore.generate_msgdef(conn.msgtype, ros_version=2)
+        return TopicSchema(conn.msgtype, 'ros2msg', text.encode())
+
+    def records(self, topics: Sequence[str], start_ns: Optional[int],
+                end_ns: Optional[int]) -> Iterator[BagRecord]:
         """Check that the topics can be decoded, then stream them in log-time order."""
         connections = [conn for conn in self._reader.connections if conn.topic in topics]
         known = self._reader.typestore.fielddefs
@@ -62,7 +75,7 @@ class _RosbagsSource:
         return self._iterate(connections, start_ns, end_ns)
 
     def _iterate(self, connections: list, start_ns: Optional[int],
-                 end_ns: Optional[int]) -> Iterator[BagMessage]:
+                 end_ns: Optional[int]) -> Iterator[BagRecord]:
         what = f'{self.path} is corrupted and cannot be read further'
         with reading_errors(what):
             raw = self._reader.messages(connections, start=start_ns, stop=end_ns)
@@ -73,7 +86,7 @@ class _RosbagsSource:
                     return
                 conn, log_time_ns, data = item
                 msg = self._reader.deserialize(data, conn.msgtype)
-            yield BagMessage(conn.topic, log_time_ns, msg)
+            yield BagRecord(conn.topic, log_time_ns, msg, bytes(data))
 
     def close(self) -> None:
         """Release the files."""
@@ -269,7 +282,8 @@ class BagReader:
         -------
         iterator of BagMessage
             ``(topic, log_time_ns, msg)``; ``msg`` exposes the message fields as attributes
-            (arrays may be numpy arrays or lists).
+            (arrays may be numpy arrays or lists). :meth:`records` gives the serialised bytes
+            too.
 
         Raises
         ------
@@ -279,6 +293,23 @@ class BagReader:
             to be damaged beyond what was found when it was opened.
 
         """
+        records = self.records(topics, start, end, start_ns=start_ns, end_ns=end_ns)
+        return (BagMessage(record.topic, record.log_time_ns, record.msg) for record in records)
+
+    def records(self, topics: Union[str, Iterable[str], None] = None,
+                start: Optional[float] = None, end: Optional[float] = None, *,
+                start_ns: Optional[int] = None,
+                end_ns: Optional[int] = None) -> Iterator[BagRecord]:
+        """
+        Stream messages as :meth:`messages` does, each with its serialised bytes as recorded.
+
+        Returns
+        -------
+        iterator of BagRecord
+            ``(topic, log_time_ns, msg, data)``: ``data`` is the message as stored (CDR), to
+            copy it into another bag with its :meth:`topic_schema`.
+
+        """
         selected = self._select(topics)
         if start is not None and start_ns is not None or end is not None and end_ns is not None:
             raise BagError('give the window either in seconds (start/end) or in nanoseconds '
@@ -286,7 +317,20 @@ class BagReader:
         lo, hi = self.time_range_ns(start, end)
         lo = start_ns if start_ns is not None else lo
         hi = end_ns if end_ns is not None else hi
-        return self._source.messages(selected, lo, hi)
+        return self._source.records(selected, lo, hi)
+
+    def topic_schema(self, topic: str) -> TopicSchema:
+        """
+        Return how the messages of ``topic`` are encoded: type, definition and encodings.
+
+        Raises
+        ------
+        BagError
+            If the bag has no such topic (the message lists its topics).
+
+        """
+        (topic,) = self._select(topic)
+        return self._source.schema(topic)
 
     def _select(self, topics: Union[str, Iterable[str], None]) -> List[str]:
         available = self._source.topics

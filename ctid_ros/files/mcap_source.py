@@ -30,7 +30,8 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
 
-__all__ = ['BagMessage', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'reading_errors']
+__all__ = ['BagMessage', 'BagRecord', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'TopicSchema',
+           'reading_errors']
 
 PathLike = Union[str, os.PathLike]
 
@@ -44,6 +45,38 @@ class BagMessage(NamedTuple):
     topic: str
     log_time_ns: int
     msg: Any
+
+
+class BagRecord(NamedTuple):
+    """One recorded message as :class:`BagMessage`, with its serialised bytes as recorded."""
+
+    topic: str
+    log_time_ns: int
+    msg: Any
+    data: bytes
+
+
+class TopicSchema(NamedTuple):
+    """
+    How the messages of a topic are encoded, as an MCAP channel and its schema record say.
+
+    Attributes
+    ----------
+    msgtype : str
+        Message type, e.g. ``'std_msgs/msg/Float64'``.
+    encoding : str
+        Encoding of the definition: ``'ros2msg'`` or ``'ros2idl'``.
+    definition : bytes
+        The message definition, with those of the types it uses.
+    message_encoding : str
+        Encoding of the messages, ``'cdr'`` for ROS 2.
+
+    """
+
+    msgtype: str
+    encoding: str
+    definition: bytes
+    message_encoding: str = 'cdr'
 
 
 @contextmanager
@@ -221,8 +254,17 @@ class McapSource:
             self.start_ns = min(times) if self.start_ns is None else min(self.start_ns, *times)
             self.end_ns = max(times) if self.end_ns is None else max(self.end_ns, *times)
 
-    def messages(self, topics: Sequence[str], start_ns: Optional[int],
-                 end_ns: Optional[int]) -> Iterator[BagMessage]:
+    def schema(self, topic: str) -> TopicSchema:
+        """Return how the messages of ``topic`` are encoded (its first channel's schema)."""
+        channel = next(channel for channel in self._channels.values() if channel.topic == topic)
+        schema = self._schemas.get(channel.schema_id)
+        if schema is None:
+            raise BagError(f'{self.path}: topic {topic} has no schema')
+        return TopicSchema(schema.name, schema.encoding, bytes(schema.data),
+                           channel.message_encoding)
+
+    def records(self, topics: Sequence[str], start_ns: Optional[int],
+                end_ns: Optional[int]) -> Iterator[BagRecord]:
         """Check that the topics can be decoded, then stream them in log-time order."""
         factory = DecoderFactory()
         decoders = {}
@@ -242,7 +284,7 @@ class McapSource:
         return self._iterate(decoders, start_ns, end_ns)
 
     def _iterate(self, decoders: Mapping[int, Any], start_ns: Optional[int],
-                 end_ns: Optional[int]) -> Iterator[BagMessage]:
+                 end_ns: Optional[int]) -> Iterator[BagRecord]:
         lo = -1 if start_ns is None else start_ns
         hi = math.inf if end_ns is None else end_ns
         wanted = frozenset(decoders)
@@ -265,7 +307,7 @@ class McapSource:
             with reading_errors(f'{self.path}: cannot decode the message on {channel.topic} '
                                 f'at {log_time_ns} ns'):
                 msg = decoders[item.channel_id](item.data)
-            yield BagMessage(channel.topic, log_time_ns, msg)
+            yield BagRecord(channel.topic, log_time_ns, msg, item.data)
 
     def _read_block(self, offset: int) -> List[Any]:
         with reading_errors(f'{self.path} is corrupted at byte {offset} and cannot be read '

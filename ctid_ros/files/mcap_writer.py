@@ -1,58 +1,38 @@
 """
 Writing new standalone MCAP files without ROS.
 
-:class:`EstimateWriter` holds the topics the live node publishes; :class:`RecordingWriter`
-records serialised messages as they come off the wire (what ``ros2 bag record`` does, for
-machines without the ros2 CLI). Both files are readable by Foxglove, PlotJuggler, rosbags,
-mcap-ros2-support and :class:`~ctid_ros.files.bag_reader.BagReader`. Times are integer
+:class:`RecordingWriter` records serialised messages as they come off the wire (what ``ros2 bag
+record`` does, for machines without the ros2 CLI); :class:`EstimateWriter` writes what the live
+node publishes (:mod:`ctid_ros.streaming.contract`) and can hold copies of recorded topics
+beside it. Messages are CDR with their definitions in the file, in the concatenated form
+rosbag2 stores, so Foxglove, PlotJuggler, rosbags, mcap-ros2-support and
+:class:`~ctid_ros.files.bag_reader.BagReader` read them without ROS. Times are integer
 nanoseconds since the epoch.
 """
 
 import os
 from pathlib import Path
-import re
-from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple, TypeVar
+from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, TypeVar
 
-from ctid_ros.errors import BagError, ConfigError, DataError
-from ctid_ros.files.mcap_source import PathLike
-from ctid_ros.streaming.session import format_diagnostic
+from ctid_ros.errors import BagError, DataError
+from ctid_ros.files.mcap_source import PathLike, TopicSchema
+from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message,
+                                         estimate_messages, NodeTopics, OutputMessage,
+                                         update_status)
 from mcap.writer import Writer as McapWriter
-from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
 from rosbags.typesys import get_typestore, Stores, TypesysError
+from rosbags.typesys.base import Nodetype
 
 __all__ = ['EstimateWriter', 'RecordingWriter']
 
-_SEP = '=' * 80 + '\n'
-_TIME = 'MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n'
-_HEADER = 'MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n'
-_LAYOUT = ('MSG: std_msgs/MultiArrayLayout\nMultiArrayDimension[] dim\nuint32 data_offset\n'
-           f'{_SEP}MSG: std_msgs/MultiArrayDimension\nstring label\nuint32 size\n'
-           'uint32 stride\n')
-_STATUS = ('MSG: diagnostic_msgs/DiagnosticStatus\nbyte OK=0\nbyte WARN=1\nbyte ERROR=2\n'
-           'byte STALE=3\nbyte level\nstring name\nstring message\nstring hardware_id\n'
-           f'KeyValue[] values\n{_SEP}MSG: diagnostic_msgs/KeyValue\nstring key\n'
-           'string value\n')
-# Definitions in the concatenated form rosbag2 stores, so any reader can decode without ROS.
-_MSGDEFS = {
-    'std_msgs/msg/Float64': 'float64 data\n',
-    'std_msgs/msg/Float64MultiArray': f'MultiArrayLayout layout\nfloat64[] data\n{_SEP}{_LAYOUT}',
-    'diagnostic_msgs/msg/DiagnosticArray': ('std_msgs/Header header\nDiagnosticStatus[] status\n'
-                                            f'{_SEP}{_HEADER}{_SEP}{_TIME}{_SEP}{_STATUS}'),
+# numpy types of the primitive ROS types that rosbags wants as arrays inside sequences.
+_ARRAY_TYPES = {
+    'bool': np.bool_, 'byte': np.uint8, 'char': np.uint8, 'octet': np.uint8,
+    'int8': np.int8, 'uint8': np.uint8, 'int16': np.int16, 'uint16': np.uint16,
+    'int32': np.int32, 'uint32': np.uint32, 'int64': np.int64, 'uint64': np.uint64,
+    'float32': np.float32, 'float64': np.float64,
 }
-DIAGNOSTIC_OK = 0
-DIAGNOSTIC_WARN = 1
-_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
-
-
-def _node_prefix(namespace: str, node_name: str) -> str:
-    tokens = [token for token in namespace.split('/') if token]
-    for token in (*tokens, node_name):
-        if not _NAME.match(token):
-            raise ConfigError(f'invalid ROS name {token!r} in namespace {namespace!r} / node '
-                              f'{node_name!r}: use letters, digits and underscores, not '
-                              'starting with a digit')
-    return '/' + '/'.join((*tokens, node_name))
 
 
 def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> None:
@@ -74,52 +54,62 @@ def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> No
                        'overwriting it')
 
 
-def _stamp(time_ns: int) -> Dict[str, int]:
-    return {'sec': time_ns // 1_000_000_000, 'nanosec': time_ns % 1_000_000_000}
-
-
 def _time_ns(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
         raise DataError(f'times must be non-negative integer nanoseconds, got {value!r}')
     return int(value)
 
 
-def _status_level(diagnostics: Mapping[str, Any]) -> Tuple[int, str]:
-    """Return WARN with the reason if the estimate did not converge or has warnings, else OK."""
-    warnings = list(diagnostics.get('warnings') or [])
-    if warnings:
-        return DIAGNOSTIC_WARN, '; '.join(str(warning) for warning in warnings)
-    if diagnostics.get('converged') is False:
-        return DIAGNOSTIC_WARN, 'not converged'
-    return DIAGNOSTIC_OK, 'ok'
+_Writer = TypeVar('_Writer', bound='RecordingWriter')
 
 
-_Output = TypeVar('_Output', bound='_McapOutput')
-
-
-class _McapOutput:
+class RecordingWriter:
     """
-    A new standalone MCAP file: created by the constructor, indexed and closed by :meth:`close`.
+    Record serialised ROS 2 messages into a new standalone MCAP file, as ``ros2 bag record``.
 
-    Subclasses set ``_writer`` (an mcap or mcap_ros2 writer on ``_stream``) and check
-    :meth:`_check_open` before writing.
+    The messages are written as received, in CDR (e.g. from an rclpy subscription created with
+    ``raw=True``, or copied from another bag), with the definition of their type: from rosbags'
+    ROS 2 Jazzy type store, or as recorded for a copied topic.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.mcap`` file to create.
+    inputs : iterable of str or os.PathLike, optional
+        Bags the data come from: writing to (or into) any of them is refused, even with
+        ``overwrite``.
+    overwrite : bool, optional
+        Replace an existing file at ``path`` instead of refusing.
+
+    Raises
+    ------
+    BagError
+        If ``path`` is not a new ``.mcap`` file outside the inputs, or cannot be created.
+
     """
 
-    _writer: Any
-
-    def __init__(self, path: Path, inputs: Iterable[PathLike], overwrite: bool) -> None:
-        self.path = path
-        _check_output(path, inputs, overwrite)
+    def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
+                 overwrite: bool = False) -> None:
+        self.path = Path(path)
+        _check_output(self.path, inputs, overwrite)
         try:
-            self._stream = open(path, 'wb' if overwrite else 'xb')
+            self._stream = open(self.path, 'wb' if overwrite else 'xb')
         except OSError as error:
-            raise BagError(f'cannot create {path}: {error.strerror}') from None
+            raise BagError(f'cannot create {self.path}: {error.strerror}') from None
         self._closed = False
+        self._writer = McapWriter(self._stream)
+        self._writer.start(profile='ros2', library='ctid_ros')
+        self._typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._schemas: Dict[TopicSchema, int] = {}
+        self._channels: Dict[str, int] = {}
+        self._types: Dict[str, str] = {}
 
-    def __enter__(self: _Output) -> _Output:
+    def __enter__(self: _Writer) -> _Writer:
+        """Return the writer; :meth:`close` it on leaving."""
         return self
 
     def __exit__(self, *exc_info: object) -> None:
+        """Close the file, also after an error: the messages so far stay readable."""
         self.close()
 
     def close(self) -> None:
@@ -135,60 +125,47 @@ class _McapOutput:
         if self._closed:
             raise BagError(f'{self.path} is already closed')
 
+    def topics(self) -> Dict[str, str]:
+        """Return the message type of each declared topic."""
+        return dict(self._types)
 
-class RecordingWriter(_McapOutput):
-    """
-    Record serialised ROS 2 messages into a new standalone MCAP file, as ``ros2 bag record``.
-
-    The messages are written as received, in CDR (e.g. from an rclpy subscription created with
-    ``raw=True``), with the definitions of their types from rosbags' ROS 2 Jazzy type store, so
-    :class:`BagReader` and any MCAP tool decode them without ROS.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The ``.mcap`` file to create.
-    overwrite : bool, optional
-        Replace an existing file at ``path`` instead of refusing.
-
-    Raises
-    ------
-    BagError
-        If ``path`` is not a new ``.mcap`` file or cannot be created.
-
-    """
-
-    def __init__(self, path: PathLike, *, overwrite: bool = False) -> None:
-        super().__init__(Path(path), (), overwrite)
-        self._writer = McapWriter(self._stream)
-        self._writer.start(profile='ros2', library='ctid_ros')
-        self._typestore = get_typestore(Stores.ROS2_JAZZY)
-        self._schemas: Dict[str, int] = {}
-        self._channels: Dict[str, int] = {}
-
-    def add_topic(self, topic: str, msgtype: str) -> None:
+    def add_topic(self, topic: str, msgtype: str, schema: Optional[TopicSchema] = None) -> None:
         """
         Declare a topic and its message type, e.g. ``'geometry_msgs/msg/PointStamped'``.
+
+        Parameters
+        ----------
+        topic : str
+            Absolute topic name.
+        msgtype : str
+            Message type.
+        schema : TopicSchema, optional
+            The definition the messages were recorded with (a copied topic, possibly of a
+            custom type); default the standard ROS 2 Jazzy definition of ``msgtype``.
 
         Raises
         ------
         BagError
-            If the topic was declared already or the type is not a standard ROS 2 Jazzy type.
+            If the topic was declared already, or it has no ``schema`` and its type is not a
+            standard ROS 2 Jazzy type.
 
         """
         self._check_open()
         if topic in self._channels:
             raise BagError(f'topic {topic} is already recorded in {self.path}')
-        if msgtype not in self._schemas:
+        if schema is None:
             try:
                 text, _ = self._typestore.generate_msgdef(msgtype, ros_version=2)
             except TypesysError:
                 raise BagError(f'cannot record {topic}: {msgtype} is not a standard ROS 2 '
                                'Jazzy message type') from None
-            self._schemas[msgtype] = self._writer.register_schema(msgtype, 'ros2msg',
-                                                                  text.encode())
-        self._channels[topic] = self._writer.register_channel(topic, 'cdr',
-                                                              self._schemas[msgtype])
+            schema = TopicSchema(msgtype, 'ros2msg', text.encode())
+        if schema not in self._schemas:
+            self._schemas[schema] = self._writer.register_schema(schema.msgtype, schema.encoding,
+                                                                 schema.definition)
+        self._channels[topic] = self._writer.register_channel(topic, schema.message_encoding,
+                                                              self._schemas[schema])
+        self._types[topic] = msgtype
 
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Write one serialised message of a declared topic at its log (reception) time."""
@@ -198,18 +175,56 @@ class RecordingWriter(_McapOutput):
         time_ns = _time_ns(log_time_ns)
         self._writer.add_message(self._channels[topic], time_ns, bytes(data), time_ns)
 
+    def write_message(self, message: OutputMessage, log_time_ns: int) -> None:
+        """
+        Serialise and write a message given as plain data, declaring its topic on first use.
 
-class EstimateWriter(_McapOutput):
+        Raises
+        ------
+        BagError
+            If the topic was declared with another type.
+        DataError
+            If a field is missing or has a value its type cannot take.
+
+        """
+        time_ns = _time_ns(log_time_ns)
+        if message.topic not in self._channels:
+            self.add_topic(message.topic, message.msgtype)
+        elif self._types[message.topic] != message.msgtype:
+            raise BagError(f'topic {message.topic} holds {self._types[message.topic]} in '
+                           f'{self.path}, not {message.msgtype}')
+        msg = self._build(message.msgtype, message.fields)
+        self.write(message.topic, time_ns, self._typestore.serialize_cdr(msg, message.msgtype))
+
+    def _build(self, msgtype: str, fields: Mapping[str, Any]) -> Any:
+        """Return the rosbags message of ``msgtype`` holding ``fields`` (nested plain data)."""
+        _, definitions = self._typestore.fielddefs[msgtype]
+        missing = [name for name, _ in definitions if name not in fields]
+        if missing:
+            raise DataError(f'{msgtype} needs the field(s) {", ".join(missing)}')
+        return self._typestore.types[msgtype](**{
+            name: self._field(kind, fields[name]) for name, kind in definitions})
+
+    def _field(self, kind: Any, value: Any) -> Any:
+        nodetype, details = kind
+        if nodetype == Nodetype.NAME:
+            return self._build(details, value)
+        if nodetype in (Nodetype.SEQUENCE, Nodetype.ARRAY):
+            element = details[0]
+            if element[0] == Nodetype.BASE and element[1][0] in _ARRAY_TYPES:
+                return np.asarray(value, dtype=_ARRAY_TYPES[element[1][0]])
+            return [self._field(element, item) for item in value]
+        return value
+
+
+class EstimateWriter(RecordingWriter):
     """
-    Write estimates to a new standalone MCAP file, on the topics the live node publishes.
+    Write what the live node publishes into a new standalone MCAP file.
 
-    With the default node name and no namespace the topics are ``/ctid_node/estimate`` and
-    ``/ctid_node/estimate_std`` (``std_msgs/msg/Float64MultiArray``: values in the order of
-    ``names``, the comma-separated names in ``layout.dim[0].label``), ``/ctid_node/params/<name>``
-    (``std_msgs/msg/Float64``, one per parameter), ``/ctid_node/prediction``
-    (``std_msgs/msg/Float64``, one per predicted sample) and ``/diagnostics``
-    (``diagnostic_msgs/msg/DiagnosticArray``, always absolute). Messages are CDR-encoded with
-    their definitions embedded, so no ROS installation is needed to read the file.
+    Topics, types and layouts are those of :mod:`ctid_ros.streaming.contract`: with the default
+    node name and no namespace ``/ctid_node/estimate``, ``/ctid_node/estimate_std``,
+    ``/ctid_node/params/<name>``, ``/ctid_node/prediction`` and ``/diagnostics``. Recorded
+    topics can be copied beside them with :meth:`add_topic` and :meth:`write`.
 
     Parameters
     ----------
@@ -219,11 +234,17 @@ class EstimateWriter(_McapOutput):
         The bag(s) being replayed: writing to (or into) any of them is refused, even with
         ``overwrite``.
     node_name : str, optional
-        Name of the node whose topics are written.
+        Name of the node whose topics are written, optionally with its namespace
+        (``'/plant1/ctid_node'``).
     namespace : str, optional
         ROS namespace of the node, e.g. ``'/plant1'``.
     overwrite : bool, optional
         Replace an existing file at ``path`` instead of refusing.
+
+    Attributes
+    ----------
+    node : NodeTopics
+        The node whose topics are written.
 
     Raises
     ------
@@ -235,108 +256,65 @@ class EstimateWriter(_McapOutput):
     """
 
     def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
-                 node_name: str = 'ctid_node', namespace: str = '',
+                 node_name: str = DEFAULT_NODE_NAME, namespace: str = '',
                  overwrite: bool = False) -> None:
-        prefix = _node_prefix(namespace, node_name)
-        super().__init__(Path(path), inputs, overwrite)
-        self.estimate_topic = f'{prefix}/estimate'
-        self.estimate_std_topic = f'{prefix}/estimate_std'
-        self.prediction_topic = f'{prefix}/prediction'
-        self.diagnostics_topic = '/diagnostics'
-        self._prefix = prefix
-        self._writer = McapRos2Writer(self._stream)
-        self._schemas = {msgtype: self._writer.register_msgdef(msgtype, text)
-                         for msgtype, text in _MSGDEFS.items()}
-
-    def param_topic(self, name: str) -> str:
-        """Return the topic of parameter ``name``."""
-        return f'{self._prefix}/params/{name}'
-
-    def _write(self, topic: str, msgtype: str, message: Mapping[str, Any], time_ns: int) -> None:
-        self._check_open()
-        self._writer.write_message(topic, self._schemas[msgtype], message, log_time=time_ns,
-                                   publish_time=time_ns)
+        self.node = NodeTopics.of(node_name, namespace)
+        super().__init__(path, inputs=inputs, overwrite=overwrite)
 
     def write_estimate(self, time_ns: int, names: Sequence[str], values: Sequence[float],
                        stds: Optional[Sequence[float]] = None,
-                       diagnostics: Optional[Mapping[str, Any]] = None) -> None:
+                       diagnostics: Optional[Mapping[str, Any]] = None,
+                       prediction: Optional[Sequence[float]] = None) -> None:
         """
-        Write one estimate, as the live node publishes it after a window is identified.
+        Write one update, as the live node publishes it after a window is identified.
 
         Parameters
         ----------
         time_ns : int
             Log time and header stamp (ns since the epoch), e.g. the window's last sample.
         names : sequence of str
-            Parameter names in model order.
+            Parameter names in publishing order.
         values, stds : sequence of float
             Estimates and their standard deviations (NaN where unknown), in ``names`` order;
             without ``stds`` nothing is written on the ``estimate_std`` topic.
         diagnostics : mapping, optional
-            Key/value pairs for ``/diagnostics`` (e.g. ``fit``, ``iterations``, ``converged``,
-            ``window_s``, ``samples``, ``warnings``), written in the given order. The status level
-            is WARN if ``warnings`` is non-empty or ``converged`` is false, OK otherwise.
+            Key/value pairs for ``/diagnostics`` (e.g. ``fit_percent``, ``iterations``,
+            ``converged``, ``warnings``), written in the given order with the status of
+            :func:`~ctid_ros.streaming.contract.update_status`.
+        prediction : sequence of float, optional
+            The model output over the window, one value per grid instant.
 
         Raises
         ------
         DataError
-            If names are not valid, unique ROS name tokens, or lengths differ.
+            If names are not valid, unique ROS name tokens, lengths differ, or the time is not
+            a non-negative integer.
 
         """
         time_ns = _time_ns(time_ns)
-        names = list(names)
-        for name in names:
-            if not isinstance(name, str) or not _NAME.match(name):
-                raise DataError(f'parameter name {name!r} cannot be used in a topic name')
-        if len(set(names)) != len(names):
-            raise DataError(f'parameter names must be unique, got {names}')
-        arrays = {'values': values} if stds is None else {'values': values, 'stds': stds}
-        for label, array in arrays.items():
-            if len(array) != len(names):
-                raise DataError(f'{len(array)} {label} for {len(names)} parameter names')
-        layout = {'dim': [{'label': ','.join(names), 'size': len(names),
-                           'stride': len(names)}], 'data_offset': 0}
-        data = [float(value) for value in values]
-        self._write(self.estimate_topic, 'std_msgs/msg/Float64MultiArray',
-                    {'layout': layout, 'data': data}, time_ns)
-        if stds is not None:
-            self._write(self.estimate_std_topic, 'std_msgs/msg/Float64MultiArray',
-                        {'layout': layout, 'data': [float(std) for std in stds]}, time_ns)
-        for name, value in zip(names, data):
-            self._write(self.param_topic(name), 'std_msgs/msg/Float64', {'data': value}, time_ns)
+        for message in estimate_messages(self.node, names, values, stds, prediction):
+            self.write_message(message, time_ns)
         if diagnostics is not None:
-            self._write_diagnostics(time_ns, diagnostics)
+            level, text = update_status(names, values, stds, diagnostics)
+            self.write_status(time_ns, level, text, diagnostics)
 
-    def _write_diagnostics(self, time_ns: int, diagnostics: Mapping[str, Any]) -> None:
-        level, message = _status_level(diagnostics)
-        status = {'level': level, 'name': f'{self._prefix[1:]}: estimate', 'message': message,
-                  'hardware_id': '',
-                  'values': [{'key': str(key), 'value': format_diagnostic(value)}
-                             for key, value in diagnostics.items()]}
-        self._write(self.diagnostics_topic, 'diagnostic_msgs/msg/DiagnosticArray',
-                    {'header': {'stamp': _stamp(time_ns), 'frame_id': ''}, 'status': [status]},
-                    time_ns)
-
-    def write_prediction(self, times_ns: Sequence[int], values: Sequence[float]) -> None:
+    def write_status(self, time_ns: int, level: int, message: str,
+                     values: Optional[Mapping[str, Any]] = None) -> None:
         """
-        Write predicted output samples, one Float64 message per sample at its own time.
+        Write the node's status on ``/diagnostics``, e.g. for an update that gave no estimate.
 
         Parameters
         ----------
-        times_ns : sequence of int
-            Sample times in integer nanoseconds since the epoch.
-        values : sequence of float
-            Predicted outputs, one per time.
-
-        Raises
-        ------
-        DataError
-            If the lengths differ or a time is not a non-negative integer.
+        time_ns : int
+            Log time and header stamp.
+        level : int
+            ``contract.OK``, ``WARN`` or ``ERROR``.
+        message : str
+            Status message.
+        values : mapping, optional
+            Key/value pairs of the status.
 
         """
-        times = [_time_ns(time_ns) for time_ns in np.asarray(times_ns).ravel().tolist()]
-        data = np.asarray(values, dtype=float).ravel()
-        if data.size != len(times):
-            raise DataError(f'{data.size} predicted values for {len(times)} times')
-        for time_ns, value in zip(times, data.tolist()):
-            self._write(self.prediction_topic, 'std_msgs/msg/Float64', {'data': value}, time_ns)
+        time_ns = _time_ns(time_ns)
+        self.write_message(diagnostics_message(self.node, time_ns, level, message,
+                                               values or {}), time_ns)

@@ -30,6 +30,7 @@ from typing import Dict, List, Optional
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.errors import ConfigError
 from ctid_ros.ros.node import parameter_value, run_node
+from ctid_ros.streaming.contract import NANOSECONDS
 from geometry_msgs.msg import PointStamped
 import rclpy
 from rclpy.node import Node
@@ -39,7 +40,6 @@ from std_msgs.msg import Float64
 
 __all__ = ['MESSAGE_TYPES', 'PlantNode', 'main']
 
-NANOSECONDS = 1_000_000_000
 MESSAGE_TYPES = ('float64', 'point_stamped', 'joint_state')
 
 

@@ -38,9 +38,9 @@ from typing import Optional, Tuple
 
 from ctid_ros.core.data import Data
 from ctid_ros.errors import DataError
+from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-NANOSECONDS = 1_000_000_000
 INPUT = 'input'
 OUTPUT = 'output'
 

@@ -32,12 +32,12 @@ from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import INTERSAMPLE
 from ctid_ros.errors import ConfigError, ModelError
 from ctid_ros.estimation.estimate import INITIAL_STATES, METHODS
+from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 from ctid_ros.streaming.message_fields import parse_field_path
 import numpy as np
 import yaml
 
 PACKAGE = 'ctid_ros'
-DEFAULT_NODE_NAME = 'ctid_node'
 STAMP_SOURCES = ('header', 'receive')
 RELIABILITIES = ('best_effort', 'reliable')
 MIN_WINDOW_SAMPLES = 10

@@ -31,6 +31,7 @@ import re
 from typing import Any, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import ConfigError
+from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
@@ -224,7 +225,7 @@ def message_stamp(message) -> Optional[int]:
     stamp = header.stamp
     if not {'sec', 'nanosec'} <= set(message_fields(stamp)):
         return None
-    nanoseconds = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    nanoseconds = int(stamp.sec) * NANOSECONDS + int(stamp.nanosec)
     return nanoseconds or None
 
 

@@ -45,28 +45,11 @@ from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.mcap_source import PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.buffer import BufferStats, resample, SampleBuffer
-from ctid_ros.streaming.config import DEFAULT_NODE_NAME, IdentificationConfig, load_params_file
+from ctid_ros.streaming.config import IdentificationConfig, load_params_file
+from ctid_ros.streaming.contract import DEFAULT_NODE_NAME, NANOSECONDS, resolve_topic
 from ctid_ros.streaming.message_fields import extract_values, parse_field_path, sample_stamp
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
-
-NANOSECONDS = 1_000_000_000
-
-
-def resolve_topic(name: str, node_name: str = DEFAULT_NODE_NAME) -> str:
-    """
-    Return the absolute topic a node named ``node_name`` subscribes to for ``name``.
-
-    A relative name follows the node's namespace (``u`` -> ``/u``, or ``/plant1/u`` for the
-    node ``/plant1/ctid_node``); ``~/x`` is private to the node (``/ctid_node/x``).
-    """
-    namespace, _, base = node_name.rpartition('/')
-    namespace = namespace.rstrip('/')
-    if name.startswith('/'):
-        return name
-    if name.startswith('~/'):
-        return f'{namespace}/{base}/{name[2:]}'
-    return f'{namespace}/{name}'
 
 
 class MessageSampler:
@@ -414,15 +397,10 @@ def write_plots(path: Path, updates: Sequence[Update], origin_ns: int, sliding: 
 
 
 def _write_estimates(writer: EstimateWriter, updates: Sequence[Update]) -> None:
-    """Write estimates and predictions; a sliding window's prediction only where it is new."""
-    previous_end = -1
+    """Write every update as the live node publishes it, prediction included."""
     for update in updates:
-        times = update.prediction_times_ns
-        new = times > previous_end
-        writer.write_prediction(times[new], update.prediction[new])
         writer.write_estimate(update.end_ns, update.names, update.values, update.stds,
-                              update.diagnostics())
-        previous_end = update.end_ns
+                              update.diagnostics(), prediction=update.prediction)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -459,8 +437,7 @@ def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str
     if path is None:
         yield None
         return
-    namespace, _, base = node_name.rpartition('/')
-    writer = EstimateWriter(path, inputs=[bag], node_name=base, namespace=namespace)
+    writer = EstimateWriter(path, inputs=[bag], node_name=node_name)
     try:
         yield writer
     except BaseException:

@@ -70,7 +70,7 @@ class Update:
         return tuple(notes)
 
     def diagnostics(self) -> Dict[str, Any]:
-        """Return the key/value pairs published on ``/diagnostics``."""
+        """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
         return {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
@@ -93,25 +93,6 @@ class Update:
         summary['warnings'] = list(self.warnings)
         summary['time'] = self.end_ns * 1e-9
         return summary
-
-
-def format_diagnostic(value: Any) -> str:
-    """
-    Format a value of :meth:`Update.diagnostics` as a ``diagnostic_msgs/KeyValue`` string.
-
-    Floats keep every digit (the shortest text that reads back exactly): ``window_start`` and
-    ``window_end`` are seconds since the epoch, which six significant digits would round to
-    hours.
-    """
-    if isinstance(value, (bool, np.bool_)):
-        return 'true' if value else 'false'
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (list, tuple)):
-        return '; '.join(format_diagnostic(item) for item in value)
-    return str(value)
 
 
 def history_span(config: IdentificationConfig) -> float:

@@ -1,23 +1,20 @@
-"""Tests of ctid_ros.files.bag_reader: bags from independent writers, and writing estimates."""
+"""Tests of ctid_ros.files.bag_reader and mcap_source: bags from independent writers."""
 
 from io import BytesIO
 import os
 from pathlib import Path
 import shutil
 
-from bag_fixtures import (assert_fields, DURATION_S, make_records, T0_NS, TOPICS, write_mcap,
-                          write_rosbag2, write_unchunked_mcap)
-from ctid_ros.errors import BagError, ConfigError, DataError
+from bag_fixtures import (assert_fields, DURATION_S, make_records, SAMPLE_MSG, SAMPLE_TYPE, T0_NS,
+                          TOPICS, write_mcap, write_rosbag2, write_unchunked_mcap)
+from ctid_ros.errors import BagError
 from ctid_ros.files.bag_reader import BagReader, open_bag
-from ctid_ros.files.mcap_writer import EstimateWriter
 from mcap.exceptions import McapError
-from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
-from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
 RECORDS = make_records(seed=0)
 KINDS = ['sqlite3', 'mcap_dir', 'mcap_file']
@@ -97,6 +94,27 @@ def test_custom_type_decoded_from_bag_definition(bags):
         assert message.log_time_ns == sample.time_ns
         assert (message.msg.u, message.msg.y) == (sample.fields['u'], sample.fields['y'])
         assert message.msg.header.stamp.sec == sample.time_ns // 10**9
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_records_carry_the_serialised_bytes_and_topics_their_schemas(bags, kind):
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    typestore.register(get_types_from_msg(SAMPLE_MSG, SAMPLE_TYPE))
+    with BagReader(bags[kind]) as bag:
+        records = list(bag.records(['/plant/y', '/plant/sample'], end=0.5))
+        schemas = {topic: bag.topic_schema(topic) for topic in TOPICS}
+        with pytest.raises(BagError, match='/plant/x'):
+            bag.topic_schema('/plant/x')
+    assert_records(records, [r for r in RECORDS if r.topic in ('/plant/y', '/plant/sample')
+                             and r.time_ns < T0_NS + 5 * 10**8])
+    for record in records:
+        decoded = typestore.deserialize_cdr(record.data, TOPICS[record.topic])
+        assert_fields(decoded, next(r.fields for r in RECORDS if r.time_ns == record.log_time_ns))
+    for topic, schema in schemas.items():
+        assert (schema.msgtype, schema.encoding, schema.message_encoding) == (
+            TOPICS[topic], 'ros2msg', 'cdr')
+    assert schemas['/plant/y'].definition == b'float64 data\n'
+    assert schemas['/plant/sample'].definition.startswith(SAMPLE_MSG.encode())
 
 
 @pytest.mark.parametrize('kind', ['sqlite3', 'mcap_file'])
@@ -242,135 +260,6 @@ def test_single_db3_file(bags):
         assert bag.topics() == TOPICS
         assert_records(list(bag.messages('/plant/y', end=0.1)),
                        [r for r in RECORDS if r.topic == '/plant/y' and r.time_ns < T0_NS + 10**8])
-
-
-NAMES = ['K', 'T', 'tau']
-
-
-def write_estimates(path, **kwargs):
-    """Write three estimates and a prediction; return what was written."""
-    rng = np.random.default_rng(3)
-    estimates = []
-    with EstimateWriter(path, **kwargs) as writer:
-        for k in range(3):
-            time_ns = T0_NS + (k + 1) * 10**9
-            values, stds = rng.normal(size=3), rng.uniform(0.01, 0.1, size=3)
-            diagnostics = {'fit': 91.23456789, 'iterations': 4 + k, 'converged': k != 1,
-                           'window_s': 10.0, 'samples': 1000,
-                           'warnings': ['poorly excited'] if k == 2 else []}
-            writer.write_estimate(time_ns, NAMES, values, stds, diagnostics)
-            estimates.append((time_ns, values, stds))
-        times = T0_NS + np.arange(50, dtype=np.int64) * 10**7
-        prediction = np.sin(np.arange(50) / 7)
-        writer.write_prediction(times, prediction)
-    return estimates, times, prediction
-
-
-def test_estimate_writer_output_reads_back_with_rosbags_and_mcap_ros2(tmp_path):
-    path = tmp_path / 'estimates.mcap'
-    estimates, times, prediction = write_estimates(path)
-    expected_topics = {'/ctid_node/estimate', '/ctid_node/estimate_std', '/ctid_node/prediction',
-                       '/diagnostics', *(f'/ctid_node/params/{name}' for name in NAMES)}
-
-    with AnyReader([path]) as reader:
-        assert set(reader.topics) == expected_topics
-        rosbags_messages = [(c.topic, t, reader.deserialize(d, c.msgtype))
-                            for c, t, d in reader.messages()]
-    with open(path, 'rb') as stream:
-        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
-        mcap_messages = [(channel.topic, message.log_time, decoded)
-                         for _, channel, message, decoded in reader.iter_decoded_messages()]
-
-    for messages in (rosbags_messages, mcap_messages):
-        by_topic = {}
-        for topic, time_ns, msg in messages:
-            by_topic.setdefault(topic, []).append((time_ns, msg))
-        for index, (time_ns, values, stds) in enumerate(estimates):
-            for topic, array in (('/ctid_node/estimate', values),
-                                 ('/ctid_node/estimate_std', stds)):
-                stamp, msg = by_topic[topic][index]
-                assert stamp == time_ns
-                assert list(msg.data) == list(array)
-                assert msg.layout.dim[0].label == 'K,T,tau'
-                assert (msg.layout.dim[0].size, msg.layout.dim[0].stride) == (3, 3)
-            for name, value in zip(NAMES, values):
-                stamp, msg = by_topic[f'/ctid_node/params/{name}'][index]
-                assert (stamp, msg.data) == (time_ns, value)
-            stamp, msg = by_topic['/diagnostics'][index]
-            status = msg.status[0]
-            assert msg.header.stamp.sec == time_ns // 10**9
-            assert status.name == 'ctid_node: estimate'
-            pairs = {kv.key: kv.value for kv in status.values}
-            assert pairs['fit'] == '91.23456789' and pairs['iterations'] == str(4 + index)
-            assert pairs['converged'] == ('false' if index == 1 else 'true')
-            assert status.level == (0 if index == 0 else 1)
-        assert status.message == 'poorly excited'
-        predicted = by_topic['/ctid_node/prediction']
-        assert [t for t, _ in predicted] == times.tolist()
-        assert [msg.data for _, msg in predicted] == prediction.tolist()
-
-    with BagReader(path) as bag:
-        assert bag.message_count('/ctid_node/prediction') == 50
-        assert bag.topics()['/diagnostics'] == 'diagnostic_msgs/msg/DiagnosticArray'
-
-
-def test_estimate_writer_namespace_and_param_topics(tmp_path):
-    path = tmp_path / 'ns.mcap'
-    with EstimateWriter(path, namespace='/plant1/', node_name='ident') as writer:
-        writer.write_estimate(T0_NS, ['K'], [2.0])
-        assert writer.param_topic('K') == '/plant1/ident/params/K'
-    with BagReader(path) as bag:
-        assert bag.topics() == {'/plant1/ident/estimate': 'std_msgs/msg/Float64MultiArray',
-                                '/plant1/ident/params/K': 'std_msgs/msg/Float64'}
-        (message,) = bag.messages('/plant1/ident/params/K')
-        assert message.msg.data == 2.0
-    with pytest.raises(ConfigError):
-        EstimateWriter(tmp_path / 'bad.mcap', namespace='plant-1')
-
-
-def test_estimate_writer_protects_inputs_and_existing_files(bags, tmp_path):
-    original = bags['mcap_file'].read_bytes()
-    with pytest.raises(BagError, match='input bag'):
-        EstimateWriter(bags['mcap_file'], inputs=[bags['mcap_file']], overwrite=True)
-    with pytest.raises(BagError, match='input bag'):
-        EstimateWriter(bags['mcap_dir'] / 'estimates.mcap', inputs=[bags['mcap_dir']])
-    assert bags['mcap_file'].read_bytes() == original
-    assert not (bags['mcap_dir'] / 'estimates.mcap').exists()
-
-    existing = tmp_path / 'old.mcap'
-    existing.write_bytes(b'keep me')
-    with pytest.raises(BagError, match='already exists'):
-        EstimateWriter(existing)
-    assert existing.read_bytes() == b'keep me'
-    with EstimateWriter(existing, overwrite=True) as writer:
-        writer.write_prediction([T0_NS], [1.0])
-    with BagReader(existing) as bag:
-        assert bag.message_count() == 1
-
-    with pytest.raises(BagError, match='.mcap'):
-        EstimateWriter(tmp_path / 'estimates.db3')
-    with pytest.raises(BagError, match='does not exist'):
-        EstimateWriter(tmp_path / 'nowhere' / 'estimates.mcap')
-
-
-def test_estimate_writer_rejects_inconsistent_data(tmp_path):
-    with EstimateWriter(tmp_path / 'e.mcap') as writer:
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['K', 'T'], [1.0])
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['K', 'T'], [1.0, 2.0], [0.1])
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['K', 'K'], [1.0, 2.0])
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['a.b'], [1.0])
-        with pytest.raises(DataError):
-            writer.write_estimate(1.5e18, ['K'], [1.0])
-        with pytest.raises(DataError):
-            writer.write_prediction([T0_NS, T0_NS + 1], [1.0])
-        with pytest.raises(DataError):
-            writer.write_prediction(np.array([1.5e18]), [1.0])
-    with pytest.raises(BagError, match='closed'):
-        writer.write_prediction([T0_NS], [1.0])
 
 
 def test_no_file_is_left_open(bags):

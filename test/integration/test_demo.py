@@ -12,14 +12,11 @@ import re
 
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.demo.wheel import copy_to_docs, main, PLANT_CONFIG, Scenario
-from ctid_ros.errors import BagError, ConfigError
+from ctid_ros.errors import ConfigError
 from ctid_ros.files.bag_reader import BagReader
-from ctid_ros.files.mcap_writer import RecordingWriter
 from ctid_ros.streaming.config import find_config
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import get_typestore, Stores
 import yaml
 
 WHEEL = 'exp(-tau*s)/(J*s + b)'
@@ -57,37 +54,6 @@ def test_digital_pi_needs_a_strictly_proper_plant_and_no_second_controller():
                        pi_gains=(1.0, 1.0))
     with pytest.raises(ConfigError, match='two gains'):
         PlantSimulator('1/(T*s + 1)', {'T': 1.0}, 0.01, pi_gains=(1.0,))
-
-
-def test_recording_writer_output_reads_back_with_both_readers(tmp_path):
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    point = typestore.types['geometry_msgs/msg/PointStamped']
-    header = typestore.types['std_msgs/msg/Header']
-    stamp = typestore.types['builtin_interfaces/msg/Time']
-    vector = typestore.types['geometry_msgs/msg/Point']
-    path = tmp_path / 'run.mcap'
-    with RecordingWriter(path) as writer:
-        writer.add_topic('/wheel/y', 'geometry_msgs/msg/PointStamped')
-        with pytest.raises(BagError, match='not a standard'):
-            writer.add_topic('/x', 'my_pkg/msg/Unknown')
-        for k in range(5):
-            msg = point(header(stamp(100, 10_000_000 * k), 'base'), vector(0.5 * k, 0.0, 0.0))
-            writer.write('/wheel/y', 1_000 + k, typestore.serialize_cdr(
-                msg, 'geometry_msgs/msg/PointStamped'))
-        with pytest.raises(BagError, match='not declared'):
-            writer.write('/wheel/u', 2_000, b'')
-    with pytest.raises(BagError, match='closed'):
-        writer.write('/wheel/y', 3_000, b'')
-    with BagReader(path) as bag:
-        assert bag.topics() == {'/wheel/y': 'geometry_msgs/msg/PointStamped'}
-        messages = list(bag.messages())
-    assert [message.log_time_ns for message in messages] == [1_000 + k for k in range(5)]
-    assert [message.msg.point.x for message in messages] == [0.5 * k for k in range(5)]
-    assert messages[3].msg.header.stamp.nanosec == 30_000_000
-    with AnyReader([path]) as reader:
-        decoded = [reader.deserialize(data, connection.msgtype)
-                   for connection, _, data in reader.messages()]
-    assert [msg.point.x for msg in decoded] == [0.5 * k for k in range(5)]
 
 
 def _simulate(scenario: Scenario, samples: int) -> np.ndarray:
