@@ -33,18 +33,18 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.ros.messages import import_message, to_message
-from ctid_ros.streaming.buffer import SampleBuffer, StreamStats
+from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer, StreamStats
 from ctid_ros.streaming.config import (find_config, IdentificationConfig, PARAMETER_NAMES,
                                        PARAMETERS)
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message, ERROR,
                                          estimate_messages, estimate_summary, failure_status,
                                          NANOSECONDS, NodeTopics, OutputMessage, update_status,
                                          WARN)
-from ctid_ros.streaming.message_fields import extract_values, sample_stamp
+from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
@@ -60,7 +60,6 @@ from std_srvs.srv import Trigger
 
 __all__ = ['IdentificationNode', 'configure_parser', 'main', 'parameter_value', 'run', 'run_node']
 
-INPUT, OUTPUT = 'input', 'output'
 # Highest message rate the ring buffer is sized for when it exceeds 1/sample_time.
 MAX_RATE = 1000.0
 TOPIC_CHECK_PERIOD = 0.5
@@ -111,9 +110,11 @@ class IdentificationNode(Node):
         self._session = IdentificationSession(self._config)
         # Guards the session and the buffer swap against the parameter callback.
         self._lock = threading.Lock()
+        self._sampler = self._new_sampler(self._config)
         self._buffer = self._new_buffer(self._config)
         self._field_errors = {INPUT: 0, OUTPUT: 0}
         self._last_received: Dict[str, Optional[int]] = {INPUT: None, OUTPUT: None}
+        # Roles whose unreadable field was logged: once per field configuration.
         self._logged_fields = set()
         self._topic_subscriptions: Dict[str, Any] = {}
         self._waiting: Dict[str, str] = {}
@@ -157,13 +158,13 @@ class IdentificationNode(Node):
         """Return the sample buffer."""
         return self._buffer
 
+    def _new_sampler(self, config: IdentificationConfig) -> MessageSampler:
+        return MessageSampler(config, (self.resolve_topic_name(config.input_topic),
+                                       self.resolve_topic_name(config.output_topic)))
+
     def _new_buffer(self, config: IdentificationConfig) -> SampleBuffer:
         rate = max(1.0 / config.sample_time, MAX_RATE)
-        return SampleBuffer(buffer_capacity(config, rate), max_gap=config.max_gap,
-                            reorder_horizon=config.reorder_horizon,
-                            names=(f'{config.input_topic} {", ".join(config.input_fields)}',
-                                   f'{config.output_topic} {config.output_field}'),
-                            inputs=len(config.input_fields))
+        return self._sampler.buffer(buffer_capacity(config, rate), config)
 
     def _create_update_timer(self):
         return self.create_timer(self._config.update_period, self._on_timer,
@@ -171,18 +172,10 @@ class IdentificationNode(Node):
 
     # Input ---------------------------------------------------------------------------------
 
-    def _topics(self) -> Dict[str, Tuple[str, ...]]:
-        """Map each resolved topic to the roles it carries (input, output or both)."""
-        topics: Dict[str, Tuple[str, ...]] = {}
-        for role, topic in ((INPUT, self._config.input_topic),
-                            (OUTPUT, self._config.output_topic)):
-            resolved = self.resolve_topic_name(topic)
-            topics[resolved] = topics.get(resolved, ()) + (role,)
-        return topics
-
     def _connect(self) -> None:
         """Subscribe to every topic whose type the graph now knows; note the others."""
-        pending = {topic: roles for topic, roles in self._topics().items()
+        sampler = self._sampler
+        pending = {topic: sampler.roles(topic) for topic in sampler.topics
                    if topic not in self._topic_subscriptions}
         if not pending:
             self._topic_timer.cancel()
@@ -199,45 +192,48 @@ class IdentificationNode(Node):
             except ConfigError as error:
                 self._waiting[topic] = str(error)
                 continue
-            callback = functools.partial(self._on_message, roles)
+            callback = functools.partial(self.receive, topic)
             self._topic_subscriptions[topic] = self.create_subscription(
                 message_type, topic, callback, self._qos, callback_group=self._sample_group)
             self._waiting.pop(topic, None)
             self.get_logger().info(f'subscribed to {topic} ({types[0]}) for the '
                                    f'{" and ".join(roles)}')
 
-    def _stamp(self, message, info: Dict[str, Any]) -> int:
-        return sample_stamp(message, self._receive_stamp(info), self._config.stamp_source)
-
-    def _receive_stamp(self, info: Dict[str, Any]) -> int:
+    def _receive_stamp(self, info: Mapping[str, Any]) -> int:
         clock = self.get_clock()
         if clock.ros_time_is_active:
             return clock.now().nanoseconds
         return info.get('source_timestamp') or info.get('received_timestamp') or \
             clock.now().nanoseconds
 
-    def _value(self, message, role: str):
-        config = self._config
-        paths = config.input_fields if role == INPUT else (config.output_field,)
-        try:
-            return extract_values(message, paths)
-        except ConfigError as error:
-            self._field_errors[role] += 1
-            if (role, paths) not in self._logged_fields:
-                self._logged_fields.add((role, paths))
-                self.get_logger().error(f'{role}: {error}')
-            return None
+    def receive(self, topic: str, message: Any, info: Optional[Mapping[str, Any]] = None
+                ) -> None:
+        """
+        Take one message of ``topic`` into the buffer, as the subscriptions do.
 
-    def _on_message(self, roles: Tuple[str, ...], message, info: Dict[str, Any]) -> None:
+        Parameters
+        ----------
+        topic : str
+            Resolved topic the message came on.
+        message : object
+            The message.
+        info : mapping, optional
+            rclpy's message info (``source_timestamp``, ``received_timestamp``); without it the
+            node's clock stamps a message that has no header stamp.
+
+        """
+        sampler = self._sampler
+        roles = sampler.roles(topic)
         received = self.get_clock().now().nanoseconds
         for role in roles:
             self._last_received[role] = received
-        stamp = self._stamp(message, info)
-        buffer = self._buffer
-        values = {role: self._value(message, role) for role in roles}
-        for role, value in values.items():
-            if value is not None:
-                (buffer.add_input if role == INPUT else buffer.add_output)(stamp, value)
+        sample = sampler(topic, self._receive_stamp(info or {}), message)
+        for role, error in sample.errors:
+            self._field_errors[role] += 1
+            if role not in self._logged_fields:
+                self._logged_fields.add(role)
+                self.get_logger().error(f'{role}: {error}')
+        sample.add_to(self._buffer)
 
     # Estimation ----------------------------------------------------------------------------
 
@@ -390,6 +386,9 @@ class IdentificationNode(Node):
     def _apply(self, config: IdentificationConfig) -> None:
         old = self._config
         with self._lock:
+            self._sampler = self._new_sampler(config)
+            if config.input_fields != old.input_fields or config.output_field != old.output_field:
+                self._logged_fields = set()
             if any(getattr(config, name) != getattr(old, name) for name in _BUFFER_PARAMETERS):
                 self._buffer = self._new_buffer(config)
             self._session.reconfigure(config)

@@ -44,42 +44,12 @@ from ctid_ros.errors import BagError, DataError, EstimationError
 from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.mcap_source import PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
-from ctid_ros.streaming.buffer import BufferStats, resample, SampleBuffer
+from ctid_ros.streaming.buffer import BufferStats, resample
 from ctid_ros.streaming.config import IdentificationConfig, load_params_file
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME, NANOSECONDS, resolve_topic
-from ctid_ros.streaming.message_fields import extract_values, parse_field_path, sample_stamp
+from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
-
-
-class MessageSampler:
-    """
-    Turn messages of the configured topics into ``(stamp_ns, u, y)`` samples.
-
-    ``u`` or ``y`` is None when the message is not on that stream's topic; both are set when one
-    topic carries input and output (e.g. ``/joint_states``).
-
-    Parameters
-    ----------
-    config : IdentificationConfig
-        Fields and stamp source.
-    topics : (str, str)
-        Absolute input and output topics.
-
-    """
-
-    def __init__(self, config: IdentificationConfig, topics: Tuple[str, str]):
-        self.topics = topics
-        self._fields = (tuple(parse_field_path(path) for path in config.input_fields),
-                        (parse_field_path(config.output_field),))
-        self._stamp_source = config.stamp_source
-
-    def __call__(self, topic: str, log_time_ns: int, msg: Any) -> Tuple[int, Any, Any]:
-        """Return the stamp and the input (float or row)/output values the message carries."""
-        stamp = sample_stamp(msg, log_time_ns, self._stamp_source)
-        u, y = (extract_values(msg, paths) if topic == wanted else None
-                for wanted, paths in zip(self.topics, self._fields))
-        return stamp, u, y
 
 
 @dataclass(frozen=True)
@@ -152,12 +122,10 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     if topics is None:
         topics = (resolve_topic(config.input_topic), resolve_topic(config.output_topic))
     sampler = MessageSampler(config, topics)
-    names = (f'input {topics[0]} ({", ".join(config.input_fields)})',
-             f'output {topics[1]} ({config.output_field})')
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
-        return _replay_sliding(messages, config, sampler, names, capacity)
-    return _replay_span(messages, config, sampler, names)
+        return _replay_sliding(messages, config, sampler, capacity)
+    return _replay_span(messages, config, sampler)
 
 
 def _relevant(messages: Iterable[Tuple[str, int, Any]], topics: Sequence[str]
@@ -166,17 +134,19 @@ def _relevant(messages: Iterable[Tuple[str, int, Any]], topics: Sequence[str]
 
 
 def _replay_span(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig,
-                 sampler: MessageSampler, names: Tuple[str, str]) -> Replay:
+                 sampler: MessageSampler) -> Replay:
     # Compact typed arrays: the span is kept whole, the messages are not.
     streams = ((array('q'), array('d')), (array('q'), array('d')))
     count = 0
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         count += 1
-        stamp, *values = sampler(topic, log_time_ns, msg)
-        for (stamps, samples), value in zip(streams, values):
+        sample = sampler(topic, log_time_ns, msg)
+        sample.check()
+        for (stamps, samples), value in zip(streams, (sample.u, sample.y)):
             if value is not None:
-                stamps.append(stamp)
+                stamps.append(sample.stamp_ns)
                 samples.extend(np.atleast_1d(value))
+    names = sampler.names
     _require_samples(streams, names)
     (u_stamps, u), (y_stamps, y) = streams
     inputs = len(config.input_fields)
@@ -197,10 +167,8 @@ def _require_samples(streams: Sequence[Tuple[array, array]], names: Sequence[str
 
 
 def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig,
-                    sampler: MessageSampler, names: Tuple[str, str], capacity: int) -> Replay:
-    buffer = SampleBuffer(capacity, max_gap=config.max_gap,
-                          reorder_horizon=config.reorder_horizon, names=names,
-                          inputs=len(config.input_fields))
+                    sampler: MessageSampler, capacity: int) -> Replay:
+    buffer = sampler.buffer(capacity, config)
     session = IdentificationSession(config)
     period_ns = round(config.update_period * NANOSECONDS)
     updates: List[Update] = []
@@ -221,13 +189,9 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
             fire(tick)
             tick += period_ns
         count += 1
-        stamp, u, y = sampler(topic, log_time_ns, msg)
-        if u is not None and y is not None:
-            buffer.add_pair(stamp, u, y)
-        elif u is not None:
-            buffer.add_input(stamp, u)
-        else:
-            buffer.add_output(stamp, y)
+        sample = sampler(topic, log_time_ns, msg)
+        sample.check()
+        sample.add_to(buffer)
     if tick is not None and tick <= log_time_ns:
         fire(tick)
     stats = buffer.stats()
