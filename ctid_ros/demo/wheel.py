@@ -41,9 +41,10 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, TextIO, Tuple
 from ctid_ros.cli import main as cli
 from ctid_ros.errors import CtidError
 from ctid_ros.files.bag_reader import BagReader
-from ctid_ros.streaming.config import find_config, IdentificationConfig, load_params_file
+from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
                                          FLOAT64_MULTI_ARRAY, NANOSECONDS, NodeTopics)
+from ctid_ros.streaming.params_file import find_config, load_params_file
 from ctid_ros.streaming.replay import format_estimate, series_header, series_row
 import numpy as np
 import yaml

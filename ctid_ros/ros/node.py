@@ -38,12 +38,12 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.ros.messages import import_message, to_message
 from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer, StreamStats
-from ctid_ros.streaming.config import (find_config, IdentificationConfig, PARAMETER_NAMES,
-                                       PARAMETERS)
+from ctid_ros.streaming.config import IdentificationConfig, PARAMETER_NAMES, PARAMETERS
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message, ERROR,
                                          estimate_messages, estimate_summary, failure_status,
                                          NANOSECONDS, NodeTopics, OutputMessage, update_status,
                                          WARN)
+from ctid_ros.streaming.params_file import find_config
 from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,

@@ -45,8 +45,9 @@ from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.mcap_source import PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.buffer import BufferStats, resample
-from ctid_ros.streaming.config import IdentificationConfig, load_params_file
+from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME, NANOSECONDS, resolve_topic
+from ctid_ros.streaming.params_file import load_params_file
 from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 import numpy as np

@@ -14,7 +14,7 @@ from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.demo.wheel import copy_to_docs, main, PLANT_CONFIG, Scenario
 from ctid_ros.errors import ConfigError
 from ctid_ros.files.bag_reader import BagReader
-from ctid_ros.streaming.config import find_config
+from ctid_ros.streaming.params_file import find_config
 import numpy as np
 import pytest
 import yaml
