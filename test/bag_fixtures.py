@@ -100,18 +100,18 @@ def write_rosbag2(path: Path, records: Sequence[Record], storage: str) -> None:
         connections = {topic: writer.add_connection(topic, msgtype, typestore=typestore)
                        for topic, msgtype in TOPICS.items()}
         for record in records:
-            msg = _build(typestore, TOPICS[record.topic], record.fields)
+            msg = build_message(typestore, TOPICS[record.topic], record.fields)
             writer.write(connections[record.topic], record.time_ns,
                          typestore.serialize_cdr(msg, TOPICS[record.topic]))
 
 
-def _build(typestore, msgtype: str, fields: Dict[str, object]):
+def build_message(typestore, msgtype: str, fields: Dict[str, object]):
     """Build a rosbags message object (nested dicts become nested messages)."""
     fielddefs = dict(typestore.fielddefs[msgtype][1])
     values = {}
     for name, value in fields.items():
         if isinstance(value, dict):
-            values[name] = _build(typestore, fielddefs[name][1], value)
+            values[name] = build_message(typestore, fielddefs[name][1], value)
         elif isinstance(value, list) and name != 'name':
             values[name] = np.asarray(value, dtype=np.float64)
         else:
@@ -156,7 +156,8 @@ def write_unchunked_mcap(path: Path, records: Sequence[Record]) -> None:
                     for topic, msgtype in TOPICS.items()}
         for record in reversed(records):
             msgtype = TOPICS[record.topic]
-            data = typestore.serialize_cdr(_build(typestore, msgtype, record.fields), msgtype)
+            msg = build_message(typestore, msgtype, record.fields)
+            data = typestore.serialize_cdr(msg, msgtype)
             writer.add_message(channels[record.topic], record.time_ns, bytes(data),
                                record.time_ns)
         writer.finish()

@@ -16,7 +16,7 @@ __all__ = ['build_parser', 'main']
 
 _MODULE_COMMANDS = {
     'fit': ('ctid_ros.cli.fit', 'estimate a model from a CSV file'),
-    'replay': ('ctid_ros.streaming.replay', 'estimate from a rosbag2 directory or an MCAP file'),
+    'replay': ('ctid_ros.cli.replay', 'estimate from a rosbag2 directory or an MCAP file'),
     'node': ('ctid_ros.ros.node', 'run the live identification node (same as ctid_node)'),
 }
 

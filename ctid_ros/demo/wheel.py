@@ -39,13 +39,13 @@ import time
 from typing import Any, Dict, List, Mapping, Optional, Sequence, TextIO, Tuple
 
 from ctid_ros.cli import main as cli
+from ctid_ros.cli.report import format_estimate, series_header, series_row
 from ctid_ros.errors import CtidError
 from ctid_ros.files.bag_reader import BagReader
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
                                          FLOAT64_MULTI_ARRAY, NANOSECONDS, NodeTopics)
 from ctid_ros.streaming.params_file import find_config, load_params_file
-from ctid_ros.streaming.replay import format_estimate, series_header, series_row
 import numpy as np
 import yaml
 
@@ -462,8 +462,10 @@ def read_estimates(path: Path, names: Sequence[str], start_ns: int) -> Series:
                     raise CtidError(f'{path}: estimates of {msg.layout.dim[0].label}, '
                                     f'expected {",".join(names)}')
             if topic == NODE.diagnostics:
-                rows[topic].append(next(float(pair.value) for pair in msg.status[0].values
-                                        if pair.key == 'fit_percent'))
+                values = {pair.key: pair.value for pair in msg.status[0].values}
+                # A tick that gave no estimate has a status but no fit.
+                if 'fit_percent' in values:
+                    rows[topic].append(float(values['fit_percent']))
             else:
                 rows[topic].append(list(msg.data))
     return Series(np.array(times), np.array(rows[NODE.estimate]).reshape(-1, len(names)),
