@@ -14,14 +14,15 @@ robot picks up a payload: ``J`` jumps from 0.05 to 0.08 kg m².
    identifies the plant from the measured ``u`` to ``y`` on the last 4 s (direct closed-loop
    identification: a dead time cannot be inside a ``controller=`` model).
 3. This process records the plant's and the node's topics into an MCAP file
-   (:class:`~ctid_ros.files.mcap_writer.RecordingWriter`) and prints the node's estimates as
-   they come.
+   (:class:`~ctid_ros.ros.recorder.TopicRecorder`) and prints the node's estimates as they
+   come.
 4. ``ctid replay --sliding --plot --output`` replays the recording offline through the node's
    code path; the demo adds the estimates over time against the truth and a summary of the
    estimates before and after the payload.
 
 Everything goes to ``demo_output/``; ``--docs`` also copies the figures into ``docs/images/``,
-where the README shows them.
+where the README shows them. The ROS side (plant process, recorder) is in :mod:`ctid_ros.ros`,
+imported only once the DDS environment is set.
 """
 
 import argparse
@@ -34,9 +35,8 @@ import queue
 import shutil
 import subprocess
 import sys
-import threading
 import time
-from typing import Any, Dict, List, Mapping, Optional, Sequence, TextIO, Tuple
+from typing import Any, Dict, List, Optional, Sequence, TextIO, Tuple
 
 from ctid_ros.cli import main as cli
 from ctid_ros.cli.report import format_estimate, series_header, series_row
@@ -48,6 +48,9 @@ from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
 from ctid_ros.streaming.params_file import find_config, load_params_file
 import numpy as np
 import yaml
+
+__all__ = ['LiveRun', 'LiveTable', 'Scenario', 'Series', 'copy_to_docs', 'main', 'read_estimates',
+           'run_live', 'run_replay', 'summary', 'write_figures']
 
 PLANT_CONFIG = 'wheel_demo_plant'
 NODE_CONFIG = 'wheel_demo'
@@ -247,46 +250,6 @@ def _isolate_dds() -> None:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 
-def run_plant(params_file: str, drift_time: float, samples: int,
-              subscribers: Mapping[str, int], events: Any) -> None:
-    """
-    Run ``ctid_plant`` in this (child) process for ``samples`` samples.
-
-    Nothing is published before every topic has the expected number of matched subscribers,
-    so the recording and the node both see the loop start at rest. ``events`` (a queue) gets
-    ``('started', start_ns)``, then ``('finished', published)`` or ``('error', text)``.
-    """
-    import rclpy
-    from rclpy.parameter import Parameter
-    from ctid_ros.ros.plant_node import PlantNode
-
-    rclpy.init()
-    try:
-        node = PlantNode(cli_args=['--ros-args', '--params-file', params_file],
-                         parameter_overrides=[Parameter('drift_time', value=drift_time)])
-    except CtidError as error:
-        events.put(('error', str(error)))
-        rclpy.shutdown()
-        return
-    try:
-        deadline = time.monotonic() + STARTUP_TIMEOUT
-        while any(node.subscription_counts().get(topic, 0) < count
-                  for topic, count in subscribers.items()):
-            if time.monotonic() > deadline:
-                events.put(('error', f'subscribers after {STARTUP_TIMEOUT:g} s: '
-                                     f'{node.subscription_counts()}, expected {subscribers}'))
-                return
-            time.sleep(0.01)
-        node.restart()
-        events.put(('started', node.start_ns))
-        while node.published < samples:
-            rclpy.spin_once(node, timeout_sec=0.01)
-        events.put(('finished', node.published))
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-
-
 def _wait_event(events: Any, kind: str, timeout: float, node: subprocess.Popen,
                 plant: multiprocessing.Process, log: Path) -> Any:
     """Return the payload of the plant's next event, which must be ``kind``."""
@@ -334,6 +297,9 @@ def run_live(scenario: Scenario, node_file: Path, bag: Path, duration: float, lo
 
     """
     _isolate_dds()
+    # Imported here, after _isolate_dds() has set the DDS environment.
+    from ctid_ros.ros.plant_node import run_samples
+
     config = load_params_file(node_file)
     # Each plant topic is recorded here; the node subscribes to its input and output too.
     subscribers = {topic: 1 + (topic in (config.input_topic, config.output_topic))
@@ -345,9 +311,10 @@ def run_live(scenario: Scenario, node_file: Path, bag: Path, duration: float, lo
                                 stdout=log_stream, stderr=subprocess.STDOUT)
     spawn = multiprocessing.get_context('spawn')
     events = spawn.Queue()
-    plant = spawn.Process(target=run_plant, args=(
-        str(scenario.params_file), scenario.drift_time, round(duration / scenario.sample_time),
-        subscribers, events), daemon=True)
+    plant = spawn.Process(target=run_samples, args=(
+        str(scenario.params_file), {'drift_time': scenario.drift_time},
+        round(duration / scenario.sample_time), subscribers, events, STARTUP_TIMEOUT),
+        daemon=True)
     plant.start()
     try:
         table = LiveTable(scenario, config.names, stream or sys.stdout)
@@ -368,57 +335,31 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
 
     ``processes`` are the node, the plant and the node's log, watched while waiting.
     """
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    # Imported here, after _isolate_dds() has set the DDS environment.
     from ctid_ros.files.mcap_writer import RecordingWriter
-    from ctid_ros.ros.messages import import_message
+    from ctid_ros.ros.recorder import TopicRecorder
 
     recorded = {scenario.topics['r']: POINT, scenario.topics['u']: POINT,
                 scenario.topics['y']: POINT, NODE.estimate: FLOAT64_MULTI_ARRAY,
                 NODE.estimate_std: FLOAT64_MULTI_ARRAY, NODE.diagnostics: DIAGNOSTIC_ARRAY}
-    context = Context()
-    rclpy.init(context=context)
-    executor = SingleThreadedExecutor(context=context)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    with RecordingWriter(bag, overwrite=True) as writer:
-        try:
-            recorder = rclpy.create_node('ctid_demo_recorder', context=context)
-            qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-            written = dict.fromkeys(recorded, 0)
-
-            def record(data, info, topic):
-                writer.write(topic, info['received_timestamp'], data)
-                written[topic] += 1
-
-            for topic, msgtype in recorded.items():
-                writer.add_topic(topic, msgtype)
-                recorder.create_subscription(
-                    import_message(msgtype), topic,
-                    lambda data, info, topic=topic: record(data, info, topic), qos, raw=True)
-            for topic, msgtype, callback in (
-                    (NODE.estimate, FLOAT64_MULTI_ARRAY, table.on_estimate),
-                    (NODE.estimate_std, FLOAT64_MULTI_ARRAY, table.on_std),
-                    (NODE.diagnostics, DIAGNOSTIC_ARRAY, table.on_diagnostics)):
-                recorder.create_subscription(import_message(msgtype), topic, callback, qos)
-            executor.add_node(recorder)
-            spinner.start()
-            table.start_ns = _wait_event(events, 'started', STARTUP_TIMEOUT, *processes)
-            table.header()
-            published = _wait_event(events, 'finished', duration + STARTUP_TIMEOUT, *processes)
-            # The last samples may still be in flight: let them reach the recording.
-            deadline = time.monotonic() + DRAIN_TIMEOUT
-            signals = [scenario.topics[name] for name in 'ruy']
-            while time.monotonic() < deadline and \
-                    any(written[topic] < published for topic in signals):
-                time.sleep(0.01)
-            return published
-        finally:
-            executor.shutdown()
-            rclpy.try_shutdown(context=context)
-            if spinner.is_alive():
-                spinner.join(timeout=10.0)
+    with RecordingWriter(bag, overwrite=True) as writer, \
+            TopicRecorder(writer, recorded, node_name='ctid_demo_recorder') as recorder:
+        for topic, msgtype, callback in (
+                (NODE.estimate, FLOAT64_MULTI_ARRAY, table.on_estimate),
+                (NODE.estimate_std, FLOAT64_MULTI_ARRAY, table.on_std),
+                (NODE.diagnostics, DIAGNOSTIC_ARRAY, table.on_diagnostics)):
+            recorder.subscribe(topic, msgtype, callback)
+        recorder.start()
+        table.start_ns = _wait_event(events, 'started', STARTUP_TIMEOUT, *processes)
+        table.header()
+        published = _wait_event(events, 'finished', duration + STARTUP_TIMEOUT, *processes)
+        # The last samples may still be in flight: let them reach the recording.
+        deadline = time.monotonic() + DRAIN_TIMEOUT
+        signals = [scenario.topics[name] for name in 'ruy']
+        while time.monotonic() < deadline and \
+                any(recorder.counts[topic] < published for topic in signals):
+            time.sleep(0.01)
+        return published
 
 
 def _stop(process: subprocess.Popen) -> None:

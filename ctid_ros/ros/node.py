@@ -26,7 +26,6 @@ added), built there as plain data and converted here to rclpy messages; ``ctid r
 --output`` writes the same. Services ``~/reset`` and ``~/estimate_now`` (``std_srvs/Trigger``).
 """
 
-import argparse
 import functools
 import math
 import signal
@@ -43,7 +42,6 @@ from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message,
                                          estimate_messages, estimate_summary, failure_status,
                                          NANOSECONDS, NodeTopics, OutputMessage, update_status,
                                          WARN)
-from ctid_ros.streaming.params_file import find_config
 from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -58,7 +56,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
-__all__ = ['IdentificationNode', 'configure_parser', 'main', 'parameter_value', 'run', 'run_node']
+__all__ = ['IdentificationNode', 'main', 'parameter_value', 'run_node']
 
 # Highest message rate the ring buffer is sized for when it exceeds 1/sample_time.
 MAX_RATE = 1000.0
@@ -397,22 +395,6 @@ class IdentificationNode(Node):
             self.destroy_timer(self._timer)
             self._timer = self._create_update_timer()
         self.get_logger().info('configuration updated')
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ctid node`` arguments; ROS arguments (``--ros-args ...``) pass through."""
-    parser.add_argument('config', nargs='?', default=None,
-                        help='params file or name of an example configuration (e.g. '
-                        'open_loop_delay); same as --ros-args --params-file FILE')
-
-
-def run(arguments: argparse.Namespace) -> int:
-    """Run the node for ``ctid node``."""
-    ros_arguments = list(getattr(arguments, 'ros_arguments', None) or [])
-    if arguments.config:
-        ros_arguments = ['--ros-args', '--params-file', str(find_config(arguments.config)),
-                         *ros_arguments]
-    return main([DEFAULT_NODE_NAME, *ros_arguments])
 
 
 def _interrupt(signal_number: int, frame: Any) -> None:
