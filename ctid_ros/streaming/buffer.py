@@ -41,6 +41,9 @@ from ctid_ros.errors import DataError
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
+__all__ = ['Admission', 'BufferStats', 'Gap', 'INPUT', 'OUTPUT', 'SampleBuffer', 'StreamStats',
+           'Window', 'capacity_for', 'resample']
+
 INPUT = 'input'
 OUTPUT = 'output'
 

@@ -34,6 +34,9 @@ from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
+__all__ = ['FieldPath', 'Step', 'extract', 'extract_values', 'message_fields', 'message_stamp',
+           'parse_field_path', 'sample_stamp']
+
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
 _SEGMENT = rf'{_NAME}(?:\[[0-9]+\])*'
 _PATH = re.compile(rf'{_SEGMENT}(?:\.{_SEGMENT})*')

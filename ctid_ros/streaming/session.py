@@ -19,6 +19,8 @@ from ctid_ros.streaming.buffer import capacity_for, SampleBuffer, Window
 from ctid_ros.streaming.config import IdentificationConfig
 import numpy as np
 
+__all__ = ['IdentificationSession', 'Update', 'buffer_capacity', 'history_span']
+
 
 @dataclass(frozen=True)
 class Update:
