@@ -8,9 +8,13 @@ Every bag holds the same deterministic recording: ``std_msgs/msg/Float64`` on ``
 """
 
 from dataclasses import dataclass
+from io import BytesIO
 from pathlib import Path
 from typing import Dict, List, Sequence
 
+from mcap.exceptions import McapError
+from mcap.records import Message
+from mcap.stream_reader import StreamReader
 from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
@@ -161,3 +165,22 @@ def write_unchunked_mcap(path: Path, records: Sequence[Record]) -> None:
             writer.add_message(channels[record.topic], record.time_ns, bytes(data),
                                record.time_ns)
         writer.finish()
+
+
+def readable_prefix(path: Path, records: Sequence[Record]) -> List[Record]:
+    """Return the records of the messages mcap's own streaming reader recovers from a file."""
+    by_time = {r.time_ns: r for r in records}
+    recovered = []
+    try:
+        for record in StreamReader(BytesIO(path.read_bytes())).records:
+            if isinstance(record, Message):
+                recovered.append(by_time[record.log_time])
+    except McapError:
+        pass
+    return sorted(recovered, key=lambda r: r.time_ns)
+
+
+def truncate(path: Path, fraction: float) -> None:
+    """Cut a file to a fraction of its bytes, as a crash during recording does."""
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * fraction)])
