@@ -19,6 +19,7 @@ from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Un
 from ctid_ros.errors import BagError
 from ctid_ros.files.mcap_source import (BagMessage, BagRecord, MCAP_MAGIC, McapSource,
                                         PathLike, reading_errors, TopicSchema)
+from ctid_ros.streaming.contract import NANOSECONDS
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.typesys import get_typestore, Stores
@@ -202,7 +203,7 @@ class BagReader:
         """Return the time from the first to the last message in seconds (0 if empty)."""
         if self.start_time_ns is None:
             return 0.0
-        return (self.end_time_ns - self.start_time_ns) / 1e9
+        return (self.end_time_ns - self.start_time_ns) / NANOSECONDS
 
     def topics(self) -> Dict[str, str]:
         """Return the message type of each topic, e.g. ``{'/u': 'std_msgs/msg/Float64'}``."""
@@ -256,8 +257,8 @@ class BagReader:
             raise BagError(f'start {start} s is after the last message of {self.path}, which '
                            f'comes {self.duration_s:.3f} s after the first')
         origin = self.start_time_ns or 0
-        return (None if start is None else origin + round(start * 1e9),
-                None if end is None else origin + round(end * 1e9))
+        return (None if start is None else origin + round(start * NANOSECONDS),
+                None if end is None else origin + round(end * NANOSECONDS))
 
     def messages(self, topics: Union[str, Iterable[str], None] = None,
                  start: Optional[float] = None, end: Optional[float] = None, *,

@@ -302,8 +302,9 @@ class IdentificationNode(Node):
         for role, name in zip((INPUT, OUTPUT), buffer.names):
             last = self._last_received[role]
             if last is not None and now - last > limit * NANOSECONDS:
-                raise DataError(f'{name} silent: no message for {(now - last) * 1e-9:.3g} s '
-                                f'(more than {limit:g} s); check its publisher')
+                silence = (now - last) / NANOSECONDS
+                raise DataError(f'{name} silent: no message for {silence:.3g} s (more than '
+                                f'{limit:g} s); check its publisher')
 
     def _failed(self, error: CtidError) -> str:
         level, text = failure_status(error)
