@@ -43,7 +43,8 @@ setup(
                       'threadpoolctl>=3'],
     extras_require={
         'ros': ROS_WHEELS,
-        'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5'],
+        # Bags and MCAP files, and ctid replay (its progress bar: tqdm).
+        'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5', 'tqdm>=4.60'],
         'plot': ['matplotlib>=3.7'],
         'test': ['pytest>=7'] + LINT,
     },

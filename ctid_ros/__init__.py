@@ -1,7 +1,7 @@
 """
 ctid_ros: continuous-time grey-box identification for ROS 2.
 
-The numerical core (this package without :mod:`ctid_ros.ros.node`) imports no ROS code::
+Only :mod:`ctid_ros.ros` imports ROS (rclpy); the numerical core needs nothing of it::
 
     from ctid_ros import Data, Model, estimate
 

@@ -6,6 +6,8 @@ estimation problem that the data cannot answer) raises a subclass of :class:`Cti
 message says what is wrong and what to do about it.
 """
 
+__all__ = ['BagError', 'ConfigError', 'CtidError', 'DataError', 'EstimationError', 'ModelError']
+
 
 class CtidError(Exception):
     """Base class of all errors raised by ctid_ros."""

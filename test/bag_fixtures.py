@@ -8,9 +8,13 @@ Every bag holds the same deterministic recording: ``std_msgs/msg/Float64`` on ``
 """
 
 from dataclasses import dataclass
+from io import BytesIO
 from pathlib import Path
 from typing import Dict, List, Sequence
 
+from mcap.exceptions import McapError
+from mcap.records import Message
+from mcap.stream_reader import StreamReader
 from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
@@ -100,18 +104,18 @@ def write_rosbag2(path: Path, records: Sequence[Record], storage: str) -> None:
         connections = {topic: writer.add_connection(topic, msgtype, typestore=typestore)
                        for topic, msgtype in TOPICS.items()}
         for record in records:
-            msg = _build(typestore, TOPICS[record.topic], record.fields)
+            msg = build_message(typestore, TOPICS[record.topic], record.fields)
             writer.write(connections[record.topic], record.time_ns,
                          typestore.serialize_cdr(msg, TOPICS[record.topic]))
 
 
-def _build(typestore, msgtype: str, fields: Dict[str, object]):
+def build_message(typestore, msgtype: str, fields: Dict[str, object]):
     """Build a rosbags message object (nested dicts become nested messages)."""
     fielddefs = dict(typestore.fielddefs[msgtype][1])
     values = {}
     for name, value in fields.items():
         if isinstance(value, dict):
-            values[name] = _build(typestore, fielddefs[name][1], value)
+            values[name] = build_message(typestore, fielddefs[name][1], value)
         elif isinstance(value, list) and name != 'name':
             values[name] = np.asarray(value, dtype=np.float64)
         else:
@@ -156,7 +160,27 @@ def write_unchunked_mcap(path: Path, records: Sequence[Record]) -> None:
                     for topic, msgtype in TOPICS.items()}
         for record in reversed(records):
             msgtype = TOPICS[record.topic]
-            data = typestore.serialize_cdr(_build(typestore, msgtype, record.fields), msgtype)
+            msg = build_message(typestore, msgtype, record.fields)
+            data = typestore.serialize_cdr(msg, msgtype)
             writer.add_message(channels[record.topic], record.time_ns, bytes(data),
                                record.time_ns)
         writer.finish()
+
+
+def readable_prefix(path: Path, records: Sequence[Record]) -> List[Record]:
+    """Return the records of the messages mcap's own streaming reader recovers from a file."""
+    by_time = {r.time_ns: r for r in records}
+    recovered = []
+    try:
+        for record in StreamReader(BytesIO(path.read_bytes())).records:
+            if isinstance(record, Message):
+                recovered.append(by_time[record.log_time])
+    except McapError:
+        pass
+    return sorted(recovered, key=lambda r: r.time_ns)
+
+
+def truncate(path: Path, fraction: float) -> None:
+    """Cut a file to a fraction of its bytes, as a crash during recording does."""
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * fraction)])

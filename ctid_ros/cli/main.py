@@ -1,8 +1,9 @@
 """
 The ``ctid`` command: one subcommand per module of this package.
 
-Each command module offers ``configure_parser(parser)`` and ``run(arguments) -> int`` and is
-imported only when its command runs (the node needs rclpy, replay the bag readers).
+Each command module (:mod:`~ctid_ros.cli.fit`, :mod:`~ctid_ros.cli.replay`,
+:mod:`~ctid_ros.cli.node`) offers ``configure_parser(parser)`` and ``run(arguments) -> int`` and
+is imported only when its command runs (the node needs rclpy, replay the bag readers).
 """
 
 import argparse
@@ -16,8 +17,8 @@ __all__ = ['build_parser', 'main']
 
 _MODULE_COMMANDS = {
     'fit': ('ctid_ros.cli.fit', 'estimate a model from a CSV file'),
-    'replay': ('ctid_ros.streaming.replay', 'estimate from a rosbag2 directory or an MCAP file'),
-    'node': ('ctid_ros.ros.node', 'run the live identification node (same as ctid_node)'),
+    'replay': ('ctid_ros.cli.replay', 'estimate from a rosbag2 directory or an MCAP file'),
+    'node': ('ctid_ros.cli.node', 'run the live identification node (same as ctid_node)'),
 }
 
 

@@ -4,19 +4,26 @@ Figures of an identification: output fit, estimates over time, Bode plot with un
 Every function builds a :class:`matplotlib.figure.Figure` on its own Agg canvas (never through
 ``pyplot``), so it works without a display and does not change the backend or the figures of
 anybody else in the process. Pass ``path`` to also write a PNG; the figure is returned either
-way, for further editing or embedding.
+way, for further editing or embedding. :func:`write_replay_figures` draws the set that
+``ctid replay --plot`` writes.
 """
 
 from dataclasses import dataclass
 import os
-from typing import Callable, Mapping, Optional, Sequence, Tuple, Union
+from pathlib import Path
+from typing import Callable, List, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core.model import Model
 from ctid_ros.errors import ModelError
 from ctid_ros.estimation.estimate import Estimate
+from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.session import Update
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
+
+__all__ = ['BodeData', 'bode', 'bode_data', 'default_omega', 'fit_figure', 'parameters_figure',
+           'replay_figure_paths', 'write_replay_figures']
 
 PathLike = Union[str, os.PathLike]
 # A constant truth per parameter, or a function of time (s) returning each parameter's values.
@@ -289,3 +296,37 @@ def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 1
     which = 'closed loop r → y' if model.controller else 'plant'
     top.set_title(f'Bode plot of the identified {which}: {model.expression}')
     return _finish(figure, path)
+
+
+def replay_figure_paths(path: Path, sliding: bool) -> Tuple[Path, Optional[Path], Path]:
+    """Return the measured-vs-simulated, parameters (sliding only) and Bode figure paths."""
+    def sibling(suffix: str) -> Path:
+        return path.with_name(f'{path.stem}_{suffix}{path.suffix or ".png"}')
+
+    return path, sibling('params') if sliding else None, sibling('bode')
+
+
+def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, sliding: bool,
+                         truth: Optional[Truth] = None) -> List[Path]:
+    """
+    Write the replay's figures as PNG files and return their paths.
+
+    ``path`` gets measured vs. simulated output of the last window; ``<stem>_bode.png`` the Bode
+    plot of the last estimate up to the Nyquist frequency of the data; with ``sliding`` also
+    ``<stem>_params.png``, the estimates over time with their ±2σ bands (against ``truth`` if
+    given).
+    """
+    fit_path, params_path, bode_path = replay_figure_paths(path, sliding)
+    last = updates[-1]
+    times = (last.prediction_times_ns - origin_ns) / NANOSECONDS
+    fit_figure(times, last.window.data.y, last.prediction, fit=last.result.fit, path=fit_path)
+    written = [fit_path]
+    if params_path is not None:
+        parameters_figure(
+            np.array([(update.end_ns - origin_ns) / NANOSECONDS for update in updates]),
+            last.names, np.array([update.values for update in updates]),
+            np.array([update.stds for update in updates]), truth=truth, path=params_path)
+        written.append(params_path)
+    bode(last.result, max_omega=np.pi / last.window.data.ts, path=bode_path)
+    written.append(bode_path)
+    return written

@@ -1,9 +1,16 @@
 """Text reports of estimates: the tables and JSON of ``ctid fit`` and ``ctid replay``."""
 
+from dataclasses import replace
+from typing import Sequence
+
 from ctid_ros.estimation.estimate import Estimate
+from ctid_ros.streaming.buffer import BufferStats
+from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.session import Update
 import numpy as np
 
-__all__ = ['format_table', 'json_default']
+__all__ = ['format_estimate', 'format_series', 'format_stats', 'format_table', 'format_update',
+           'json_default', 'series_header', 'series_row']
 
 
 def format_table(result: Estimate) -> str:
@@ -27,3 +34,65 @@ def json_default(value):
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f'not JSON serialisable: {type(value).__name__}')
+
+
+def format_update(update: Update) -> str:
+    """Return :func:`format_table` of an update, in publishing order."""
+    result = update.result
+    ordered = replace(result, params=dict(zip(update.names, update.values.tolist())),
+                      std=dict(zip(update.names, update.stds.tolist())),
+                      warnings=list(update.warnings))
+    return format_table(ordered)
+
+
+def format_series(updates: Sequence[Update], origin_ns: int) -> str:
+    """
+    Return one line per update: window end (s from ``origin_ns``), estimates +- std, fit.
+
+    Parameters
+    ----------
+    updates : sequence of Update
+        Sliding-window estimates, all with the same names.
+    origin_ns : int
+        Time shown as 0 (the bag start).
+
+    """
+    names = updates[0].names
+    cells = [[format_estimate(value, std) for value, std in zip(update.values, update.stds)]
+             for update in updates]
+    widths = [max(len(name), *(len(row[index]) for row in cells))
+              for index, name in enumerate(names)]
+    lines = [series_header(names, widths)]
+    for update, row in zip(updates, cells):
+        lines.append(series_row((update.end_ns - origin_ns) / NANOSECONDS, row,
+                                update.result.fit, widths))
+    return '\n'.join(lines)
+
+
+def format_estimate(value: float, std: float) -> str:
+    """Return the cell ``value ± std`` of a series table."""
+    return f'{value:.5g} ± {std:.2g}'
+
+
+def series_header(names: Sequence[str], widths: Sequence[int]) -> str:
+    """Return the header of a series table with columns of the given widths."""
+    return '  '.join([f'{"time s":>9}'] + [f'{name:>{width}}'
+                                           for name, width in zip(names, widths)]
+                     + [f'{"fit %":>7}'])
+
+
+def series_row(time_s: float, cells: Sequence[str], fit: float, widths: Sequence[int]) -> str:
+    """Return one row of a series table: time (s), one cell per parameter, fit (%)."""
+    return '  '.join([f'{time_s:>9.2f}'] + [f'{cell:>{width}}'
+                                            for cell, width in zip(cells, widths)]
+                     + [f'{fit:>7.2f}'])
+
+
+def format_stats(stats: BufferStats, names: Sequence[str], messages: int) -> str:
+    """Return how many messages were replayed and how many samples of each stream were used."""
+    lines = [f'{messages} messages replayed']
+    for name, stream in zip(names, (stats.u, stats.y)):
+        lines.append(f'{name}: {stream.accepted} samples used of {stream.received} '
+                     f'(non-finite {stream.non_finite}, duplicates {stream.duplicates}, '
+                     f'late {stream.late})')
+    return '\n'.join(lines)

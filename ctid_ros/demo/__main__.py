@@ -4,4 +4,6 @@ import sys
 
 from ctid_ros.demo.wheel import main
 
+__all__: list = []
+
 sys.exit(main())

@@ -14,14 +14,15 @@ robot picks up a payload: ``J`` jumps from 0.05 to 0.08 kg m².
    identifies the plant from the measured ``u`` to ``y`` on the last 4 s (direct closed-loop
    identification: a dead time cannot be inside a ``controller=`` model).
 3. This process records the plant's and the node's topics into an MCAP file
-   (:class:`~ctid_ros.files.bag_reader.RecordingWriter`) and prints the node's estimates as
-   they come.
+   (:class:`~ctid_ros.ros.recorder.TopicRecorder`) and prints the node's estimates as they
+   come.
 4. ``ctid replay --sliding --plot --output`` replays the recording offline through the node's
    code path; the demo adds the estimates over time against the truth and a summary of the
    estimates before and after the payload.
 
 Everything goes to ``demo_output/``; ``--docs`` also copies the figures into ``docs/images/``,
-where the README shows them.
+where the README shows them. The ROS side (plant process, recorder) is in :mod:`ctid_ros.ros`,
+imported only once the DDS environment is set.
 """
 
 import argparse
@@ -34,28 +35,28 @@ import queue
 import shutil
 import subprocess
 import sys
-import threading
 import time
-from typing import Any, Dict, List, Mapping, Optional, Sequence, TextIO, Tuple
+from typing import Any, Dict, List, Optional, Sequence, TextIO, Tuple
 
 from ctid_ros.cli import main as cli
+from ctid_ros.cli.report import format_estimate, series_header, series_row
 from ctid_ros.errors import CtidError
 from ctid_ros.files.bag_reader import BagReader
-from ctid_ros.streaming.config import find_config, IdentificationConfig, load_params_file
-from ctid_ros.streaming.replay import format_estimate, series_header, series_row
+from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
+                                         FLOAT64_MULTI_ARRAY, NANOSECONDS, NodeTopics)
+from ctid_ros.streaming.params_file import find_config, load_params_file
 import numpy as np
 import yaml
 
-NANOSECONDS = 1_000_000_000
+__all__ = ['LiveRun', 'LiveTable', 'Scenario', 'Series', 'copy_to_docs', 'main', 'read_estimates',
+           'run_live', 'run_replay', 'summary', 'write_figures']
+
 PLANT_CONFIG = 'wheel_demo_plant'
 NODE_CONFIG = 'wheel_demo'
-NODE_NAME = 'ctid_node'
-ESTIMATE_TOPIC = f'/{NODE_NAME}/estimate'
-ESTIMATE_STD_TOPIC = f'/{NODE_NAME}/estimate_std'
-DIAGNOSTICS_TOPIC = '/diagnostics'
+# The node runs with its default name in the root namespace.
+NODE = NodeTopics.of(DEFAULT_NODE_NAME)
 POINT = 'geometry_msgs/msg/PointStamped'
-ARRAY = 'std_msgs/msg/Float64MultiArray'
-DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
 # Figures of the run and the names the README knows them by.
 DOC_FIGURES = {'replay.png': 'demo_fit.png', 'parameters.png': 'demo_parameters.png',
                'replay_bode.png': 'demo_bode.png'}
@@ -215,7 +216,7 @@ class LiveTable:
         """Take the fit and window end of an update from the node's status."""
         for status in message.status:
             values = {pair.key: pair.value for pair in status.values}
-            if status.name == f'{NODE_NAME}: estimate' and 'fit_percent' in values:
+            if status.name == NODE.status_name and 'fit_percent' in values:
                 self._add('status', (float(values['window_end']), float(values['fit_percent'])))
 
     def _add(self, key: str, value: Any) -> None:
@@ -247,46 +248,6 @@ def _isolate_dds() -> None:
     """Keep the demo's DDS traffic on this host, in a domain of its own (before rclpy loads)."""
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-
-
-def run_plant(params_file: str, drift_time: float, samples: int,
-              subscribers: Mapping[str, int], events: Any) -> None:
-    """
-    Run ``ctid_plant`` in this (child) process for ``samples`` samples.
-
-    Nothing is published before every topic has the expected number of matched subscribers,
-    so the recording and the node both see the loop start at rest. ``events`` (a queue) gets
-    ``('started', start_ns)``, then ``('finished', published)`` or ``('error', text)``.
-    """
-    import rclpy
-    from rclpy.parameter import Parameter
-    from ctid_ros.ros.plant_node import PlantNode
-
-    rclpy.init()
-    try:
-        node = PlantNode(cli_args=['--ros-args', '--params-file', params_file],
-                         parameter_overrides=[Parameter('drift_time', value=drift_time)])
-    except CtidError as error:
-        events.put(('error', str(error)))
-        rclpy.shutdown()
-        return
-    try:
-        deadline = time.monotonic() + STARTUP_TIMEOUT
-        while any(node.subscription_counts().get(topic, 0) < count
-                  for topic, count in subscribers.items()):
-            if time.monotonic() > deadline:
-                events.put(('error', f'subscribers after {STARTUP_TIMEOUT:g} s: '
-                                     f'{node.subscription_counts()}, expected {subscribers}'))
-                return
-            time.sleep(0.01)
-        node.restart()
-        events.put(('started', node.start_ns))
-        while node.published < samples:
-            rclpy.spin_once(node, timeout_sec=0.01)
-        events.put(('finished', node.published))
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
 
 
 def _wait_event(events: Any, kind: str, timeout: float, node: subprocess.Popen,
@@ -336,6 +297,9 @@ def run_live(scenario: Scenario, node_file: Path, bag: Path, duration: float, lo
 
     """
     _isolate_dds()
+    # Imported here, after _isolate_dds() has set the DDS environment.
+    from ctid_ros.ros.plant_node import run_samples
+
     config = load_params_file(node_file)
     # Each plant topic is recorded here; the node subscribes to its input and output too.
     subscribers = {topic: 1 + (topic in (config.input_topic, config.output_topic))
@@ -347,9 +311,10 @@ def run_live(scenario: Scenario, node_file: Path, bag: Path, duration: float, lo
                                 stdout=log_stream, stderr=subprocess.STDOUT)
     spawn = multiprocessing.get_context('spawn')
     events = spawn.Queue()
-    plant = spawn.Process(target=run_plant, args=(
-        str(scenario.params_file), scenario.drift_time, round(duration / scenario.sample_time),
-        subscribers, events), daemon=True)
+    plant = spawn.Process(target=run_samples, args=(
+        str(scenario.params_file), {'drift_time': scenario.drift_time},
+        round(duration / scenario.sample_time), subscribers, events, STARTUP_TIMEOUT),
+        daemon=True)
     plant.start()
     try:
         table = LiveTable(scenario, config.names, stream or sys.stdout)
@@ -370,57 +335,31 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
 
     ``processes`` are the node, the plant and the node's log, watched while waiting.
     """
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from ctid_ros.files.bag_reader import RecordingWriter
-    from ctid_ros.ros.node import import_message
+    # Imported here, after _isolate_dds() has set the DDS environment.
+    from ctid_ros.files.mcap_writer import RecordingWriter
+    from ctid_ros.ros.recorder import TopicRecorder
 
     recorded = {scenario.topics['r']: POINT, scenario.topics['u']: POINT,
-                scenario.topics['y']: POINT, ESTIMATE_TOPIC: ARRAY, ESTIMATE_STD_TOPIC: ARRAY,
-                DIAGNOSTICS_TOPIC: DIAGNOSTICS}
-    context = Context()
-    rclpy.init(context=context)
-    executor = SingleThreadedExecutor(context=context)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    with RecordingWriter(bag, overwrite=True) as writer:
-        try:
-            recorder = rclpy.create_node('ctid_demo_recorder', context=context)
-            qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-            written = dict.fromkeys(recorded, 0)
-
-            def record(data, info, topic):
-                writer.write(topic, info['received_timestamp'], data)
-                written[topic] += 1
-
-            for topic, msgtype in recorded.items():
-                writer.add_topic(topic, msgtype)
-                recorder.create_subscription(
-                    import_message(msgtype), topic,
-                    lambda data, info, topic=topic: record(data, info, topic), qos, raw=True)
-            for topic, msgtype, callback in (
-                    (ESTIMATE_TOPIC, ARRAY, table.on_estimate),
-                    (ESTIMATE_STD_TOPIC, ARRAY, table.on_std),
-                    (DIAGNOSTICS_TOPIC, DIAGNOSTICS, table.on_diagnostics)):
-                recorder.create_subscription(import_message(msgtype), topic, callback, qos)
-            executor.add_node(recorder)
-            spinner.start()
-            table.start_ns = _wait_event(events, 'started', STARTUP_TIMEOUT, *processes)
-            table.header()
-            published = _wait_event(events, 'finished', duration + STARTUP_TIMEOUT, *processes)
-            # The last samples may still be in flight: let them reach the recording.
-            deadline = time.monotonic() + DRAIN_TIMEOUT
-            signals = [scenario.topics[name] for name in 'ruy']
-            while time.monotonic() < deadline and \
-                    any(written[topic] < published for topic in signals):
-                time.sleep(0.01)
-            return published
-        finally:
-            executor.shutdown()
-            rclpy.try_shutdown(context=context)
-            if spinner.is_alive():
-                spinner.join(timeout=10.0)
+                scenario.topics['y']: POINT, NODE.estimate: FLOAT64_MULTI_ARRAY,
+                NODE.estimate_std: FLOAT64_MULTI_ARRAY, NODE.diagnostics: DIAGNOSTIC_ARRAY}
+    with RecordingWriter(bag, overwrite=True) as writer, \
+            TopicRecorder(writer, recorded, node_name='ctid_demo_recorder') as recorder:
+        for topic, msgtype, callback in (
+                (NODE.estimate, FLOAT64_MULTI_ARRAY, table.on_estimate),
+                (NODE.estimate_std, FLOAT64_MULTI_ARRAY, table.on_std),
+                (NODE.diagnostics, DIAGNOSTIC_ARRAY, table.on_diagnostics)):
+            recorder.subscribe(topic, msgtype, callback)
+        recorder.start()
+        table.start_ns = _wait_event(events, 'started', STARTUP_TIMEOUT, *processes)
+        table.header()
+        published = _wait_event(events, 'finished', duration + STARTUP_TIMEOUT, *processes)
+        # The last samples may still be in flight: let them reach the recording.
+        deadline = time.monotonic() + DRAIN_TIMEOUT
+        signals = [scenario.topics[name] for name in 'ruy']
+        while time.monotonic() < deadline and \
+                any(recorder.counts[topic] < published for topic in signals):
+            time.sleep(0.01)
+        return published
 
 
 def _stop(process: subprocess.Popen) -> None:
@@ -453,24 +392,26 @@ def run_replay(bag: Path, node_file: Path, output: Path, report: Path) -> int:
 
 def read_estimates(path: Path, names: Sequence[str], start_ns: int) -> Series:
     """Read the estimates, standard deviations and fits of an MCAP written by ``--output``."""
-    rows: Dict[str, List[Any]] = {ESTIMATE_TOPIC: [], ESTIMATE_STD_TOPIC: [],
-                                  DIAGNOSTICS_TOPIC: []}
+    rows: Dict[str, List[Any]] = {NODE.estimate: [], NODE.estimate_std: [],
+                                  NODE.diagnostics: []}
     times = []
     with BagReader(path) as bag:
         for topic, log_time_ns, msg in bag.messages(list(rows)):
-            if topic == ESTIMATE_TOPIC:
+            if topic == NODE.estimate:
                 times.append((log_time_ns - start_ns) / NANOSECONDS)
                 if msg.layout.dim[0].label.split(',') != list(names):
                     raise CtidError(f'{path}: estimates of {msg.layout.dim[0].label}, '
                                     f'expected {",".join(names)}')
-            if topic == DIAGNOSTICS_TOPIC:
-                rows[topic].append(next(float(pair.value) for pair in msg.status[0].values
-                                        if pair.key == 'fit_percent'))
+            if topic == NODE.diagnostics:
+                values = {pair.key: pair.value for pair in msg.status[0].values}
+                # A tick that gave no estimate has a status but no fit.
+                if 'fit_percent' in values:
+                    rows[topic].append(float(values['fit_percent']))
             else:
                 rows[topic].append(list(msg.data))
-    return Series(np.array(times), np.array(rows[ESTIMATE_TOPIC]).reshape(-1, len(names)),
-                  np.array(rows[ESTIMATE_STD_TOPIC]).reshape(-1, len(names)),
-                  np.array(rows[DIAGNOSTICS_TOPIC]), tuple(names))
+    return Series(np.array(times), np.array(rows[NODE.estimate]).reshape(-1, len(names)),
+                  np.array(rows[NODE.estimate_std]).reshape(-1, len(names)),
+                  np.array(rows[NODE.diagnostics]), tuple(names))
 
 
 def summary(scenario: Scenario, config: IdentificationConfig, replayed: Series,

@@ -9,6 +9,8 @@ from ctid_ros.core.data import Data
 from ctid_ros.errors import DataError
 import numpy as np
 
+__all__ = ['load_csv', 'uniform_sample_time']
+
 _RELATIVE_JITTER = 1e-3
 
 

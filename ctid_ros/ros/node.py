@@ -19,39 +19,31 @@ callback group and the subscriptions a reentrant one, so the node works in a mul
 executor as well; under the single-threaded one ``~/estimate_now`` holds up the intake while
 it computes.
 
-Outputs (``~`` is the node's name, e.g. ``/ctid_node``):
-
-* ``~/estimate``, ``~/estimate_std``: ``std_msgs/Float64MultiArray`` in ``parameter_names`` order,
-  the comma-separated names in ``layout.dim[0].label`` (as
-  :class:`ctid_ros.files.bag_reader.EstimateWriter`);
-* ``~/params/<name>``: ``std_msgs/Float64`` per parameter;
-* ``~/prediction`` (if ``publish_prediction``): ``std_msgs/Float64MultiArray`` with the model
-  output at every grid instant of the window, label ``prediction``; the window's first and last
-  instants are ``window_start``/``window_end`` of the diagnostics published with it;
-* ``/diagnostics``: one ``diagnostic_msgs/DiagnosticStatus`` per update or failed update: OK,
-  WARN (estimate with warnings, not converged, or not enough data yet) or ERROR (estimation
-  failed), with the estimate's diagnostics and the per-stream sample counters;
-* services ``~/reset`` and ``~/estimate_now`` (``std_srvs/Trigger``).
+Outputs: the topics, types, layouts and status levels of
+:mod:`ctid_ros.streaming.contract` (``~/estimate``, ``~/estimate_std``, ``~/params/<name>``,
+``~/prediction`` if ``publish_prediction``, ``/diagnostics`` with the per-stream sample counters
+added), built there as plain data and converted here to rclpy messages; ``ctid replay
+--output`` writes the same. Services ``~/reset`` and ``~/estimate_now`` (``std_srvs/Trigger``).
 """
 
-import argparse
 import functools
-import importlib
 import math
 import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, CtidError, DataError
-from ctid_ros.streaming.buffer import NANOSECONDS, SampleBuffer, StreamStats
-from ctid_ros.streaming.config import (find_config, IdentificationConfig, PARAMETER_NAMES,
-                                       PARAMETERS)
-from ctid_ros.streaming.message_fields import extract_values, sample_stamp
-from ctid_ros.streaming.session import (buffer_capacity, format_diagnostic,
-                                        IdentificationSession, Update)
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from ctid_ros.ros.messages import import_message, to_message
+from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer, StreamStats
+from ctid_ros.streaming.config import IdentificationConfig, PARAMETER_NAMES, PARAMETERS
+from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message, ERROR,
+                                         estimate_messages, estimate_summary, failure_status,
+                                         NANOSECONDS, NodeTopics, OutputMessage, update_status,
+                                         WARN)
+from ctid_ros.streaming.sampler import MessageSampler
+from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 import rclpy
@@ -62,11 +54,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
-NODE_NAME = 'ctid_node'
-INPUT, OUTPUT = 'input', 'output'
+__all__ = ['IdentificationNode', 'main', 'parameter_value', 'run_node']
+
 # Highest message rate the ring buffer is sized for when it exceeds 1/sample_time.
 MAX_RATE = 1000.0
 TOPIC_CHECK_PERIOD = 0.5
@@ -105,39 +96,11 @@ def parameter_value(node: Node, name: str, default: Any = None) -> Any:
         return default
 
 
-def import_message(type_name: str) -> type:
-    """
-    Import a message class from its graph name, e.g. ``'sensor_msgs/msg/JointState'``.
-
-    Raises
-    ------
-    ConfigError
-        If the name is malformed or the package is not installed.
-
-    """
-    package, _, name = type_name.rpartition('/')
-    module_name = package.replace('/', '.')
-    try:
-        return getattr(importlib.import_module(module_name), name)
-    except (ImportError, AttributeError, ValueError):
-        raise ConfigError(f'message type {type_name} is not installed: install the package '
-                          f'{package.split("/")[0]} in this environment') from None
-
-
-def _array(names: Tuple[str, ...], values, label: Optional[str] = None) -> Float64MultiArray:
-    size = len(values)
-    dimension = MultiArrayDimension(label=','.join(names) if label is None else label,
-                                    size=size, stride=size)
-    message = Float64MultiArray(data=[float(value) for value in values])
-    message.layout.dim = [dimension]
-    return message
-
-
 class IdentificationNode(Node):
     """Identify a grey-box model from two live topics; publish estimates and diagnostics."""
 
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
+        super().__init__(DEFAULT_NODE_NAME, **kwargs)
         for spec in PARAMETERS:
             self.declare_parameter(spec.name, _initial_value(spec), _descriptor(spec))
         self._config = IdentificationConfig.from_dict(
@@ -145,9 +108,11 @@ class IdentificationNode(Node):
         self._session = IdentificationSession(self._config)
         # Guards the session and the buffer swap against the parameter callback.
         self._lock = threading.Lock()
+        self._sampler = self._new_sampler(self._config)
         self._buffer = self._new_buffer(self._config)
         self._field_errors = {INPUT: 0, OUTPUT: 0}
         self._last_received: Dict[str, Optional[int]] = {INPUT: None, OUTPUT: None}
+        # Roles whose unreadable field was logged: once per field configuration.
         self._logged_fields = set()
         self._topic_subscriptions: Dict[str, Any] = {}
         self._waiting: Dict[str, str] = {}
@@ -156,13 +121,13 @@ class IdentificationNode(Node):
         self._qos = QoSProfile(depth=self._config.qos_depth, reliability=(
             ReliabilityPolicy.RELIABLE if self._config.qos_reliability == 'reliable'
             else ReliabilityPolicy.BEST_EFFORT))
-        self._estimate_publisher = self.create_publisher(Float64MultiArray, '~/estimate', 10)
-        self._std_publisher = self.create_publisher(Float64MultiArray, '~/estimate_std', 10)
-        self._prediction_publisher = self.create_publisher(Float64MultiArray, '~/prediction',
-                                                           10)
-        self._param_publishers: Dict[str, Any] = {}
-        self._diagnostics_publisher = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._status_name = f'{self.get_fully_qualified_name()[1:]}: estimate'
+        self._node_topics = NodeTopics(self.get_fully_qualified_name())
+        # The fixed topics exist from the start, so subscribers can match before the first
+        # update; a parameter's topic is created with its first value.
+        self._topic_publishers: Dict[str, Any] = {}
+        for message in (*estimate_messages(self._node_topics, (), (), (), ()),
+                        diagnostics_message(self._node_topics, 0, WARN, '', {})):
+            self._publisher(message)
         self.create_service(Trigger, '~/reset', self._reset,
                             callback_group=self._estimation_group)
         self.create_service(Trigger, '~/estimate_now', self._estimate_now,
@@ -191,13 +156,13 @@ class IdentificationNode(Node):
         """Return the sample buffer."""
         return self._buffer
 
+    def _new_sampler(self, config: IdentificationConfig) -> MessageSampler:
+        return MessageSampler(config, (self.resolve_topic_name(config.input_topic),
+                                       self.resolve_topic_name(config.output_topic)))
+
     def _new_buffer(self, config: IdentificationConfig) -> SampleBuffer:
         rate = max(1.0 / config.sample_time, MAX_RATE)
-        return SampleBuffer(buffer_capacity(config, rate), max_gap=config.max_gap,
-                            reorder_horizon=config.reorder_horizon,
-                            names=(f'{config.input_topic} {", ".join(config.input_fields)}',
-                                   f'{config.output_topic} {config.output_field}'),
-                            inputs=len(config.input_fields))
+        return self._sampler.buffer(buffer_capacity(config, rate), config)
 
     def _create_update_timer(self):
         return self.create_timer(self._config.update_period, self._on_timer,
@@ -205,18 +170,10 @@ class IdentificationNode(Node):
 
     # Input ---------------------------------------------------------------------------------
 
-    def _topics(self) -> Dict[str, Tuple[str, ...]]:
-        """Map each resolved topic to the roles it carries (input, output or both)."""
-        topics: Dict[str, Tuple[str, ...]] = {}
-        for role, topic in ((INPUT, self._config.input_topic),
-                            (OUTPUT, self._config.output_topic)):
-            resolved = self.resolve_topic_name(topic)
-            topics[resolved] = topics.get(resolved, ()) + (role,)
-        return topics
-
     def _connect(self) -> None:
         """Subscribe to every topic whose type the graph now knows; note the others."""
-        pending = {topic: roles for topic, roles in self._topics().items()
+        sampler = self._sampler
+        pending = {topic: sampler.roles(topic) for topic in sampler.topics
                    if topic not in self._topic_subscriptions}
         if not pending:
             self._topic_timer.cancel()
@@ -233,45 +190,48 @@ class IdentificationNode(Node):
             except ConfigError as error:
                 self._waiting[topic] = str(error)
                 continue
-            callback = functools.partial(self._on_message, roles)
+            callback = functools.partial(self.receive, topic)
             self._topic_subscriptions[topic] = self.create_subscription(
                 message_type, topic, callback, self._qos, callback_group=self._sample_group)
             self._waiting.pop(topic, None)
             self.get_logger().info(f'subscribed to {topic} ({types[0]}) for the '
                                    f'{" and ".join(roles)}')
 
-    def _stamp(self, message, info: Dict[str, Any]) -> int:
-        return sample_stamp(message, self._receive_stamp(info), self._config.stamp_source)
-
-    def _receive_stamp(self, info: Dict[str, Any]) -> int:
+    def _receive_stamp(self, info: Mapping[str, Any]) -> int:
         clock = self.get_clock()
         if clock.ros_time_is_active:
             return clock.now().nanoseconds
         return info.get('source_timestamp') or info.get('received_timestamp') or \
             clock.now().nanoseconds
 
-    def _value(self, message, role: str):
-        config = self._config
-        paths = config.input_fields if role == INPUT else (config.output_field,)
-        try:
-            return extract_values(message, paths)
-        except ConfigError as error:
-            self._field_errors[role] += 1
-            if (role, paths) not in self._logged_fields:
-                self._logged_fields.add((role, paths))
-                self.get_logger().error(f'{role}: {error}')
-            return None
+    def receive(self, topic: str, message: Any, info: Optional[Mapping[str, Any]] = None
+                ) -> None:
+        """
+        Take one message of ``topic`` into the buffer, as the subscriptions do.
 
-    def _on_message(self, roles: Tuple[str, ...], message, info: Dict[str, Any]) -> None:
+        Parameters
+        ----------
+        topic : str
+            Resolved topic the message came on.
+        message : object
+            The message.
+        info : mapping, optional
+            rclpy's message info (``source_timestamp``, ``received_timestamp``); without it the
+            node's clock stamps a message that has no header stamp.
+
+        """
+        sampler = self._sampler
+        roles = sampler.roles(topic)
         received = self.get_clock().now().nanoseconds
         for role in roles:
             self._last_received[role] = received
-        stamp = self._stamp(message, info)
-        buffer = self._buffer
-        values = {role: self._value(message, role) for role in roles}
-        for role, value in values.items():
-            if value is not None:
-                (buffer.add_input if role == INPUT else buffer.add_output)(stamp, value)
+        sample = sampler(topic, self._receive_stamp(info or {}), message)
+        for role, error in sample.errors:
+            self._field_errors[role] += 1
+            if role not in self._logged_fields:
+                self._logged_fields.add(role)
+                self.get_logger().error(f'{role}: {error}')
+        sample.add_to(self._buffer)
 
     # Estimation ----------------------------------------------------------------------------
 
@@ -289,7 +249,7 @@ class IdentificationNode(Node):
                 self.estimate(self._tick)
             except Exception as error:  # noqa: B902 - a bug must not stop the estimates
                 self.get_logger().error(f'estimation failed: {error!r}')
-                self._publish_status(DiagnosticStatus.ERROR, f'internal error: {error!r}', {})
+                self._publish_status(ERROR, f'internal error: {error!r}', {})
 
     def destroy_node(self) -> None:
         """Stop the estimation thread, then destroy the node."""
@@ -320,25 +280,15 @@ class IdentificationNode(Node):
                 self._check_silence(config, buffer)
                 window = self._session.take_window(buffer)
                 update = self._session.update(window)
-            except DataError as error:
-                return None, self._failed(DiagnosticStatus.WARN, error)
             except CtidError as error:
-                return None, self._failed(DiagnosticStatus.ERROR, error)
+                return None, self._failed(error)
         self.last_update = update
         self._publish(update, config)
-        summary = ', '.join(f'{name}={value:.6g} (std {std:.3g})' for name, value, std in
-                            zip(update.names, update.values, update.stds))
         diagnostics = update.diagnostics()
         diagnostics['publish_latency'] = time.perf_counter() - started
-        warnings = diagnostics['warnings']
-        if warnings:
-            level, text = DiagnosticStatus.WARN, '; '.join(warnings)
-        elif not diagnostics['converged']:
-            level, text = DiagnosticStatus.WARN, 'not converged'
-        else:
-            level, text = DiagnosticStatus.OK, summary
-        self._publish_status(level, text, diagnostics)
-        return update, summary
+        self._publish_status(*update_status(update.names, update.values, update.stds,
+                                            diagnostics), diagnostics)
+        return update, estimate_summary(update.names, update.values, update.stds)
 
     def _check_silence(self, config: IdentificationConfig, buffer: SampleBuffer) -> None:
         """
@@ -352,26 +302,33 @@ class IdentificationNode(Node):
         for role, name in zip((INPUT, OUTPUT), buffer.names):
             last = self._last_received[role]
             if last is not None and now - last > limit * NANOSECONDS:
-                raise DataError(f'{name} silent: no message for {(now - last) * 1e-9:.3g} s '
-                                f'(more than {limit:g} s); check its publisher')
+                silence = (now - last) / NANOSECONDS
+                raise DataError(f'{name} silent: no message for {silence:.3g} s (more than '
+                                f'{limit:g} s); check its publisher')
 
-    def _failed(self, level: bytes, error: Exception) -> str:
-        text = str(error)
+    def _failed(self, error: CtidError) -> str:
+        level, text = failure_status(error)
         self.get_logger().warning(f'no estimate: {text}', throttle_duration_sec=ERROR_LOG_PERIOD)
         self._publish_status(level, text, {})
         return text
 
+    def _publisher(self, message: OutputMessage) -> Tuple[Any, type]:
+        """Return the publisher of a message's topic and its class, created on first use."""
+        if message.topic not in self._topic_publishers:
+            message_class = import_message(message.msgtype)
+            self._topic_publishers[message.topic] = (
+                self.create_publisher(message_class, message.topic, 10), message_class)
+        return self._topic_publishers[message.topic]
+
+    def _send(self, message: OutputMessage) -> None:
+        publisher, message_class = self._publisher(message)
+        publisher.publish(to_message(message_class, message.fields))
+
     def _publish(self, update: Update, config: IdentificationConfig) -> None:
-        self._estimate_publisher.publish(_array(update.names, update.values))
-        self._std_publisher.publish(_array(update.names, update.stds))
-        for name, value in zip(update.names, update.values):
-            if name not in self._param_publishers:
-                self._param_publishers[name] = self.create_publisher(
-                    Float64, f'~/params/{name}', 10)
-            self._param_publishers[name].publish(Float64(data=float(value)))
-        if config.publish_prediction:
-            self._prediction_publisher.publish(
-                _array(update.names, update.prediction, label='prediction'))
+        for message in estimate_messages(
+                self._node_topics, update.names, update.values, update.stds,
+                update.prediction if config.publish_prediction else None):
+            self._send(message)
 
     def _stream_values(self, role: str, stats: StreamStats) -> Dict[str, Any]:
         return {f'{role}_{key}': value for key, value in (
@@ -380,20 +337,15 @@ class IdentificationNode(Node):
             ('non_finite', stats.non_finite), ('evicted', stats.evicted),
             ('field_errors', self._field_errors[role]))}
 
-    def _publish_status(self, level: bytes, text: str, values: Dict[str, Any]) -> None:
+    def _publish_status(self, level: int, text: str, values: Dict[str, Any]) -> None:
         stats = self._buffer.stats()
         values = {**values, **self._stream_values(INPUT, stats.u),
                   **self._stream_values(OUTPUT, stats.y)}
         if self._waiting:
-            level = max(level, DiagnosticStatus.WARN)
+            level = max(level, WARN)
             text = '; '.join([*self._waiting.values(), text])
-        status = DiagnosticStatus(level=level, name=self._status_name, message=text,
-                                  hardware_id=self.get_name(),
-                                  values=[KeyValue(key=key, value=format_diagnostic(value))
-                                          for key, value in values.items()])
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._diagnostics_publisher.publish(array)
+        now = self.get_clock().now().nanoseconds
+        self._send(diagnostics_message(self._node_topics, now, level, text, values))
 
     # Services and parameters ---------------------------------------------------------------
 
@@ -433,6 +385,9 @@ class IdentificationNode(Node):
     def _apply(self, config: IdentificationConfig) -> None:
         old = self._config
         with self._lock:
+            self._sampler = self._new_sampler(config)
+            if config.input_fields != old.input_fields or config.output_field != old.output_field:
+                self._logged_fields = set()
             if any(getattr(config, name) != getattr(old, name) for name in _BUFFER_PARAMETERS):
                 self._buffer = self._new_buffer(config)
             self._session.reconfigure(config)
@@ -441,22 +396,6 @@ class IdentificationNode(Node):
             self.destroy_timer(self._timer)
             self._timer = self._create_update_timer()
         self.get_logger().info('configuration updated')
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ctid node`` arguments; ROS arguments (``--ros-args ...``) pass through."""
-    parser.add_argument('config', nargs='?', default=None,
-                        help='params file or name of an example configuration (e.g. '
-                        'open_loop_delay); same as --ros-args --params-file FILE')
-
-
-def run(arguments: argparse.Namespace) -> int:
-    """Run the node for ``ctid node``."""
-    ros_arguments = list(getattr(arguments, 'ros_arguments', None) or [])
-    if arguments.config:
-        ros_arguments = ['--ros-args', '--params-file', str(find_config(arguments.config)),
-                         *ros_arguments]
-    return main([NODE_NAME, *ros_arguments])
 
 
 def _interrupt(signal_number: int, frame: Any) -> None:
@@ -492,7 +431,7 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
 
 def main(args: Optional[List[str]] = None) -> int:
     """Run ``ctid_node`` until Ctrl-C or SIGTERM; return the exit status."""
-    return run_node(IdentificationNode, NODE_NAME, args)
+    return run_node(IdentificationNode, DEFAULT_NODE_NAME, args)
 
 
 if __name__ == '__main__':

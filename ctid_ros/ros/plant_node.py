@@ -25,21 +25,23 @@ Run it with ``ctid_plant --ros-args --params-file config/plant_sim.yaml``.
 """
 
 import sys
-from typing import Dict, List, Optional
+import time
+from typing import Any, Dict, List, Mapping, Optional
 
 from ctid_ros.core.plant import excitation, PlantSimulator
-from ctid_ros.errors import ConfigError
+from ctid_ros.errors import ConfigError, CtidError
 from ctid_ros.ros.node import parameter_value, run_node
+from ctid_ros.streaming.contract import NANOSECONDS
 from geometry_msgs.msg import PointStamped
 import rclpy
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
-__all__ = ['MESSAGE_TYPES', 'PlantNode', 'main']
+__all__ = ['MESSAGE_TYPES', 'PlantNode', 'main', 'run_samples']
 
-NANOSECONDS = 1_000_000_000
 MESSAGE_TYPES = ('float64', 'point_stamped', 'joint_state')
 
 
@@ -155,6 +157,60 @@ class PlantNode(Node):
 
 def _set_stamp(message, stamp: int) -> None:
     message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, NANOSECONDS)
+
+
+def run_samples(params_file: str, overrides: Mapping[str, Any], samples: int,
+                subscribers: Mapping[str, int], events: Any, startup_timeout: float = 60.0
+                ) -> None:
+    """
+    Run ``ctid_plant`` in this process for ``samples`` samples, e.g. as a child process.
+
+    Nothing is published before every topic has the expected number of matched subscribers,
+    so all of them see the plant start at rest.
+
+    Parameters
+    ----------
+    params_file : str
+        The plant's params file.
+    overrides : mapping
+        Parameters set over the file's, e.g. ``{'drift_time': 4.0}``.
+    samples : int
+        Samples to publish before returning.
+    subscribers : mapping of str to int
+        Matched subscriptions to wait for, by absolute topic.
+    events : queue
+        Gets ``('started', start_ns)``, then ``('finished', published)``, or
+        ``('error', text)`` instead.
+    startup_timeout : float
+        Seconds to wait for the subscribers.
+
+    """
+    rclpy.init()
+    try:
+        node = PlantNode(cli_args=['--ros-args', '--params-file', params_file],
+                         parameter_overrides=[Parameter(name, value=value)
+                                              for name, value in overrides.items()])
+    except CtidError as error:
+        events.put(('error', str(error)))
+        rclpy.shutdown()
+        return
+    try:
+        deadline = time.monotonic() + startup_timeout
+        while any(node.subscription_counts().get(topic, 0) < count
+                  for topic, count in subscribers.items()):
+            if time.monotonic() > deadline:
+                events.put(('error', f'subscribers after {startup_timeout:g} s: '
+                                     f'{node.subscription_counts()}, expected {subscribers}'))
+                return
+            time.sleep(0.01)
+        node.restart()
+        events.put(('started', node.start_ns))
+        while node.published < samples:
+            rclpy.spin_once(node, timeout_sec=0.01)
+        events.put(('finished', node.published))
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
 
 
 def main(args: Optional[List[str]] = None) -> int:

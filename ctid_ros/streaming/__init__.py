@@ -3,3 +3,5 @@ Identification on streams of stamped samples: configuration, buffer, sessions, r
 
 Shared by the live node and the offline replay; imports no ROS code.
 """
+
+__all__: list = []

@@ -38,9 +38,12 @@ from typing import Optional, Tuple
 
 from ctid_ros.core.data import Data
 from ctid_ros.errors import DataError
+from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-NANOSECONDS = 1_000_000_000
+__all__ = ['Admission', 'BufferStats', 'Gap', 'INPUT', 'OUTPUT', 'SampleBuffer', 'StreamStats',
+           'Window', 'capacity_for', 'resample']
+
 INPUT = 'input'
 OUTPUT = 'output'
 

@@ -31,7 +31,11 @@ import re
 from typing import Any, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import ConfigError
+from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
+
+__all__ = ['FieldPath', 'Step', 'extract', 'extract_values', 'message_fields', 'message_stamp',
+           'parse_field_path', 'sample_stamp']
 
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
 _SEGMENT = rf'{_NAME}(?:\[[0-9]+\])*'
@@ -224,7 +228,7 @@ def message_stamp(message) -> Optional[int]:
     stamp = header.stamp
     if not {'sec', 'nanosec'} <= set(message_fields(stamp)):
         return None
-    nanoseconds = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    nanoseconds = int(stamp.sec) * NANOSECONDS + int(stamp.nanosec)
     return nanoseconds or None
 
 

@@ -18,7 +18,10 @@ from ctid_ros.estimation.estimate import Estimate, estimate
 from ctid_ros.estimation.problem import settling_time
 from ctid_ros.streaming.buffer import capacity_for, SampleBuffer, Window
 from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
+
+__all__ = ['IdentificationSession', 'Update', 'buffer_capacity', 'history_span']
 
 
 @dataclass(frozen=True)
@@ -58,7 +61,7 @@ class Update:
     @property
     def prediction_times_ns(self) -> np.ndarray:
         """Return the grid instants of :attr:`prediction` in nanoseconds."""
-        step = int(round(self.window.data.ts * 1e9))
+        step = int(round(self.window.data.ts * NANOSECONDS))
         return self.start_ns + step * np.arange(self.prediction.size, dtype=np.int64)
 
     @property
@@ -71,16 +74,16 @@ class Update:
         return tuple(notes)
 
     def diagnostics(self) -> Dict[str, Any]:
-        """Return the key/value pairs published on ``/diagnostics``."""
+        """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
         return {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
             'converged': self.result.converged,
             'stop_reason': self.result.stop_reason,
             'start': self.result.start,
-            'window_start': self.start_ns * 1e-9,
-            'window_end': self.end_ns * 1e-9,
-            'window_span': (self.end_ns - self.start_ns) * 1e-9,
+            'window_start': self.start_ns / NANOSECONDS,
+            'window_end': self.end_ns / NANOSECONDS,
+            'window_span': (self.end_ns - self.start_ns) / NANOSECONDS,
             'samples': int(self.prediction.size),
             'compute_time': self.compute_time,
             'warnings': list(self.warnings),
@@ -92,27 +95,8 @@ class Update:
         summary['params'] = {name: float(value) for name, value in zip(self.names, self.values)}
         summary['std'] = {name: float(value) for name, value in zip(self.names, self.stds)}
         summary['warnings'] = list(self.warnings)
-        summary['time'] = self.end_ns * 1e-9
+        summary['time'] = self.end_ns / NANOSECONDS
         return summary
-
-
-def format_diagnostic(value: Any) -> str:
-    """
-    Format a value of :meth:`Update.diagnostics` as a ``diagnostic_msgs/KeyValue`` string.
-
-    Floats keep every digit (the shortest text that reads back exactly): ``window_start`` and
-    ``window_end`` are seconds since the epoch, which six significant digits would round to
-    hours.
-    """
-    if isinstance(value, (bool, np.bool_)):
-        return 'true' if value else 'false'
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (list, tuple)):
-        return '; '.join(format_diagnostic(item) for item in value)
-    return str(value)
 
 
 def history_span(config: IdentificationConfig) -> float:
@@ -225,9 +209,9 @@ class IdentificationSession:
         self._settling = settling_time(result.model.coefficients(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
         data = window.data
-        step_ns = int(round(data.ts * 1e9))
+        step_ns = int(round(data.ts * NANOSECONDS))
         # Grid instants are whole multiples of the sample time (see buffer.SampleBuffer.window).
-        start_ns = int(round(data.t0 * 1e9 / step_ns)) * step_ns
+        start_ns = int(round(data.t0 * NANOSECONDS / step_ns)) * step_ns
         return Update(
             end_ns=start_ns + step_ns * (len(data) - 1), start_ns=start_ns,
             names=config.names,

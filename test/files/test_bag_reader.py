@@ -1,22 +1,15 @@
-"""Tests of ctid_ros.files.bag_reader: bags from independent writers, and writing estimates."""
+"""Tests of ctid_ros.files.bag_reader: bags of every kind from independent writers."""
 
-from io import BytesIO
 import os
-from pathlib import Path
 import shutil
 
-from bag_fixtures import (assert_fields, DURATION_S, make_records, T0_NS, TOPICS, write_mcap,
-                          write_rosbag2, write_unchunked_mcap)
-from ctid_ros.errors import BagError, ConfigError, DataError
-from ctid_ros.files.bag_reader import BagReader, EstimateWriter, open_bag
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Message
-from mcap.stream_reader import StreamReader
-from mcap_ros2.decoder import DecoderFactory
+from bag_fixtures import (assert_fields, DURATION_S, make_records, readable_prefix, SAMPLE_MSG,
+                          SAMPLE_TYPE, T0_NS, TOPICS, truncate, write_mcap, write_rosbag2)
+from ctid_ros.errors import BagError
+from ctid_ros.files.bag_reader import BagReader, open_bag
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
 RECORDS = make_records(seed=0)
 KINDS = ['sqlite3', 'mcap_dir', 'mcap_file']
@@ -77,17 +70,6 @@ def test_topic_and_window_selection(bags, kind):
                               if r.topic == '/plant/y' and r.time_ns >= T0_NS + 1_500_000_000])
 
 
-def test_unchunked_mcap_written_backwards_is_read_in_log_time_order(tmp_path):
-    path = tmp_path / 'unchunked.mcap'
-    write_unchunked_mcap(path, RECORDS)
-    with BagReader(path) as bag:
-        assert bag.message_count() == len(RECORDS) and not bag.truncated
-        assert_records(list(bag.messages()), RECORDS)
-        assert_records(list(bag.messages('/plant/sample', start=1.0)),
-                       [r for r in RECORDS
-                        if r.topic == '/plant/sample' and r.time_ns >= T0_NS + 10**9])
-
-
 def test_custom_type_decoded_from_bag_definition(bags):
     sample = next(r for r in RECORDS if r.topic == '/plant/sample')
     for kind in KINDS:
@@ -96,6 +78,27 @@ def test_custom_type_decoded_from_bag_definition(bags):
         assert message.log_time_ns == sample.time_ns
         assert (message.msg.u, message.msg.y) == (sample.fields['u'], sample.fields['y'])
         assert message.msg.header.stamp.sec == sample.time_ns // 10**9
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_records_carry_the_serialised_bytes_and_topics_their_schemas(bags, kind):
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    typestore.register(get_types_from_msg(SAMPLE_MSG, SAMPLE_TYPE))
+    with BagReader(bags[kind]) as bag:
+        records = list(bag.records(['/plant/y', '/plant/sample'], end=0.5))
+        schemas = {topic: bag.topic_schema(topic) for topic in TOPICS}
+        with pytest.raises(BagError, match='/plant/x'):
+            bag.topic_schema('/plant/x')
+    assert_records(records, [r for r in RECORDS if r.topic in ('/plant/y', '/plant/sample')
+                             and r.time_ns < T0_NS + 5 * 10**8])
+    for record in records:
+        decoded = typestore.deserialize_cdr(record.data, TOPICS[record.topic])
+        assert_fields(decoded, next(r.fields for r in RECORDS if r.time_ns == record.log_time_ns))
+    for topic, schema in schemas.items():
+        assert (schema.msgtype, schema.encoding, schema.message_encoding) == (
+            TOPICS[topic], 'ros2msg', 'cdr')
+    assert schemas['/plant/y'].definition == b'float64 data\n'
+    assert schemas['/plant/sample'].definition.startswith(SAMPLE_MSG.encode())
 
 
 @pytest.mark.parametrize('kind', ['sqlite3', 'mcap_file'])
@@ -153,44 +156,6 @@ def test_garbage_files(tmp_path):
         BagReader(tmp_path / 'garbage.bin')
 
 
-def readable_prefix(path: Path):
-    """Return the records of the messages mcap's own streaming reader recovers from a file."""
-    by_time = {r.time_ns: r for r in RECORDS}
-    recovered = []
-    try:
-        for record in StreamReader(BytesIO(path.read_bytes())).records:
-            if isinstance(record, Message):
-                recovered.append(by_time[record.log_time])
-    except McapError:
-        pass
-    return sorted(recovered, key=lambda r: r.time_ns)
-
-
-def truncate(path: Path, fraction: float) -> None:
-    """Cut a file to a fraction of its bytes, as a crash during recording does."""
-    data = path.read_bytes()
-    path.write_bytes(data[:int(len(data) * fraction)])
-
-
-def test_truncated_mcap_replays_the_readable_prefix(bags, tmp_path):
-    path = tmp_path / 'cut.mcap'
-    shutil.copy(bags['mcap_file'], path)
-    truncate(path, 0.6)
-    expected = readable_prefix(path)
-    assert 0.4 * len(RECORDS) < len(expected) < 0.7 * len(RECORDS)
-    with BagReader(path) as bag:
-        assert bag.truncated
-        assert 'truncated' in bag.warnings[0]
-        assert f'{len(expected)} messages' in bag.warnings[0]
-        assert bag.message_count() == len(expected)
-        messages = list(bag.messages())
-        assert_records(messages, expected)
-        assert bag.end_time_ns == messages[-1].log_time_ns
-        window = list(bag.messages('/plant/u', start=0.2, end=0.4))
-        assert_records(window, [r for r in RECORDS if r.topic == '/plant/u'
-                                and T0_NS + 2 * 10**8 <= r.time_ns < T0_NS + 4 * 10**8])
-
-
 def test_truncated_mcap_inside_rosbag2_directory(bags, tmp_path):
     # rosbags writes one 1 MiB chunk, so the recording is taken from the chunked MCAP writer,
     # put in place of the storage file the directory's metadata.yaml names.
@@ -202,23 +167,7 @@ def test_truncated_mcap_inside_rosbag2_directory(bags, tmp_path):
     with BagReader(bag) as reader:
         assert reader.truncated
         assert 'rosbags cannot read' in reader.warnings[0]
-        assert_records(list(reader.messages()), readable_prefix(storage))
-
-
-def test_damaged_chunk_in_indexed_mcap_raises_when_reached(bags, tmp_path):
-    path = tmp_path / 'damaged.mcap'
-    data = bytearray(bags['mcap_file'].read_bytes())
-    middle = len(data) // 2
-    data[middle:middle + 64] = bytes(64)
-    path.write_bytes(bytes(data))
-    with BagReader(path) as bag:
-        assert not bag.truncated
-        received = []
-        with pytest.raises(BagError, match='corrupted'):
-            for message in bag.messages():
-                received.append(message)
-    assert 0 < len(received) < len(RECORDS)
-    assert_records(received, RECORDS[:len(received)])
+        assert_records(list(reader.messages()), readable_prefix(storage, RECORDS))
 
 
 def test_corrupted_sqlite_database(bags, tmp_path):
@@ -241,135 +190,6 @@ def test_single_db3_file(bags):
         assert bag.topics() == TOPICS
         assert_records(list(bag.messages('/plant/y', end=0.1)),
                        [r for r in RECORDS if r.topic == '/plant/y' and r.time_ns < T0_NS + 10**8])
-
-
-NAMES = ['K', 'T', 'tau']
-
-
-def write_estimates(path, **kwargs):
-    """Write three estimates and a prediction; return what was written."""
-    rng = np.random.default_rng(3)
-    estimates = []
-    with EstimateWriter(path, **kwargs) as writer:
-        for k in range(3):
-            time_ns = T0_NS + (k + 1) * 10**9
-            values, stds = rng.normal(size=3), rng.uniform(0.01, 0.1, size=3)
-            diagnostics = {'fit': 91.23456789, 'iterations': 4 + k, 'converged': k != 1,
-                           'window_s': 10.0, 'samples': 1000,
-                           'warnings': ['poorly excited'] if k == 2 else []}
-            writer.write_estimate(time_ns, NAMES, values, stds, diagnostics)
-            estimates.append((time_ns, values, stds))
-        times = T0_NS + np.arange(50, dtype=np.int64) * 10**7
-        prediction = np.sin(np.arange(50) / 7)
-        writer.write_prediction(times, prediction)
-    return estimates, times, prediction
-
-
-def test_estimate_writer_output_reads_back_with_rosbags_and_mcap_ros2(tmp_path):
-    path = tmp_path / 'estimates.mcap'
-    estimates, times, prediction = write_estimates(path)
-    expected_topics = {'/ctid_node/estimate', '/ctid_node/estimate_std', '/ctid_node/prediction',
-                       '/diagnostics', *(f'/ctid_node/params/{name}' for name in NAMES)}
-
-    with AnyReader([path]) as reader:
-        assert set(reader.topics) == expected_topics
-        rosbags_messages = [(c.topic, t, reader.deserialize(d, c.msgtype))
-                            for c, t, d in reader.messages()]
-    with open(path, 'rb') as stream:
-        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
-        mcap_messages = [(channel.topic, message.log_time, decoded)
-                         for _, channel, message, decoded in reader.iter_decoded_messages()]
-
-    for messages in (rosbags_messages, mcap_messages):
-        by_topic = {}
-        for topic, time_ns, msg in messages:
-            by_topic.setdefault(topic, []).append((time_ns, msg))
-        for index, (time_ns, values, stds) in enumerate(estimates):
-            for topic, array in (('/ctid_node/estimate', values),
-                                 ('/ctid_node/estimate_std', stds)):
-                stamp, msg = by_topic[topic][index]
-                assert stamp == time_ns
-                assert list(msg.data) == list(array)
-                assert msg.layout.dim[0].label == 'K,T,tau'
-                assert (msg.layout.dim[0].size, msg.layout.dim[0].stride) == (3, 3)
-            for name, value in zip(NAMES, values):
-                stamp, msg = by_topic[f'/ctid_node/params/{name}'][index]
-                assert (stamp, msg.data) == (time_ns, value)
-            stamp, msg = by_topic['/diagnostics'][index]
-            status = msg.status[0]
-            assert msg.header.stamp.sec == time_ns // 10**9
-            assert status.name == 'ctid_node: estimate'
-            pairs = {kv.key: kv.value for kv in status.values}
-            assert pairs['fit'] == '91.23456789' and pairs['iterations'] == str(4 + index)
-            assert pairs['converged'] == ('false' if index == 1 else 'true')
-            assert status.level == (0 if index == 0 else 1)
-        assert status.message == 'poorly excited'
-        predicted = by_topic['/ctid_node/prediction']
-        assert [t for t, _ in predicted] == times.tolist()
-        assert [msg.data for _, msg in predicted] == prediction.tolist()
-
-    with BagReader(path) as bag:
-        assert bag.message_count('/ctid_node/prediction') == 50
-        assert bag.topics()['/diagnostics'] == 'diagnostic_msgs/msg/DiagnosticArray'
-
-
-def test_estimate_writer_namespace_and_param_topics(tmp_path):
-    path = tmp_path / 'ns.mcap'
-    with EstimateWriter(path, namespace='/plant1/', node_name='ident') as writer:
-        writer.write_estimate(T0_NS, ['K'], [2.0])
-        assert writer.param_topic('K') == '/plant1/ident/params/K'
-    with BagReader(path) as bag:
-        assert bag.topics() == {'/plant1/ident/estimate': 'std_msgs/msg/Float64MultiArray',
-                                '/plant1/ident/params/K': 'std_msgs/msg/Float64'}
-        (message,) = bag.messages('/plant1/ident/params/K')
-        assert message.msg.data == 2.0
-    with pytest.raises(ConfigError):
-        EstimateWriter(tmp_path / 'bad.mcap', namespace='plant-1')
-
-
-def test_estimate_writer_protects_inputs_and_existing_files(bags, tmp_path):
-    original = bags['mcap_file'].read_bytes()
-    with pytest.raises(BagError, match='input bag'):
-        EstimateWriter(bags['mcap_file'], inputs=[bags['mcap_file']], overwrite=True)
-    with pytest.raises(BagError, match='input bag'):
-        EstimateWriter(bags['mcap_dir'] / 'estimates.mcap', inputs=[bags['mcap_dir']])
-    assert bags['mcap_file'].read_bytes() == original
-    assert not (bags['mcap_dir'] / 'estimates.mcap').exists()
-
-    existing = tmp_path / 'old.mcap'
-    existing.write_bytes(b'keep me')
-    with pytest.raises(BagError, match='already exists'):
-        EstimateWriter(existing)
-    assert existing.read_bytes() == b'keep me'
-    with EstimateWriter(existing, overwrite=True) as writer:
-        writer.write_prediction([T0_NS], [1.0])
-    with BagReader(existing) as bag:
-        assert bag.message_count() == 1
-
-    with pytest.raises(BagError, match='.mcap'):
-        EstimateWriter(tmp_path / 'estimates.db3')
-    with pytest.raises(BagError, match='does not exist'):
-        EstimateWriter(tmp_path / 'nowhere' / 'estimates.mcap')
-
-
-def test_estimate_writer_rejects_inconsistent_data(tmp_path):
-    with EstimateWriter(tmp_path / 'e.mcap') as writer:
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['K', 'T'], [1.0])
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['K', 'T'], [1.0, 2.0], [0.1])
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['K', 'K'], [1.0, 2.0])
-        with pytest.raises(DataError):
-            writer.write_estimate(T0_NS, ['a.b'], [1.0])
-        with pytest.raises(DataError):
-            writer.write_estimate(1.5e18, ['K'], [1.0])
-        with pytest.raises(DataError):
-            writer.write_prediction([T0_NS, T0_NS + 1], [1.0])
-        with pytest.raises(DataError):
-            writer.write_prediction(np.array([1.5e18]), [1.0])
-    with pytest.raises(BagError, match='closed'):
-        writer.write_prediction([T0_NS], [1.0])
 
 
 def test_no_file_is_left_open(bags):

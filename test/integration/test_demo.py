@@ -1,92 +1,21 @@
 """
-The `make demo` scenario: digital PI loop with a fractional dead time, recording, replay.
+The `make demo` scenario on real DDS: live identification, recording, replay.
 
-The loop is checked against a recursion written out by hand; the shortened demo (8 s, the
-payload picked up at 4 s, 2 s windows every 1.5 s) runs plant and node on real DDS, and its
-recording is checked sample by sample against the ROS-free simulation of the same plant.
+The shortened demo (8 s, the payload picked up at 4 s, 2 s windows every 1.5 s) runs plant and
+node on real DDS, and its recording is checked sample by sample against the ROS-free simulation
+of the same plant (whose digital PI loop test/core/test_plant.py checks by hand).
 """
 
 from dataclasses import replace
-import math
 import re
 
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.demo.wheel import copy_to_docs, main, PLANT_CONFIG, Scenario
-from ctid_ros.errors import BagError, ConfigError
-from ctid_ros.files.bag_reader import BagReader, RecordingWriter
-from ctid_ros.streaming.config import find_config
+from ctid_ros.files.bag_reader import BagReader
+from ctid_ros.streaming.params_file import find_config
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import get_typestore, Stores
 import yaml
-
-WHEEL = 'exp(-tau*s)/(J*s + b)'
-TRUTH = {'J': 0.05, 'b': 0.2, 'tau': 0.0373}
-
-
-def test_digital_pi_loop_matches_a_hand_written_recursion():
-    # tau = 3.73 samples: over [k, k+1) the plant sees u[k-4] for 0.73 and u[k-3] for 0.27
-    # of the sample, so y[k+1] = a y[k] + (early u[k-d-1] + late u[k-d]) / b.
-    ts, kp, ki = 0.01, 1.0, 4.0
-    simulator = PlantSimulator(WHEEL, TRUTH, ts, pi_gains=(kp, ki))
-    reference = 2.0 + np.sign(np.sin(0.05 * np.arange(300)))
-    simulated = np.array([simulator.step(r) for r in reference])
-    whole = math.floor(TRUTH['tau'] / ts)
-    fraction = TRUTH['tau'] / ts - whole
-    pole = TRUTH['b'] / TRUTH['J']
-    late = 1.0 - math.exp(-pole * (1.0 - fraction) * ts)
-    early = math.exp(-pole * (1.0 - fraction) * ts) * (1.0 - math.exp(-pole * fraction * ts))
-    y, integral, commands, expected = 0.0, 0.0, [], []
-    for k, r in enumerate(reference):
-        integral += ki * ts * (r - y)
-        commands.append(kp * (r - y) + integral)
-        expected.append((commands[-1], y))
-        held = [commands[k - lag] if k >= lag else 0.0 for lag in (whole, whole + 1)]
-        y = math.exp(-pole * ts) * y + (late * held[0] + early * held[1]) / TRUTH['b']
-    np.testing.assert_allclose(simulated, expected, rtol=0, atol=1e-12)
-    assert simulated[-1, 1] == pytest.approx(reference[-1], abs=0.05)  # the PI tracks
-
-
-def test_digital_pi_needs_a_strictly_proper_plant_and_no_second_controller():
-    with pytest.raises(ConfigError, match='strictly proper'):
-        PlantSimulator('(T*s + 2)/(T*s + 1)', {'T': 1.0}, 0.01, pi_gains=(1.0, 1.0))
-    with pytest.raises(ConfigError, match='exclude a continuous'):
-        PlantSimulator('1/(T*s + 1)', {'T': 1.0}, 0.01, controller='2 + 1/s',
-                       pi_gains=(1.0, 1.0))
-    with pytest.raises(ConfigError, match='two gains'):
-        PlantSimulator('1/(T*s + 1)', {'T': 1.0}, 0.01, pi_gains=(1.0,))
-
-
-def test_recording_writer_output_reads_back_with_both_readers(tmp_path):
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    point = typestore.types['geometry_msgs/msg/PointStamped']
-    header = typestore.types['std_msgs/msg/Header']
-    stamp = typestore.types['builtin_interfaces/msg/Time']
-    vector = typestore.types['geometry_msgs/msg/Point']
-    path = tmp_path / 'run.mcap'
-    with RecordingWriter(path) as writer:
-        writer.add_topic('/wheel/y', 'geometry_msgs/msg/PointStamped')
-        with pytest.raises(BagError, match='not a standard'):
-            writer.add_topic('/x', 'my_pkg/msg/Unknown')
-        for k in range(5):
-            msg = point(header(stamp(100, 10_000_000 * k), 'base'), vector(0.5 * k, 0.0, 0.0))
-            writer.write('/wheel/y', 1_000 + k, typestore.serialize_cdr(
-                msg, 'geometry_msgs/msg/PointStamped'))
-        with pytest.raises(BagError, match='not declared'):
-            writer.write('/wheel/u', 2_000, b'')
-    with pytest.raises(BagError, match='closed'):
-        writer.write('/wheel/y', 3_000, b'')
-    with BagReader(path) as bag:
-        assert bag.topics() == {'/wheel/y': 'geometry_msgs/msg/PointStamped'}
-        messages = list(bag.messages())
-    assert [message.log_time_ns for message in messages] == [1_000 + k for k in range(5)]
-    assert [message.msg.point.x for message in messages] == [0.5 * k for k in range(5)]
-    assert messages[3].msg.header.stamp.nanosec == 30_000_000
-    with AnyReader([path]) as reader:
-        decoded = [reader.deserialize(data, connection.msgtype)
-                   for connection, _, data in reader.messages()]
-    assert [msg.point.x for msg in decoded] == [0.5 * k for k in range(5)]
 
 
 def _simulate(scenario: Scenario, samples: int) -> np.ndarray:

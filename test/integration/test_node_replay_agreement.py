@@ -2,7 +2,7 @@
 
 from ctid_ros import Model
 from ctid_ros.core.excitation import prbs
-from ctid_ros.ros.node import IdentificationNode, INPUT, OUTPUT
+from ctid_ros.ros.node import IdentificationNode
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.replay import replay_messages
 import numpy as np
@@ -52,9 +52,9 @@ def test_replay_matches_the_live_node_fed_the_same_messages(node):
     replayed = replay_messages(messages, IdentificationConfig(**SETTINGS), sliding=True)
     assert len(replayed.updates) == 1                     # one tick, 11 s after the first message
     tick = messages[0][1] + int(11.0 * 1e9)
-    for _, log_time, message in messages:
+    for topic, log_time, message in messages:
         if log_time <= tick:
-            node._on_message((INPUT, OUTPUT), message, {})
+            node.receive(topic, message)
     live, summary = node.estimate()
     assert live is not None, summary
     offline = replayed.updates[0]

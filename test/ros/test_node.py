@@ -57,6 +57,7 @@ class Harness:
         self.context = Context()
         rclpy.init(context=self.context)
         self.estimates = []
+        self.predictions = []
         self.processes = []
         self.statuses = []
         self._lock = threading.Lock()
@@ -103,6 +104,9 @@ class Harness:
         self.observer.create_subscription(
             Float64MultiArray, f'{prefix}/estimate',
             lambda message: self._record(self.estimates, message), 10)
+        self.observer.create_subscription(
+            Float64MultiArray, f'{prefix}/prediction',
+            lambda message: self._record(self.predictions, message), 10)
         self.observer.create_subscription(
             DiagnosticArray, '/diagnostics', lambda message: self._record(
                 self.statuses, *[status for status in message.status
@@ -314,7 +318,7 @@ def test_reset_and_estimate_now(ros):
                                         initial=[1.0, 1.0], lower=[0.001, 0.01],
                                         upper=[100.0, 100.0], window=5.0,
                                         update_period=100.0, input_field='point.x',
-                                        output_field='point.x'))
+                                        output_field='point.x', publish_prediction=True))
     estimate_now = f'{ros.namespace}/ctid_node/estimate_now'
     wait_for(lambda: node.buffer.stats().y.span > 5.5, 20.0, 'a window of data')
     response = ros.call(Trigger, estimate_now, Trigger.Request())
@@ -323,6 +327,12 @@ def test_reset_and_estimate_now(ros):
     assert abs(float(found['K']) - 2.0) < 0.02 and abs(float(found['T']) - 0.5) < 0.01, \
         response.message
     wait_for(lambda: ros.estimates, 10.0, 'estimate published by estimate_now')
+    # The contract's prediction: one array per update over the window's grid instants.
+    wait_for(lambda: ros.predictions and ros.statuses, 10.0, 'prediction and diagnostics')
+    prediction, status = ros.latest(ros.predictions), ros.latest(ros.statuses)
+    assert prediction.layout.dim[0].label == 'prediction'
+    assert len(prediction.data) == prediction.layout.dim[0].size == int(keys(status)['samples'])
+    assert len(ros.predictions) == 1
     response = ros.call(Trigger, f'{ros.namespace}/ctid_node/reset', Trigger.Request())
     assert response.success
     assert node.buffer.stats().y.received < 50

@@ -1,0 +1,211 @@
+"""
+``ctid replay``: estimate from a recorded bag as the live node would have.
+
+``ctid replay PATH --params-file config/<file>.yaml`` reads the configured input and output
+topics of a rosbag2 directory (sqlite3 or mcap storage) or a standalone ``.mcap`` file and
+replays them through :func:`ctid_ros.streaming.replay.replay_messages`: one estimate over the
+selected span (``--start``/``--end``), or ``--sliding`` one every ``update_period`` on the last
+``window`` seconds. ``--output`` writes the node's topics (:mod:`ctid_ros.streaming.contract`)
+into a new MCAP file together with the replayed input and output messages, copied as recorded;
+``--plot`` draws the fit, the estimates over time and a Bode plot.
+
+Examples
+--------
+::
+
+    ctid replay run1/ --params-file config/open_loop_delay.yaml
+    ctid replay run1.mcap --params-file config/closed_loop_pi.yaml --sliding --json
+    ctid replay run1/ --params-file config/joint_states.yaml --start 10 --end 40
+    ctid replay run1/ --params-file config/open_loop_delay.yaml --output est.mcap --plot fit.png
+
+"""
+
+import argparse
+from contextlib import contextmanager
+import json
+from pathlib import Path
+import sys
+from typing import Any, Iterable, Iterator, Optional, Sequence, TextIO, Tuple
+
+from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
+from ctid_ros.errors import BagError
+from ctid_ros.files.bag_reader import BagReader, open_bag
+from ctid_ros.files.mcap_source import BagRecord, PathLike
+from ctid_ros.files.mcap_writer import EstimateWriter
+from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.contract import DEFAULT_NODE_NAME, NANOSECONDS, resolve_topic
+from ctid_ros.streaming.params_file import load_params_file
+from ctid_ros.streaming.replay import Replay, replay_messages, SkippedTick
+from ctid_ros.streaming.session import buffer_capacity
+from tqdm import tqdm
+
+__all__ = ['configure_parser', 'progress', 'run']
+
+Message = Tuple[str, int, Any]
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the ``ctid replay`` arguments to ``parser``."""
+    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage) or a '
+                          'standalone .mcap file with the params file of the live node: one '
+                          'estimate over the selected span, or --sliding as the node would.')
+    parser.add_argument('path', help='rosbag2 directory or .mcap file (never modified)')
+    parser.add_argument('--params-file', required=True,
+                        help='ROS 2 params YAML of the node (e.g. config/open_loop_delay.yaml)')
+    parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
+                        help='node section of the params file, optionally with namespace '
+                        '(/plant1/ctid_node); also names the --output topics')
+    parser.add_argument('--start', type=float, default=None,
+                        help='start of the span, seconds from the first message of the bag')
+    parser.add_argument('--end', type=float, default=None,
+                        help='end of the span, seconds from the first message of the bag')
+    parser.add_argument('--sliding', action='store_true',
+                        help='estimate every update_period on the last window seconds, as the '
+                        'live node does (default: once over the whole span)')
+    parser.add_argument('--output', type=Path, default=None,
+                        help='new .mcap file for the estimates, on the topics of the live node, '
+                        'with the replayed input and output messages')
+    parser.add_argument('--plot', type=Path, default=None,
+                        help='PNG of measured vs simulated output; also writes <stem>_bode.png '
+                        'and, with --sliding, <stem>_params.png')
+    parser.add_argument('--json', action='store_true',
+                        help='print the ctid fit --json object (a list of them with --sliding)')
+
+
+def run(arguments: argparse.Namespace) -> int:
+    """Run ``ctid replay``; user errors raise :class:`~ctid_ros.errors.CtidError`."""
+    config = load_params_file(arguments.params_file, arguments.node_name)
+    topics = (resolve_topic(config.input_topic, arguments.node_name),
+              resolve_topic(config.output_topic, arguments.node_name))
+    with open_bag(arguments.path) as bag, \
+            _estimate_output(arguments.output, arguments.path, arguments.node_name) as writer:
+        for warning in bag.warnings:
+            print(f'ctid replay: warning: {warning}', file=sys.stderr)
+        start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
+        selected = sorted(set(topics))
+        records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns), sys.stderr)
+        if writer is not None:
+            types = bag.topics()
+            for topic in selected:
+                writer.add_topic(topic, types[topic], bag.topic_schema(topic))
+        messages = progress(_copied(records, writer), start_ns or bag.start_time_ns,
+                            end_ns or bag.end_time_ns, sys.stderr)
+        replay = replay_messages(messages, config, sliding=arguments.sliding, topics=topics,
+                                 capacity=_capacity(bag, config, selected))
+        if writer is not None:
+            _write_estimates(writer, replay)
+        origin_ns = bag.start_time_ns
+    _report(arguments, replay, topics, origin_ns)
+    if arguments.plot is not None:
+        # matplotlib is needed (and loaded) only for figures.
+        from ctid_ros.cli.plots import write_replay_figures
+
+        for path in write_replay_figures(arguments.plot, replay.updates, origin_ns,
+                                         arguments.sliding):
+            print(f'ctid replay: wrote {path}', file=sys.stderr)
+    return 0
+
+
+def progress(messages: Iterable[Message], start_ns: Optional[int], end_ns: Optional[int],
+             stream: TextIO) -> Iterator[Message]:
+    """
+    Yield the messages unchanged while a bar shows how far through the span the replay is.
+
+    The bar (tqdm) counts seconds of log time from ``start_ns`` to ``end_ns``; it is drawn on
+    ``stream`` only if that is a terminal, and removed when the replay ends.
+    """
+    if None in (start_ns, end_ns) or end_ns <= start_ns:
+        yield from messages
+        return
+    total = (end_ns - start_ns) / NANOSECONDS
+    # disable=None: tqdm draws nothing unless the stream is a terminal.
+    with tqdm(total=total, desc='replaying', file=stream, disable=None, leave=False,
+              bar_format='{desc} {percentage:3.0f}%|{bar:25}| {n:.1f}/{total:.1f} s of bag time'
+              ) as bar:
+        shown = 0.0
+        for message in messages:
+            position = min(max((message[1] - start_ns) / NANOSECONDS, 0.0), total)
+            if position > shown:
+                bar.update(position - shown)
+                shown = position
+            yield message
+
+
+def _readable(records: Iterable[BagRecord], warn: TextIO) -> Iterator[BagRecord]:
+    """Yield records until the bag turns out damaged, then warn and stop (keep what was read)."""
+    iterator = iter(records)
+    while True:
+        try:
+            record = next(iterator)
+        except StopIteration:
+            return
+        except BagError as error:
+            print(f'ctid replay: warning: {error}; estimating from the messages before it',
+                  file=warn)
+            return
+        yield record
+
+
+def _copied(records: Iterable[BagRecord], writer: Optional[EstimateWriter]
+            ) -> Iterator[Message]:
+    """Yield ``(topic, log_time_ns, msg)``, first copying each record into ``writer``."""
+    for record in records:
+        if writer is not None:
+            writer.write(record.topic, record.log_time_ns, record.data)
+        yield record.topic, record.log_time_ns, record.msg
+
+
+@contextmanager
+def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str
+                     ) -> Iterator[Optional[EstimateWriter]]:
+    """Create the ``--output`` file before replaying (to fail fast); remove it on failure."""
+    if path is None:
+        yield None
+        return
+    writer = EstimateWriter(path, inputs=[bag], node_name=node_name)
+    try:
+        yield writer
+    except BaseException:
+        writer.close()
+        path.unlink(missing_ok=True)
+        raise
+    writer.close()
+
+
+def _write_estimates(writer: EstimateWriter, replay: Replay) -> None:
+    """Write every update as the live node publishes it, and the status of every skipped tick."""
+    events = [(update.end_ns, update) for update in replay.updates] + [
+        (skipped.time_ns, skipped) for skipped in replay.skipped]
+    for time_ns, event in sorted(events, key=lambda pair: pair[0]):
+        if isinstance(event, SkippedTick):
+            writer.write_status(time_ns, event.level, event.reason)
+        else:
+            writer.write_estimate(time_ns, event.names, event.values, event.stds,
+                                  event.diagnostics(), prediction=event.prediction)
+
+
+def _capacity(bag: BagReader, config: IdentificationConfig, topics: Sequence[str]
+              ) -> Optional[int]:
+    """Size the sliding buffer from the highest message rate of the bag's topics."""
+    counts = [bag.message_count(topic) for topic in topics]
+    if None in counts or bag.duration_s <= 0:
+        return None
+    rate = max(max(counts) / bag.duration_s, 1.0 / config.sample_time)
+    return buffer_capacity(config, rate)
+
+
+def _report(arguments: argparse.Namespace, replay: Replay, topics: Tuple[str, str],
+            origin_ns: int) -> None:
+    for skipped in replay.skipped:
+        print(f'ctid replay: no estimate at t={(skipped.time_ns - origin_ns) / NANOSECONDS:.2f} '
+              f's: {skipped.reason}', file=sys.stderr)
+    if arguments.json:
+        objects = [update.to_dict() for update in replay.updates]
+        print(json.dumps(objects if arguments.sliding else objects[0], indent=2,
+                         default=json_default))
+        return
+    if arguments.sliding:
+        print(format_series(replay.updates, origin_ns))
+        print(f'\nlast window ({replay.updates[-1].window.data.y.size} samples):')
+    print(format_update(replay.updates[-1]))
+    print(format_stats(replay.stats, topics, replay.messages))

@@ -1,0 +1,320 @@
+"""
+Writing new standalone MCAP files without ROS.
+
+:class:`RecordingWriter` records serialised messages as they come off the wire (what ``ros2 bag
+record`` does, for machines without the ros2 CLI); :class:`EstimateWriter` writes what the live
+node publishes (:mod:`ctid_ros.streaming.contract`) and can hold copies of recorded topics
+beside it. Messages are CDR with their definitions in the file, in the concatenated form
+rosbag2 stores, so Foxglove, PlotJuggler, rosbags, mcap-ros2-support and
+:class:`~ctid_ros.files.bag_reader.BagReader` read them without ROS. Times are integer
+nanoseconds since the epoch.
+"""
+
+import os
+from pathlib import Path
+from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, TypeVar
+
+from ctid_ros.errors import BagError, DataError
+from ctid_ros.files.mcap_source import PathLike, TopicSchema
+from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message,
+                                         estimate_messages, NodeTopics, OutputMessage,
+                                         update_status)
+from mcap.writer import Writer as McapWriter
+import numpy as np
+from rosbags.typesys import get_typestore, Stores, TypesysError
+from rosbags.typesys.base import Nodetype
+
+__all__ = ['EstimateWriter', 'RecordingWriter']
+
+# numpy types of the primitive ROS types that rosbags wants as arrays inside sequences.
+_ARRAY_TYPES = {
+    'bool': np.bool_, 'byte': np.uint8, 'char': np.uint8, 'octet': np.uint8,
+    'int8': np.int8, 'uint8': np.uint8, 'int16': np.int16, 'uint16': np.uint16,
+    'int32': np.int32, 'uint32': np.uint32, 'int64': np.int64, 'uint64': np.uint64,
+    'float32': np.float32, 'float64': np.float64,
+}
+
+
+def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> None:
+    if path.suffix != '.mcap':
+        raise BagError(f'estimate output {path} must end in .mcap')
+    target = path.resolve()
+    for source in inputs:
+        source = Path(source).resolve()
+        if target == source or source in target.parents or (
+                target.exists() and source.exists() and os.path.samefile(target, source)):
+            raise BagError(f'refusing to write estimates to {path}: it is (inside) the input bag '
+                           f'{source}; choose another output file')
+    if not target.parent.is_dir():
+        raise BagError(f'cannot write {path}: directory {target.parent} does not exist')
+    if target.is_dir():
+        raise BagError(f'cannot write {path}: it is a directory')
+    if target.exists() and not overwrite:
+        raise BagError(f'{path} already exists; choose another output file or allow '
+                       'overwriting it')
+
+
+def _time_ns(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise DataError(f'times must be non-negative integer nanoseconds, got {value!r}')
+    return int(value)
+
+
+_Writer = TypeVar('_Writer', bound='RecordingWriter')
+
+
+class RecordingWriter:
+    """
+    Record serialised ROS 2 messages into a new standalone MCAP file, as ``ros2 bag record``.
+
+    The messages are written as received, in CDR (e.g. from an rclpy subscription created with
+    ``raw=True``, or copied from another bag), with the definition of their type: from rosbags'
+    ROS 2 Jazzy type store, or as recorded for a copied topic.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.mcap`` file to create.
+    inputs : iterable of str or os.PathLike, optional
+        Bags the data come from: writing to (or into) any of them is refused, even with
+        ``overwrite``.
+    overwrite : bool, optional
+        Replace an existing file at ``path`` instead of refusing.
+
+    Raises
+    ------
+    BagError
+        If ``path`` is not a new ``.mcap`` file outside the inputs, or cannot be created.
+
+    """
+
+    def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
+                 overwrite: bool = False) -> None:
+        self.path = Path(path)
+        _check_output(self.path, inputs, overwrite)
+        try:
+            self._stream = open(self.path, 'wb' if overwrite else 'xb')
+        except OSError as error:
+            raise BagError(f'cannot create {self.path}: {error.strerror}') from None
+        self._closed = False
+        self._writer = McapWriter(self._stream)
+        self._writer.start(profile='ros2', library='ctid_ros')
+        self._typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._schemas: Dict[TopicSchema, int] = {}
+        self._channels: Dict[str, int] = {}
+        self._types: Dict[str, str] = {}
+
+    def __enter__(self: _Writer) -> _Writer:
+        """Return the writer; :meth:`close` it on leaving."""
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        """Close the file, also after an error: the messages so far stay readable."""
+        self.close()
+
+    def close(self) -> None:
+        """Write the MCAP index and close the file (also after an error: messages so far stay)."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self._writer.finish()
+            finally:
+                self._stream.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise BagError(f'{self.path} is already closed')
+
+    def topics(self) -> Dict[str, str]:
+        """Return the message type of each declared topic."""
+        return dict(self._types)
+
+    def add_topic(self, topic: str, msgtype: str, schema: Optional[TopicSchema] = None) -> None:
+        """
+        Declare a topic and its message type, e.g. ``'geometry_msgs/msg/PointStamped'``.
+
+        Parameters
+        ----------
+        topic : str
+            Absolute topic name.
+        msgtype : str
+            Message type.
+        schema : TopicSchema, optional
+            The definition the messages were recorded with (a copied topic, possibly of a
+            custom type); default the standard ROS 2 Jazzy definition of ``msgtype``.
+
+        Raises
+        ------
+        BagError
+            If the topic was declared already, or it has no ``schema`` and its type is not a
+            standard ROS 2 Jazzy type.
+
+        """
+        self._check_open()
+        if topic in self._channels:
+            raise BagError(f'topic {topic} is already recorded in {self.path}')
+        if schema is None:
+            try:
+                text, _ = self._typestore.generate_msgdef(msgtype, ros_version=2)
+            except TypesysError:
+                raise BagError(f'cannot record {topic}: {msgtype} is not a standard ROS 2 '
+                               'Jazzy message type') from None
+            schema = TopicSchema(msgtype, 'ros2msg', text.encode())
+        if schema not in self._schemas:
+            self._schemas[schema] = self._writer.register_schema(schema.msgtype, schema.encoding,
+                                                                 schema.definition)
+        self._channels[topic] = self._writer.register_channel(topic, schema.message_encoding,
+                                                              self._schemas[schema])
+        self._types[topic] = msgtype
+
+    def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Write one serialised message of a declared topic at its log (reception) time."""
+        self._check_open()
+        if topic not in self._channels:
+            raise BagError(f'topic {topic} was not declared with add_topic')
+        time_ns = _time_ns(log_time_ns)
+        self._writer.add_message(self._channels[topic], time_ns, bytes(data), time_ns)
+
+    def write_message(self, message: OutputMessage, log_time_ns: int) -> None:
+        """
+        Serialise and write a message given as plain data, declaring its topic on first use.
+
+        Raises
+        ------
+        BagError
+            If the topic was declared with another type.
+        DataError
+            If a field is missing or has a value its type cannot take.
+
+        """
+        time_ns = _time_ns(log_time_ns)
+        if message.topic not in self._channels:
+            self.add_topic(message.topic, message.msgtype)
+        elif self._types[message.topic] != message.msgtype:
+            raise BagError(f'topic {message.topic} holds {self._types[message.topic]} in '
+                           f'{self.path}, not {message.msgtype}')
+        msg = self._build(message.msgtype, message.fields)
+        self.write(message.topic, time_ns, self._typestore.serialize_cdr(msg, message.msgtype))
+
+    def _build(self, msgtype: str, fields: Mapping[str, Any]) -> Any:
+        """Return the rosbags message of ``msgtype`` holding ``fields`` (nested plain data)."""
+        _, definitions = self._typestore.fielddefs[msgtype]
+        missing = [name for name, _ in definitions if name not in fields]
+        if missing:
+            raise DataError(f'{msgtype} needs the field(s) {", ".join(missing)}')
+        return self._typestore.types[msgtype](**{
+            name: self._field(kind, fields[name]) for name, kind in definitions})
+
+    def _field(self, kind: Any, value: Any) -> Any:
+        nodetype, details = kind
+        if nodetype == Nodetype.NAME:
+            return self._build(details, value)
+        if nodetype in (Nodetype.SEQUENCE, Nodetype.ARRAY):
+            element = details[0]
+            if element[0] == Nodetype.BASE and element[1][0] in _ARRAY_TYPES:
+                return np.asarray(value, dtype=_ARRAY_TYPES[element[1][0]])
+            return [self._field(element, item) for item in value]
+        return value
+
+
+class EstimateWriter(RecordingWriter):
+    """
+    Write what the live node publishes into a new standalone MCAP file.
+
+    Topics, types and layouts are those of :mod:`ctid_ros.streaming.contract`: with the default
+    node name and no namespace ``/ctid_node/estimate``, ``/ctid_node/estimate_std``,
+    ``/ctid_node/params/<name>``, ``/ctid_node/prediction`` and ``/diagnostics``. Recorded
+    topics can be copied beside them with :meth:`add_topic` and :meth:`write`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.mcap`` file to create.
+    inputs : iterable of str or os.PathLike, optional
+        The bag(s) being replayed: writing to (or into) any of them is refused, even with
+        ``overwrite``.
+    node_name : str, optional
+        Name of the node whose topics are written, optionally with its namespace
+        (``'/plant1/ctid_node'``).
+    namespace : str, optional
+        ROS namespace of the node, e.g. ``'/plant1'``.
+    overwrite : bool, optional
+        Replace an existing file at ``path`` instead of refusing.
+
+    Attributes
+    ----------
+    node : NodeTopics
+        The node whose topics are written.
+
+    Raises
+    ------
+    BagError
+        If ``path`` is not a new ``.mcap`` file outside the inputs, or cannot be created.
+    ConfigError
+        If the namespace or node name is not a valid ROS name.
+
+    """
+
+    def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
+                 node_name: str = DEFAULT_NODE_NAME, namespace: str = '',
+                 overwrite: bool = False) -> None:
+        self.node = NodeTopics.of(node_name, namespace)
+        super().__init__(path, inputs=inputs, overwrite=overwrite)
+
+    def write_estimate(self, time_ns: int, names: Sequence[str], values: Sequence[float],
+                       stds: Optional[Sequence[float]] = None,
+                       diagnostics: Optional[Mapping[str, Any]] = None,
+                       prediction: Optional[Sequence[float]] = None) -> None:
+        """
+        Write one update, as the live node publishes it after a window is identified.
+
+        Parameters
+        ----------
+        time_ns : int
+            Log time and header stamp (ns since the epoch), e.g. the window's last sample.
+        names : sequence of str
+            Parameter names in publishing order.
+        values, stds : sequence of float
+            Estimates and their standard deviations (NaN where unknown), in ``names`` order;
+            without ``stds`` nothing is written on the ``estimate_std`` topic.
+        diagnostics : mapping, optional
+            Key/value pairs for ``/diagnostics`` (e.g. ``fit_percent``, ``iterations``,
+            ``converged``, ``warnings``), written in the given order with the status of
+            :func:`~ctid_ros.streaming.contract.update_status`.
+        prediction : sequence of float, optional
+            The model output over the window, one value per grid instant.
+
+        Raises
+        ------
+        DataError
+            If names are not valid, unique ROS name tokens, lengths differ, or the time is not
+            a non-negative integer.
+
+        """
+        time_ns = _time_ns(time_ns)
+        for message in estimate_messages(self.node, names, values, stds, prediction):
+            self.write_message(message, time_ns)
+        if diagnostics is not None:
+            level, text = update_status(names, values, stds, diagnostics)
+            self.write_status(time_ns, level, text, diagnostics)
+
+    def write_status(self, time_ns: int, level: int, message: str,
+                     values: Optional[Mapping[str, Any]] = None) -> None:
+        """
+        Write the node's status on ``/diagnostics``, e.g. for an update that gave no estimate.
+
+        Parameters
+        ----------
+        time_ns : int
+            Log time and header stamp.
+        level : int
+            ``contract.OK``, ``WARN`` or ``ERROR``.
+        message : str
+            Status message.
+        values : mapping, optional
+            Key/value pairs of the status.
+
+        """
+        time_ns = _time_ns(time_ns)
+        self.write_message(diagnostics_message(self.node, time_ns, level, message,
+                                               values or {}), time_ns)

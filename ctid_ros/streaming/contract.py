@@ -1,0 +1,326 @@
+"""
+The output contract of the identification node, written down once.
+
+The live node (:mod:`ctid_ros.ros.node`) and ``ctid replay --output``
+(:class:`ctid_ros.files.mcap_writer.EstimateWriter`) publish the same topics, types and layouts
+because both take them from here. With the node ``/ctid_node`` (``~`` below), one message of
+each per update:
+
+* ``~/estimate``, ``~/estimate_std``: ``std_msgs/msg/Float64MultiArray``, the estimates and their
+  standard deviations in ``parameter_names`` order, the comma-separated names in
+  ``layout.dim[0].label``;
+* ``~/params/<name>``: ``std_msgs/msg/Float64``, one topic per parameter;
+* ``~/prediction``: ``std_msgs/msg/Float64MultiArray``, the model output at every grid instant
+  of the window, label ``prediction``; its first and last instants are ``window_start`` and
+  ``window_end`` of the diagnostics sent with it;
+* ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray`` with one status named
+  ``ctid_node: estimate`` (also after an update that gave no estimate).
+
+The status level follows :func:`update_status` (OK, or WARN with the reason) after an estimate
+and :func:`failure_status` (WARN for missing or unusable data, ERROR for a failed estimate)
+otherwise. Messages are plain data here: nested dicts of field values, as the message
+definitions nest them, which the node turns into rclpy messages and the MCAP writer serialises.
+Times are integer nanoseconds since the epoch (:data:`NANOSECONDS` per second).
+"""
+
+from dataclasses import dataclass
+import re
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+from ctid_ros.errors import ConfigError, CtidError, DataError
+import numpy as np
+
+__all__ = [
+    'DEFAULT_NODE_NAME', 'DIAGNOSTIC_ARRAY', 'DIAGNOSTICS_TOPIC', 'ERROR', 'ESTIMATE',
+    'ESTIMATE_STD', 'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'NANOSECONDS', 'NodeTopics', 'OK',
+    'OutputMessage', 'PARAMS', 'PREDICTION', 'PREDICTION_LABEL', 'WARN', 'diagnostics_message',
+    'estimate_messages', 'estimate_summary', 'failure_status', 'format_diagnostic',
+    'multiarray', 'resolve_topic', 'time_fields', 'update_status',
+]
+
+NANOSECONDS = 1_000_000_000
+DEFAULT_NODE_NAME = 'ctid_node'
+
+# Topic suffixes below the node's name, and the one absolute topic.
+ESTIMATE = 'estimate'
+ESTIMATE_STD = 'estimate_std'
+PARAMS = 'params'
+PREDICTION = 'prediction'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+PREDICTION_LABEL = 'prediction'
+
+FLOAT64 = 'std_msgs/msg/Float64'
+FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+
+# diagnostic_msgs/DiagnosticStatus levels.
+OK, WARN, ERROR = 0, 1, 2
+
+_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
+
+
+def _check_name(token: str, what: str) -> None:
+    if not _NAME.match(token):
+        raise ConfigError(f'invalid ROS name {token!r} in {what}: use letters, digits and '
+                          'underscores, not starting with a digit')
+
+
+@dataclass(frozen=True)
+class NodeTopics:
+    """
+    The names under which one node publishes.
+
+    Attributes
+    ----------
+    node : str
+        Fully qualified node name, e.g. ``'/ctid_node'`` or ``'/plant1/ctid_node'``.
+
+    Raises
+    ------
+    ConfigError
+        If the name is not a valid fully qualified ROS node name.
+
+    """
+
+    node: str
+
+    def __post_init__(self) -> None:
+        tokens = self.node.split('/')
+        if not self.node.startswith('/') or len(tokens) < 2:
+            raise ConfigError(f'{self.node!r} is not a fully qualified node name such as '
+                              f'/{DEFAULT_NODE_NAME}')
+        for token in tokens[1:]:
+            _check_name(token, f'node {self.node!r}')
+
+    @classmethod
+    def of(cls, node_name: str = DEFAULT_NODE_NAME, namespace: str = '') -> 'NodeTopics':
+        """
+        Return the topics of node ``node_name`` in ``namespace``.
+
+        ``node_name`` may carry the namespace itself (``'/plant1/ctid_node'``, as ``ctid replay
+        --node-name`` takes it); a relative one is placed in ``namespace`` (default the root).
+        """
+        space, _, base = node_name.rpartition('/')
+        tokens = [token for token in f'{namespace}/{space}'.split('/') if token]
+        for token in (*tokens, base):
+            _check_name(token, f'namespace {namespace!r} / node {node_name!r}')
+        return cls('/' + '/'.join((*tokens, base)))
+
+    @property
+    def name(self) -> str:
+        """Return the node's base name, which is also the ``hardware_id`` of its status."""
+        return self.node.rpartition('/')[2]
+
+    @property
+    def estimate(self) -> str:
+        """Return the topic of the estimates."""
+        return f'{self.node}/{ESTIMATE}'
+
+    @property
+    def estimate_std(self) -> str:
+        """Return the topic of the standard deviations."""
+        return f'{self.node}/{ESTIMATE_STD}'
+
+    @property
+    def prediction(self) -> str:
+        """Return the topic of the predicted output."""
+        return f'{self.node}/{PREDICTION}'
+
+    @property
+    def diagnostics(self) -> str:
+        """Return the diagnostics topic (absolute: shared by all nodes)."""
+        return DIAGNOSTICS_TOPIC
+
+    @property
+    def status_name(self) -> str:
+        """Return the name of the node's diagnostic status, e.g. ``'ctid_node: estimate'``."""
+        return f'{self.node[1:]}: {ESTIMATE}'
+
+    def param(self, name: str) -> str:
+        """Return the topic of parameter ``name``."""
+        return f'{self.node}/{PARAMS}/{name}'
+
+
+def resolve_topic(name: str, node_name: str = DEFAULT_NODE_NAME) -> str:
+    """
+    Return the absolute topic a node named ``node_name`` subscribes to for ``name``.
+
+    A relative name follows the node's namespace (``u`` -> ``/u``, or ``/plant1/u`` for the
+    node ``/plant1/ctid_node``); ``~/x`` is private to the node (``/ctid_node/x``).
+    """
+    namespace, _, base = node_name.rpartition('/')
+    namespace = namespace.rstrip('/')
+    if name.startswith('/'):
+        return name
+    if name.startswith('~/'):
+        return f'{namespace}/{base}/{name[2:]}'
+    return f'{namespace}/{name}'
+
+
+@dataclass(frozen=True)
+class OutputMessage:
+    """
+    One message of the contract as plain data.
+
+    Attributes
+    ----------
+    topic : str
+        Absolute topic.
+    msgtype : str
+        Message type, e.g. ``'std_msgs/msg/Float64MultiArray'``.
+    fields : dict
+        Field values, nested as the message definition nests them; arrays as lists.
+
+    """
+
+    topic: str
+    msgtype: str
+    fields: Dict[str, Any]
+
+
+def time_fields(time_ns: int) -> Dict[str, int]:
+    """Return a ``builtin_interfaces/Time`` as ``{'sec': ..., 'nanosec': ...}``."""
+    sec, nanosec = divmod(int(time_ns), NANOSECONDS)
+    return {'sec': sec, 'nanosec': nanosec}
+
+
+def multiarray(label: str, values: Sequence[float]) -> Dict[str, Any]:
+    """Return a one-dimensional ``std_msgs/Float64MultiArray`` whose dimension is ``label``."""
+    data = [float(value) for value in np.asarray(values, dtype=float).ravel()]
+    return {'layout': {'dim': [{'label': label, 'size': len(data), 'stride': len(data)}],
+                       'data_offset': 0},
+            'data': data}
+
+
+def _check_parameters(names: Sequence[str], arrays: Mapping[str, Sequence[float]]) -> None:
+    for name in names:
+        if not isinstance(name, str) or not _NAME.match(name):
+            raise DataError(f'parameter name {name!r} cannot be used in a topic name')
+    if len(set(names)) != len(names):
+        raise DataError(f'parameter names must be unique, got {list(names)}')
+    for label, array in arrays.items():
+        if len(array) != len(names):
+            raise DataError(f'{len(array)} {label} for {len(names)} parameter names')
+
+
+def estimate_messages(topics: NodeTopics, names: Sequence[str], values: Sequence[float],
+                      stds: Optional[Sequence[float]] = None,
+                      prediction: Optional[Sequence[float]] = None) -> List[OutputMessage]:
+    """
+    Return the messages of one update in publishing order, diagnostics excepted.
+
+    Parameters
+    ----------
+    topics : NodeTopics
+        The publishing node.
+    names : sequence of str
+        Parameter names in publishing order.
+    values, stds : sequence of float
+        Estimates and standard deviations in ``names`` order; without ``stds`` nothing goes
+        to ``estimate_std``.
+    prediction : sequence of float, optional
+        Model output over the window; without it nothing goes to ``prediction``.
+
+    Raises
+    ------
+    DataError
+        If a name cannot be part of a topic name, names repeat, or lengths differ.
+
+    """
+    names = list(names)
+    arrays = {'values': values} if stds is None else {'values': values, 'stds': stds}
+    _check_parameters(names, arrays)
+    label = ','.join(names)
+    messages = [OutputMessage(topics.estimate, FLOAT64_MULTI_ARRAY, multiarray(label, values))]
+    if stds is not None:
+        messages.append(OutputMessage(topics.estimate_std, FLOAT64_MULTI_ARRAY,
+                                      multiarray(label, stds)))
+    messages.extend(OutputMessage(topics.param(name), FLOAT64, {'data': float(value)})
+                    for name, value in zip(names, values))
+    if prediction is not None:
+        messages.append(OutputMessage(topics.prediction, FLOAT64_MULTI_ARRAY,
+                                      multiarray(PREDICTION_LABEL, prediction)))
+    return messages
+
+
+def format_diagnostic(value: Any) -> str:
+    """
+    Format a diagnostic value as a ``diagnostic_msgs/KeyValue`` string.
+
+    Floats keep every digit (the shortest text that reads back exactly): ``window_start`` and
+    ``window_end`` are seconds since the epoch, which six significant digits would round to
+    hours.
+    """
+    if isinstance(value, (bool, np.bool_)):
+        return 'true' if value else 'false'
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (list, tuple)):
+        return '; '.join(format_diagnostic(item) for item in value)
+    return str(value)
+
+
+def estimate_summary(names: Sequence[str], values: Sequence[float],
+                     stds: Optional[Sequence[float]] = None) -> str:
+    """Return the one-line summary of an estimate, e.g. ``'K=2.01 (std 0.003), T=...'``."""
+    if stds is None:
+        return ', '.join(f'{name}={value:.6g}' for name, value in zip(names, values))
+    return ', '.join(f'{name}={value:.6g} (std {std:.3g})'
+                     for name, value, std in zip(names, values, stds))
+
+
+def update_status(names: Sequence[str], values: Sequence[float],
+                  stds: Optional[Sequence[float]], diagnostics: Mapping[str, Any]
+                  ) -> Tuple[int, str]:
+    """
+    Return the level and message of the status of an update.
+
+    WARN with the warnings when the estimate has any (gaps, active bounds, ...), WARN ``not
+    converged`` when it did not converge, else OK with :func:`estimate_summary`.
+    """
+    warnings = list(diagnostics.get('warnings') or [])
+    if warnings:
+        return WARN, '; '.join(str(warning) for warning in warnings)
+    if diagnostics.get('converged') is False:
+        return WARN, 'not converged'
+    return OK, estimate_summary(names, values, stds)
+
+
+def failure_status(error: CtidError) -> Tuple[int, str]:
+    """
+    Return the level and message of the status when an update gave no estimate.
+
+    WARN when the data are missing or unusable (a :class:`~ctid_ros.errors.DataError`: the
+    node waits for better data), ERROR when the estimation itself failed.
+    """
+    return (WARN if isinstance(error, DataError) else ERROR), str(error)
+
+
+def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: str,
+                        values: Mapping[str, Any]) -> OutputMessage:
+    """
+    Return the ``/diagnostics`` message of one update (or failed update) of the node.
+
+    Parameters
+    ----------
+    topics : NodeTopics
+        The node; names the status and is its ``hardware_id``.
+    stamp_ns : int
+        Header stamp.
+    level : int
+        :data:`OK`, :data:`WARN` or :data:`ERROR`.
+    message : str
+        Status message.
+    values : mapping
+        Key/value pairs in order, formatted by :func:`format_diagnostic`.
+
+    """
+    status = {'level': int(level), 'name': topics.status_name, 'message': message,
+              'hardware_id': topics.name,
+              'values': [{'key': str(key), 'value': format_diagnostic(value)}
+                         for key, value in values.items()]}
+    return OutputMessage(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
+                         {'header': {'stamp': time_fields(stamp_ns), 'frame_id': ''},
+                          'status': [status]})

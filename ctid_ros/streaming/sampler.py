@@ -1,0 +1,124 @@
+"""
+Messages to samples: the one rule the live node and the offline replay share.
+
+A message on the input topic gives an input sample (one value per input field), a message on
+the output topic an output sample, a message on a topic carrying both (``/joint_states``) one
+of each with the same stamp. The stamp is ``header.stamp`` when ``stamp_source`` is ``header``
+and the message has a non-zero one, else the receive time the caller passes: the DDS source
+or reception time live, the recorder's log time in a bag
+(:func:`~ctid_ros.streaming.message_fields.sample_stamp`). The streams are labelled the same
+way in both, e.g. ``input /plant/u (data)``, in every message about them.
+"""
+
+from dataclasses import dataclass
+from typing import Any, Optional, Tuple, Union
+
+from ctid_ros.errors import ConfigError
+from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer
+from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.message_fields import extract_values, parse_field_path, sample_stamp
+import numpy as np
+
+__all__ = ['MessageSampler', 'ROLES', 'Sample', 'stream_names']
+
+ROLES = (INPUT, OUTPUT)
+
+
+def stream_names(config: IdentificationConfig, topics: Tuple[str, str]) -> Tuple[str, str]:
+    """Return the labels of the input and output streams, e.g. ``input /plant/u (data)``."""
+    return (f'{INPUT} {topics[0]} ({", ".join(config.input_fields)})',
+            f'{OUTPUT} {topics[1]} ({config.output_field})')
+
+
+@dataclass(frozen=True)
+class Sample:
+    """
+    What one message carries.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Stamp of the samples.
+    u : float or ndarray or None
+        Input value (a row for several inputs); None if the message is not on the input topic
+        or its input field could not be read.
+    y : float or None
+        Output value; None likewise.
+    errors : tuple of (str, ConfigError)
+        The role (``input``/``output``) and error of every field that could not be read.
+
+    """
+
+    stamp_ns: int
+    u: Optional[Union[float, np.ndarray]]
+    y: Optional[float]
+    errors: Tuple[Tuple[str, ConfigError], ...] = ()
+
+    def check(self) -> None:
+        """Raise the first field error, if any (the replay stops on a wrong field path)."""
+        if self.errors:
+            raise self.errors[0][1]
+
+    def add_to(self, buffer: SampleBuffer) -> None:
+        """Append the samples to ``buffer``, input and output atomically when both are set."""
+        if self.u is not None and self.y is not None:
+            buffer.add_pair(self.stamp_ns, self.u, self.y)
+        elif self.u is not None:
+            buffer.add_input(self.stamp_ns, self.u)
+        elif self.y is not None:
+            buffer.add_output(self.stamp_ns, self.y)
+
+
+class MessageSampler:
+    """
+    Turn messages of the configured input and output topics into :class:`Sample` objects.
+
+    Parameters
+    ----------
+    config : IdentificationConfig
+        Field paths and stamp source.
+    topics : (str, str)
+        Absolute input and output topics (the same topic for both is allowed).
+
+    Raises
+    ------
+    ConfigError
+        If a field path is malformed.
+
+    """
+
+    def __init__(self, config: IdentificationConfig, topics: Tuple[str, str]):
+        self.topics = tuple(topics)
+        self.names = stream_names(config, self.topics)
+        self._paths = (tuple(parse_field_path(path) for path in config.input_fields),
+                       (parse_field_path(config.output_field),))
+        self._inputs = len(config.input_fields)
+        self._stamp_source = config.stamp_source
+
+    def roles(self, topic: str) -> Tuple[str, ...]:
+        """Return which roles ``topic`` carries: ``input``, ``output``, both or none."""
+        return tuple(role for role, wanted in zip(ROLES, self.topics) if topic == wanted)
+
+    def buffer(self, capacity: int, config: IdentificationConfig) -> SampleBuffer:
+        """Return an empty buffer for these streams, with the gap rules of ``config``."""
+        return SampleBuffer(capacity, max_gap=config.max_gap,
+                            reorder_horizon=config.reorder_horizon, names=self.names,
+                            inputs=self._inputs)
+
+    def __call__(self, topic: str, receive_ns: int, msg: Any) -> Sample:
+        """
+        Return the samples ``msg`` carries, received on ``topic`` at ``receive_ns``.
+
+        A field that cannot be read is reported in :attr:`Sample.errors`, not raised: the
+        live node counts it and goes on, the replay stops (:meth:`Sample.check`).
+        """
+        values = [None, None]
+        errors = []
+        for index, (role, wanted, paths) in enumerate(zip(ROLES, self.topics, self._paths)):
+            if topic != wanted:
+                continue
+            try:
+                values[index] = extract_values(msg, paths)
+            except ConfigError as error:
+                errors.append((role, error))
+        return Sample(sample_stamp(msg, receive_ns, self._stamp_source), *values, tuple(errors))

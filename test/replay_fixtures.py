@@ -1,0 +1,115 @@
+"""
+Recordings of simulated plants with known parameters for the replay tests.
+
+Written with independent writers: rosbags (rosbag2 directories, sqlite3 and mcap storage) and
+mcap_ros2 (standalone .mcap), sampled at 100 Hz. The output noise is 1 % of the output's
+standard deviation (40 dB SNR, seeded).
+"""
+
+from bag_fixtures import build_message, MSGDEFS, Record
+from ctid_ros import Model
+from ctid_ros.core.excitation import prbs
+from mcap_ros2.writer import Writer as McapRos2Writer
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
+import yaml
+
+T0_NS = 1_700_000_000_000_000_000
+TS = 0.01
+STEP_NS = 10_000_000
+# The measurement is logged 1 ms after the command of the same instant, as a recorder sees it.
+Y_LAG_NS = 1_000_000
+FLOAT64 = 'std_msgs/msg/Float64'
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+
+DELAY = {'model': 'K*exp(-tau*s)/(T*s + 1)', 'truth': {'K': 2.0, 'T': 1.5, 'tau': 0.237},
+         'params': {'parameter_names': ['K', 'T', 'tau'], 'lower': [0.01, 0.01, 0.0],
+                    'upper': [100.0, 100.0, 2.0], 'delay_min': 0.0, 'delay_max': 1.0}}
+OPEN_LOOP = {'model': '1/(m*s**2 + d*s + k)', 'truth': {'m': 0.5, 'd': 1.0, 'k': 50.0},
+             'params': {'parameter_names': ['m', 'd', 'k'], 'lower': [0.001, 0.0, 0.0],
+                        'upper': [100.0, 100.0, 1000.0]}}
+CLOSED_LOOP = {'model': '1/(m*s**2 + d*s + k)', 'controller': '20 + 10/s',
+               'truth': {'m': 1.0, 'd': 2.0, 'k': 10.0},
+               'params': {'parameter_names': ['m', 'd', 'k'], 'initial': [0.5, 1.0, 5.0],
+                          'lower': [0.001, 0.0, 0.0], 'upper': [100.0, 100.0, 1000.0]}}
+
+
+def simulate(case, seconds, seed=0):
+    """Return the input (PRBS, bits of 0.2 s) and the noisy output (40 dB SNR) of a case."""
+    u = prbs(10, 20)[:round(seconds / TS)]
+    y = Model(case['model'], case.get('controller')).simulate(case['truth'], u, TS)
+    noise = np.random.default_rng(seed).standard_normal(y.size)
+    return u, y + 0.01 * np.std(y) * noise
+
+
+def float_records(u, y, input_topic='/plant/u', output_topic='/plant/y'):
+    """Return Float64 records in log-time order: input at t_k, output 1 ms later."""
+    records = []
+    for k, (u_k, y_k) in enumerate(zip(u, y)):
+        records.append(Record(input_topic, T0_NS + k * STEP_NS, {'data': float(u_k)}))
+        records.append(Record(output_topic, T0_NS + k * STEP_NS + Y_LAG_NS, {'data': float(y_k)}))
+    return records
+
+
+def joint_state_records(u, y, latency_ns):
+    """Return JointStates stamped at t_k but logged ``latency_ns`` (plus jitter) later."""
+    jitter = np.random.default_rng(1).integers(0, 3_000_000, size=len(u))
+    records = []
+    for k, (u_k, y_k) in enumerate(zip(u, y)):
+        stamp_ns = T0_NS + k * STEP_NS
+        records.append(Record('/joint_states', stamp_ns + latency_ns + int(jitter[k]), {
+            'header': {'stamp': {'sec': stamp_ns // 10 ** 9, 'nanosec': stamp_ns % 10 ** 9},
+                       'frame_id': 'base'},
+            'name': ['joint'], 'position': [float(y_k)], 'velocity': [0.0],
+            'effort': [float(u_k)]}))
+    return sorted(records, key=lambda record: record.time_ns)
+
+
+def types_of(records):
+    return {record.topic: JOINT_STATE if 'header' in record.fields else FLOAT64
+            for record in records}
+
+
+def write_rosbag2(path, records, storage):
+    """Write a rosbag2 directory with rosbags (sqlite3 or mcap storage)."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    plugin = StoragePlugin.SQLITE3 if storage == 'sqlite3' else StoragePlugin.MCAP
+    with Writer(path, version=9, storage_plugin=plugin) as writer:
+        connections = {topic: (writer.add_connection(topic, msgtype, typestore=typestore),
+                               msgtype) for topic, msgtype in types_of(records).items()}
+        for record in records:
+            connection, msgtype = connections[record.topic]
+            msg = build_message(typestore, msgtype, record.fields)
+            writer.write(connection, record.time_ns, typestore.serialize_cdr(msg, msgtype))
+    return path
+
+
+def write_mcap(path, records, chunk_size=16384):
+    """Write a standalone .mcap with mcap_ros2."""
+    with open(path, 'wb') as stream, McapRos2Writer(stream, chunk_size=chunk_size) as writer:
+        schemas = {msgtype: writer.register_msgdef(msgtype, MSGDEFS[msgtype])
+                   for msgtype in set(types_of(records).values())}
+        types = types_of(records)
+        for record in records:
+            writer.write_message(record.topic, schemas[types[record.topic]], record.fields,
+                                 log_time=record.time_ns, publish_time=record.time_ns)
+    return path
+
+
+def write_bag(tmp_path, records, kind):
+    if kind == 'mcap-file':
+        return write_mcap(tmp_path / 'run.mcap', records)
+    return write_rosbag2(tmp_path / 'run', records, kind)
+
+
+def params_file(tmp_path, case, node='ctid_node', **overrides):
+    """Write a params YAML in the format of config/*.yaml and return its path."""
+    values = {'input_topic': '/plant/u', 'input_field': 'data', 'output_topic': '/plant/y',
+              'output_field': 'data', 'model': case['model'],
+              'controller': case.get('controller', ''), 'sample_time': TS, 'window': 10.0,
+              'update_period': 5.0, 'max_gap': 0.5, 'reorder_horizon': 0.05,
+              **case['params'], **overrides}
+    path = tmp_path / 'params.yaml'
+    path.write_text(yaml.safe_dump({node: {'ros__parameters': values}}))
+    return path

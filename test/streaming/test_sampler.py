@@ -1,0 +1,53 @@
+"""Messages to samples, as the live node and the replay take them."""
+
+from types import SimpleNamespace
+
+from ctid_ros.errors import ConfigError
+from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.sampler import MessageSampler, Sample
+import numpy as np
+import pytest
+
+T0_NS = 1_700_000_000_000_000_000
+
+
+def joint_state(stamp_ns, effort, position):
+    stamp = SimpleNamespace(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    return SimpleNamespace(header=SimpleNamespace(stamp=stamp), effort=effort,
+                           position=position)
+
+
+def test_one_topic_carrying_input_and_output():
+    config = IdentificationConfig(
+        model='T*s*q + q = K1*v + K2*w', input_names=('v', 'w'), output_name='q',
+        input_topic='/joint_states', output_topic='/joint_states', input_field='effort[0]',
+        extra_input_fields=('effort[1]',), output_field='position[0]')
+    sampler = MessageSampler(config, ('/joint_states', '/joint_states'))
+    assert sampler.names == ('input /joint_states (effort[0], effort[1])',
+                             'output /joint_states (position[0])')
+    assert sampler.roles('/joint_states') == ('input', 'output')
+    assert sampler.roles('/other') == ()
+    sample = sampler('/joint_states', T0_NS + 5, joint_state(T0_NS, [1.0, 2.0], [3.0]))
+    assert sample.stamp_ns == T0_NS and sample.y == 3.0 and sample.errors == ()
+    np.testing.assert_array_equal(sample.u, [1.0, 2.0])
+    buffer = sampler.buffer(100, config)
+    sample.add_to(buffer)
+    stats = buffer.stats()
+    assert (stats.u.accepted, stats.y.accepted) == (1, 1)
+    # A missing entry: counted by the node, raised by the replay; the output still comes.
+    broken = sampler('/joint_states', T0_NS + 7, joint_state(0, [1.0], [4.0]))
+    assert broken.stamp_ns == T0_NS + 7                 # unset header: the receive time
+    assert broken.u is None and broken.y == 4.0
+    assert [role for role, _ in broken.errors] == ['input']
+    with pytest.raises(ConfigError, match=r'index 1 out of range'):
+        broken.check()
+
+
+def test_separate_topics_and_receive_stamps():
+    config = IdentificationConfig(model='K/(T*s + 1)', input_topic='u', output_topic='y',
+                                  stamp_source='receive')
+    sampler = MessageSampler(config, ('/u', '/y'))
+    assert sampler.names == ('input /u (data)', 'output /y (data)')
+    assert sampler('/u', 11, SimpleNamespace(data=2.0)) == Sample(11, 2.0, None)
+    assert sampler('/y', 12, SimpleNamespace(data=3.0)) == Sample(12, None, 3.0)
+    assert sampler('/z', 13, SimpleNamespace(data=3.0)) == Sample(13, None, None)
