@@ -63,12 +63,12 @@ MAX_EXPONENT = 32        # magnitude of an exponent, as MAX_DEGREE so that s**32
 # Bounds of the size of an expression, checked before sympy builds it (see the module notes).
 MAX_DEGREE = 32          # degree in s of a numerator or denominator
 MAX_TERMS = 1024         # terms of an expanded numerator or denominator
-MAX_FACTORS = 32         # factors of one expanded term (K/(a0*...*a59) has 60)
+MAX_FACTORS = 24         # factors of one expanded term (K/(a0*...*a59) has 60)
 MAX_VALUE_DIGITS = 1000  # decimal digits of the exact numbers
 MAX_DELAY_TERMS = 16     # terms of the argument of exp(...)
 # Bound of work(...) of the Jacobian, checked on the expanded coefficients before sympy
 # differentiates them; calibrated with bench/model_text.py on the largest texts within limits.
-MAX_WORK = 200_000
+MAX_WORK = 100_000
 
 _ASCII_SPACE = ' \t\n\r\f\v'
 # re.ASCII: only ASCII digits and white space (no other Unicode digits that mean something else).
@@ -220,7 +220,6 @@ class DeadTime:
     tau: sp.Expr
     argument: sp.Expr
     column: int
-    size: Size
 
 
 @dataclass(frozen=True)
@@ -425,6 +424,9 @@ class _Parser:
             raise self.error('powers of expressions in s must have integer exponents', token)
         if base.expr == 0 and exponent < 0:
             raise self.error('division by zero', token)
+        if not exponent.is_Integer and base.expr.is_number and base.expr.is_negative:
+            raise self.error(f'a fractional power of the negative number {base.expr} is not '
+                             'real', token)
         # Checked before sympy evaluates the power (it computes numeric powers eagerly).
         size = self.checked(base.size.power(exponent), token)
         return _Node(base.expr ** exponent, size)
@@ -508,22 +510,23 @@ class _Parser:
             raise self.error('at most one dead-time factor exp(-tau*s) is allowed (the first is '
                              f'at column {self.dead_time.column + 1}); write the whole dead '
                              'time in one factor, e.g. exp(-(tau1 + tau2)*s)', token)
+        written = self.text[token.column:close.column + 1]
+        if len(written) > 60:
+            written = written[:56] + '...)'
+        # A walk over the unexpanded argument, as long as the text at most.
+        if not argument.expr.has(LAPLACE):
+            raise self.error(f'{written} is not allowed: exp(...) is only the dead time '
+                             'exp(-tau*s), and its argument has no s', token)
         size = argument.size
         if max(size.num_terms, size.den_terms) > MAX_DELAY_TERMS:
             raise self.error(f'the argument of exp(...) may have at most {MAX_DELAY_TERMS} '
                              f'terms (up to {max(size.num_terms, size.den_terms)} here)', token)
-        written = self.text[token.column:close.column + 1]
-        if len(written) > 60:
-            written = written[:56] + '...)'
         tau = self.delay(argument.expr, token, written)
-        self.dead_time = DeadTime(tau, argument.expr, token.column, size)
+        self.dead_time = DeadTime(tau, argument.expr, token.column)
         return _Node(sp.Integer(1), _ATOM, token)
 
     def delay(self, argument: sp.Expr, token: Token, written: str) -> sp.Expr:
         """Return ``tau`` of ``exp(argument)``, ``argument = -tau*s``, or raise why not."""
-        if not argument.has(LAPLACE):
-            raise self.error(f'{written} is not allowed: exp(...) is only the dead time '
-                             'exp(-tau*s), and its argument has no s', token)
         # Both small: the argument is bounded by MAX_DELAY_TERMS and MAX_FACTORS.
         tau = sp.cancel(-argument / LAPLACE)
         if tau.has(LAPLACE):
