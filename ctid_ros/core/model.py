@@ -174,7 +174,7 @@ class Model:
     ModelError
         If either text is unsafe, malformed, improper, non-causal, beyond a size limit (see
         :mod:`ctid_ros.core.expression`), not linear in the signals, or has a dead time that is
-        not a single factor ``exp(-tau*s)`` of a transfer function with at least one pole.
+        not a single factor ``exp(-tau*s)`` (an estimated one needs at least one pole).
 
     """
 
@@ -222,13 +222,15 @@ class Model:
         num, den = _polynomials(parsed.sides[0], expression)
         _check_proper(num, den, expression)
         tau = sp.Integer(0) if parsed.dead_time is None else parsed.dead_time.tau
-        if tau != 0 and den.degree() == 0:
-            # Rejected rather than given a meaning: y(t) = K u(t - tau) under a held input is a
-            # staircase whose samples change with tau only in jumps, so no data determine tau
-            # by its sensitivity, and the exact discretisation splits a state that is absent.
+        if tau.free_symbols and den.degree() == 0:
+            # Rejected rather than given a meaning: y(t) = K u(t - tau) under a held input jumps
+            # when tau crosses a sample instant and is flat in between, so no data determine an
+            # estimated tau (a known one, K*exp(-0.5*s), simulates exactly and is accepted).
             raise ModelError(f'{expression!r} is a dead time without dynamics (no pole): its '
-                             'sampled output does not depend smoothly on the dead time; give '
-                             'it at least one pole, e.g. K*exp(-tau*s)/(T*s + 1)')
+                             'sampled output only jumps as the dead time changes, so the dead '
+                             'time cannot be estimated; give the model at least one pole, e.g. '
+                             'K*exp(-tau*s)/(T*s + 1), or a known dead time, e.g. '
+                             'K*exp(-0.5*s)')
         if loop is None:
             return num, den, tau
         if tau != 0:

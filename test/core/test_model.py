@@ -294,7 +294,7 @@ EXP_OF_POWER = 'exp((a+b+c+d+e)**10)/(s+1)'
     ('K*exp(-tau*s)**-1/(s+1)', None, 'power -1 is a time advance, which is non-causal'),
     ('K*exp(-tau*s)**2/(s+1)', None, 'may not be raised to a power'),
     ('exp(-tau*s)', None, 'dead time without dynamics'),
-    ('K*exp(-0.5*s)', None, 'dead time without dynamics'),
+    ('K*exp(-tau*s)', None, 'dead time without dynamics'),
     (MSD, 's**3', r"controller 's\*\*3' is improper: numerator degree 3 exceeds denominator "
                   'degree 0'),
     (MSD, 's', "controller 's' is improper"),
@@ -350,6 +350,13 @@ def test_dead_times_written_as_one_causal_factor_are_accepted(text, delay):
     structure = model.structure({name: values[name] for name in model.parameters})
     assert structure.delay == pytest.approx(delay, rel=1e-14)
     assert abs(structure.num[0][-1]) == 2.0
+
+
+def test_a_known_dead_time_without_dynamics_is_a_delayed_gain():
+    model = Model('K*exp(-0.15*s)')
+    assert (model.num_degree, model.den_degree, model.delay_is_estimated) == (0, 0, False)
+    y = model.simulate({'K': 1.5}, np.arange(6.0), 0.1)
+    np.testing.assert_allclose(y, [0.0, 0.0, 0.0, 1.5, 3.0, 4.5], atol=1e-15)
 
 
 def test_proper_controllers_are_accepted():

@@ -4,9 +4,10 @@ Seeded fuzz test of model text (issue #16): hostile texts are answered, never ha
 Every text of the corpus of ``test/model_texts.py`` goes to ``Model`` as a plant, as the
 controller of a fixed plant and, once accepted as a plant, with a PI controller. Each call must
 raise a :class:`ModelError` with a message, or give a model that is causal (proper, dead time
->= 0 with at least one pole) and whose simulation is finite wherever it is stable. A watchdog
-fails a call that takes longer than :data:`WATCHDOG` seconds instead of letting the run hang;
-the one-second bound of the issue is measured by ``bench/model_text.py`` over a larger corpus.
+>= 0, and a pole if the dead time is estimated) and simulates to finite values where stable.
+A watchdog fails a call that takes longer than :data:`WATCHDOG` seconds instead of letting the
+run hang; the one-second bound of the issue is measured by ``bench/model_text.py`` over a
+larger corpus.
 """
 
 from contextlib import contextmanager
@@ -55,7 +56,7 @@ def answer(plant: str, controller=None):
 def check_valid(model: Model, what: str) -> None:
     """Assert that an accepted model is causal and simulates to finite values where stable."""
     assert model.num_degree <= model.den_degree, what
-    assert not (model.has_delay and model.den_degree == 0), what
+    assert not (model.delay_is_estimated and model.den_degree == 0), what
     theta = {name: 1.0 + 0.25 * (index % 4) for index, name in enumerate(model.parameters)}
     u = np.column_stack([INPUT] * len(model.inputs))
     try:
