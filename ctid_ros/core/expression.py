@@ -176,8 +176,13 @@ class Size:
                     self.digits, self.den_factors, self.num_factors, self.bases,
                     self.atom_weight)
 
-    def power(self, exponent) -> 'Size':
-        """Size of ``self ** exponent`` (integer exponents expand multinomially)."""
+    def power(self, exponent, generator: str = '#') -> 'Size':
+        """
+        Size of ``self ** exponent`` (integer exponents expand multinomially).
+
+        ``generator`` names a fractional power of a number in ``bases`` (a name that no
+        parameter can have, distinct for each such power in the text).
+        """
         base = self if exponent >= 0 else self.inverse()
         k = int(sp.ceiling(abs(exponent)))
         if exponent.is_Integer:
@@ -186,6 +191,14 @@ class Size:
                         k * base.num_degree, k * base.den_degree, k * base.digits,
                         k * base.num_factors, k * base.den_factors, base.bases,
                         base.atom_weight)
+        if all(name == 'pi' or name.startswith('#') for name in base.bases):
+            # A number such as 2**0.5 or (1 + 3**0.5)**1.5: nothing to differentiate, only one
+            # more generator of the coefficients besides its integer part.
+            return Size(math.comb(base.num_terms + k - 1, k) + 1,
+                        math.comb(base.den_terms + k - 1, k) + 1,
+                        0, 0, k * base.digits + 1,
+                        k * base.num_factors + 1, k * base.den_factors + 1,
+                        base.bases | {generator}, 0)
         # A fractional power of an expression free of s (enforced by the parser) stays one
         # generator, except that sympy's expand splits off its integer part. That generator
         # keeps the expanded base inside it, so it weighs as much as the base's terms.
@@ -428,7 +441,7 @@ class _Parser:
             raise self.error(f'a fractional power of the negative number {base.expr} is not '
                              'real', token)
         # Checked before sympy evaluates the power (it computes numeric powers eagerly).
-        size = self.checked(base.size.power(exponent), token)
+        size = self.checked(base.size.power(exponent, f'#{token.column}'), token)
         return _Node(base.expr ** exponent, size)
 
     def atom(self) -> _Node:

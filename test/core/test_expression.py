@@ -273,3 +273,11 @@ def test_size_bounds_count_distinct_factors_and_numeric_terms():
     assert (size.num_factors, size.den_factors, size.factors) == (1, 3, 3)
     assert sorted(size.bases) == ['K', 'a', 'b', 'c', 'd']
     assert MAX_PARAMETERS == 64 and MAX_FACTORS == 24 and MAX_DELAY_TERMS == 16
+
+
+def test_fractional_powers_of_numbers_are_one_generator_each():
+    # No parameter inside: nothing to differentiate, so they do not weigh as their base.
+    size = parse_model_text('K*(1 + 2**0.5)**2.5/(s + (3 + 5**0.5)**(1/3))**3').size
+    assert size.atom_weight == 0 and size.factors <= 8
+    size = parse_model_text('K/(s + (a + b)**0.5)').size
+    assert size.atom_weight > 0
