@@ -62,7 +62,7 @@ MAX_PARAMETERS = 64      # distinct names (parameters and, in an equation, signa
 MAX_EXPONENT = 32        # magnitude of an exponent, as MAX_DEGREE so that s**32 can be written
 # Bounds of the size of an expression, checked before sympy builds it (see the module notes).
 MAX_DEGREE = 32          # degree in s of a numerator or denominator
-MAX_TERMS = 1024         # terms of an expanded numerator or denominator
+MAX_TERMS = 512          # terms of an expanded numerator or denominator
 MAX_FACTORS = 24         # factors of one expanded term (K/(a0*...*a59) has 60)
 MAX_VALUE_DIGITS = 1000  # decimal digits of the exact numbers
 MAX_DELAY_TERMS = 16     # terms of the argument of exp(...)

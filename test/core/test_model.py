@@ -286,10 +286,12 @@ EXP_OF_POWER = 'exp((a+b+c+d+e)**10)/(s+1)'
     (PRODUCT_60, None, 'product of up to 25 factors; the limit is 24'),
     (PRODUCT_100, None, 'product of up to 25 factors; the limit is 24'),
     ('K/((' + '*'.join(f'a{i}' for i in range(60)) + ')*s + 1)', None, 'the limit is 24'),
-    (EXP_OF_POWER, None, r'exp\(\(a\+b\+c\+d\+e\)\*\*10\) is not allowed: exp\(\.\.\.\) is only '
-                         r'the dead time'),
-    ('*'.join(['exp((a+b+c+d+e)**10)'] * 3) + '/(s+1)', None, 'only the dead time'),
-    ('K*exp(-(a+b+c+d+e)**10*s)/(s+1)', None, 'at most 16 terms'),
+    (EXP_OF_POWER, None, 'expression too large: it would expand to more than 512 terms at '
+                         'column 18'),
+    ('*'.join(['exp((a+b+c+d+e)**10)'] * 3) + '/(s+1)', None, 'more than 512 terms at column 18'),
+    ('exp((a+b+c+d+e)**3)/(s+1)', None,
+     r'exp\(\(a\+b\+c\+d\+e\)\*\*3\) is not allowed: exp\(\.\.\.\) is only the dead time'),
+    ('K*exp(-(a+b+c+d+e)**3*s)/(s+1)', None, 'at most 16 terms'),
     ('K*exp(tau*s)/(T*s + 1)', None, r'exp\(tau\*s\) is a time advance, which is non-causal'),
     ('K*exp(-tau*s)**-1/(s+1)', None, 'power -1 is a time advance, which is non-causal'),
     ('K*exp(-tau*s)**2/(s+1)', None, 'may not be raised to a power'),
@@ -372,6 +374,10 @@ def test_size_limits_name_the_limit_and_the_value():
                                          '100000'):
         Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(8)) + ')')
     with pytest.raises(ModelError, match='closed loop .* is too large to differentiate'):
+        Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(5)) + ')',
+              controller='(s + 1)**10/(s + 2)**11')
+    with pytest.raises(ModelError, match='closed loop .* would expand to up to 790 terms; the '
+                                         'limit is 512'):
         Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(6)) + ')',
               controller='(s + 1)**10/(s + 2)**11')
     # Within the limits: a degree-20 black box and a product of six first-order lags.
