@@ -53,7 +53,7 @@ __all__ = [
 LAPLACE = sp.Symbol('s')
 # Limits of the model language, stated in the README (section "The model language", Limits).
 # Each is far above what a grey-box model needs (tens of parameters, degree 10-20) and low
-# enough that the worst text within all of them is answered well within a second.
+# enough that no text within all of them stalls the caller (bench/model_text.py measures it).
 MAX_LENGTH = 2000        # characters of one text
 MAX_NAME_LENGTH = 64     # characters of one name
 MAX_DEPTH = 40           # nesting of parentheses, signs and powers
