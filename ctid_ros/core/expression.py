@@ -498,7 +498,8 @@ class _Parser:
                              'parameter name', token)
         if name not in self.symbols:
             if len(self.symbols) >= MAX_PARAMETERS:
-                raise self.error(f'more than {MAX_PARAMETERS} parameters: {name!r} would be '
+                what = 'names (parameters and signals)' if self.equation else 'parameters'
+                raise self.error(f'more than {MAX_PARAMETERS} {what}: {name!r} would be '
                                  f'number {len(self.symbols) + 1}', token)
             self.symbols[name] = sp.Symbol(name, real=True)
         return _Node(self.symbols[name], Size(num_factors=1, bases=frozenset([name])))
