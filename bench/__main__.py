@@ -2,11 +2,12 @@
 
 import sys
 
-from bench import estimator
+from bench import estimator, model_text
 
 
 def main() -> int:
-    """Run the estimator benchmark, then the node throughput benchmark if it is available."""
+    """Run the model-text and estimator benchmarks, then node throughput if it is available."""
+    model_text.main(['--json', 'bench/results-model-text.json'])
     estimator.main(['--runs', '100', '--json', 'bench/results-estimator.json'] + sys.argv[1:])
     try:
         from bench import node_throughput

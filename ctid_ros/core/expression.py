@@ -13,38 +13,62 @@ grammar::
     power      := atom (('**' | '^') unary)?
     atom       := number | name | 'exp' '(' expression ')' | '(' expression ')'
 
-Names are parameters (or the Laplace variable ``s``, or the constant ``pi``); ``exp`` is the only
-function. Everything else (attribute access, other calls, strings, keywords, oversized numbers
-or exponents, deep nesting) raises :class:`~ctid_ros.errors.ModelError` with the column of the
-offending part.
+Names are parameters (or the Laplace variable ``s``, or the constant ``pi``). ``exp`` is the
+only function and it only spells a dead time: ``exp(-tau*s)`` whose argument is ``-tau*s`` with
+``tau`` free of ``s`` and positive whenever the parameters are (``exp(-tau*s)``,
+``exp(-(tau1 + tau2)*s)``, ``exp(-0.1*s)``), written once, as a factor of the whole transfer
+function: not in a sum, a denominator, a power, an exponent or the argument of another
+``exp``, and neither in a model equation nor in a controller. A time advance (``exp(tau*s)``,
+``1/exp(-tau*s)``, ``exp(-tau*s)**-1``) is non-causal and rejected as such. Everything else
+(attribute access, other calls, strings, keywords, oversized numbers or exponents, deep
+nesting) raises :class:`~ctid_ros.errors.ModelError` with the column of the offending part.
 
 Text that is short and shallow can still describe enormous objects (``(a+b+c+s)**16``,
-``((9**16)**16)**16``, ``1e999999999``), and sympy would expand or compute them eagerly or when
-the model takes the expression apart. The parser therefore carries an upper bound of the size
-of every sub-expression written as ``numerator/denominator`` (number of terms once expanded,
-degree in ``s``, digits of the numbers) and rejects the text before anything large is built.
+``((9**16)**16)**16``, ``1e999999999``, ``K/(a0*a1*...*a99)``), and sympy would expand,
+compute or differentiate them eagerly or when the model takes the expression apart. The parser
+therefore carries an upper bound of the size of every sub-expression written as
+``numerator/denominator`` (:class:`Size`: terms once expanded, factors per term, degree in
+``s``, digits of the numbers) and rejects the text before anything large is built. The limits
+are the module constants below. The expanded coefficients, whose size these bounds limit, are
+then measured exactly: :func:`work` turns their sizes into the cost of the symbolic Jacobian
+that :class:`~ctid_ros.core.model.Model` derives and compiles, checked before it does.
 """
 
 from dataclasses import dataclass
 import keyword
 import math
 import re
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 from ctid_ros.errors import ModelError
 import sympy as sp
 
+__all__ = [
+    'DeadTime', 'LAPLACE', 'MAX_DEGREE', 'MAX_DELAY_TERMS', 'MAX_DEPTH', 'MAX_EXPONENT',
+    'MAX_FACTORS', 'MAX_LENGTH', 'MAX_NAME_LENGTH', 'MAX_NUMBER_DIGITS', 'MAX_PARAMETERS',
+    'MAX_TERMS', 'MAX_VALUE_DIGITS', 'MAX_WORK', 'Parsed', 'Size', 'Token', 'parse_equation',
+    'parse_expression', 'parse_model_text', 'tokenize', 'work',
+]
+
 LAPLACE = sp.Symbol('s')
-MAX_LENGTH = 2000
-MAX_NAME_LENGTH = 64
-MAX_DEPTH = 40
-MAX_EXPONENT = 16
-MAX_NUMBER_DIGITS = 32
+# Limits of the model language, stated in the README (section "The model language", Limits).
+# Each is far above what a grey-box model needs (tens of parameters, degree 10-20) and low
+# enough that no text within all of them stalls the caller (bench/model_text.py measures it).
+MAX_LENGTH = 2000        # characters of one text
+MAX_NAME_LENGTH = 64     # characters of one name
+MAX_DEPTH = 40           # nesting of parentheses, signs and powers
+MAX_NUMBER_DIGITS = 32   # characters of one number as written
+MAX_PARAMETERS = 64      # distinct names (parameters and, in an equation, signals)
+MAX_EXPONENT = 32        # magnitude of an exponent, as MAX_DEGREE so that s**32 can be written
 # Bounds of the size of an expression, checked before sympy builds it (see the module notes).
 MAX_DEGREE = 32          # degree in s of a numerator or denominator
-MAX_TERMS = 1024         # terms of an expanded numerator or denominator
+MAX_TERMS = 512          # terms of an expanded numerator or denominator
+MAX_FACTORS = 24         # factors of one expanded term (K/(a0*...*a59) has 60)
 MAX_VALUE_DIGITS = 1000  # decimal digits of the exact numbers
-MAX_WORK = 2048          # (numerator + denominator terms) * number of parameters
+MAX_DELAY_TERMS = 16     # terms of the argument of exp(...)
+# Bound of work(...) of the Jacobian, checked on the expanded coefficients before sympy
+# differentiates them; calibrated with bench/model_text.py on the largest texts within limits.
+MAX_WORK = 100_000
 
 _ASCII_SPACE = ' \t\n\r\f\v'
 # re.ASCII: only ASCII digits and white space (no other Unicode digits that mean something else).
@@ -54,6 +78,30 @@ _TOKEN = re.compile(
     r'|(?P<name>[A-Za-z_][A-Za-z0-9_]*)'
     r'|(?P<op>\*\*|[-+*/^()=])'
     r')', re.ASCII)
+
+
+def work(parameters: int, coefficients: int, weight: int) -> int:
+    """
+    Upper bound of the cost of differentiating and compiling a model, in units of sympy steps.
+
+    Parameters
+    ----------
+    parameters : int
+        Number of parameters P (every one is a column of the Jacobian).
+    coefficients : int
+        Number of coefficient expressions C (of the numerator(s), denominator and dead time).
+    weight : int
+        Sum over the coefficients of their node count times (their longest product + 1).
+
+    Returns
+    -------
+    int
+        ``P * (C * (P + 1) + 5 * weight)``, compared with :data:`MAX_WORK`: compiling visits
+        every entry of the C x (P + 1) values and Jacobian once per parameter, and sympy
+        differentiates a product of f factors in about f**2 steps, a few times slower each.
+
+    """
+    return parameters * (coefficients * (parameters + 1) + 5 * weight)
 
 
 @dataclass(frozen=True)
@@ -72,7 +120,11 @@ class Size:
 
     ``*_terms`` count the terms of the expanded polynomials (in ``s`` and the parameters),
     ``*_degree`` their degree in ``s``; ``digits`` bounds the decimal digits of the exact
-    rational numbers involved.
+    rational numbers involved. A term is a product of powers of the parameters (and ``pi``,
+    ``s``, numbers): ``*_factors`` bound how many such powers other than ``s`` and numbers one
+    term has, counted with multiplicity, ``bases`` lists the names that can occur (so no term
+    has more than that many distinct factors), and ``atom_weight`` adds the fractional powers
+    ``(...)**0.5``, each weighing as much as the expanded base that sympy keeps inside it.
     """
 
     num_terms: int = 1
@@ -80,49 +132,138 @@ class Size:
     num_degree: int = 0
     den_degree: int = 0
     digits: int = 0
+    num_factors: int = 0
+    den_factors: int = 0
+    bases: frozenset = frozenset()
+    atom_weight: int = 0
+
+    @property
+    def factors(self) -> int:
+        """Bound of the sympy Mul arguments of one term of the numerator or denominator."""
+        return min(max(self.num_factors, self.den_factors), len(self.bases) + self.atom_weight)
+
+    def __post_init__(self):
+        # Without fractional powers a term is s**i times a monomial of degree <= factors in
+        # the bases: a numeric polynomial such as (s + 1)**10 has 11 terms, not 2**10.
+        if self.atom_weight == 0:
+            for side in ('num', 'den'):
+                degree, factors = getattr(self, f'{side}_degree'), getattr(self, f'{side}_factors')
+                if factors <= MAX_FACTORS:
+                    cap = (degree + 1) * math.comb(len(self.bases) + factors, factors)
+                    if cap < getattr(self, f'{side}_terms'):
+                        object.__setattr__(self, f'{side}_terms', cap)
 
     def __add__(self, other: 'Size') -> 'Size':
         return Size(self.num_terms * other.den_terms + other.num_terms * self.den_terms,
                     self.den_terms * other.den_terms,
                     max(self.num_degree + other.den_degree, other.num_degree + self.den_degree),
                     self.den_degree + other.den_degree,
-                    max(self.digits, other.digits) + 1)
+                    max(self.digits, other.digits) + 1,
+                    max(self.num_factors + other.den_factors,
+                        other.num_factors + self.den_factors),
+                    self.den_factors + other.den_factors,
+                    self.bases | other.bases, self.atom_weight + other.atom_weight)
 
     def __mul__(self, other: 'Size') -> 'Size':
         return Size(self.num_terms * other.num_terms, self.den_terms * other.den_terms,
                     self.num_degree + other.num_degree, self.den_degree + other.den_degree,
-                    self.digits + other.digits)
+                    self.digits + other.digits, self.num_factors + other.num_factors,
+                    self.den_factors + other.den_factors,
+                    self.bases | other.bases, self.atom_weight + other.atom_weight)
 
     def inverse(self) -> 'Size':
         return Size(self.den_terms, self.num_terms, self.den_degree, self.num_degree,
-                    self.digits)
+                    self.digits, self.den_factors, self.num_factors, self.bases,
+                    self.atom_weight)
 
-    def power(self, exponent) -> 'Size':
-        """Size of ``self ** exponent`` (integer exponents expand multinomially)."""
+    def power(self, exponent, generator: str = '#') -> 'Size':
+        """
+        Size of ``self ** exponent`` (integer exponents expand multinomially).
+
+        ``generator`` names a fractional power of a number in ``bases`` (a name that no
+        parameter can have, distinct for each such power in the text).
+        """
         base = self if exponent >= 0 else self.inverse()
         k = int(sp.ceiling(abs(exponent)))
         if exponent.is_Integer:
             return Size(math.comb(base.num_terms + k - 1, k),
                         math.comb(base.den_terms + k - 1, k),
-                        k * base.num_degree, k * base.den_degree, k * base.digits)
+                        k * base.num_degree, k * base.den_degree, k * base.digits,
+                        k * base.num_factors, k * base.den_factors, base.bases,
+                        base.atom_weight)
+        if all(name == 'pi' or name.startswith('#') for name in base.bases):
+            # A number such as 2**0.5 or (1 + 3**0.5)**1.5: nothing to differentiate, only one
+            # more generator of the coefficients besides its integer part.
+            return Size(math.comb(base.num_terms + k - 1, k) + 1,
+                        math.comb(base.den_terms + k - 1, k) + 1,
+                        0, 0, k * base.digits + 1,
+                        k * base.num_factors + 1, k * base.den_factors + 1,
+                        base.bases | {generator}, 0)
         # A fractional power of an expression free of s (enforced by the parser) stays one
-        # generator, except that sympy's expand splits off its integer part.
+        # generator, except that sympy's expand splits off its integer part. That generator
+        # keeps the expanded base inside it, so it weighs as much as the base's terms.
+        inner = (base.num_terms + base.den_terms) * (base.factors + 1) + 1
         return Size(math.comb(base.num_terms + k - 1, k) + 1,
                     math.comb(base.den_terms + k - 1, k) + 1,
-                    0, 0, k * base.digits + 1)
+                    0, 0, k * base.digits + 1,
+                    k * base.num_factors + inner, k * base.den_factors + inner, base.bases,
+                    base.atom_weight + inner)
 
-    def problem(self):
+    def problem(self) -> Optional[str]:
         """Return what exceeds the limits, or None."""
         if max(self.num_degree, self.den_degree) > MAX_DEGREE:
             return f'its degree in s would exceed {MAX_DEGREE}'
         if max(self.num_terms, self.den_terms) > MAX_TERMS:
             return f'it would expand to more than {MAX_TERMS} terms'
+        if self.factors > MAX_FACTORS:
+            return (f'a term would be a product of up to {self.factors} factors; the limit is '
+                    f'{MAX_FACTORS}')
         if self.digits > MAX_VALUE_DIGITS:
             return f'its numbers would have more than {MAX_VALUE_DIGITS} digits'
         return None
 
 
 _ATOM = Size()
+
+
+@dataclass(frozen=True)
+class DeadTime:
+    """The dead-time factor ``exp(argument)`` of a transfer function, ``argument = -tau*s``."""
+
+    tau: sp.Expr
+    argument: sp.Expr
+    column: int
+
+
+@dataclass(frozen=True)
+class Parsed:
+    """
+    A parsed model or controller text.
+
+    ``sides`` are ``[expression]`` or, for a model equation, ``[left, right]``, without the
+    dead-time factor (given apart as ``dead_time``). ``symbols`` are the names other than ``s``
+    and ``pi`` in order of first appearance; ``size`` bounds ``left - right``.
+    """
+
+    sides: List[sp.Expr]
+    symbols: Tuple[sp.Symbol, ...]
+    dead_time: Optional[DeadTime]
+    size: Size
+
+    def full_sides(self) -> List[sp.Expr]:
+        """Return the sides with the dead-time factor multiplied back in."""
+        if self.dead_time is None:
+            return list(self.sides)
+        return [self.sides[0] * sp.exp(self.dead_time.argument)]
+
+
+@dataclass(frozen=True)
+class _Node:
+    """A parsed sub-expression: sympy object, size bound, and the exp(...) token it carries."""
+
+    expr: sp.Expr
+    size: Size
+    dead_time: Optional[Token] = None
 
 
 def _pointer(text: str, column: int) -> str:
@@ -155,18 +296,19 @@ def tokenize(text: str) -> List[Token]:
     return tokens
 
 
-Node = Tuple[sp.Expr, Size]
-
-
 class _Parser:
     """Recursive-descent parser over the token list; builds sympy objects directly."""
 
-    def __init__(self, text: str):
+    def __init__(self, text: str, *, equation: bool, controller: bool):
         self.text = text
         self.tokens = tokenize(text)
+        # Known before parsing, so that a dead time in an equation gets the equation's message.
+        self.equation = equation and any(token.text == '=' for token in self.tokens)
+        self.controller = controller
         self.index = 0
         self.depth = 0
         self.symbols = {}
+        self.dead_time: Optional[DeadTime] = None
 
     def error(self, message: str, token: Token) -> ModelError:
         return ModelError(f'{message} at column {token.column + 1}'
@@ -194,95 +336,115 @@ class _Parser:
             raise self.error(f'expected {text!r} but found {found}', token)
         return self.advance()
 
-    def parse(self, equation: bool = False) -> List[sp.Expr]:
+    def parse(self) -> Parsed:
         if self.current.kind == 'end':
             raise ModelError('model expression is empty')
-        result, size = self.expression()
-        sides = [result]
-        if equation and self.current.text == '=':
+        node = self.expression()
+        sides, size = [node.expr], node.size
+        if self.equation and self.current.text == '=':
             sign = self.advance()
             if self.current.kind == 'end':
                 raise self.error("nothing after '='", self.current)
-            right, right_size = self.expression()
-            sides.append(right)
-            size = self.checked(size + right_size, sign)
+            right = self.expression()
+            sides.append(right.expr)
+            size = self.checked(size + right.size, sign)
         if self.current.text == '=':
             raise self.error("'=' is only allowed once, in a model equation", self.current)
         if self.current.kind != 'end':
             raise self.error(f'unexpected {self.current.text!r}', self.current)
-        work = (size.num_terms + size.den_terms) * max(1, len(self.symbols))
-        if work > MAX_WORK:
-            raise ModelError(f'model expression too large: up to {size.num_terms} + '
-                             f'{size.den_terms} terms in {len(self.symbols)} parameters '
-                             f'exceed the limit of {MAX_WORK} (terms times parameters)')
-        return sides
+        return Parsed(sides, tuple(self.symbols.values()), self.dead_time, size)
 
     def nested(self, token: Token):
         self.depth += 1
         if self.depth > MAX_DEPTH:
             raise self.error(f'expression nested deeper than {MAX_DEPTH} levels', token)
 
-    def expression(self) -> Node:
-        result, size = self.term()
+    def expression(self) -> _Node:
+        node = self.term()
         while self.current.text in ('+', '-'):
             operator = self.advance()
-            right, right_size = self.term()
-            size = self.checked(size + right_size, operator)
-            result = result + right if operator.text == '+' else result - right
-        return result, size
+            right = self.term()
+            for side in (node, right):
+                if side.dead_time is not None:
+                    raise self.error('the dead time exp(...) must be a factor of the whole '
+                                     'transfer function, not a term of a sum',
+                                     side.dead_time)
+            size = self.checked(node.size + right.size, operator)
+            result = node.expr + right.expr if operator.text == '+' else node.expr - right.expr
+            node = _Node(result, size)
+        return node
 
-    def term(self) -> Node:
-        result, size = self.unary()
+    def term(self) -> _Node:
+        node = self.unary()
         while self.current.text in ('*', '/'):
             operator = self.advance()
-            right, right_size = self.unary()
+            right = self.unary()
             if operator.text == '*':
-                size = self.checked(size * right_size, operator)
-                result = result * right
-            elif right == 0:
+                size = self.checked(node.size * right.size, operator)
+                node = _Node(node.expr * right.expr, size, node.dead_time or right.dead_time)
+                continue
+            if right.dead_time is not None:
+                raise self.error('a dead time exp(-tau*s) in a denominator is the time advance '
+                                 'exp(tau*s), which is non-causal (the output would react '
+                                 'before the input); write exp(-tau*s) as a factor of the '
+                                 'numerator', right.dead_time)
+            if right.expr == 0:
                 raise self.error('division by zero', operator)
-            else:
-                size = self.checked(size * right_size.inverse(), operator)
-                result = result / right
-        return result, size
+            size = self.checked(node.size * right.size.inverse(), operator)
+            node = _Node(node.expr / right.expr, size, node.dead_time)
+        return node
 
-    def unary(self) -> Node:
+    def unary(self) -> _Node:
         token = self.current
         if token.text in ('+', '-'):
             self.advance()
             self.nested(token)
-            operand, size = self.unary()
+            operand = self.unary()
             self.depth -= 1
-            return (-operand if token.text == '-' else operand), size
+            if token.text == '+':
+                return operand
+            return _Node(-operand.expr, operand.size, operand.dead_time)
         return self.power()
 
-    def power(self) -> Node:
+    def power(self) -> _Node:
         base = self.atom()
         if self.current.text not in ('**', '^'):
             return base
         operator = self.advance()
         self.nested(operator)
         exponent_token = self.current
-        exponent, _ = self.unary()
+        exponent = self.unary()
         self.depth -= 1
-        return self.checked_power(base, exponent, exponent_token)
+        if exponent.dead_time is not None:
+            raise self.error('exponents must be numbers, not a dead time', exponent.dead_time)
+        if base.dead_time is not None:
+            if exponent.expr.is_Number and exponent.expr < 0:
+                raise self.error(f'a dead time raised to the power {exponent.expr} is a time '
+                                 'advance, which is non-causal (the output would react before '
+                                 'the input)', base.dead_time)
+            raise self.error('a dead time exp(-tau*s) may not be raised to a power; write one '
+                             'factor exp(-tau*s) with the whole dead time in tau (e.g. '
+                             'exp(-2*tau*s))', base.dead_time)
+        return self.checked_power(base, exponent.expr, exponent_token)
 
-    def checked_power(self, base: Node, exponent: sp.Expr, token: Token) -> Node:
-        base, size = base
+    def checked_power(self, base: _Node, exponent: sp.Expr, token: Token) -> _Node:
         if not exponent.is_Number:
             raise self.error('exponents must be numbers', token)
         if abs(exponent) > MAX_EXPONENT:
             raise self.error(f'exponent {exponent} is larger than {MAX_EXPONENT} in magnitude',
                              token)
-        if base.has(LAPLACE) and not exponent.is_Integer:
+        if base.expr.has(LAPLACE) and not exponent.is_Integer:
             raise self.error('powers of expressions in s must have integer exponents', token)
-        if base == 0 and exponent < 0:
+        if base.expr == 0 and exponent < 0:
             raise self.error('division by zero', token)
+        if not exponent.is_Integer and base.expr.is_number and base.expr.is_negative:
+            raise self.error(f'a fractional power of the negative number {base.expr} is not '
+                             'real', token)
         # Checked before sympy evaluates the power (it computes numeric powers eagerly).
-        size = self.checked(size.power(exponent), token)
-        return base ** exponent, size
+        size = self.checked(base.size.power(exponent, f'#{token.column}'), token)
+        return _Node(base.expr ** exponent, size)
 
-    def atom(self) -> Node:
+    def atom(self) -> _Node:
         token = self.current
         if token.kind == 'number':
             self.advance()
@@ -300,30 +462,25 @@ class _Parser:
         found = repr(token.text) if token.kind != 'end' else 'end of expression'
         raise self.error(f'expected a number, a name or "(" but found {found}', token)
 
-    def number(self, token: Token) -> Node:
+    def number(self, token: Token) -> _Node:
         if len(token.text) > MAX_NUMBER_DIGITS:
             raise self.error(f'number longer than {MAX_NUMBER_DIGITS} characters', token)
         # Range check on the float first: sp.Rational('1e999999999') would compute 10**999999999.
         if not re.split('[eE]', token.text)[0].strip('0.'):
-            return sp.Integer(0), _ATOM
+            return _Node(sp.Integer(0), _ATOM)
         if not 1e-300 < float(token.text) < 1e300:
             raise self.error(f'number {token.text} is out of range', token)
         value = sp.Rational(token.text)
         digits = len(str(abs(value.p))) + len(str(value.q))
-        return value, Size(digits=digits)
+        return _Node(value, Size(digits=digits))
 
-    def name(self, token: Token) -> Node:
+    def name(self, token: Token) -> _Node:
         name = token.text
         if self.current.text == '(':
             if name != 'exp':
                 raise self.error(f'function {name}(...) is not allowed; the only function is '
                                  'exp(-tau*s), a dead time', token)
-            open_paren = self.advance()
-            self.nested(open_paren)
-            argument, _ = self.expression()
-            self.expect(')')
-            self.depth -= 1
-            return sp.exp(argument), Size(digits=1)
+            return self.exponential(token)
         if name == 'exp':
             raise self.error('exp must be called as exp(...)', token)
         if name.startswith('_'):
@@ -333,12 +490,105 @@ class _Parser:
         if keyword.iskeyword(name):
             raise self.error(f'{name!r} is a reserved word and cannot name a parameter', token)
         if name == 's':
-            return LAPLACE, Size(num_degree=1)
+            return _Node(LAPLACE, Size(num_degree=1))
         if name == 'pi':
-            return sp.pi, Size(digits=1)
+            return _Node(sp.pi, Size(digits=1, num_factors=1, bases=frozenset(['pi'])))
+        if self.controller:
+            raise self.error(f'a controller must have numeric coefficients; {name!r} is a '
+                             'parameter name', token)
         if name not in self.symbols:
+            if len(self.symbols) >= MAX_PARAMETERS:
+                what = 'names (parameters and signals)' if self.equation else 'parameters'
+                raise self.error(f'more than {MAX_PARAMETERS} {what}: {name!r} would be '
+                                 f'number {len(self.symbols) + 1}', token)
             self.symbols[name] = sp.Symbol(name, real=True)
-        return self.symbols[name], _ATOM
+        return _Node(self.symbols[name], Size(num_factors=1, bases=frozenset([name])))
+
+    def exponential(self, token: Token) -> _Node:
+        """Parse ``exp(...)`` after its name: the dead time, returned as the factor 1."""
+        if self.controller:
+            raise self.error('a controller may not contain a dead time exp(...): inside the '
+                             'loop it would make P K/(1 + P K) irrational', token)
+        if self.equation:
+            raise self.error('a dead time exp(-tau*s) is not supported in a model equation; '
+                             'use the transfer-function form', token)
+        open_paren = self.advance()
+        self.nested(open_paren)
+        argument = self.expression()
+        close = self.expect(')')
+        self.depth -= 1
+        if argument.dead_time is not None:
+            raise self.error('exp(...) inside exp(...): at most one dead-time factor '
+                             'exp(-tau*s) is allowed', argument.dead_time)
+        if self.dead_time is not None:
+            raise self.error('at most one dead-time factor exp(-tau*s) is allowed (the first is '
+                             f'at column {self.dead_time.column + 1}); write the whole dead '
+                             'time in one factor, e.g. exp(-(tau1 + tau2)*s)', token)
+        written = self.text[token.column:close.column + 1]
+        if len(written) > 60:
+            written = written[:56] + '...)'
+        # A walk over the unexpanded argument, as long as the text at most.
+        if not argument.expr.has(LAPLACE):
+            raise self.error(f'{written} is not allowed: exp(...) is only the dead time '
+                             'exp(-tau*s), and its argument has no s', token)
+        size = argument.size
+        if max(size.num_terms, size.den_terms) > MAX_DELAY_TERMS:
+            raise self.error(f'the argument of exp(...) may have at most {MAX_DELAY_TERMS} '
+                             f'terms (up to {max(size.num_terms, size.den_terms)} here)', token)
+        tau = self.delay(argument.expr, token, written)
+        self.dead_time = DeadTime(tau, argument.expr, token.column)
+        return _Node(sp.Integer(1), _ATOM, token)
+
+    def delay(self, argument: sp.Expr, token: Token, written: str) -> sp.Expr:
+        """Return ``tau`` of ``exp(argument)``, ``argument = -tau*s``, or raise why not."""
+        # Both small: the argument is bounded by MAX_DELAY_TERMS and MAX_FACTORS.
+        tau = sp.cancel(-argument / LAPLACE)
+        if tau.has(LAPLACE):
+            raise self.error(f'{written} is not a dead time: its argument must be -tau*s with '
+                             'tau independent of s', token)
+        if tau.is_number:
+            positive = tau.is_positive
+        else:
+            positive = tau.xreplace({symbol: sp.Dummy(symbol.name, positive=True)
+                                     for symbol in tau.free_symbols}).is_positive
+        if positive is False:
+            raise self.error(f'{written} is a time advance, which is non-causal (the output '
+                             'would react before the input): a dead time is exp(-tau*s) with '
+                             'tau > 0', token)
+        if positive is None:
+            raise self.error(f'{written}: cannot tell that the dead time {tau} is positive; '
+                             'write exp(-tau*s) with tau a sum of products of parameters and '
+                             'positive numbers', token)
+        return tau
+
+
+def parse_model_text(text: str, *, equation: bool = True, controller: bool = False) -> Parsed:
+    """
+    Parse model or controller text safely, with the dead time apart.
+
+    Parameters
+    ----------
+    text : str
+        A transfer function in ``s``, e.g. ``"K*exp(-tau*s)/(T*s + 1)"``, or (if ``equation``)
+        a model equation ``"M*s**2*y + Fv*s*y = 35.15*u - off"``.
+    equation : bool
+        Whether one ``=`` is allowed.
+    controller : bool
+        Parse a controller: numeric coefficients only, no dead time.
+
+    Returns
+    -------
+    Parsed
+        The sides without the dead-time factor, the names, the dead time and the size bound.
+
+    Raises
+    ------
+    ModelError
+        If the text is not in the grammar or exceeds a limit, with the column of the
+        offending part where there is one.
+
+    """
+    return _Parser(text, equation=equation, controller=controller).parse()
 
 
 def parse_expression(text: str) -> tuple:
@@ -363,9 +613,9 @@ def parse_expression(text: str) -> tuple:
         If the text is not in the grammar, with the column of the offending part.
 
     """
-    parser = _Parser(text)
-    expression, = parser.parse()
-    return expression, tuple(parser.symbols.values())
+    parsed = parse_model_text(text, equation=False)
+    expression, = parsed.full_sides()
+    return expression, parsed.symbols
 
 
 def parse_equation(text: str) -> tuple:
@@ -392,6 +642,5 @@ def parse_equation(text: str) -> tuple:
         As :func:`parse_expression`; also for more than one ``=``.
 
     """
-    parser = _Parser(text)
-    sides = parser.parse(equation=True)
-    return sides, tuple(parser.symbols.values())
+    parsed = parse_model_text(text)
+    return parsed.full_sides(), parsed.symbols

@@ -21,7 +21,8 @@ import keyword
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core.data import as_inputs
-from ctid_ros.core.expression import LAPLACE, MAX_DEGREE, parse_equation, parse_expression
+from ctid_ros.core.expression import (LAPLACE, MAX_DEGREE, MAX_TERMS, MAX_WORK,
+                                      parse_model_text, Parsed, work)
 from ctid_ros.core.simulation import ContinuousFilter, INTERSAMPLE
 from ctid_ros.errors import ModelError
 import numpy as np
@@ -49,41 +50,58 @@ class Coefficients:
     delay_gradient: np.ndarray
 
 
-def _split_delay(expression: sp.Expr, text: str) -> Tuple[sp.Expr, sp.Expr]:
-    """Return ``(rational part, tau)`` with ``expression = rational * exp(-tau*s)``."""
-    exponentials = [atom for atom in expression.atoms(sp.exp) if atom.has(LAPLACE)]
-    if not exponentials:
-        return expression, sp.Integer(0)
-    if len(exponentials) > 1:
-        raise ModelError(f'at most one dead-time factor exp(-tau*s) is allowed in {text!r}')
-    factor = exponentials[0]
-    argument = factor.args[0]
-    slope = sp.cancel(argument / LAPLACE)
-    if slope.has(LAPLACE):
-        raise ModelError(f'exp({argument}) is not a dead time: its argument must be -tau*s with '
-                         'tau independent of s')
-    marker = sp.Dummy('delay')
-    num, den = sp.fraction(sp.together(expression.subs(factor, marker)))
-    if den.has(marker) or sp.Poly(num, marker).monoms() != [(1,)]:
-        raise ModelError(f'the dead time exp({argument}) must multiply the whole transfer '
-                         f'function (a factor), not appear in a sum or a power in {text!r}')
-    tau = -slope
-    if tau.is_number and tau < 0:
-        raise ModelError(f'exp({argument}) is a time advance, not a dead time: write exp(-tau*s)')
-    return sp.cancel(num / marker) / den, tau
+def _poly(expression: sp.Expr, *gens: sp.Expr) -> sp.Poly:
+    """
+    Return ``Poly(expression, *gens)`` with the coefficients in a polynomial ring.
+
+    Built over every generator first, then the others moved into the coefficients: sympy's
+    direct route sums each coefficient one Expr term at a time, quadratic in the terms.
+    """
+    try:
+        others = [gen for gen in sp.Poly(expression).gens if gen not in gens]
+    except sp.GeneratorsNeeded:
+        others = []
+    poly = sp.Poly(expression, *gens, *others)
+    return poly.eject(*others) if others else poly
 
 
 def _polynomials(rational: sp.Expr, text: str) -> Tuple[sp.Poly, sp.Poly]:
-    if any(atom.has(LAPLACE) for atom in rational.atoms(sp.exp)):
-        raise ModelError(f'{text!r} has exp(...) of s outside a dead-time factor')
     if not rational.is_rational_function(LAPLACE):
         raise ModelError(f'{text!r} is not a rational function of s')
     num, den = sp.fraction(sp.together(rational))
-    num_poly = sp.Poly(sp.expand(num), LAPLACE)
-    den_poly = sp.Poly(sp.expand(den), LAPLACE)
+    num_poly = _poly(num, LAPLACE)
+    den_poly = _poly(den, LAPLACE)
     if den_poly.is_zero:
         raise ModelError(f'{text!r} has a zero denominator')
     return num_poly, den_poly
+
+
+def _terms(poly: sp.Poly) -> int:
+    """Count the terms of ``poly`` expanded in ``s`` and the parameters."""
+    return sum(len(sp.Add.make_args(c)) for c in poly.all_coeffs())
+
+
+def _weight(expression: sp.Expr) -> int:
+    """Node count of ``expression`` times (its longest product + 1): see :func:`work`."""
+    nodes, longest = 0, 0
+    for node in sp.preorder_traversal(expression):
+        nodes += 1
+        if node.is_Mul:
+            longest = max(longest, len(node.args))
+    return nodes * (longest + 1)
+
+
+def _check_work(nums: Sequence[sp.Poly], den: sp.Poly, tau: sp.Expr, parameters: int,
+                what: str) -> None:
+    """Reject a model whose Jacobian would take long to derive and compile, before it is."""
+    coefficients = [c for poly in list(nums) + [den] for c in poly.all_coeffs()] + [tau]
+    weight = sum(_weight(c) for c in coefficients)
+    cost = work(parameters, len(coefficients), weight)
+    if cost > MAX_WORK:
+        raise ModelError(f'{what} is too large to differentiate: {len(coefficients)} '
+                         f'coefficients of total weight {weight} in {parameters} parameters; '
+                         f'P x (C x (P + 1) + 5 x weight) = {cost} exceeds the limit of '
+                         f'{MAX_WORK} (see "Limits" in the README)')
 
 
 def _check_proper(num: sp.Poly, den: sp.Poly, text: str) -> None:
@@ -94,17 +112,19 @@ def _check_proper(num: sp.Poly, den: sp.Poly, text: str) -> None:
 
 
 def _numeric_controller(text: str) -> Tuple[sp.Poly, sp.Poly]:
-    expression, symbols = parse_expression(text)
-    if symbols:
-        names = ', '.join(str(symbol) for symbol in symbols)
-        raise ModelError(f'controller {text!r} must have numeric coefficients; it has '
-                         f'parameter(s) {names}')
-    rational, tau = _split_delay(expression, text)
-    if tau != 0:
-        raise ModelError(f'controller {text!r} may not contain a dead time')
-    num, den = _polynomials(rational, text)
+    """Return ``(num, den)`` of a proper controller with numeric coefficients."""
+    try:
+        parsed = parse_model_text(text, equation=False, controller=True)
+        num, den = _polynomials(parsed.sides[0], text)
+    except ModelError as error:
+        raise ModelError(f'controller: {error}') from None
     if num.is_zero:
         raise ModelError(f'controller {text!r} is identically zero')
+    if num.degree() > den.degree():
+        raise ModelError(f'controller {text!r} is improper: numerator degree {num.degree()} '
+                         f'exceeds denominator degree {den.degree()}, so it would differentiate '
+                         'the error; give its derivative part a filter, e.g. '
+                         "'20 + 10/s + 2*s/(0.01*s + 1)'")
     return num, den
 
 
@@ -155,8 +175,9 @@ class Model:
     Raises
     ------
     ModelError
-        If either text is unsafe, malformed, improper, not linear in the signals, or has a
-        dead time that is not a factor.
+        If either text is unsafe, malformed, improper, non-causal, beyond a size limit (see
+        :mod:`ctid_ros.core.expression`), not linear in the signals, or has a dead time that is
+        not a single factor ``exp(-tau*s)`` (an estimated one needs at least one pole).
 
     """
 
@@ -169,7 +190,10 @@ class Model:
         self.inputs: Tuple[str, ...] = _signal_names(('u',) if inputs is None else inputs,
                                                      output)
         self.output = output
-        sides, names = parse_equation(expression)
+        parsed = parse_model_text(expression)
+        sides, names = parsed.sides, parsed.symbols
+        # The controller text first: what is wrong with it is said before how it fits the plant.
+        loop = _numeric_controller(self.controller) if self.controller is not None else None
         for symbol in names:
             if keyword.iskeyword(symbol.name):
                 raise ModelError(f'parameter name {symbol.name!r} is a reserved word')
@@ -185,30 +209,48 @@ class Model:
                 raise ModelError(f'a transfer function has one input, {len(self.inputs)} were '
                                  'declared; write a model equation (with "=") for several '
                                  'inputs')
-            num, den, tau = self._transfer_function(sides[0])
+            num, den, tau = self._transfer_function(parsed, loop)
             nums, symbols, self.constant_input = [num], names, False
         self._symbols = symbols
         self.parameters: Tuple[str, ...] = tuple(symbol.name for symbol in symbols)
         if not self.parameters:
             raise ModelError(f'{expression!r} has no parameters to estimate')
+        _check_work(nums, den, tau, len(symbols), repr(expression) if self.controller is None
+                    else f'the closed loop of {expression!r} with {self.controller!r}')
         self._build(nums, den, tau)
 
-    def _transfer_function(self, parsed: sp.Expr) -> Tuple[sp.Poly, sp.Poly, sp.Expr]:
+    def _transfer_function(self, parsed: Parsed, loop: Optional[Tuple[sp.Poly, sp.Poly]]
+                           ) -> Tuple[sp.Poly, sp.Poly, sp.Expr]:
         expression = self.expression
-        rational, tau = _split_delay(parsed, expression)
-        num, den = _polynomials(rational, expression)
+        num, den = _polynomials(parsed.sides[0], expression)
         _check_proper(num, den, expression)
-        if self.controller is None:
+        tau = sp.Integer(0) if parsed.dead_time is None else parsed.dead_time.tau
+        if tau.free_symbols and den.degree() == 0:
+            # Rejected rather than given a meaning: y(t) = K u(t - tau) under a held input jumps
+            # when tau crosses a sample instant and is flat in between, so no data determine an
+            # estimated tau (a known one, K*exp(-0.5*s), simulates exactly and is accepted).
+            raise ModelError(f'{expression!r} is a dead time without dynamics (no pole): its '
+                             'sampled output only jumps as the dead time changes, so the dead '
+                             'time cannot be estimated; give the model at least one pole, e.g. '
+                             'K*exp(-tau*s)/(T*s + 1), or a known dead time, e.g. '
+                             'K*exp(-0.5*s)')
+        if loop is None:
             return num, den, tau
         if tau != 0:
             raise ModelError(
                 'a dead time inside a closed loop makes P K/(1 + P K) irrational; identify '
                 'the plant open loop from its measured input u instead')
-        k_num, k_den = _numeric_controller(self.controller)
+        k_num, k_den = loop
         degree = max(num.degree() + k_num.degree(), den.degree() + k_den.degree())
         if degree > MAX_DEGREE:
             raise ModelError(f'the closed loop of {expression!r} with {self.controller!r} '
                              f'has degree {degree} in s; the limit is {MAX_DEGREE}')
+        # Bounded before multiplying: N Kn/(D Kd + N Kn) has more terms than N/D.
+        terms = (2 * _terms(num) * (k_num.degree() + 1) + _terms(den) * (k_den.degree() + 1))
+        if terms > MAX_TERMS:
+            raise ModelError(f'the closed loop of {expression!r} with {self.controller!r} is '
+                             f'too large: it would expand to up to {terms} terms; the limit is '
+                             f'{MAX_TERMS}')
         num, den = num * k_num, den * k_den + num * k_num
         _check_proper(num, den, f'closed loop of {expression!r} with {self.controller!r}')
         return num, den, tau
@@ -227,16 +269,13 @@ class Model:
         inputs = [by_name[name] for name in self.inputs]
         signals = [output] + inputs
         difference = sides[0] - sides[1]
-        if any(atom.has(LAPLACE) for atom in difference.atoms(sp.exp)):
-            raise ModelError(f'a dead time exp(-tau*s) is not supported in a model equation '
-                             f'({text!r}); use the transfer-function form')
         numerator, denominator = sp.fraction(sp.together(difference))
         if denominator.has(*signals):
             raise ModelError(f'{text!r} divides by a signal: the equation must be linear in '
                              f'{", ".join(symbol.name for symbol in signals)}')
         if not numerator.is_polynomial(LAPLACE, *signals):
             raise ModelError(f'{text!r} is not polynomial in s and the signals')
-        poly = sp.Poly(sp.expand(numerator), *signals)
+        poly = _poly(numerator, *signals)
         if poly.total_degree() > 1:
             raise ModelError(f'{text!r} is not linear in the signals '
                              f'{", ".join(symbol.name for symbol in signals)} (a product or '
@@ -249,10 +288,10 @@ class Model:
                 monomial[index] = 1
             return poly.coeff_monomial(tuple(monomial))
 
-        den = sp.Poly(coefficient(0), LAPLACE)
+        den = _poly(coefficient(0), LAPLACE)
         if den.is_zero:
             raise ModelError(f'the output {self.output} cancels out of {text!r}')
-        nums = [sp.Poly(-coefficient(1 + index), LAPLACE) for index in range(len(inputs))]
+        nums = [_poly(-coefficient(1 + index), LAPLACE) for index in range(len(inputs))]
         constant = -coefficient(None)
         if constant.has(LAPLACE):
             raise ModelError(f'the constant term of {text!r} may not be multiplied by s (the '
@@ -263,7 +302,7 @@ class Model:
             _check_proper(num, den, f'{text!r} from input {name}')
         has_constant = constant != 0
         if has_constant:
-            nums.append(sp.Poly(constant, LAPLACE))
+            nums.append(_poly(constant, LAPLACE))
         return nums, den, sp.Integer(0), has_constant
 
     def _build(self, nums: Sequence[sp.Poly], den: sp.Poly, tau: sp.Expr) -> None:

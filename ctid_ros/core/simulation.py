@@ -84,10 +84,16 @@ class ContinuousFilter:
         self.scale = _time_scale(den)
         n = self.order
         # D(scale * z) / (den[0] * scale**n) is monic in the scaled Laplace variable z.
-        powers = self.scale ** np.arange(n, -1, -1, dtype=float)
-        monic = den * powers / (den[0] * powers[0])
+        with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+            powers = self.scale ** np.arange(n, -1, -1, dtype=float)
+            monic = den * powers / (den[0] * powers[0])
+            self._gain = 1.0 / (den[0] * powers[0])
+        # Roots hundreds of decades apart (numbers like 1.5**490 in the model text) overflow
+        # the scaled coefficients: say so instead of failing inside scipy with NaNs.
+        if not (np.all(np.isfinite(monic)) and np.isfinite(self._gain) and self._gain != 0.0):
+            raise ModelError(f'the denominator {den} has roots too many decades apart to '
+                             'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
-        self._gain = 1.0 / (den[0] * powers[0])
         a = np.zeros((n, n))
         if n:
             a[:-1, 1:] = np.eye(n - 1)
@@ -148,6 +154,11 @@ class ContinuousFilter:
             drive = {sample: e @ vector for sample, vector in drive.items()}
             _accumulate(drive, start, p - q)
             _accumulate(drive, end, q)
+        # A time scale ratio far beyond any physical model (1e36 and more) overflows the matrix
+        # exponential: an error, rather than NaNs that fail later inside numpy.
+        if not all(np.all(np.isfinite(matrix)) for matrix in [transition, *drive.values()]):
+            raise ModelError(f'the denominator {self.den} has roots too many decades apart to '
+                             f'discretise with sample time {ts}')
         return DiscreteFilter(self, transition, drive, feed)
 
 

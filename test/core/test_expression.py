@@ -6,7 +6,9 @@ import sys
 import textwrap
 
 from ctid_ros import Model, ModelError
-from ctid_ros.core.expression import LAPLACE, MAX_DEPTH, MAX_LENGTH, parse_expression, tokenize
+from ctid_ros.core.expression import (LAPLACE, MAX_DELAY_TERMS, MAX_DEPTH, MAX_FACTORS, MAX_LENGTH,
+                                      MAX_PARAMETERS, parse_expression, parse_model_text,
+                                      tokenize)
 import pytest
 import sympy as sp
 
@@ -50,9 +52,9 @@ HOSTILE = [
     ('\u0661/(K*s+1)', 1),                         # ARABIC-INDIC DIGIT ONE
     ('K\u00b2/(s+1)', 2),
     ('s**100000', 4),
-    ('K/(s+1)**17', 10),
+    ('K/(s+1)**33', 10),
     ('2**10**10', 4),
-    ('K*s**(-17)', 6),
+    ('K*s**(-33)', 6),
     ('K/(s+1)**K', 10),                            # symbolic exponent
     ('K/(s+1)**0.5', 10),                          # fractional power of s
     ('K*1e400/(s+1)', 3),
@@ -210,3 +212,72 @@ def test_valid_expression_parameters_and_values():
     assert parse_expression('(-2)**2')[0] == 4
     assert parse_expression('-2**2')[0] == -4
     assert parse_expression('0e999999999999 + 1')[0] == 1
+
+
+def test_dead_time_is_parsed_apart_from_the_rational_part():
+    parsed = parse_model_text('K*exp(-(tau1 + tau2)*s)/(T*s + 1)')
+    K, tau1, tau2, T = parsed.symbols
+    assert parsed.sides == [K / (T * LAPLACE + 1)]
+    assert parsed.dead_time.tau == tau1 + tau2
+    assert parsed.dead_time.column == 2
+    assert parse_model_text('K/(T*s + 1)').dead_time is None
+    # parse_expression keeps the whole text, dead time included.
+    expression, _ = parse_expression('K*exp(-(tau1 + tau2)*s)/(T*s + 1)')
+    assert expression == K * sp.exp(-(tau1 + tau2) * LAPLACE) / (T * LAPLACE + 1)
+
+
+@pytest.mark.parametrize('text,fragment,column', [
+    ('y = exp(-t*s)*u', 'not supported in a model equation', 5),
+    ('exp(-t*s)*y = u', 'not supported in a model equation', 1),
+    ('K*exp(-t*s)/(s+1) = 1', 'not supported in a model equation', 3),
+])
+def test_a_dead_time_in_an_equation_gets_the_equation_message(text, fragment, column):
+    with pytest.raises(ModelError, match=fragment) as info:
+        parse_model_text(text)
+    assert f'column {column}' in str(info.value)
+
+
+@pytest.mark.parametrize('text,fragment,column', [
+    ('kp + ki/s', 'numeric coefficients', 1),
+    ('4 + 2/s*exp(-0.1*s)', 'may not contain a dead time', 9),
+    ('s = 1', "'=' is only allowed once, in a model equation", 3),
+])
+def test_controller_text_has_numbers_only(text, fragment, column):
+    with pytest.raises(ModelError, match=fragment) as info:
+        parse_model_text(text, equation=False, controller=True)
+    assert f'column {column}' in str(info.value)
+    assert parse_model_text('20 + 10/s + 2*pi', controller=True).symbols == ()
+
+
+@pytest.mark.parametrize('text,fragment,column', [
+    ('K*(-1)**0.5/(s+1)', 'fractional power of the negative number -1 is not real', 9),
+    ('K/(s + (-8)**(1/3))', 'not real', 14),
+    ('K/(s + (2 - pi)**1.5)', 'not real', 18),
+    ('K/(' + '*'.join(f'a{i}' for i in range(30)) + ')', 'product of up to 25 factors', 89),
+    ('K*' + '*'.join(['(a+b+c+d+e+f+g+h+i+j+l+m)'] * 4) + '/(s+1)', 'more than 512 terms',
+     54),
+])
+def test_parser_limits_and_non_real_numbers(text, fragment, column):
+    with pytest.raises(ModelError, match=fragment) as info:
+        parse_model_text(text)
+    assert f'column {column}' in str(info.value)
+
+
+def test_size_bounds_count_distinct_factors_and_numeric_terms():
+    # Terms of a polynomial with numeric coefficients are bounded by its degree + 1.
+    assert parse_model_text('(s + 1)**10*(s + 2)**10').size.num_terms == 21
+    # (a*s + 1)**16 has 17 terms, each a power of a: with K two factors at most, not 16.
+    size = parse_model_text('K/(a*s + 1)**16').size
+    assert (size.den_terms, size.den_degree, size.den_factors, size.factors) == (17, 16, 16, 2)
+    size = parse_model_text('K/(a*b*c*s + d)').size
+    assert (size.num_factors, size.den_factors, size.factors) == (1, 3, 3)
+    assert sorted(size.bases) == ['K', 'a', 'b', 'c', 'd']
+    assert MAX_PARAMETERS == 64 and MAX_FACTORS == 24 and MAX_DELAY_TERMS == 16
+
+
+def test_fractional_powers_of_numbers_are_one_generator_each():
+    # No parameter inside: nothing to differentiate, so they do not weigh as their base.
+    size = parse_model_text('K*(1 + 2**0.5)**2.5/(s + (3 + 5**0.5)**(1/3))**3').size
+    assert size.atom_weight == 0 and size.factors <= 8
+    size = parse_model_text('K/(s + (a + b)**0.5)').size
+    assert size.atom_weight > 0

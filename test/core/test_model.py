@@ -1,5 +1,7 @@
 """Grey-box Model: coefficients, Jacobians, affinity, delays, closed loop and rejected models."""
 
+import time
+
 from ctid_ros import DataError, Model, ModelError
 import numpy as np
 import pytest
@@ -24,7 +26,7 @@ def test_improper_models_are_rejected(text):
     ('K*exp(-tau/s)/(s+1)', 'not a dead time'),
     ('K*exp(-tau*s + 1)/(s+1)', 'not a dead time'),
     ('1/(exp(-tau*s) + s)', 'factor'),
-    ('K/(s+1)/exp(-tau*s)**-1 + 1/(s+2)', 'factor'),
+    ('K/(s+1)/exp(-tau*s)**-1 + 1/(s+2)', 'non-causal'),
     ('exp(2*s)/(s+1)', 'advance'),
     ('K*exp(0.5*s)/(T*s+1)', 'advance'),
     ('K*exp(-a*s)/(s+1) + exp(-b*s)/(s+2)', 'at most one'),
@@ -37,7 +39,7 @@ def test_dead_times_that_are_not_a_factor_are_rejected(text, fragment):
 
 
 @pytest.mark.parametrize('controller', [
-    'kp*(1 + 1/(Ti*s))', 'kp', '4 + ki/s', 'exp(-tau*s)*2',
+    'kp*(1 + 1/(Ti*s))', 'kp', '4 + ki/s', 'kp*exp(-0.1*s)',
 ])
 def test_controllers_with_parameters_are_rejected(controller):
     with pytest.raises(ModelError, match='numeric coefficients'):
@@ -135,8 +137,12 @@ def test_first_order_plus_dead_time():
     known = Model('K*exp(-0.5*s)/(T*s + 1)')
     assert known.has_delay and not known.delay_is_estimated
     assert known.coefficients([2.0, 5.0]).delay == 0.5
-    twice = Model('K*exp(-tau*s)*exp(-tau*s)/(T*s + 1)')     # one factor exp(-2 tau s)
-    assert twice.coefficients([1.0, 0.3, 1.0]).delay == pytest.approx(0.6, rel=1e-15)
+    with pytest.raises(ModelError, match='at most one'):
+        Model('K*exp(-tau*s)*exp(-tau*s)/(T*s + 1)')
+    summed = Model('K*exp(-(tau1 + tau2)*s)/(T*s + 1)')
+    assert summed.coefficients([1.0, 0.3, 0.2, 1.0]).delay == pytest.approx(0.5, rel=1e-15)
+    np.testing.assert_array_equal(summed.coefficients([1.0, 0.3, 0.2, 1.0]).delay_gradient,
+                                  [0.0, 1.0, 1.0, 0.0])
 
 
 def test_closed_loop_coefficients_match_hand_computation():
@@ -176,7 +182,7 @@ JACOBIAN_CASES = [
     ('K*w**2/(s**2 + 2*z*w*s + w**2)', [1.5, 3.0, 0.2]),
     ('K/((T1*s + 1)*(T2*s + 1))', [2.0, 3.0, 0.7]),
     ('K*exp(-tau*s)*(a*s + 1)/(T**2*s**2 + T*s + 1)', [2.0, 0.3, 0.5, 1.7]),
-    ('k*exp(-(a + b**2)*s)/(a*b*s + exp(a))', [1.2, 0.4, 0.8]),
+    ('k*exp(-(a + b**2)*s)/(a*b*s + (a + 1)**0.5)', [1.2, 0.4, 0.8]),
     ('(K/T)/(s + 1/T)', [2.0, 0.25]),
 ]
 
@@ -226,7 +232,7 @@ def test_parameter_values_are_validated():
     with pytest.raises(ModelError, match='finite'):
         model.coefficients([1.0, np.nan, 2.0])
     with pytest.raises(ModelError, match='undefined'):
-        Model('K/(s + exp(1/T))').coefficients({'K': 1.0, 'T': 0.0})
+        Model('K/(s + (1/T)**0.5)').coefficients({'K': 1.0, 'T': 0.0})
     assert model.as_dict(model.vector({'tau': 0.1, 'T': 2.0, 'K': 3.0})) == {
         'K': 3.0, 'tau': 0.1, 'T': 2.0}
 
@@ -268,3 +274,115 @@ def test_model_rejects_parameters_that_cancel_and_non_string_controllers():
 def test_closed_loop_degree_is_limited_before_expansion():
     with pytest.raises(ModelError, match='degree'):
         Model('K/(a*s + 1)**16/(b*s + 1)**4', controller='(s + 1)**16/(s + 2)**16')
+
+
+# Issue #16: each example with the answer it must get, well within a second.
+PRODUCT_60 = 'K/(' + '*'.join(f'a{i}' for i in range(60)) + ')'
+PRODUCT_100 = 'K/(' + '*'.join(f'a{i}' for i in range(100)) + ')'
+EXP_OF_POWER = 'exp((a+b+c+d+e)**10)/(s+1)'
+
+
+@pytest.mark.parametrize('text,controller,fragment', [
+    (PRODUCT_60, None, 'product of up to 25 factors; the limit is 24'),
+    (PRODUCT_100, None, 'product of up to 25 factors; the limit is 24'),
+    ('K/((' + '*'.join(f'a{i}' for i in range(60)) + ')*s + 1)', None, 'the limit is 24'),
+    (EXP_OF_POWER, None, 'expression too large: it would expand to more than 512 terms at '
+                         'column 18'),
+    ('*'.join(['exp((a+b+c+d+e)**10)'] * 3) + '/(s+1)', None, 'more than 512 terms at column 18'),
+    ('exp((a+b+c+d+e)**3)/(s+1)', None,
+     r'exp\(\(a\+b\+c\+d\+e\)\*\*3\) is not allowed: exp\(\.\.\.\) is only the dead time'),
+    ('K*exp(-(a+b+c+d+e)**3*s)/(s+1)', None, 'at most 16 terms'),
+    ('K*exp(tau*s)/(T*s + 1)', None, r'exp\(tau\*s\) is a time advance, which is non-causal'),
+    ('K*exp(-tau*s)**-1/(s+1)', None, 'power -1 is a time advance, which is non-causal'),
+    ('K*exp(-tau*s)**2/(s+1)', None, 'may not be raised to a power'),
+    ('exp(-tau*s)', None, 'dead time without dynamics'),
+    ('K*exp(-tau*s)', None, 'dead time without dynamics'),
+    (MSD, 's**3', r"controller 's\*\*3' is improper: numerator degree 3 exceeds denominator "
+                  'degree 0'),
+    (MSD, 's', "controller 's' is improper"),
+    (MSD, '20 + 10/s + 5*s', 'improper'),
+])
+def test_issue_16_examples_get_their_error_quickly(text, controller, fragment):
+    start = time.perf_counter()
+    with pytest.raises(ModelError, match=fragment):
+        Model(text, controller=controller)
+    assert time.perf_counter() - start < 1.0
+
+
+@pytest.mark.parametrize('plant', ['K*exp(-tau*s)/(T*s + 1)', MSD])
+def test_unsafe_controller_text_is_named_not_the_dead_time(plant):
+    with pytest.raises(ModelError) as info:
+        Model(plant, controller="__import__('os')")
+    message = str(info.value)
+    assert message.startswith('controller: unexpected character "\'" at column 12')
+    assert 'dead time' not in message
+    with pytest.raises(ModelError, match='controller: function sin'):
+        Model(plant, controller='sin(s)')
+    with pytest.raises(ModelError, match='controller: a controller must have numeric'):
+        Model(plant, controller='kp + ki/s')
+
+
+@pytest.mark.parametrize('text,fragment', [
+    ('K/(exp(-tau*s)*(s + 1))', 'in a denominator is the time advance'),
+    ('K/(s + 1)/exp(-tau*s)', 'in a denominator is the time advance'),
+    ('K*exp(-(a - b)*s)/(s + 1)', 'cannot tell that the dead time a - b is positive'),
+    ('K*exp(0.5*s)/(s + 1)', 'non-causal'),
+    ('K*exp(-(1 - 2)*s)/(s + 1)', 'non-causal'),
+    ('K*exp(-0*s)/(s + 1)', 'its argument has no s'),
+    ('K*exp(a)/(s + 1)', 'its argument has no s'),
+    ('K*exp(-tau*s)**1/(s + 1)', 'may not be raised to a power'),
+    ('K*2**exp(-tau*s)/(s + 1)', 'exponents must be numbers'),
+    ('K*exp(-tau*s)*exp(-L*s)/(s + 1)', 'at most one'),
+])
+def test_dead_time_grammar_is_precise(text, fragment):
+    with pytest.raises(ModelError, match=fragment):
+        Model(text)
+
+
+@pytest.mark.parametrize('text,delay', [
+    ('K*exp(-tau*s)/(T*s + 1)', 0.3), ('K*exp(-(tau + L)*s)/(T*s + 1)', 0.5),
+    ('K*exp(-0.1*s)/(T*s + 1)', 0.1), ('-K*exp(-tau*s)/(T*s + 1)', 0.3),
+    ('(K*exp(-tau*s))/(T*s + 1)', 0.3), ('K/(T*s + 1)*exp(-tau*s)', 0.3),
+    ('K*exp(-tau**2*s)/(T*s + 1)', 0.09), ('K*exp(-s*tau/2)/(T*s + 1)', 0.15),
+    ('K*exp(-pi*s)/(T*s + 1)', np.pi),
+])
+def test_dead_times_written_as_one_causal_factor_are_accepted(text, delay):
+    model = Model(text)
+    values = {'K': 2.0, 'tau': 0.3, 'L': 0.2, 'T': 1.5}
+    structure = model.coefficients({name: values[name] for name in model.parameters})
+    assert structure.delay == pytest.approx(delay, rel=1e-14)
+    assert abs(structure.num[0][-1]) == 2.0
+
+
+def test_a_known_dead_time_without_dynamics_is_a_delayed_gain():
+    model = Model('K*exp(-0.15*s)')
+    assert (model.num_degree, model.den_degree, model.delay_is_estimated) == (0, 0, False)
+    y = model.simulate({'K': 1.5}, np.arange(6.0), 0.1)
+    np.testing.assert_allclose(y, [0.0, 0.0, 0.0, 1.5, 3.0, 4.5], atol=1e-15)
+
+
+def test_proper_controllers_are_accepted():
+    for controller in ['20 + 10/s', '(5*s**2 + 20*s + 10)/(s*(0.02*s + 1))', '3',
+                       '20 + 10/s + 2*s/(0.01*s + 1)', '(s + 1)**10/(s + 2)**10']:
+        assert Model(MSD, controller=controller).parameters == ('m', 'd', 'k')
+
+
+def test_size_limits_name_the_limit_and_the_value():
+    with pytest.raises(ModelError, match=r'more than 64 parameters: .a63. would be number 65'):
+        Model('K/(' + '+'.join(f'a{i}*s' for i in range(70)) + ' + 1)')
+    with pytest.raises(ModelError, match='too large to differentiate: .* exceeds the limit of '
+                                         '100000'):
+        Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(8)) + ')')
+    with pytest.raises(ModelError, match='closed loop .* is too large to differentiate'):
+        Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(5)) + ')',
+              controller='(s + 1)**10/(s + 2)**11')
+    with pytest.raises(ModelError, match='closed loop .* would expand to up to 790 terms; the '
+                                         'limit is 512'):
+        Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(6)) + ')',
+              controller='(s + 1)**10/(s + 2)**11')
+    # Within the limits: a degree-20 black box and a product of six first-order lags.
+    black_box = Model('(' + ' + '.join(f'b{i}*s**{i}' for i in range(20)) + ')/(s**20 + '
+                      + ' + '.join(f'a{i}*s**{i}' for i in range(20)) + ')')
+    assert (black_box.den_degree, len(black_box.parameters)) == (20, 40)
+    lags = Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(6)) + ')')
+    assert lags.den_degree == 6

@@ -65,6 +65,9 @@ def test_simulation_sums_the_inputs():
     ('a*s*y + y = b*u', ('u', 'u'), 'distinct'),
     ('a*s*y + y = b*u', ('lambda',), 'cannot name a signal'),
     ('a*s*y + y = b*u', (), 'at least one input'),
+    ('(' + '+'.join(f'a{i}' for i in range(70)) + ')*s*y + y = u', ('u',),
+     "more than 64 names \\(parameters and signals\\): 'a64'"),
+    ('(a + b + c + d + e + s)**4*y = u', ('u',), 'too large to differentiate'),
 ])
 def test_bad_equations_are_rejected(text, inputs, fragment):
     with pytest.raises(ModelError, match=fragment):

@@ -319,6 +319,16 @@ def test_invalid_arguments(kwargs, error):
                  **extra)
 
 
+@pytest.mark.filterwarnings('ignore::RuntimeWarning')
+@pytest.mark.parametrize('den', [
+    [1.0, 1e40, 1e39],                     # roots -1e40 and -0.1: the exponential overflows
+    [1.0, 1e200, 1e-200],                  # the scaled coefficients overflow
+])
+def test_roots_too_many_decades_apart_are_a_model_error(den):
+    with pytest.raises(ModelError, match='decades apart'):
+        response([1.0], den, np.ones(10), 0.05)
+
+
 def test_tiny_records():
     assert response([1.0], [1.0, 1.0], np.zeros(0), 0.1).shape == (0,)
     np.testing.assert_array_equal(response([1.0], [1.0, 1.0], [5.0], 0.1), [0.0])
