@@ -142,6 +142,8 @@ def run(arguments: argparse.Namespace) -> int:
             _estimate_output(arguments.output, arguments.path, arguments.node_name) as writer:
         for warning in bag.warnings:
             print(f'ctid replay: warning: {warning}', file=sys.stderr)
+        # A bag may store a topic without its leading slash: use the bag's spelling.
+        topics = tuple(bag.topic_name(topic) or topic for topic in topics)
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
         selected = sorted(set(topics))
         records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns), sys.stderr)
