@@ -2,12 +2,13 @@
 
 import sys
 
-from bench import estimator
+from bench import estimator, hostile_files
 
 
 def main() -> int:
-    """Run the estimator benchmark, then the node throughput benchmark if it is available."""
+    """Run the estimator and hostile-files benchmarks, then the node throughput benchmark."""
     estimator.main(['--runs', '100', '--json', 'bench/results-estimator.json'] + sys.argv[1:])
+    hostile_files.main([])
     try:
         from bench import node_throughput
     except ImportError as error:       # rclpy missing: the core benchmark still stands

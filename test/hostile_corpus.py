@@ -146,6 +146,18 @@ def params_cases(directory: Path, good: bytes, rng: random.Random) -> Dict[str, 
     return files
 
 
+def gzip_zeros(head: bytes, byte: bytes, size: int) -> bytes:
+    """Return ``head`` plus ``size`` copies of ``byte``, gzip-compressed (about 0.3 MB)."""
+    import zlib
+
+    compressor = zlib.compressobj(1, zlib.DEFLATED, 31)
+    pieces = [compressor.compress(head)]
+    block = byte * (8 * MiB)
+    for _ in range(size // len(block)):
+        pieces.append(compressor.compress(block))
+    return b''.join(pieces + [compressor.flush()])
+
+
 def csv_cases(directory: Path, good: bytes, rng: random.Random) -> Dict[str, Path]:
     """Write hostile CSV files, several derived from the valid ``good``."""
     import gzip
@@ -161,12 +173,13 @@ def csv_cases(directory: Path, good: bytes, rng: random.Random) -> Dict[str, Pat
         'line of 2 MiB': good + b'1' * (2 * MiB) + b'\n',
         'truncated gzip': gzip.compress(good)[:len(gzip.compress(good)) // 2],
         'gzip of garbage': gzip.compress(bytes(rng.getrandbits(8) for _ in range(3000))),
-        'nan cells': good.replace(b',', b',nan', 3),
+        'nan cells': good + b'4.00,nan,1\n4.01,1,inf\n',
         'newlines only': b'\n' * 50_000,
         'quote never closed': good + b'1,"2,3\n' * 3,
         'semicolons': good.replace(b',', b';'),
         'decreasing time': b't,u,y\n' + b''.join(b'%d,1,%d\n' % (10 - k, k) for k in range(10)),
-        'gzip bomb': gzip.compress(b'0,0,0\n' * (8 * MiB // 6 + 1))[:200_000],
+        'gzip bomb: one line': gzip_zeros(b't,u,y\n', b'0', 300 * MiB),
+        'gzip bomb: blank lines': gzip_zeros(b't,u,y\n', b'\n', 300 * MiB),
     }
     for count in range(4):
         cut = rng.randrange(1, len(good))

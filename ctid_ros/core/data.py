@@ -8,8 +8,26 @@ from ctid_ros.errors import bounded_repr, DataError
 import numpy as np
 
 
+def _check_nesting(values, name: str, depth: int) -> None:
+    """
+    Refuse lists nested deeper than ``depth`` before numpy expands them.
+
+    numpy would materialise every element of a nested structure, and shared references (a
+    YAML alias bomb) make a few kilobytes describe billions of them.
+    """
+    if not isinstance(values, (list, tuple)):
+        return
+    for item in values:
+        if isinstance(item, (list, tuple)):
+            if depth <= 1:
+                raise DataError(f'{name} must be 1-D: it holds nested sequences, e.g. '
+                                f'{bounded_repr(item, 40)}')
+            _check_nesting(item, name, depth - 1)
+
+
 def as_signal(values, name: str) -> np.ndarray:
     """Validate one sampled signal: a finite, 1-D float array (a copy, never a view)."""
+    _check_nesting(values, name, 1)
     if isinstance(values, np.ma.MaskedArray) and np.ma.count_masked(values):
         # np.asarray would silently take the values under the mask.
         raise DataError(f'{name} has {np.ma.count_masked(values)} masked value(s); fill or '
@@ -40,6 +58,7 @@ def as_inputs(values, count: Optional[int] = None) -> np.ndarray:
     A 1-D array is one input; a 2-D array has one column per input. ``count=None`` accepts any
     number of columns.
     """
+    _check_nesting(values, 'u', 2)
     if isinstance(values, np.ma.MaskedArray) and np.ma.count_masked(values):
         raise DataError(f'u has {np.ma.count_masked(values)} masked value(s); fill or remove '
                         'them before identification')

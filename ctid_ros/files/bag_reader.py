@@ -26,6 +26,7 @@ from ctid_ros.files.mcap_source import (BagMessage, BagRecord, check_chunk_sizes
                                         is_service_event, MCAP_MAGIC, McapSource, PathLike,
                                         reading_errors, service_event_error, TopicSchema)
 from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.params_file import parse_yaml
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.typesys import get_typestore, Stores
@@ -36,6 +37,8 @@ __all__ = ['BagReader', 'open_bag']
 _VERSION = re.compile(rb'^\s*version:\s*(\d+)', re.MULTILINE)
 _FILE_COMPRESSION = re.compile(rb'^\s*compression_mode:\s*["\']?file', re.MULTILINE)
 _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
+# YAML nodes of a metadata.yaml (about 20 per topic and 10 per storage file).
+_METADATA_NODES = 1_000_000
 # Characters of a third-party error quoted in a warning (rosbags quotes whole definitions).
 _QUOTE_LIMIT = 300
 
@@ -282,6 +285,8 @@ def _open_directory(path: Path) -> _Source:
     metadata = path / 'metadata.yaml'
     if metadata.exists():
         content = read_limited(metadata, MAX_METADATA_BYTES, 'bag metadata', BagError)
+        # rosbags parses it too, but without limits: deep nesting takes it minutes.
+        parse_yaml(content, f'bag metadata {metadata}', BagError, _METADATA_NODES)
         # rosbags decompresses MCAP chunks and whole compressed files without bounds: their
         # sizes are checked first.
         for file in storage:

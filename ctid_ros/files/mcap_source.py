@@ -282,6 +282,8 @@ def check_chunk_sizes(path: Path) -> None:
                 if opcode == Opcode.CHUNK:
                     _check_chunk_header(stream, path, offset)
                 offset += _RECORD_HEADER.size + length
+    except BagError:
+        raise
     except OSError as error:
         raise BagError(f'cannot read {path}: {error.strerror or error}') from None
 
@@ -522,6 +524,9 @@ class McapSource:
                                 'further'):
                 self._stream.seek(offset)
                 opcode, length = _RECORD_HEADER.unpack(self._stream.read(_RECORD_HEADER.size))
+                if opcode not in (Opcode.CHUNK, Opcode.MESSAGE):
+                    raise ValueError(f'the index points at a record of opcode {opcode}, not at '
+                                     'a chunk')
                 return _parse(opcode, self._stream.read(length))
         except _ChunkRefused as error:
             raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'

@@ -12,11 +12,11 @@ import os
 from pathlib import Path
 import re
 import sys
-from typing import Any, Dict, List, Mapping
+from typing import Any, Dict, List, Mapping, Type
 
 from ctid_ros.core.limits import (MAX_PARAMS_BYTES, MAX_SAMPLES, MAX_YAML_DEPTH, MAX_YAML_NODES,
                                   MIN_SAMPLE_TIME, read_limited)
-from ctid_ros.errors import ConfigError
+from ctid_ros.errors import ConfigError, CtidError
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 from ctid_ros.streaming.session import history_span
@@ -48,6 +48,9 @@ class BoundedLoader(yaml.SafeLoader):
     (PyYAML's composer recurses: 5000 nested brackets would end in a ``RecursionError``).
     """
 
+    # Nodes allowed with aliases expanded (a subclass may allow more).
+    max_nodes = MAX_YAML_NODES
+
     def __init__(self, stream: Any) -> None:
         super().__init__(stream)
         self._depth = 0
@@ -75,41 +78,55 @@ class BoundedLoader(yaml.SafeLoader):
             else:
                 size = 1
             self._expanded[key] = size
-            if size > MAX_YAML_NODES or len(self._expanded) > MAX_YAML_NODES:
-                raise self._refuse(f'more than {MAX_YAML_NODES} values with aliases expanded '
+            if size > self.max_nodes or len(self._expanded) > self.max_nodes:
+                raise self._refuse(f'more than {self.max_nodes} values with aliases expanded '
                                    '(an alias bomb, or not a params file)')
         return node
 
 
-def parse_yaml(content: bytes, source: str) -> Any:
+def parse_yaml(content: bytes, source: str, error: Type[CtidError] = ConfigError,
+               max_nodes: int = MAX_YAML_NODES) -> Any:
     """
     Parse one YAML document from UTF-8 bytes with :class:`BoundedLoader`.
+
+    Parameters
+    ----------
+    content : bytes
+        The document.
+    source : str
+        What it is, for the messages (``'params file run.yaml'``).
+    error : type
+        The :class:`~ctid_ros.errors.CtidError` to raise (a bag's metadata: ``BagError``).
+    max_nodes : int
+        Nodes allowed with aliases expanded.
 
     Raises
     ------
     ConfigError
-        If the content is binary (NUL bytes), not UTF-8, not valid YAML, or beyond the limits
-        of :class:`BoundedLoader`; the message names ``source`` and the line.
+        (or ``error``) If the content is binary (NUL bytes), not UTF-8, not valid YAML, or
+        beyond the limits of :class:`BoundedLoader`; the message names ``source`` and the line.
 
     """
     if b'\0' in content:
         offset = content.index(b'\0')
-        raise ConfigError(f'{source} is binary, not YAML text (a NUL byte at offset {offset})')
+        raise error(f'{source} is binary, not YAML text (a NUL byte at offset {offset})')
     try:
         text = content.decode('utf-8')
-    except UnicodeDecodeError as error:
-        line = content[:error.start].count(b'\n') + 1
-        raise ConfigError(f'{source} is not UTF-8 text: byte 0x{content[error.start]:02x} on '
-                          f'line {line} (offset {error.start}); save it as UTF-8') from None
+    except UnicodeDecodeError as problem:
+        line = content[:problem.start].count(b'\n') + 1
+        raise error(f'{source} is not UTF-8 text: byte 0x{content[problem.start]:02x} on '
+                    f'line {line} (offset {problem.start}); save it as UTF-8') from None
+    loader = BoundedLoader if max_nodes == MAX_YAML_NODES else type(
+        'Loader', (BoundedLoader,), {'max_nodes': max_nodes})
     try:
-        return yaml.load(text, Loader=BoundedLoader)
-    except yaml.MarkedYAMLError as error:
-        mark = error.problem_mark or error.context_mark
+        return yaml.load(text, Loader=loader)
+    except yaml.MarkedYAMLError as problem:
+        mark = problem.problem_mark or problem.context_mark
         where = f' (line {mark.line + 1}, column {mark.column + 1})' if mark else ''
-        problem = ' '.join(str(part) for part in (error.context, error.problem) if part)
-        raise ConfigError(f'{source} is not valid YAML: {problem}{where}') from None
-    except yaml.YAMLError as error:
-        raise ConfigError(f'{source} is not valid YAML: {_clipped(str(error))}') from None
+        what = ' '.join(str(part) for part in (problem.context, problem.problem) if part)
+        raise error(f'{source} is not valid YAML: {what}{where}') from None
+    except yaml.YAMLError as problem:
+        raise error(f'{source} is not valid YAML: {_clipped(str(problem))}') from None
 
 
 def _clipped(text: str) -> str:
