@@ -164,10 +164,13 @@ class Data:
             record that starts in equilibrium).
 
         """
-        if kind == 'mean':
-            return Data(self.u - self.u.mean(axis=0), self.y - self.y.mean(), self.ts, self.t0)
-        if kind == 'initial':
-            return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0)
+        # Values near the float limit overflow: the result is then refused as non-finite.
+        with np.errstate(over='ignore', invalid='ignore'):
+            if kind == 'mean':
+                return Data(self.u - self.u.mean(axis=0), self.y - self.y.mean(), self.ts,
+                            self.t0)
+            if kind == 'initial':
+                return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0)
         raise DataError(f"detrend kind must be 'mean' or 'initial', got {bounded_repr(kind)}")
 
     def segment(self, start: int, stop: Optional[int] = None) -> 'Data':

@@ -35,7 +35,6 @@ import zstandard
 __all__ = ['BagReader', 'open_bag']
 
 _VERSION = re.compile(rb'^\s*version:\s*(\d+)', re.MULTILINE)
-_FILE_COMPRESSION = re.compile(rb'^\s*compression_mode:\s*["\']?file', re.MULTILINE)
 _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 # YAML nodes of a metadata.yaml (about 20 per topic and 10 per storage file).
 _METADATA_NODES = 1_000_000
@@ -286,15 +285,21 @@ def _open_directory(path: Path) -> _Source:
     if metadata.exists():
         content = read_limited(metadata, MAX_METADATA_BYTES, 'bag metadata', BagError)
         # rosbags parses it too, but without limits: deep nesting takes it minutes.
-        parse_yaml(content, f'bag metadata {metadata}', BagError, _METADATA_NODES)
+        document = parse_yaml(content, f'bag metadata {metadata}', BagError, _METADATA_NODES)
+        information = document.get('rosbag2_bagfile_information') \
+            if isinstance(document, dict) else None
+        information = information if isinstance(information, dict) else {}
         # rosbags decompresses MCAP chunks and whole compressed files without bounds: their
         # sizes are checked first.
         for file in storage:
             if file.suffix == '.mcap':
                 check_chunk_sizes(file)
-        if _FILE_COMPRESSION.search(content):
-            for file in sorted(path.glob('*.zstd')):
-                _check_compressed_file(file)
+        if information.get('compression_mode') == 'file':
+            listed = information.get('relative_file_paths')
+            for name in listed if isinstance(listed, list) else []:
+                file = path / Path(str(name)).name
+                if file.is_file():
+                    _check_compressed_file(file)
         try:
             return _RosbagsSource(path)
         except BagError as error:
@@ -335,7 +340,9 @@ def _check_compressed_file(path: Path) -> None:
     try:
         stated = zstandard.frame_content_size(head)
     except zstandard.ZstdError:
-        raise BagError(f'{path} is not a zstd-compressed file, as metadata.yaml says') from None
+        raise BagError(f'metadata.yaml says the storage files are zstd-compressed '
+                       f'(compression_mode: file) but {path} is not: fix compression_mode and '
+                       'compression_format in metadata.yaml') from None
     if stated < 0 or stated > MAX_COMPRESSION_RATIO * max(size, MIB):
         amount = 'an unknown size' if stated < 0 else size_text(stated)
         raise BagError(f'{path} decompresses to {amount} from {size_text(size)} (the ratio '

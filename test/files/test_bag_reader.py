@@ -9,6 +9,7 @@ from bag_fixtures import (assert_fields, DURATION_S, make_records, readable_pref
                           SAMPLE_TYPE, T0_NS, TOPICS, truncate, write_mcap, write_rosbag2)
 from ctid_ros.errors import BagError
 from ctid_ros.files.bag_reader import BagReader, open_bag
+import hostile_corpus
 import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
@@ -308,4 +309,21 @@ def test_oversized_metadata_is_refused(bags, tmp_path):
     with open(bag / 'metadata.yaml', 'ab') as stream:
         stream.truncate(5 << 20)
     with pytest.raises(BagError, match='metadata.yaml is 5 MiB, more than the limit of 4 MiB'):
+        BagReader(bag)
+
+
+def test_compressed_storage_files_are_checked_before_rosbags_decompresses_them(bags, tmp_path):
+    def file_compressed(text):
+        return text.replace("compression_format: ''", 'compression_format: zstd').replace(
+            "compression_mode: ''", 'compression_mode: file')
+
+    bag = tampered(bags, tmp_path / 'a', file_compressed)
+    with pytest.raises(BagError, match=r'says the storage files are zstd-compressed '
+                       r'\(compression_mode: file\) but .*sqlite3.db3 is not'):
+        BagReader(bag)
+    database = bag / 'sqlite3.db3'
+    # A frame that does not state its size could expand without bound in rosbags.
+    database.write_bytes(hostile_corpus.zeros_zstd(8 << 20, content_size=False))
+    with pytest.raises(BagError, match='decompresses to an unknown size from .* KiB .the ratio '
+                       'limit is 1000.: a decompression bomb'):
         BagReader(bag)
