@@ -44,7 +44,9 @@ setup(
     extras_require={
         'ros': ROS_WHEELS,
         # Bags and MCAP files, and ctid replay (its progress bar: tqdm).
-        'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5', 'tqdm>=4.60'],
+        # zstandard and lz4 (MCAP chunk compressions) are read with bounds by mcap_source.
+        'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5', 'tqdm>=4.60',
+                'zstandard>=0.20', 'lz4>=4'],
         'plot': ['matplotlib>=3.7'],
         'test': ['pytest>=7'] + LINT,
     },

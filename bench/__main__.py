@@ -1,20 +1,46 @@
-"""``make bench``: every benchmark, each against a baseline measured in the same run."""
+"""
+``make bench``: every benchmark, each against a baseline measured in the same run.
 
+``python -m bench`` runs them all in the order below; ``python -m bench NAME...`` runs the named
+ones (extra arguments of the estimator benchmark go after ``--``). A benchmark that needs
+rclpy is skipped with a message where rclpy is not installed.
+"""
+
+import argparse
+import importlib
 import sys
+from typing import Callable, Dict, List, Optional
 
-from bench import estimator, model_text
+# name -> (module, arguments of its main); the JSON results land next to the benchmarks.
+BENCHMARKS: Dict[str, List[str]] = {
+    'model_text': ['--json', 'bench/results-model-text.json'],
+    'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
+    'hostile_files': [],
+    'node_throughput': [],
+}
 
 
-def main() -> int:
-    """Run the model-text and estimator benchmarks, then node throughput if it is available."""
-    model_text.main(['--json', 'bench/results-model-text.json'])
-    estimator.main(['--runs', '100', '--json', 'bench/results-estimator.json'] + sys.argv[1:])
-    try:
-        from bench import node_throughput
-    except ImportError as error:       # rclpy missing: the core benchmark still stands
-        print(f'node throughput benchmark skipped: {error}')
-        return 0
-    node_throughput.main()
+def _runner(name: str) -> Callable[[List[str]], object]:
+    return importlib.import_module(f'bench.{name}').main
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Run the selected benchmarks (all by default)."""
+    parser = argparse.ArgumentParser(prog='python -m bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('names', nargs='*', metavar='NAME',
+                        help=f'subset of: {", ".join(BENCHMARKS)} (default all)')
+    arguments, extra = parser.parse_known_args(sys.argv[1:] if argv is None else argv)
+    unknown = sorted(set(arguments.names) - set(BENCHMARKS))
+    if unknown:
+        parser.error(f'unknown benchmark(s) {", ".join(unknown)}; choose from '
+                     f'{", ".join(BENCHMARKS)}')
+    for name in arguments.names or list(BENCHMARKS):
+        try:
+            run = _runner(name)
+        except ImportError as error:       # rclpy missing: the other benchmarks still stand
+            print(f'{name} benchmark skipped: {error}')
+            continue
+        run(BENCHMARKS[name] + (extra if name == 'estimator' else []))
     return 0
 
 

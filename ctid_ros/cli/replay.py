@@ -23,12 +23,13 @@ Examples
 import argparse
 from contextlib import contextmanager
 import json
+import os
 from pathlib import Path
 import sys
 from typing import Any, Iterable, Iterator, Optional, Sequence, TextIO, Tuple
 
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
-from ctid_ros.errors import BagError
+from ctid_ros.errors import BagError, ConfigError
 from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
@@ -39,9 +40,12 @@ from ctid_ros.streaming.replay import Replay, replay_messages, SkippedTick
 from ctid_ros.streaming.session import buffer_capacity
 from tqdm import tqdm
 
-__all__ = ['configure_parser', 'progress', 'run']
+__all__ = ['DEFAULT_PLOT', 'configure_parser', 'default_plot_path', 'progress', 'run']
 
 Message = Tuple[str, int, Any]
+# The value of --plot given without a file name (see default_plot_path).
+DEFAULT_PLOT = object()
+_FIGURE_SUFFIXES = ('', '.png', '.pdf', '.svg')
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -65,15 +69,72 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--output', type=Path, default=None,
                         help='new .mcap file for the estimates, on the topics of the live node, '
                         'with the replayed input and output messages')
-    parser.add_argument('--plot', type=Path, default=None,
+    parser.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
+                        metavar='PNG',
                         help='PNG of measured vs simulated output; also writes <stem>_bode.png '
-                        'and, with --sliding, <stem>_params.png')
+                        'and, with --sliding, <stem>_params.png. Without a value: '
+                        '<bag name>_replay.png in the current directory (next to the bag if '
+                        'that is inside the bag). Never inside the input bag.')
     parser.add_argument('--json', action='store_true',
                         help='print the ctid fit --json object (a list of them with --sliding)')
 
 
+def default_plot_path(bag: PathLike, directory: Optional[Path] = None) -> Path:
+    """
+    Return where ``--plot`` without a value writes: ``<bag name>_replay.png``.
+
+    In ``directory`` (default: the current one), unless that is the bag directory or inside
+    it: then next to the bag, so the figures never land in the recording.
+    """
+    bag = Path(bag).resolve()
+    directory = (directory or Path.cwd()).resolve()
+    if bag.is_dir() and (directory == bag or bag in directory.parents):
+        directory = bag.parent
+    name = bag.name[:-len('.mcap')] if bag.name.endswith('.mcap') else bag.name
+    return directory / f'{name or "bag"}_replay.png'
+
+
+def _check_figure_paths(arguments: argparse.Namespace) -> Optional[Path]:
+    """
+    Resolve ``--plot`` and check every figure can be written, before anything is estimated.
+
+    Raises
+    ------
+    ConfigError
+        If a figure would be written into the input bag (or over it, the params file or the
+        ``--output`` file), into a missing or unwritable directory, over a directory, or in a
+        format other than PNG, PDF or SVG.
+
+    """
+    if arguments.plot is None:
+        return None
+    from ctid_ros.cli.plots import replay_figure_paths
+
+    path = default_plot_path(arguments.path) if arguments.plot is DEFAULT_PLOT \
+        else Path(arguments.plot)
+    if path.suffix.lower() not in _FIGURE_SUFFIXES:
+        raise ConfigError(f'--plot {path}: give a .png, .pdf or .svg file')
+    inputs = [Path(arguments.path), Path(arguments.params_file)] + (
+        [Path(arguments.output)] if arguments.output is not None else [])
+    for figure in (item for item in replay_figure_paths(path, arguments.sliding) if item):
+        target = figure.resolve()
+        for source in (item.resolve() for item in inputs):
+            if target == source or source in target.parents:
+                raise ConfigError(f'--plot {path} would write {figure} into or over the input '
+                                  f'{source}; choose a path outside it')
+        if not target.parent.is_dir():
+            raise ConfigError(f'--plot {path}: directory {target.parent} does not exist')
+        if target.is_dir():
+            raise ConfigError(f'--plot {path}: {figure} is a directory')
+        if not os.access(target.parent, os.W_OK) or (
+                target.exists() and not os.access(target, os.W_OK)):
+            raise ConfigError(f'--plot {path}: {figure} cannot be written (permission denied)')
+    return path
+
+
 def run(arguments: argparse.Namespace) -> int:
     """Run ``ctid replay``; user errors raise :class:`~ctid_ros.errors.CtidError`."""
+    plot = _check_figure_paths(arguments)
     config = load_params_file(arguments.params_file, arguments.node_name)
     topics = (resolve_topic(config.input_topic, arguments.node_name),
               resolve_topic(config.output_topic, arguments.node_name))
@@ -81,6 +142,8 @@ def run(arguments: argparse.Namespace) -> int:
             _estimate_output(arguments.output, arguments.path, arguments.node_name) as writer:
         for warning in bag.warnings:
             print(f'ctid replay: warning: {warning}', file=sys.stderr)
+        # A bag may store a topic without its leading slash: use the bag's spelling.
+        topics = tuple(bag.topic_name(topic) or topic for topic in topics)
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
         selected = sorted(set(topics))
         records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns), sys.stderr)
@@ -96,12 +159,16 @@ def run(arguments: argparse.Namespace) -> int:
             _write_estimates(writer, replay)
         origin_ns = bag.start_time_ns
     _report(arguments, replay, topics, origin_ns)
-    if arguments.plot is not None:
+    if plot is not None:
         # matplotlib is needed (and loaded) only for figures.
         from ctid_ros.cli.plots import write_replay_figures
 
-        for path in write_replay_figures(arguments.plot, replay.updates, origin_ns,
-                                         arguments.sliding):
+        try:
+            written = write_replay_figures(plot, replay.updates, origin_ns, arguments.sliding)
+        except OSError as error:
+            raise ConfigError(f'--plot {plot}: cannot write the figures: '
+                              f'{error.strerror or error}') from None
+        for path in written:
             print(f'ctid replay: wrote {path}', file=sys.stderr)
     return 0
 

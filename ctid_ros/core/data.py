@@ -4,19 +4,41 @@ from dataclasses import dataclass
 import numbers
 from typing import Optional
 
-from ctid_ros.errors import DataError
+from ctid_ros.errors import bounded_repr, DataError
 import numpy as np
+
+
+def _check_nesting(values, name: str, depth: int) -> None:
+    """
+    Refuse lists nested deeper than ``depth`` before numpy expands them.
+
+    numpy would materialise every element of a nested structure, and shared references (a
+    YAML alias bomb) make a few kilobytes describe billions of them.
+    """
+    if not isinstance(values, (list, tuple)):
+        return
+    for item in values:
+        if isinstance(item, (list, tuple)):
+            if depth <= 1:
+                raise DataError(f'{name} must be 1-D: it holds nested sequences, e.g. '
+                                f'{bounded_repr(item, 40)}')
+            _check_nesting(item, name, depth - 1)
 
 
 def as_signal(values, name: str) -> np.ndarray:
     """Validate one sampled signal: a finite, 1-D float array (a copy, never a view)."""
+    _check_nesting(values, name, 1)
+    if isinstance(values, np.ma.MaskedArray) and np.ma.count_masked(values):
+        # np.asarray would silently take the values under the mask.
+        raise DataError(f'{name} has {np.ma.count_masked(values)} masked value(s); fill or '
+                        'remove them before identification')
     try:
         raw = np.asarray(values)
         if raw.dtype.kind in 'cUSVmM':
             # Complex values would silently lose their imaginary part, text would be parsed.
             raise TypeError(f'got values of type {raw.dtype}')
         array = np.array(raw, dtype=float)
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise DataError(f'{name} must be numeric: {error}') from None
     if array.ndim != 1:
         raise DataError(f'{name} must be 1-D, got shape {array.shape}')
@@ -36,14 +58,20 @@ def as_inputs(values, count: Optional[int] = None) -> np.ndarray:
     A 1-D array is one input; a 2-D array has one column per input. ``count=None`` accepts any
     number of columns.
     """
+    _check_nesting(values, 'u', 2)
+    if isinstance(values, np.ma.MaskedArray) and np.ma.count_masked(values):
+        raise DataError(f'u has {np.ma.count_masked(values)} masked value(s); fill or remove '
+                        'them before identification')
     try:
         raw = np.asarray(values)
-    except ValueError as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise DataError(f'u must be numeric: {error}') from None
     if raw.ndim == 2:
+        if raw.shape[1] == 0:
+            raise DataError(f'u has no input columns (shape {raw.shape})')
         columns = [as_signal(raw[:, index], f'input column {index}')
                    for index in range(raw.shape[1])]
-        matrix = np.column_stack(columns) if columns else np.zeros((raw.shape[0], 0))
+        matrix = np.column_stack(columns)
     else:
         matrix = as_signal(raw, 'u')[:, None]
     if count is not None and matrix.shape[1] != count:
@@ -55,8 +83,11 @@ def as_inputs(values, count: Optional[int] = None) -> np.ndarray:
 def _real(value, what: str) -> float:
     """Return a real scalar (not text, not a bool) as float."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise DataError(f'{what} must be a number, got {value!r}')
-    return float(value)
+        raise DataError(f'{what} must be a number, got {bounded_repr(value)}')
+    try:
+        return float(value)
+    except (OverflowError, ValueError, TypeError):
+        raise DataError(f'{what} must be a finite number, got {bounded_repr(value)}') from None
 
 
 @dataclass(frozen=True)
@@ -96,10 +127,14 @@ class Data:
             raise DataError(f'u and y must have the same length, got {u.shape[0]} and {y.size}')
         ts = _real(self.ts, 'sample time')
         if not (np.isfinite(ts) and ts > 0):
-            raise DataError(f'sample time must be positive and finite, got {self.ts!r}')
+            raise DataError(
+                f'sample time must be positive and finite, got {bounded_repr(self.ts)}')
         t0 = _real(self.t0, 'start time t0')
         if not np.isfinite(t0):
-            raise DataError(f'start time t0 must be finite, got {self.t0!r}')
+            raise DataError(f'start time t0 must be finite, got {bounded_repr(self.t0)}')
+        if not np.isfinite(t0 + ts * y.size):
+            raise DataError(f'the sample times overflow: t0 {t0:g} s plus {y.size} samples of '
+                            f'{ts:g} s is not a finite time')
         object.__setattr__(self, 'u', u)
         object.__setattr__(self, 'y', y)
         object.__setattr__(self, 'ts', ts)
@@ -129,14 +164,22 @@ class Data:
             record that starts in equilibrium).
 
         """
-        if kind == 'mean':
-            return Data(self.u - self.u.mean(axis=0), self.y - self.y.mean(), self.ts, self.t0)
-        if kind == 'initial':
-            return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0)
-        raise DataError(f"detrend kind must be 'mean' or 'initial', got {kind!r}")
+        # Values near the float limit overflow: the result is then refused as non-finite.
+        with np.errstate(over='ignore', invalid='ignore'):
+            if kind == 'mean':
+                return Data(self.u - self.u.mean(axis=0), self.y - self.y.mean(), self.ts,
+                            self.t0)
+            if kind == 'initial':
+                return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0)
+        raise DataError(f"detrend kind must be 'mean' or 'initial', got {bounded_repr(kind)}")
 
     def segment(self, start: int, stop: Optional[int] = None) -> 'Data':
         """Return samples ``start:stop`` (Python slice rules) as new data, times kept."""
+        for name, value in (('start', start), ('stop', stop)):
+            if value is not None and (isinstance(value, (bool, np.bool_))
+                                      or not isinstance(value, numbers.Integral)):
+                raise DataError(f'segment {name} must be an integer sample index, got '
+                                f'{bounded_repr(value)}')
         start, stop, _ = slice(start, stop).indices(len(self))
         return Data(self.u[start:stop], self.y[start:stop], self.ts,
                     self.t0 + start * self.ts)

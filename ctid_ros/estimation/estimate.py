@@ -39,6 +39,7 @@ from ctid_ros.estimation.delay_search import delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, iterate, Iteration, IterationResult,
                                            StopReason)
+from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem, State,
                                          with_fitted_nuisance)
@@ -318,18 +319,20 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
 
     Raises
     ------
+    ConfigError
+        If an argument has the wrong type or value (:mod:`~ctid_ros.estimation.options`).
     EstimationError
         If the data cannot identify the parameters or no stable starting point is found.
     ModelError
         If initial values or bounds do not match the model.
 
     """
-    if method not in METHODS:
-        raise ValueError(f'method must be one of {METHODS}, got {method!r}')
-    if max_iterations < 1:
-        raise ValueError('max_iterations must be at least 1')
-    if initial_state not in INITIAL_STATES:
-        raise ValueError(f'initial_state must be one of {INITIAL_STATES}, got {initial_state!r}')
+    (initial, bounds, method, intersample, max_iterations, tolerance, delay_range, transient,
+     initial_state, output_offset, integrator_cutoff) = check_options(
+        model, data, initial, bounds=bounds, method=method, intersample=intersample,
+        max_iterations=max_iterations, tolerance=tolerance, delay_range=delay_range,
+        transient=transient, initial_state=initial_state, output_offset=output_offset,
+        integrator_cutoff=integrator_cutoff)
     _check_excitation(model, data)
     lower, upper = bound_vectors(model, bounds)
     fitted_model, fitted_data, cutoff = model, data, None

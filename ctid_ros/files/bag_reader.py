@@ -13,33 +13,133 @@ message of the bag.
 """
 
 import math
+import os
 from pathlib import Path
-from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
+import re
+from typing import (Any, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple,
+                    Union)
 
+from ctid_ros.core.limits import (MAX_COMPRESSION_RATIO, MAX_METADATA_BYTES, MIB, read_limited,
+                                  size_text)
 from ctid_ros.errors import BagError
-from ctid_ros.files.mcap_source import (BagMessage, BagRecord, MCAP_MAGIC, McapSource,
-                                        PathLike, reading_errors, TopicSchema)
+from ctid_ros.files.mcap_source import (BagMessage, BagRecord, check_chunk_sizes,
+                                        is_service_event, MCAP_MAGIC, McapSource, PathLike,
+                                        reading_errors, service_event_error, TopicSchema)
 from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.params_file import parse_yaml
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.typesys import get_typestore, Stores
+import zstandard
 
 __all__ = ['BagReader', 'open_bag']
+
+_VERSION = re.compile(rb'^\s*version:\s*(\d+)', re.MULTILINE)
+_ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
+# YAML nodes of a metadata.yaml (about 20 per topic and 10 per storage file).
+_METADATA_NODES = 1_000_000
+# Characters of a third-party error quoted in a warning (rosbags quotes whole definitions).
+_QUOTE_LIMIT = 300
+
+
+def _quoted(error: BaseException) -> str:
+    text = ' '.join(str(error).split())
+    return text if len(text) <= _QUOTE_LIMIT else text[:_QUOTE_LIMIT - 3] + '...'
+
+
+def _open_reader(paths: Sequence[Path], path: Path) -> AnyReader:
+    # The Jazzy store is only used by bags without stored definitions (pre-Iron sqlite3).
+    with reading_errors(f'cannot read bag {path} (damaged, or a format rosbags does not '
+                        'support)'):
+        reader = AnyReader(list(paths), default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader.open()
+    return reader
+
+
+class _Storage(NamedTuple):
+    """What the storage files of a rosbag2 directory hold, against its metadata.yaml."""
+
+    counts: Dict[str, int]          # messages stored per topic
+    matched: Dict[str, int]         # of those, messages rosbags pairs with the metadata
+    reasons: Dict[str, str]         # why the metadata and the storage disagree, per topic
+    start_ns: Optional[int]
+    end_ns: Optional[int]
+    files: List[Path]
+    compressed: Optional[bool]      # whether the first stored message is a zstd frame
+
+
+def _storage(reader: AnyReader) -> Optional[_Storage]:
+    """
+    Compare a rosbag2 directory's metadata with its storage files, as rosbags pairs them.
+
+    rosbags yields a stored message only if its topic, type, serialization format, QoS
+    profiles and type hash equal those of a topic in metadata.yaml; where an older or edited
+    metadata.yaml disagrees, the messages are silently skipped. None if rosbags' readers do
+    not have the expected structure (another rosbags version), which skips the check.
+    """
+    directory = getattr(reader.readers[0], 'storage', None) if len(reader.readers) == 1 \
+        else None
+    storages = getattr(directory, 'storages', None)
+    listed = getattr(directory, 'connections', None)
+    if not storages or listed is None:
+        return None
+    counts: Dict[str, int] = {}
+    matched: Dict[str, int] = {}
+    reasons: Dict[str, str] = {}
+    starts, ends = [], []
+    for storage in storages:
+        if storage.metadata.message_count:
+            starts.append(storage.metadata.start_time)
+            ends.append(storage.metadata.end_time - 1)
+        for conn in storage.connections:
+            counts[conn.topic] = counts.get(conn.topic, 0) + conn.msgcount
+            same_topic = [item for item in listed if item.topic == conn.topic]
+            differences = [_difference(item, conn) for item in same_topic]
+            if None in differences:
+                matched[conn.topic] = matched.get(conn.topic, 0) + conn.msgcount
+            elif conn.msgcount:
+                reasons[conn.topic] = differences[0] if differences else 'not listed'
+    compressed = None
+    for storage in storages:
+        if storage.connections and storage.metadata.message_count:
+            with reading_errors(f'cannot read {storage.path}'):
+                first = next(storage.messages(storage.connections), None)
+            if first is not None:
+                compressed = bytes(first[2][:4]) == _ZSTD_MAGIC
+                break
+    return _Storage(counts, matched, reasons, min(starts, default=None),
+                    max(ends, default=None), [Path(storage.path) for storage in storages],
+                    compressed)
+
+
+def _difference(listed: Any, stored: Any) -> Optional[str]:
+    """Name what makes rosbags skip a stored topic of the metadata's, or None if it matches."""
+    if listed.msgtype != stored.msgtype:
+        return f'type {listed.msgtype} against {stored.msgtype}'
+    if listed.ext != stored.ext:
+        if getattr(listed.ext, 'serialization_format', None) != \
+                getattr(stored.ext, 'serialization_format', None):
+            return 'serialization format'
+        return 'QoS profiles'
+    if listed.digest and stored.digest and listed.digest != stored.digest:
+        return 'type hash'
+    return None
 
 
 class _RosbagsSource:
     """A rosbag2 directory or a ``.db3`` file, read with rosbags."""
 
     def __init__(self, path: Path) -> None:
-        # The Jazzy store is only used by bags without stored definitions (pre-Iron sqlite3).
-        with reading_errors(f'cannot read bag {path} (damaged, or a format rosbags does not '
-                            'support)'):
-            reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
-            reader.open()
-        self._reader = reader
         self.path = path
         self.truncated = False
         self.warnings: List[str] = []
+        reader = _open_reader([path], path)
+        storage = _storage(reader) if path.is_dir() else None
+        if storage is not None:
+            reader = self._checked(reader, storage)
+        self._reader = reader
+        self._has_definitions = any(conn.msgdef.format != MessageDefinitionFormat.NONE
+                                    for conn in reader.connections)
         infos = reader.topics
         self.topics = {name: info.msgtype for name, info in infos.items()}
         self.counts: Dict[str, Optional[int]] = {name: info.msgcount
@@ -50,17 +150,74 @@ class _RosbagsSource:
             self.end_ns: Optional[int] = reader.end_time - 1
         else:
             self.start_ns = self.end_ns = None
+        if storage is not None and reader.readers[0].path.is_dir():
+            self._use_storage_counts(storage)
+
+    def _checked(self, reader: AnyReader, storage: _Storage) -> AnyReader:
+        """Read the storage files directly where metadata.yaml would mislead rosbags."""
+        content = (self.path / 'metadata.yaml').read_bytes()
+        version = _VERSION.search(content)
+        what = f'metadata.yaml (version {version.group(1).decode()})' if version else \
+            'metadata.yaml'
+        names = ', '.join(file.name for file in storage.files)
+        mode = getattr(reader.readers[0].storage.metadata, 'compression_mode', None)
+        problems = []
+        if mode == 'message' and storage.compressed is False:
+            problems.append(f'{what} says the messages are zstd-compressed (compression_mode: '
+                            f'message) but {names} hold(s) uncompressed messages')
+            mode = None
+        elif not mode and storage.compressed:
+            reader.close()
+            raise BagError(f'{self.path}: {names} hold(s) zstd-compressed messages but {what} '
+                           'says they are not compressed: set compression_format: zstd and '
+                           'compression_mode: message in metadata.yaml')
+        skipped = {topic: storage.counts[topic] - storage.matched.get(topic, 0)
+                   for topic in storage.reasons}
+        if skipped:
+            details = '; '.join(f'{topic}: {storage.reasons[topic]}' for topic in sorted(skipped))
+            problems.append(f'{what} and {names} disagree about {len(skipped)} topic(s) '
+                            f'({details}), so rosbags would skip {sum(skipped.values())} stored '
+                            'message(s)')
+        if not problems:
+            return reader
+        reader.close()
+        problem = f'{self.path}: ' + '; '.join(problems)
+        if mode:
+            raise BagError(f'{problem}; the bag is compressed and cannot be read without its '
+                           'metadata: restore metadata.yaml, or re-index the bag (ros2 bag '
+                           'reindex)')
+        self.warnings.append(f'{problem}; reading {names} directly (their own topic table)')
+        return _open_reader(storage.files, self.path)
+
+    def _use_storage_counts(self, storage: _Storage) -> None:
+        """Take message counts and times from the storage where metadata.yaml differs."""
+        for topic, listed in list(self.counts.items()):
+            stored = storage.counts.get(topic, 0)
+            if listed != stored:
+                self.warnings.append(
+                    f'{self.path}: metadata.yaml counts {listed} message(s) on {topic}, the '
+                    f'storage holds {stored}; using the storage (ros2 bag reindex rewrites the '
+                    'metadata)')
+                self.counts[topic] = stored
+        if (storage.start_ns, storage.end_ns) != (self.start_ns, self.end_ns):
+            if self.start_ns is not None or storage.start_ns is not None:
+                self.warnings.append(f'{self.path}: metadata.yaml gives another time span than '
+                                     'the stored messages; using the stored messages')
+            self.start_ns, self.end_ns = storage.start_ns, storage.end_ns
 
     def schema(self, topic: str) -> TopicSchema:
         """Return how the messages of ``topic`` are encoded, as recorded."""
         conn = next(conn for conn in self._reader.connections if conn.topic == topic)
+        if is_service_event(conn.topic, conn.msgtype):
+            raise service_event_error(self.path, conn.topic, conn.msgtype)
         definition = conn.msgdef
         if definition.format == MessageDefinitionFormat.IDL:
             return TopicSchema(conn.msgtype, 'ros2idl', definition.data.encode())
         if definition.format == MessageDefinitionFormat.MSG and definition.data:
             return TopicSchema(conn.msgtype, 'ros2msg', definition.data.encode())
         # Bags from before Iron store no definitions: take the standard one.
-        text, _ = self._reader.typestore.generate_msgdef(conn.msgtype, ros_version=2)
+        with reading_errors(f'{self.path}: no definition of {conn.msgtype} for {topic}'):
+            text, _ = self._reader.typestore.generate_msgdef(conn.msgtype, ros_version=2)
         return TopicSchema(conn.msgtype, 'ros2msg', text.encode())
 
     def records(self, topics: Sequence[str], start_ns: Optional[int],
@@ -69,10 +226,18 @@ class _RosbagsSource:
         connections = [conn for conn in self._reader.connections if conn.topic in topics]
         known = self._reader.typestore.fielddefs
         for conn in connections:
-            if conn.msgtype not in known:
-                raise BagError(f'{self.path}: topic {conn.topic} has type {conn.msgtype}, which '
-                               'the bag does not define and is not a standard ROS 2 Jazzy type; '
-                               're-record it with a recent rosbag2 (which stores definitions)')
+            if conn.msgtype in known:
+                continue
+            if is_service_event(conn.topic, conn.msgtype):
+                raise service_event_error(self.path, conn.topic, conn.msgtype)
+            if self._has_definitions:
+                raise BagError(f'{self.path}: topic {conn.topic} has type {conn.msgtype}, '
+                               'whose definition the bag does not store (it stores those of '
+                               'other types) and which is not a standard ROS 2 Jazzy type, so '
+                               'it cannot be decoded')
+            raise BagError(f'{self.path}: topic {conn.topic} has type {conn.msgtype}, which '
+                           'the bag does not define and is not a standard ROS 2 Jazzy type; '
+                           're-record it with a recent rosbag2 (which stores definitions)')
         return self._iterate(connections, start_ns, end_ns)
 
     def _iterate(self, connections: list, start_ns: Optional[int],
@@ -83,9 +248,12 @@ class _RosbagsSource:
         while True:
             with reading_errors(what):
                 item = next(raw, None)
-                if item is None:
-                    return
-                conn, log_time_ns, data = item
+            if item is None:
+                return
+            conn, log_time_ns, data = item
+            with reading_errors(f'{self.path}: the message on {conn.topic} at {log_time_ns} ns '
+                                f'does not match the definition of {conn.msgtype} the bag '
+                                'stores (a wrong definition, or damaged data)'):
                 msg = self._reader.deserialize(data, conn.msgtype)
             yield BagRecord(conn.topic, log_time_ns, msg, bytes(data))
 
@@ -113,7 +281,25 @@ def _open_file(path: Path) -> _Source:
 
 def _open_directory(path: Path) -> _Source:
     storage = sorted(path.glob('*.mcap')) + sorted(path.glob('*.db3'))
-    if (path / 'metadata.yaml').is_file():
+    metadata = path / 'metadata.yaml'
+    if metadata.exists():
+        content = read_limited(metadata, MAX_METADATA_BYTES, 'bag metadata', BagError)
+        # rosbags parses it too, but without limits: deep nesting takes it minutes.
+        document = parse_yaml(content, f'bag metadata {metadata}', BagError, _METADATA_NODES)
+        information = document.get('rosbag2_bagfile_information') \
+            if isinstance(document, dict) else None
+        information = information if isinstance(information, dict) else {}
+        # rosbags decompresses MCAP chunks and whole compressed files without bounds: their
+        # sizes are checked first.
+        for file in storage:
+            if file.suffix == '.mcap':
+                check_chunk_sizes(file)
+        if information.get('compression_mode') == 'file':
+            listed = information.get('relative_file_paths')
+            for name in listed if isinstance(listed, list) else []:
+                file = path / Path(str(name)).name
+                if file.is_file():
+                    _check_compressed_file(file)
         try:
             return _RosbagsSource(path)
         except BagError as error:
@@ -125,7 +311,11 @@ def _open_directory(path: Path) -> _Source:
                 source = McapSource(storage[0])
             except BagError:
                 raise error from None
-            source.warnings.insert(0, f'rosbags cannot read {path} ({error}); reading '
+            services = sorted(topic for topic, msgtype in source.topics.items()
+                              if is_service_event(topic, msgtype))
+            reason = (f'its service-event topics ({", ".join(services)}) have definitions '
+                      'rosbags cannot parse' if services else _quoted(error))
+            source.warnings.insert(0, f'rosbags cannot read {path} ({reason}); reading '
                                       f'{storage[0].name} directly')
             return source
     if not storage:
@@ -137,6 +327,27 @@ def _open_directory(path: Path) -> _Source:
     source = _open_file(storage[0])
     source.warnings.insert(0, f'{path} has no metadata.yaml; reading {storage[0].name} directly')
     return source
+
+
+def _check_compressed_file(path: Path) -> None:
+    """Refuse a zstd-compressed storage file whose stated size is absurd for its own size."""
+    try:
+        with open(path, 'rb') as stream:
+            head = stream.read(32)
+            size = os.fstat(stream.fileno()).st_size
+    except OSError as error:
+        raise BagError(f'cannot read {path}: {error.strerror or error}') from None
+    try:
+        stated = zstandard.frame_content_size(head)
+    except zstandard.ZstdError:
+        raise BagError(f'metadata.yaml says the storage files are zstd-compressed '
+                       f'(compression_mode: file) but {path} is not: fix compression_mode and '
+                       'compression_format in metadata.yaml') from None
+    if stated < 0 or stated > MAX_COMPRESSION_RATIO * max(size, MIB):
+        amount = 'an unknown size' if stated < 0 else size_text(stated)
+        raise BagError(f'{path} decompresses to {amount} from {size_text(size)} (the ratio '
+                       f'limit is {MAX_COMPRESSION_RATIO}): a decompression bomb, or decompress '
+                       'the bag yourself (zstd -d) and fix metadata.yaml')
 
 
 class BagReader:
@@ -333,14 +544,28 @@ class BagReader:
         (topic,) = self._select(topic)
         return self._source.schema(topic)
 
+    def topic_name(self, topic: str) -> Optional[str]:
+        """
+        Return how the bag spells ``topic``, or None if it has no such topic.
+
+        Bags written by tools that do not resolve names store topics without the leading
+        slash (``AAA``); such a topic is found as ``/AAA`` too, and ``/AAA`` as ``AAA``.
+        """
+        available = self._source.topics
+        if topic in available:
+            return topic
+        alike = [name for name in available if name.lstrip('/') == topic.lstrip('/')]
+        return alike[0] if len(alike) == 1 else None
+
     def _select(self, topics: Union[str, Iterable[str], None]) -> List[str]:
         available = self._source.topics
         if topics is None:
             return list(available)
-        selected = [topics] if isinstance(topics, str) else list(topics)
-        if not selected:
+        requested = [topics] if isinstance(topics, str) else list(topics)
+        if not requested:
             raise BagError('no topics selected')
-        missing = [topic for topic in selected if topic not in available]
+        selected = [self.topic_name(topic) for topic in requested]
+        missing = [topic for topic, name in zip(requested, selected) if name is None]
         if missing:
             listing = '; '.join(f'{topic} ({msgtype}, {self._source.counts[topic]} messages)'
                                 for topic, msgtype in sorted(available.items())) or 'none'

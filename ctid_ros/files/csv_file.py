@@ -1,17 +1,180 @@
-"""Reading input/output data from CSV files with a header line."""
+"""
+Reading input/output data from CSV files with a header line.
 
+The file is read as a stream, a line at a time, and only the columns asked for are kept, so
+what a file may cost is bounded (:mod:`ctid_ros.core.limits`): its size (also decompressed),
+the length of a line, the number of rows (the record limit of one estimate) and of blank
+lines. Broken files (not UTF-8, binary, a truncated or damaged gzip stream, another compression)
+raise a :class:`~ctid_ros.errors.DataError` naming the file, the line and what to do.
+"""
+
+import array
 import csv
 import gzip
+from numbers import Real
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import BinaryIO, Dict, Iterator, Optional, Sequence, Tuple, Union
+import zlib
 
 from ctid_ros.core.data import Data
-from ctid_ros.errors import DataError
+from ctid_ros.core.limits import (check_readable, MAX_BLANK_LINES, MAX_CSV_BYTES,
+                                  MAX_LINE_BYTES, MAX_SAMPLES, size_text)
+from ctid_ros.errors import bounded_repr, DataError
 import numpy as np
 
-__all__ = ['load_csv', 'uniform_sample_time']
+__all__ = ['load_csv', 'read_columns', 'uniform_sample_time']
 
 _RELATIVE_JITTER = 1e-3
+_GZIP_MAGIC = b'\x1f\x8b'
+# Other containers a CSV may arrive in, recognised by their first bytes.
+_OTHER_FORMATS = ((b'BZh', 'bzip2-compressed'), (b'\xfd7zXZ\x00', 'xz-compressed'),
+                  (b'\x28\xb5\x2f\xfd', 'zstd-compressed'), (b'PK\x03\x04', 'a zip archive'),
+                  (b'\x89MCAP', 'an MCAP file (use ctid replay)'),
+                  (b'SQLite format 3\x00', 'an SQLite database (use ctid replay on its bag)'))
+
+
+def _open_stream(path: Path) -> BinaryIO:
+    """Open a CSV file (plain or gzip, recognised by its first bytes) for binary reading."""
+    check_readable(path, MAX_CSV_BYTES, 'CSV file', DataError)
+    try:
+        stream = open(path, 'rb')
+    except OSError as error:
+        raise DataError(f'cannot read {path}: {error.strerror or error}') from None
+    try:
+        start = stream.peek(16)[:16]
+    except OSError as error:
+        stream.close()
+        raise DataError(f'cannot read {path}: {error.strerror or error}') from None
+    if start.startswith(_GZIP_MAGIC):
+        return gzip.GzipFile(fileobj=stream, mode='rb')
+    for magic, what in _OTHER_FORMATS:
+        if start.startswith(magic):
+            stream.close()
+            raise DataError(f'{path} is {what}, not a CSV file: decompress or convert it first')
+    if path.suffix == '.gz':
+        stream.close()
+        raise DataError(f'{path} is named .gz but is not gzip-compressed; rename or recompress it')
+    return stream
+
+
+def _text_lines(stream: BinaryIO, path: Path) -> Iterator[str]:
+    """Yield the decoded lines of ``stream`` (a UTF-8 byte order mark dropped), bounded."""
+    total = 0
+    number = 0
+    while True:
+        raw = stream.readline(MAX_LINE_BYTES + 1)
+        if not raw:
+            return
+        number += 1
+        total += len(raw)
+        if total > MAX_CSV_BYTES:
+            raise DataError(f'{path} holds more than the limit of {size_text(MAX_CSV_BYTES)} '
+                            '(decompressed)')
+        if len(raw) > MAX_LINE_BYTES:
+            raise DataError(f'{path} line {number} is longer than the limit of '
+                            f'{size_text(MAX_LINE_BYTES)}: not a CSV of samples')
+        if b'\0' in raw:
+            raise DataError(f'{path} is binary, not CSV text (a NUL byte on line {number})')
+        try:
+            text = raw.decode('utf-8')
+        except UnicodeDecodeError as error:
+            raise DataError(f'{path} is not UTF-8 text: byte 0x{raw[error.start]:02x} on line '
+                            f'{number}; save it as UTF-8 (e.g. iconv -f latin1 -t utf-8)'
+                            ) from None
+        yield text[1:] if number == 1 and text.startswith('\ufeff') else text
+
+
+def _rows(path: Path, stream: BinaryIO) -> Iterator[Tuple[int, list]]:
+    """Yield ``(line number, cells)`` of every non-blank row, header first."""
+    reader = csv.reader(_text_lines(stream, path))
+    blank = 0
+    try:
+        for row in reader:
+            if not row or (len(row) == 1 and not row[0].strip()):
+                blank += 1
+                if blank > MAX_BLANK_LINES:
+                    raise DataError(f'{path} has more than {MAX_BLANK_LINES} blank lines: not a '
+                                    'CSV of samples')
+                continue
+            yield reader.line_num, row
+    except csv.Error as error:
+        raise DataError(f'{path} line {reader.line_num}: {error}; not a CSV of samples'
+                        ) from None
+    except (EOFError, zlib.error, gzip.BadGzipFile) as error:
+        raise DataError(f'{path} is a truncated or damaged gzip file ({error}) after line '
+                        f'{reader.line_num}; recompress it, or decompress what is readable '
+                        '(zcat) and check its end') from None
+    except OSError as error:
+        raise DataError(f'cannot read {path}: {error.strerror or error}') from None
+
+
+def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequence[str] = ()
+                 ) -> Dict[str, np.ndarray]:
+    """
+    Read the named columns of a CSV file with a header line as float arrays.
+
+    Parameters
+    ----------
+    path : str or Path
+        CSV file, plain or gzip-compressed (recognised by its content).
+    names : sequence of str
+        Columns that must exist; header names are compared without surrounding spaces.
+    optional : sequence of str
+        Columns read only if the header has them.
+
+    Returns
+    -------
+    dict
+        ``{name: values}`` for ``names`` and the ``optional`` names present.
+
+    Raises
+    ------
+    DataError
+        On a missing, unreadable or broken file, a missing column, a missing or non-numeric
+        cell (the message names the line), or a file beyond the limits of
+        :mod:`ctid_ros.core.limits`.
+
+    """
+    path = Path(path)
+    with _open_stream(path) as stream:
+        rows = _rows(path, stream)
+        first = next(rows, None)
+        if first is None:
+            raise DataError(f'{path} needs a header line and at least one row of data')
+        header = [name.strip() for name in first[1]]
+        for name in names:
+            if name not in header:
+                listed = ', '.join(header)
+                listed = listed if len(listed) <= 200 else listed[:197] + '...'
+                raise DataError(f'{path} has no column {bounded_repr(name, 40)}; its columns '
+                                f'are {listed}')
+        wanted = [name for name in dict.fromkeys([*names, *optional]) if name in header]
+        indices = [header.index(name) for name in wanted]
+        values = [array.array('d') for _ in wanted]
+        count = 0
+        for line, row in rows:
+            count += 1
+            if count > MAX_SAMPLES:
+                raise DataError(f'{path} has more than {MAX_SAMPLES} rows, the record limit of '
+                                'one estimate; decimate it or split it')
+            for name, index, column in zip(wanted, indices, values):
+                try:
+                    column.append(float(row[index]))
+                except (ValueError, IndexError):
+                    cell = bounded_repr(row[index], 40) if index < len(row) else 'nothing'
+                    raise DataError(f'{path} line {line}: column {name!r} has a missing or '
+                                    f'non-numeric cell ({cell})') from None
+    if not count:
+        raise DataError(f'{path} needs a header line and at least one row of data')
+    return {name: np.frombuffer(column, dtype=float).copy()
+            for name, column in zip(wanted, values)}
+
+
+def _column_names(input_column: Union[str, Sequence[str]]) -> Tuple[str, ...]:
+    inputs = (input_column,) if isinstance(input_column, str) else tuple(input_column)
+    if not inputs or not all(isinstance(name, str) for name in inputs):
+        raise DataError(f'input columns must be one or more names, got {bounded_repr(inputs)}')
+    return inputs
 
 
 def uniform_sample_time(time: np.ndarray, what: str = 'time column') -> float:
@@ -49,7 +212,7 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
     Parameters
     ----------
     path : str or Path
-        CSV file, optionally gzip-compressed (``.gz``).
+        CSV file, optionally gzip-compressed (``.gz``; recognised by its content).
     input_column : str or sequence of str
         Input column name(s); several make a multi-input ``Data`` (columns in that order).
     output_column : str
@@ -66,31 +229,17 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
     Raises
     ------
     DataError
-        On a missing file or column, non-numeric cells, or non-uniform sampling.
+        On a missing file or column, non-numeric cells, or non-uniform sampling; on a file that
+        is broken or beyond the limits of :mod:`ctid_ros.core.limits` (see :func:`read_columns`).
 
     """
     path = Path(path)
-    try:
-        # A gzip-compressed file (name ending in .gz) is read transparently.
-        opener = gzip.open if path.suffix == '.gz' else open
-        with opener(path, 'rt', newline='') as handle:
-            rows = list(csv.reader(handle))
-    except OSError as error:
-        raise DataError(f'cannot read {path}: {error.strerror}') from None
-    if len(rows) < 2:
-        raise DataError(f'{path} needs a header line and at least one row of data')
-    header = [name.strip() for name in rows[0]]
-    inputs = (input_column,) if isinstance(input_column, str) else tuple(input_column)
-    columns = {}
+    inputs = _column_names(input_column)
+    if ts is not None and (isinstance(ts, bool) or not isinstance(ts, Real)
+                           or not 0 < ts < float('inf')):
+        raise DataError(f'the sample time must be a positive number, got {bounded_repr(ts)}')
     time = time_column
-    for name in inputs + (output_column,) + ((time,) if time in header else ()):
-        if name not in header:
-            raise DataError(f'{path} has no column {name!r}; its columns are {", ".join(header)}')
-        index = header.index(name)
-        try:
-            columns[name] = np.array([float(row[index]) for row in rows[1:] if row])
-        except (ValueError, IndexError):
-            raise DataError(f'{path}: column {name!r} has a missing or non-numeric cell') from None
+    columns = read_columns(path, inputs + (output_column,), optional=(time,))
     if time in columns:
         inferred = uniform_sample_time(columns[time], f'{path} column {time!r}')
         if ts is not None and abs(ts - inferred) > _RELATIVE_JITTER * inferred:

@@ -18,25 +18,37 @@ from io import BytesIO
 import math
 import os
 from pathlib import Path
+import re
 import struct
 from typing import (Any, Dict, FrozenSet, Iterator, List, Mapping, NamedTuple, Optional,
                     Sequence, Union)
+import zlib
 
+from ctid_ros.core.limits import MAX_CHUNK_BYTES, MAX_COMPRESSION_RATIO, MIB, size_text
 from ctid_ros.errors import BagError
+import lz4.frame
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Message, Schema
-from mcap.stream_reader import breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
+import zstandard
 
 __all__ = ['BagMessage', 'BagRecord', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'TopicSchema',
-           'reading_errors']
+           'check_chunk_sizes', 'chunk_records', 'is_service_event', 'reading_errors',
+           'service_event_error']
 
 PathLike = Union[str, os.PathLike]
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 _RECORD_HEADER = struct.Struct('<BQ')
+# A chunk record's fixed fields: message start and end time, uncompressed size and CRC.
+_CHUNK_FIELDS = struct.Struct('<QQQI')
+_LENGTH = struct.Struct('<I')
+_RECORDS_LENGTH = struct.Struct('<Q')
+# Bytes read at the start of compressed records: enough for a zstd or lz4 frame header.
+_FRAME_HEADER_BYTES = 32
+_READ_PIECE = MIB
 
 
 class BagMessage(NamedTuple):
@@ -79,6 +91,21 @@ class TopicSchema(NamedTuple):
     message_encoding: str = 'cdr'
 
 
+_SERVICE_EVENT = re.compile(r'/srv/\w+_Event\Z')
+
+
+def is_service_event(topic: str, msgtype: str) -> bool:
+    """Tell whether a topic carries service events (``ros2 bag record --services``)."""
+    return bool(_SERVICE_EVENT.search(msgtype or '')) or topic.endswith('/_service_event')
+
+
+def service_event_error(path: PathLike, topic: str, msgtype: str) -> BagError:
+    """Return the error for a service-event topic selected as an input or output."""
+    return BagError(f'{path}: {topic} carries service events ({msgtype}, recorded with '
+                    '`ros2 bag record --services` or --all-services), not messages; ctid replay '
+                    'reads message topics: select the topics of the signals')
+
+
 @contextmanager
 def reading_errors(what: str) -> Iterator[None]:
     """
@@ -111,11 +138,181 @@ class _Block:
     channel_ids: Optional[FrozenSet[int]]
 
 
+class _ChunkRefused(BagError):
+    """A chunk beyond the limits: refused, never decompressed (not a truncation)."""
+
+
+def _size_problem(declared: int, compressed: int, compression: str) -> Optional[str]:
+    """Say why a chunk of these sizes is refused before decompressing it, or None."""
+    if declared > MAX_CHUNK_BYTES:
+        return (f'declares {size_text(declared)} uncompressed, more than the limit of '
+                f'{size_text(MAX_CHUNK_BYTES)} per chunk')
+    if compression and declared > MIB and declared > MAX_COMPRESSION_RATIO * max(compressed, 1):
+        return (f'declares {size_text(declared)} uncompressed from {size_text(compressed)}, a '
+                f'ratio of {declared / max(compressed, 1):.0f} (the limit is '
+                f'{MAX_COMPRESSION_RATIO}): a decompression bomb or a damaged chunk')
+    return None
+
+
+def _frame_problem(declared: int, compression: str, start: bytes) -> Optional[str]:
+    """Check the content size a zstd or lz4 frame header states against the chunk's size."""
+    try:
+        if compression == 'zstd':
+            stated = zstandard.frame_content_size(start)
+        elif compression == 'lz4':
+            stated = lz4.frame.get_frame_info(start)['content_size'] or -1
+        else:
+            return None
+    except Exception:  # a damaged frame header is reported when the chunk is decompressed
+        return None
+    if stated >= 0 and stated != declared:
+        return (f'holds {compression} data of {size_text(stated)} (as its frame header says) '
+                f'but declares {size_text(declared)} uncompressed: a decompression bomb or a '
+                'damaged chunk')
+    return None
+
+
+def _decompressed(chunk: Chunk) -> bytes:
+    """Return the records of a chunk, decompressing at most its declared size (bounded)."""
+    declared = chunk.uncompressed_size
+    if not chunk.compression:
+        data = bytes(chunk.data)
+    elif chunk.compression == 'zstd':
+        reader = zstandard.ZstdDecompressor().stream_reader(chunk.data, read_across_frames=True)
+        pieces, total = [], 0
+        while total <= declared:
+            piece = reader.read(min(_READ_PIECE, declared + 1 - total))
+            if not piece:
+                break
+            pieces.append(piece)
+            total += len(piece)
+        data = b''.join(pieces)
+    elif chunk.compression == 'lz4':
+        data, rest = b'', bytes(chunk.data)
+        while rest and len(data) <= declared:
+            decompressor = lz4.frame.LZ4FrameDecompressor()
+            data += decompressor.decompress(rest, max_length=declared + 1 - len(data))
+            if not decompressor.eof:
+                break
+            rest = decompressor.unused_data
+    else:
+        raise BagError(f'chunk compression {chunk.compression!r} is not supported (only zstd '
+                       'and lz4)')
+    if len(data) != declared:
+        more = 'more than' if len(data) > declared else 'only'
+        raise BagError(f'chunk decompresses to {more} {size_text(len(data))}, not the '
+                       f'{size_text(declared)} it declares: damaged')
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise BagError('chunk CRC mismatch: damaged')
+    return data
+
+
+def chunk_records(chunk: Chunk) -> List[Any]:
+    """
+    Return the schema, channel and message records of a chunk, decompressed within limits.
+
+    Raises
+    ------
+    BagError
+        If the chunk declares more than :data:`~ctid_ros.core.limits.MAX_CHUNK_BYTES`, or a
+        compression ratio above :data:`~ctid_ros.core.limits.MAX_COMPRESSION_RATIO` (both
+        before decompressing), if a frame states another size than the chunk, or if the chunk
+        does not decompress to its declared size, fails its CRC or holds an invalid record.
+
+    """
+    problem = (_size_problem(chunk.uncompressed_size, len(chunk.data), chunk.compression)
+               or _frame_problem(chunk.uncompressed_size, chunk.compression,
+                                 bytes(chunk.data[:_FRAME_HEADER_BYTES])))
+    if problem:
+        raise _ChunkRefused(f'chunk {problem}')
+    data = _decompressed(chunk)
+    records: List[Any] = []
+    position = 0
+    while position < len(data):
+        if len(data) - position < _RECORD_HEADER.size:
+            raise BagError('chunk ends inside a record header: damaged')
+        opcode, length = _RECORD_HEADER.unpack_from(data, position)
+        start = position + _RECORD_HEADER.size
+        end = start + length
+        if opcode == 0 or end > len(data):
+            raise BagError(f'chunk holds an invalid record (opcode {opcode}, {length} bytes) at '
+                           f'byte {position}: damaged')
+        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+            stream = ReadDataStream(BytesIO(data[start:end]))
+            if opcode == Opcode.SCHEMA:
+                records.append(Schema.read(stream))
+            elif opcode == Opcode.CHANNEL:
+                records.append(Channel.read(stream))
+            else:
+                records.append(Message.read(stream, length))
+        position = end
+    return records
+
+
+def check_chunk_sizes(path: Path) -> None:
+    """
+    Check the chunk headers of an MCAP file against the limits, without decompressing.
+
+    Reads the header of every top-level record (a few bytes per chunk) up to the end of the
+    data section, or up to where the file is cut short; run it before handing a file to a
+    reader that decompresses chunks without bounds (rosbags).
+
+    Raises
+    ------
+    BagError
+        If the file cannot be read, or a chunk declares more than
+        :data:`~ctid_ros.core.limits.MAX_CHUNK_BYTES`, a compression ratio above
+        :data:`~ctid_ros.core.limits.MAX_COMPRESSION_RATIO`, or holds a frame stating another
+        size than the chunk's.
+
+    """
+    try:
+        with open(path, 'rb') as stream:
+            size = os.fstat(stream.fileno()).st_size
+            offset = len(MCAP_MAGIC)
+            while True:
+                stream.seek(offset)
+                head = stream.read(_RECORD_HEADER.size)
+                if len(head) < _RECORD_HEADER.size:
+                    return
+                opcode, length = _RECORD_HEADER.unpack(head)
+                if opcode in (Opcode.DATA_END, Opcode.FOOTER) or \
+                        offset + _RECORD_HEADER.size + length > size:
+                    return
+                if opcode == Opcode.CHUNK:
+                    _check_chunk_header(stream, path, offset)
+                offset += _RECORD_HEADER.size + length
+    except BagError:
+        raise
+    except OSError as error:
+        raise BagError(f'cannot read {path}: {error.strerror or error}') from None
+
+
+def _check_chunk_header(stream: Any, path: Path, offset: int) -> None:
+    fields = stream.read(_CHUNK_FIELDS.size + _LENGTH.size)
+    if len(fields) < _CHUNK_FIELDS.size + _LENGTH.size:
+        return
+    declared = _CHUNK_FIELDS.unpack_from(fields)[2]
+    (name_length,) = _LENGTH.unpack_from(fields, _CHUNK_FIELDS.size)
+    if name_length > 64:
+        return      # not a compression name: the reader reports the damaged chunk
+    compression = stream.read(name_length).decode('utf-8', 'replace')
+    counted = stream.read(_RECORDS_LENGTH.size)
+    if len(counted) < _RECORDS_LENGTH.size:
+        return
+    (compressed,) = _RECORDS_LENGTH.unpack(counted)
+    problem = (_size_problem(declared, compressed, compression)
+               or _frame_problem(declared, compression, stream.read(_FRAME_HEADER_BYTES)))
+    if problem:
+        raise _ChunkRefused(f'{path}: the chunk at byte {offset} {problem}; refusing to read '
+                            'the file')
+
+
 def _parse(opcode: int, body: bytes) -> List[Any]:
     """Parse one top-level MCAP record, expanding a chunk into its records."""
     stream = ReadDataStream(BytesIO(body))
     if opcode == Opcode.CHUNK:
-        return breakup_chunk(Chunk.read(stream), validate_crc=True)
+        return chunk_records(Chunk.read(stream))
     if opcode == Opcode.MESSAGE:
         return [Message.read(stream, len(body))]
     if opcode == Opcode.SCHEMA:
@@ -191,6 +388,12 @@ class McapSource:
         stats = summary.statistics
         if stats.message_count and not summary.chunk_indexes:
             return False
+        for index in summary.chunk_indexes:
+            problem = _size_problem(index.uncompressed_size, index.compressed_size,
+                                    index.compression)
+            if problem:
+                raise BagError(f'{self.path}: the chunk at byte {index.chunk_start_offset} '
+                               f'{problem}; refusing to read the file')
         self._schemas = dict(summary.schemas)
         self._channels = dict(summary.channels)
         self._counts = dict(stats.channel_message_counts)
@@ -221,6 +424,9 @@ class McapSource:
             try:
                 with reading_errors(f'damaged record at byte {offset}'):
                     records = _parse(opcode, self._stream.read(length))
+            except _ChunkRefused as error:
+                raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read '
+                               'the file') from None
             except BagError as error:
                 self._stop(offset, size, str(error))
                 return
@@ -272,6 +478,9 @@ class McapSource:
             if channel.topic not in topics:
                 continue
             schema = self._schemas.get(channel.schema_id)
+            msgtype = schema.name if schema is not None else '(no schema)'
+            if is_service_event(channel.topic, msgtype):
+                raise service_event_error(self.path, channel.topic, msgtype)
             with reading_errors(f'{self.path}: cannot parse the definition of {channel.topic}'):
                 decoder = factory.decoder_for(channel.message_encoding, schema)
             if decoder is None:
@@ -310,11 +519,18 @@ class McapSource:
             yield BagRecord(channel.topic, log_time_ns, msg, item.data)
 
     def _read_block(self, offset: int) -> List[Any]:
-        with reading_errors(f'{self.path} is corrupted at byte {offset} and cannot be read '
-                            'further'):
-            self._stream.seek(offset)
-            opcode, length = _RECORD_HEADER.unpack(self._stream.read(_RECORD_HEADER.size))
-            return _parse(opcode, self._stream.read(length))
+        try:
+            with reading_errors(f'{self.path} is corrupted at byte {offset} and cannot be read '
+                                'further'):
+                self._stream.seek(offset)
+                opcode, length = _RECORD_HEADER.unpack(self._stream.read(_RECORD_HEADER.size))
+                if opcode not in (Opcode.CHUNK, Opcode.MESSAGE):
+                    raise ValueError(f'the index points at a record of opcode {opcode}, not at '
+                                     'a chunk')
+                return _parse(opcode, self._stream.read(length))
+        except _ChunkRefused as error:
+            raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
+                           ) from None
 
     def close(self) -> None:
         """Release the file."""

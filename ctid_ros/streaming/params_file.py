@@ -12,20 +12,149 @@ import os
 from pathlib import Path
 import re
 import sys
-from typing import Any, Dict, List, Mapping
+from typing import Any, Dict, List, Mapping, Type
 
-from ctid_ros.errors import ConfigError
+from ctid_ros.core.limits import (MAX_PARAMS_BYTES, MAX_SAMPLES, MAX_YAML_DEPTH, MAX_YAML_NODES,
+                                  MIN_SAMPLE_TIME, read_limited)
+from ctid_ros.errors import ConfigError, CtidError
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
+from ctid_ros.streaming.session import history_span
 import yaml
 
-__all__ = ['PACKAGE', 'ROS_STANDARD_PARAMETERS', 'config_directories', 'find_config',
-           'load_params_file', 'node_parameters']
+__all__ = ['BoundedLoader', 'PACKAGE', 'ROS_STANDARD_PARAMETERS', 'check_record_length',
+           'config_directories', 'find_config', 'load_params_file', 'node_parameters',
+           'parse_yaml']
 
 PACKAGE = 'ctid_ros'
 # Every ROS 2 node has these; a params file may set them for ctid_node, so they are not errors.
 ROS_STANDARD_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 _ROS_STANDARD_PREFIXES = ('qos_overrides.',)
+
+
+# An error message quoting the configuration stays readable (a value may be long).
+_MESSAGE_LIMIT = 500
+
+
+class BoundedLoader(yaml.SafeLoader):
+    """
+    PyYAML's safe loader with limits on nesting and on alias expansion.
+
+    YAML anchors and aliases share nodes, so a few hundred bytes can describe a structure of a
+    billion nodes ("billion laughs") that is harmless until something walks it (a ``repr`` in an
+    error message, flattening the parameters). This loader counts every node as if aliases were
+    expanded and refuses the document beyond :data:`~ctid_ros.core.limits.MAX_YAML_NODES`, and
+    refuses collections nested deeper than :data:`~ctid_ros.core.limits.MAX_YAML_DEPTH`
+    (PyYAML's composer recurses: 5000 nested brackets would end in a ``RecursionError``).
+    """
+
+    # Nodes allowed with aliases expanded (a subclass may allow more).
+    max_nodes = MAX_YAML_NODES
+
+    def __init__(self, stream: Any) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._expanded: Dict[int, int] = {}
+
+    def _refuse(self, problem: str) -> yaml.YAMLError:
+        return yaml.composer.ComposerError(None, None, problem, self.peek_event().start_mark)
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        """Compose one node as PyYAML does, counting depth and expanded size."""
+        self._depth += 1
+        if self._depth > MAX_YAML_DEPTH:
+            raise self._refuse(f'collections nested more than {MAX_YAML_DEPTH} deep')
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+        key = id(node)
+        if key not in self._expanded:
+            if isinstance(node, yaml.SequenceNode):
+                size = 1 + sum(self._expanded[id(item)] for item in node.value)
+            elif isinstance(node, yaml.MappingNode):
+                size = 1 + sum(self._expanded[id(name)] + self._expanded[id(item)]
+                               for name, item in node.value)
+            else:
+                size = 1
+            self._expanded[key] = size
+            if size > self.max_nodes or len(self._expanded) > self.max_nodes:
+                raise self._refuse(f'more than {self.max_nodes} values with aliases expanded '
+                                   '(an alias bomb, or not a params file)')
+        return node
+
+
+def parse_yaml(content: bytes, source: str, error: Type[CtidError] = ConfigError,
+               max_nodes: int = MAX_YAML_NODES) -> Any:
+    """
+    Parse one YAML document from UTF-8 bytes with :class:`BoundedLoader`.
+
+    Parameters
+    ----------
+    content : bytes
+        The document.
+    source : str
+        What it is, for the messages (``'params file run.yaml'``).
+    error : type
+        The :class:`~ctid_ros.errors.CtidError` to raise (a bag's metadata: ``BagError``).
+    max_nodes : int
+        Nodes allowed with aliases expanded.
+
+    Raises
+    ------
+    ConfigError
+        (or ``error``) If the content is binary (NUL bytes), not UTF-8, not valid YAML, or
+        beyond the limits of :class:`BoundedLoader`; the message names ``source`` and the line.
+
+    """
+    if b'\0' in content:
+        offset = content.index(b'\0')
+        raise error(f'{source} is binary, not YAML text (a NUL byte at offset {offset})')
+    try:
+        text = content.decode('utf-8')
+    except UnicodeDecodeError as problem:
+        line = content[:problem.start].count(b'\n') + 1
+        raise error(f'{source} is not UTF-8 text: byte 0x{content[problem.start]:02x} on '
+                    f'line {line} (offset {problem.start}); save it as UTF-8') from None
+    loader = BoundedLoader if max_nodes == MAX_YAML_NODES else type(
+        'Loader', (BoundedLoader,), {'max_nodes': max_nodes})
+    try:
+        return yaml.load(text, Loader=loader)
+    except yaml.MarkedYAMLError as problem:
+        mark = problem.problem_mark or problem.context_mark
+        where = f' (line {mark.line + 1}, column {mark.column + 1})' if mark else ''
+        what = ' '.join(str(part) for part in (problem.context, problem.problem) if part)
+        raise error(f'{source} is not valid YAML: {what}{where}') from None
+    except yaml.YAMLError as problem:
+        raise error(f'{source} is not valid YAML: {_clipped(str(problem))}') from None
+
+
+def _clipped(text: str) -> str:
+    """Return a message on one line, cut to a readable length."""
+    text = ' '.join(text.split())
+    return text if len(text) <= _MESSAGE_LIMIT else text[:_MESSAGE_LIMIT - 3] + '...'
+
+
+def check_record_length(config: IdentificationConfig) -> None:
+    """
+    Check that one estimate of ``config`` stays within the record limit of the estimator.
+
+    Raises
+    ------
+    ConfigError
+        If ``sample_time`` is below :data:`~ctid_ros.core.limits.MIN_SAMPLE_TIME`, or a window
+        with its settling transient holds more than :data:`~ctid_ros.core.limits.MAX_SAMPLES`.
+
+    """
+    if config.sample_time < MIN_SAMPLE_TIME:
+        raise ConfigError(f'sample_time {config.sample_time:g} s is below the limit of '
+                          f'{MIN_SAMPLE_TIME:g} s (time stamps are integer nanoseconds)')
+    samples = history_span(config) / config.sample_time
+    if samples > MAX_SAMPLES:
+        raise ConfigError(f'window ({config.window:g} s) plus its settling transient at '
+                          f'sample_time {config.sample_time:g} s is {samples:.3g} samples per '
+                          f'estimate, more than the limit of {MAX_SAMPLES}; use a shorter window '
+                          'or a longer sample_time')
 
 
 def _flatten(values: Mapping[str, Any], prefix: str = '') -> Dict[str, Any]:
@@ -131,22 +260,20 @@ def load_params_file(path, node_name: str = DEFAULT_NODE_NAME) -> Identification
     ------
     ConfigError
         If the file cannot be read or parsed, has no section for the node, names an unknown
-        parameter (the message lists the valid ones), or has a wrong type or invalid value.
+        parameter (the message lists the valid ones), or has a wrong type or invalid value; if
+        it is larger than :data:`~ctid_ros.core.limits.MAX_PARAMS_BYTES`, not a regular file,
+        binary, or beyond the limits of :class:`BoundedLoader` and :func:`check_record_length`.
 
     """
-    try:
-        text = Path(path).read_text(encoding='utf-8')
-    except OSError as error:
-        raise ConfigError(f'cannot read params file {path}: {error.strerror or error}') from None
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f'params file {path} is not valid YAML: {error}') from None
+    content = read_limited(Path(path), MAX_PARAMS_BYTES, 'params file', ConfigError)
+    document = parse_yaml(content, f'params file {path}')
     values = node_parameters(document, node_name, source=str(path))
     try:
-        return IdentificationConfig.from_dict(values)
+        config = IdentificationConfig.from_dict(values)
+        check_record_length(config)
     except ConfigError as error:
-        raise ConfigError(f'{path}: {error}') from None
+        raise ConfigError(f'{path}: {_clipped(str(error))}') from None
+    return config
 
 
 def config_directories() -> List[Path]:

@@ -291,3 +291,35 @@ def test_two_inputs_from_one_joint_state(tmp_path, capsys):
     code, out, err = replay(capsys, bag, '--params-file', params, '--json')
     assert code == 0, err
     assert json.loads(out)['params'] == pytest.approx(truth, rel=0.03)
+
+
+def test_plot_paths_are_checked_before_estimating(tmp_path, capsys):
+    u, y = simulate(DELAY, 12.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap')
+    params = params_file(tmp_path, DELAY)
+    before = digest(bag), digest(params)
+    for plot, message in ((tmp_path / 'missing' / 'fit.png', 'missing does not exist'),
+                          (bag / 'fit.png', 'into or over the input'),
+                          (params, 'give a .png, .pdf or .svg file'),
+                          (tmp_path / 'fit.txt', 'give a .png'),
+                          (tmp_path, 'is a directory')):
+        code, out, err = replay(capsys, bag, '--params-file', params, '--plot', plot)
+        assert code == 2 and out == '', err           # no estimate was printed
+        assert message in err and err.count('\n') == 1
+    (tmp_path / 'dir_bode.png').mkdir()
+    code, out, err = replay(capsys, bag, '--params-file', params, '--plot', tmp_path / 'dir.png')
+    assert code == 2 and out == '' and 'dir_bode.png is a directory' in err
+    assert (digest(bag), digest(params)) == before
+
+
+def test_plot_without_a_path_never_writes_into_the_bag(tmp_path, capsys, monkeypatch):
+    u, y = simulate(DELAY, 12.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'sqlite3')
+    params = params_file(tmp_path, DELAY)
+    before = digest(bag)
+    monkeypatch.chdir(bag)
+    code, _, err = replay(capsys, '.', '--params-file', params, '--plot')
+    assert code == 0, err
+    assert sorted(path.name for path in tmp_path.glob('*.png')) == [
+        'run_replay.png', 'run_replay_bode.png']
+    assert digest(bag) == before and not list(bag.glob('*.png'))

@@ -102,3 +102,25 @@ def test_detrend_removes_the_operating_point():
     np.testing.assert_allclose(data.detrend('initial').u[:, 0], [0.0, 1.0, 2.0, 3.0])
     with pytest.raises(DataError, match='detrend'):
         data.detrend('linear')
+
+
+@pytest.mark.parametrize('u,y,ts,t0,fragment', [
+    (np.ma.masked_array([1.0, 2.0, 3.0], [0, 1, 0]), np.ones(3), 0.1, 0.0, '1 masked value'),
+    (np.ones(3), np.ma.masked_array([1.0, 2.0, 3.0], [1, 1, 0]), 0.1, 0.0, '2 masked value'),
+    (np.zeros((3, 0)), np.ones(3), 0.1, 0.0, 'no input columns'),
+    ([10 ** 400, 1, 2], np.ones(3), 0.1, 0.0, 'numeric'),
+    (np.ones(3), np.ones(3), 10 ** 400, 0.0, 'finite number'),
+    (np.ones(3), np.ones(3), 1e308, 0.0, 'overflow'),
+    (np.ones(3), np.ones(3), 1e308, 1.7e308, 'overflow'),
+])
+def test_hostile_arrays_and_times_are_refused(u, y, ts, t0, fragment):
+    with pytest.raises(DataError, match=fragment):
+        Data(u, y, ts, t0)
+
+
+def test_segment_indices_must_be_integers():
+    data = Data(np.arange(10.0), np.arange(10.0), 0.1)
+    assert len(data.segment(np.int64(2), 5)) == 3
+    for start, stop in ((1.5, None), ('2', None), (0, 4.0), (True, 3)):
+        with pytest.raises(DataError, match='integer sample index'):
+            data.segment(start, stop)

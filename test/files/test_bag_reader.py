@@ -1,12 +1,15 @@
 """Tests of ctid_ros.files.bag_reader: bags of every kind from independent writers."""
 
+import hashlib
 import os
+from pathlib import Path
 import shutil
 
 from bag_fixtures import (assert_fields, DURATION_S, make_records, readable_prefix, SAMPLE_MSG,
                           SAMPLE_TYPE, T0_NS, TOPICS, truncate, write_mcap, write_rosbag2)
 from ctid_ros.errors import BagError
 from ctid_ros.files.bag_reader import BagReader, open_bag
+import hostile_corpus
 import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
@@ -198,3 +201,129 @@ def test_no_file_is_left_open(bags):
         with BagReader(bags[kind]) as bag:
             list(bag.messages('/plant/u'))
     assert len(os.listdir('/proc/self/fd')) == fds
+
+
+# Bags written by rosbag2 itself (test/data/bags, from the ros2/rosbag2 test resources).
+REAL = Path(__file__).resolve().parents[1] / 'data' / 'bags'
+
+
+def digest(path):
+    return {file.name: hashlib.sha256(file.read_bytes()).hexdigest()
+            for file in sorted(path.iterdir())}
+
+
+@pytest.mark.parametrize('name, storage', [('talker_sqlite3', 'talker.db3'),
+                                           ('talker_mcap', 'talker.mcap')])
+def test_recorded_talker_with_metadata_version_4_yields_its_messages(name, storage):
+    before = digest(REAL / name)
+    with BagReader(REAL / name) as bag:
+        # Its metadata.yaml (version 4) and storage disagree on the QoS profiles, so rosbags
+        # alone would yield none of the 20 messages.
+        assert len(bag.warnings) == 1
+        assert (f'metadata.yaml (version 4) and {storage} disagree about 2 topic(s) (/rosout: '
+                'QoS profiles; /topic: QoS profiles), so rosbags would skip 20 stored message'
+                ) in bag.warnings[0]
+        assert bag.message_counts() == {'/topic': 10, '/rosout': 10, '/parameter_events': 0}
+        messages = list(bag.messages('/topic'))
+    assert [message.msg.data for message in messages] == [f'Hello, world! {k}'
+                                                          for k in range(10)]
+    assert digest(REAL / name) == before
+
+
+def test_a_stored_definition_that_does_not_match_the_data_is_named():
+    with BagReader(REAL / 'talker_sqlite3') as bag:
+        # talker.db3 stores a one-field definition of rcl_interfaces/msg/Log.
+        with pytest.raises(BagError, match='the message on /rosout at 1585866235112411371 ns '
+                           'does not match the definition of rcl_interfaces/msg/Log'):
+            list(bag.messages('/rosout'))
+
+
+@pytest.mark.parametrize('name', ['service_events_sqlite3', 'service_events_mcap'])
+def test_service_events_are_named_and_message_topics_still_read(name):
+    before = digest(REAL / name)
+    with BagReader(REAL / name) as bag:
+        assert bag.message_counts()['/test_service1/_service_event'] == 4
+        assert [message.msg.string_value_default1
+                for message in bag.messages(['/test_topic1', '/test_topic2'])] == [
+            'Hello world!'] * 2
+        with pytest.raises(BagError, match='/test_service1/_service_event carries service '
+                           r'events \(test_msgs/srv/BasicTypes_Event, recorded with `ros2 bag '
+                           'record --services`') as error:
+            list(bag.messages(['/test_topic1', '/test_service1/_service_event']))
+        assert 're-record' not in str(error.value)
+    assert digest(REAL / name) == before
+
+
+def test_topics_stored_without_a_leading_slash_are_found_either_way():
+    with BagReader(REAL / 'no_slash_mcap') as bag:
+        assert set(bag.topics()) == {'a_empty', 'b_basictypes'}
+        assert bag.topic_name('/b_basictypes') == 'b_basictypes'
+        assert bag.topic_name('b_basictypes') == 'b_basictypes'
+        assert bag.topic_name('/c_strings') is None
+        assert len(list(bag.messages('/b_basictypes'))) == 50
+        assert bag.message_count(['a_empty', '/b_basictypes']) == 150
+    with BagReader(REAL / 'talker_mcap') as bag:
+        assert bag.topic_name('topic') == '/topic'
+
+
+def tampered(bags, tmp_path, edit):
+    """Copy the sqlite3 bag and rewrite its metadata.yaml with ``edit``."""
+    bag = tmp_path / 'bag'
+    shutil.copytree(bags['sqlite3'], bag)
+    metadata = bag / 'metadata.yaml'
+    metadata.write_text(edit(metadata.read_text()))
+    return bag
+
+
+def test_metadata_disagreeing_with_the_database_is_named_not_called_corrupted(bags, tmp_path):
+    def compressed(text):
+        return text.replace("compression_format: ''", 'compression_format: zstd').replace(
+            "compression_mode: ''", 'compression_mode: message')
+
+    with BagReader(tampered(bags, tmp_path / 'a', compressed)) as bag:
+        assert 'says the messages are zstd-compressed (compression_mode: message) but ' \
+            'sqlite3.db3 hold(s) uncompressed messages' in bag.warnings[0]
+        assert_records(list(bag.messages()), RECORDS)
+
+    def retyped(text):
+        return text.replace('type: std_msgs/msg/Float64', 'type: std_msgs/msg/Int32', 1)
+
+    with BagReader(tampered(bags, tmp_path / 'b', retyped)) as bag:
+        assert '/plant/u: type std_msgs/msg/Int32 against std_msgs/msg/Float64' in \
+            bag.warnings[0]
+        assert_records(list(bag.messages()), RECORDS)
+
+    def recounted(text):
+        return text.replace(f'message_count: {len(RECORDS)}', 'message_count: 5', 1).replace(
+            'message_count: 200', 'message_count: 7', 1)
+
+    with BagReader(tampered(bags, tmp_path / 'c', recounted)) as bag:
+        assert any('metadata.yaml counts 7 message(s) on /plant/u, the storage holds 200' in
+                   warning for warning in bag.warnings)
+        assert bag.message_count('/plant/u') == 200
+
+
+def test_oversized_metadata_is_refused(bags, tmp_path):
+    bag = tmp_path / 'bag'
+    shutil.copytree(bags['sqlite3'], bag)
+    with open(bag / 'metadata.yaml', 'ab') as stream:
+        stream.truncate(5 << 20)
+    with pytest.raises(BagError, match='metadata.yaml is 5 MiB, more than the limit of 4 MiB'):
+        BagReader(bag)
+
+
+def test_compressed_storage_files_are_checked_before_rosbags_decompresses_them(bags, tmp_path):
+    def file_compressed(text):
+        return text.replace("compression_format: ''", 'compression_format: zstd').replace(
+            "compression_mode: ''", 'compression_mode: file')
+
+    bag = tampered(bags, tmp_path / 'a', file_compressed)
+    with pytest.raises(BagError, match=r'says the storage files are zstd-compressed '
+                       r'\(compression_mode: file\) but .*sqlite3.db3 is not'):
+        BagReader(bag)
+    database = bag / 'sqlite3.db3'
+    # A frame that does not state its size could expand without bound in rosbags.
+    database.write_bytes(hostile_corpus.zeros_zstd(8 << 20, content_size=False))
+    with pytest.raises(BagError, match='decompresses to an unknown size from .* .the ratio '
+                       'limit is 1000.: a decompression bomb'):
+        BagReader(bag)

@@ -1,6 +1,8 @@
 """Tests of ctid_ros.files.csv_file: CSV records with a header line, plain or gzip."""
 
 import gzip
+import os
+import threading
 
 from ctid_ros.errors import DataError
 from ctid_ros.files.csv_file import load_csv, uniform_sample_time
@@ -70,3 +72,92 @@ def test_uniform_sample_time_tolerates_jitter_below_a_thousandth():
     t[50] += 1e-4
     with pytest.raises(DataError, match='step .* at row 50'):
         uniform_sample_time(t)
+
+
+GOOD = b't,u,y\n' + b''.join(b'%g,%d,%d\n' % (0.1 * k, k % 3, k % 5) for k in range(20))
+
+
+@pytest.mark.parametrize('name, content, message', [
+    ('latin1.csv', b't,u,y\n0,1,\xe92\n', 'not UTF-8 text: byte 0xe9 on line 2; save it as UTF-8'),
+    ('nul.csv', GOOD[:30] + b'\x00' + GOOD[30:], 'binary, not CSV text .a NUL byte on line'),
+    ('field.csv', b't,u,y\n0,"' + b'1' * 140_000 + b'",1\n', 'line 2: field larger than'),
+    ('line.csv', b't,u,y\n' + b'1' * (1 << 20) + b'\n', 'line 2 is longer than the limit'),
+    ('cell.csv', GOOD + b'2.0,1,x\n', r"line 22: column 'y' has a missing or non-numeric cell"),
+    ('short.csv', GOOD + b'2.0,1\n', r"line 22: column 'y' .* \(nothing\)"),
+    ('blank.csv', b't,u,y\n' + b'\n' * 10_001 + b'0,1,2\n', 'more than 10000 blank lines'),
+    ('header.csv', b'\n\n', 'needs a header line'),
+    ('trunc.csv.gz', gzip.compress(GOOD)[:80], 'truncated or damaged gzip file'),
+    ('damaged.csv.gz', gzip.compress(GOOD)[:12] + b'\xff' * 40 + gzip.compress(GOOD)[52:],
+     'truncated or damaged gzip file'),
+    ('plain.csv.gz', GOOD, 'named .gz but is not gzip-compressed'),
+    ('run.csv.xz', b'\xfd7zXZ\x00' + GOOD, 'xz-compressed, not a CSV file'),
+    ('run.csv', b'\x89MCAP0\r\n' + GOOD, 'an MCAP file .use ctid replay.'),
+])
+def test_broken_files_raise_data_errors_naming_the_file(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(DataError, match=message) as error:
+        load_csv(path, ts=0.1)
+    assert name in str(error.value) and len(str(error.value)) < 400
+    assert path.read_bytes() == content
+
+
+def test_byte_order_mark_and_gzip_by_content(tmp_path):
+    bom = tmp_path / 'excel.csv'
+    bom.write_bytes(b'\xef\xbb\xbf' + GOOD)
+    data = load_csv(bom)
+    assert data.ts == pytest.approx(0.1) and len(data) == 20
+    unnamed = tmp_path / 'compressed.csv'
+    unnamed.write_bytes(gzip.compress(b'\xef\xbb\xbf' + GOOD))
+    np.testing.assert_array_equal(load_csv(unnamed).y, data.y)
+
+
+def test_non_regular_and_large_files_are_refused_before_reading(tmp_path):
+    with pytest.raises(DataError, match='/dev/zero is not a regular file'):
+        load_csv('/dev/zero')
+    with pytest.raises(DataError, match='is a directory'):
+        load_csv(tmp_path)
+    large = tmp_path / 'large.csv'
+    with open(large, 'wb') as stream:
+        stream.truncate(300 << 20)                  # sparse: nothing is written
+    with pytest.raises(DataError, match='large.csv is 300 MiB, more than the limit of 256 MiB'):
+        load_csv(large)
+
+
+def test_limits_on_decompressed_size_and_rows(tmp_path, monkeypatch):
+    from ctid_ros.files import csv_file
+
+    path = tmp_path / 'bomb.csv.gz'
+    path.write_bytes(gzip.compress(GOOD + b'0,0,0\n' * 100_000))
+    monkeypatch.setattr(csv_file, 'MAX_CSV_BYTES', 10_000)
+    with pytest.raises(DataError, match=r'more than the limit of 9.77 KiB \(decompressed\)'):
+        load_csv(path)
+    monkeypatch.setattr(csv_file, 'MAX_CSV_BYTES', 1 << 30)
+    monkeypatch.setattr(csv_file, 'MAX_SAMPLES', 1000)
+    with pytest.raises(DataError, match='more than 1000 rows, the record limit'):
+        load_csv(path)
+
+
+def test_a_pipe_is_read(tmp_path):
+    fifo = tmp_path / 'pipe.csv'
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=fifo.write_bytes, args=(GOOD,))
+    writer.start()
+    try:
+        assert len(load_csv(fifo)) == 20
+    finally:
+        writer.join()
+
+
+@pytest.mark.parametrize('kwargs, message', [
+    ({'ts': '0.1'}, 'sample time must be a positive number'),
+    ({'ts': 0.0}, 'sample time must be a positive number'),
+    ({'ts': float('nan')}, 'sample time must be a positive number'),
+    ({'input_column': ()}, 'input columns must be one or more names'),
+    ({'input_column': ['u', 3]}, 'input columns must be one or more names'),
+])
+def test_bad_arguments(tmp_path, kwargs, message):
+    path = tmp_path / 'data.csv'
+    path.write_bytes(GOOD)
+    with pytest.raises(DataError, match=message):
+        load_csv(path, **kwargs)

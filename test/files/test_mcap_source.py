@@ -1,13 +1,21 @@
 """Tests of ctid_ros.files.mcap_source: standalone MCAP files, complete, unchunked or damaged."""
 
+import re
 import shutil
+import struct
+import tracemalloc
+import zlib
 
 from bag_fixtures import (assert_fields, make_records, readable_prefix, T0_NS, TOPICS, truncate,
                           write_mcap, write_unchunked_mcap)
 from ctid_ros.errors import BagError
 from ctid_ros.files.bag_reader import BagReader
-from ctid_ros.files.mcap_source import McapSource, TopicSchema
+from ctid_ros.files.mcap_source import chunk_records, McapSource, TopicSchema
+import hostile_corpus
+import lz4.frame
+from mcap.records import Chunk
 import pytest
+import zstandard
 
 RECORDS = make_records(seed=0)
 
@@ -87,3 +95,60 @@ def test_damaged_chunk_in_indexed_mcap_raises_when_reached(mcap_file, tmp_path):
                 received.append(message)
     assert 0 < len(received) < len(RECORDS)
     assert_records(received, RECORDS[:len(received)])
+
+
+@pytest.mark.parametrize('name, message', [
+    ('declares 2 GiB', 'declares 2 GiB uncompressed, more than the limit of 256 MiB per chunk'),
+    ('no footer', 'declares 2 GiB uncompressed, more than the limit of 256 MiB per chunk'),
+    ('ratio 30000', r'declares 64 MiB uncompressed from 2.\d+ KiB, a ratio of \d+ \(the limit '
+                    r'is 1000\): a decompression bomb'),
+    ('lying zstd frame', r'holds zstd data of 64 MiB \(as its frame header says\) but declares '
+                         '1000 bytes'),
+    ('lying lz4 frame', 'holds lz4 data of 16 MiB'),
+])
+def test_chunk_bombs_are_refused_before_decompressing(tmp_path, name, message):
+    path = hostile_corpus.mcap_bombs(tmp_path)[name]
+    before = path.read_bytes()
+    tracemalloc.start()
+    try:
+        with pytest.raises(BagError, match=message):
+            BagReader(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20 and path.read_bytes() == before
+    # The same file as the storage of a rosbag2 directory is refused before rosbags reads it.
+    bag = tmp_path / 'bag'
+    bag.mkdir(exist_ok=True)
+    shutil.copy(path, bag / 'run.mcap')
+    (bag / 'metadata.yaml').write_text('rosbag2_bagfile_information: {}\n')
+    with pytest.raises(BagError, match=message):
+        BagReader(bag)
+
+
+@pytest.mark.parametrize('name, message', [
+    ('zstd without size', 'chunk decompresses to more than 1001 bytes, not the 1000 bytes it '
+                          'declares: damaged'),
+    ('zero records', r'chunk holds an invalid record \(opcode 0, 0 bytes\) at byte 0: damaged'),
+    ('unknown compression', "chunk compression 'bz2' is not supported"),
+])
+def test_damaged_chunks_end_the_readable_part(tmp_path, name, message):
+    with BagReader(hostile_corpus.mcap_bombs(tmp_path)[name]) as bag:
+        assert bag.truncated and re.search(message, bag.warnings[0])
+        assert list(bag.messages()) == []
+
+
+def test_chunk_records_of_a_good_chunk(tmp_path):
+    content = b''.join(hostile_corpus.record(0x05, struct.pack('<HIQQ', 1, k, k, k) + b'abc')
+                       for k in range(3))
+    for compression, data in (('', content), ('zstd', zstandard.compress(content)),
+                              ('lz4', lz4.frame.compress(content))):
+        records = chunk_records(Chunk(compression=compression, data=data, message_end_time=2,
+                                      message_start_time=0, uncompressed_crc=zlib.crc32(content),
+                                      uncompressed_size=len(content)))
+        assert [(message.sequence, message.data) for message in records] == [
+            (0, b'abc'), (1, b'abc'), (2, b'abc')]
+    with pytest.raises(BagError, match='CRC mismatch'):
+        chunk_records(Chunk(compression='', data=content, message_end_time=2,
+                            message_start_time=0, uncompressed_crc=1,
+                            uncompressed_size=len(content)))

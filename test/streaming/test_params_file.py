@@ -203,3 +203,56 @@ def test_unreadable_file(tmp_path):
 def test_node_parameters_flattens_nested_names():
     document = {'/**': {'ros__parameters': {'a': {'b': 1, 'c': {'d': 2}}}}}
     assert node_parameters(document) == {'a.b': 1, 'a.c.d': 2}
+
+
+def billion_laughs(levels=10):
+    """Return a params file of a few hundred bytes whose value expands to 9**levels strings."""
+    names = 'abcdefghijklmnop'
+    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for previous, name in zip(names, names[1:levels]):
+        lines.append(f'{name}: &{name} [' + ','.join([f'*{previous}'] * 9) + ']')
+    lines.append(f'ctid_node:\n  ros__parameters:\n    initial: *{names[levels - 1]}')
+    return '\n'.join(lines) + '\n'
+
+
+@pytest.mark.parametrize('content, message', [
+    (billion_laughs().encode(), 'more than 20000 values with aliases expanded'),
+    (('ctid_node:\n  ros__parameters:\n    model: ' + '[' * 5000 + ']' * 5000).encode(),
+     'nested more than 32 deep'),
+    (b'ctid_node:\n  ros__parameters:\n    model: "K/(T*s+1)"\x00\x01\x02', 'binary.*offset'),
+    (b'ctid_node:\n  ros__parameters:\n    model: "\xff\xfe"\n',
+     'not UTF-8 text: byte 0xff on line 3'),
+    (b'ctid_node:\n  ros__parameters:\n    model: "K/(T*s+1)"\n    sample_time: 1.0e-12\n',
+     'sample_time 1e-12 s is below the limit'),
+    (b'ctid_node:\n  ros__parameters:\n    model: "K/(T*s+1)"\n    sample_time: 1.0e-6\n'
+     b'    window: 10.0\n', r'2e\+07 samples per estimate, more than the limit of 1000000'),
+    (b'ctid_node:\n  ros__parameters:\n    model: "K/(T*s+1)"\n    initial: ['
+     + b', '.join([b'abc'] * 15000) + b']\n', r'initial must be .*\.\.\.$'),
+])
+def test_hostile_files_are_refused_with_a_config_error(tmp_path, content, message):
+    path = tmp_path / 'params.yaml'
+    path.write_bytes(content)
+    with pytest.raises(ConfigError, match=message) as error:
+        load_params_file(path)
+    assert len(str(error.value)) < 600 and '\n' not in str(error.value)
+    assert path.read_bytes() == content
+
+
+def test_too_large_and_non_regular_files_are_refused_before_reading(tmp_path):
+    large = tmp_path / 'large.yaml'
+    with open(large, 'wb') as stream:
+        stream.truncate(300 << 10)                  # sparse: nothing is written
+    with pytest.raises(ConfigError, match='large.yaml is 300 KiB, more than the limit of 256'):
+        load_params_file(large)
+    with pytest.raises(ConfigError, match='is a directory'):
+        load_params_file(tmp_path)
+    with pytest.raises(ConfigError, match='/dev/zero is not a regular file'):
+        load_params_file('/dev/zero')
+
+
+def test_small_anchors_and_a_byte_order_mark_are_fine(tmp_path):
+    path = tmp_path / 'params.yaml'
+    path.write_bytes('\ufeffdefaults: &d {model: "K/(T*s + 1)", window: 5.0}\n'
+                     'ctid_node:\n  ros__parameters: *d\n'.encode())
+    config = load_params_file(path)
+    assert config.model == 'K/(T*s + 1)' and config.window == 5.0
