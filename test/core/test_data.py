@@ -102,3 +102,17 @@ def test_detrend_removes_the_operating_point():
     np.testing.assert_allclose(data.detrend('initial').u[:, 0], [0.0, 1.0, 2.0, 3.0])
     with pytest.raises(DataError, match='detrend'):
         data.detrend('linear')
+
+
+def test_output_skew_is_validated_and_kept():
+    data = Data(np.arange(10.0), np.arange(10.0), 0.5, t0=1.0, output_skew=0.2)
+    assert data.output_skew == 0.2
+    assert data.segment(2, 6).output_skew == 0.2
+    assert data.detrend('mean').output_skew == 0.2
+    assert data.detrend('initial').output_skew == 0.2
+    assert Data(np.ones(3), np.ones(3), 0.5).output_skew == 0.0
+    for skew in (-0.1, 0.5, 0.7, np.nan, np.inf):
+        with pytest.raises(DataError, match='output skew'):
+            Data(np.ones(3), np.ones(3), 0.5, output_skew=skew)
+    with pytest.raises(DataError, match='output skew'):
+        Data(np.ones(3), np.ones(3), 0.5, output_skew='0.1')
