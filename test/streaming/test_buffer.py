@@ -4,7 +4,8 @@ import math
 import threading
 
 from ctid_ros.errors import DataError
-from ctid_ros.streaming.buffer import Admission, capacity_for, Gap, resample, SampleBuffer
+from ctid_ros.streaming.buffer import (Admission, capacity_for, Gap, Refusals, resample,
+                                       SampleBuffer)
 import numpy as np
 import pytest
 
@@ -347,3 +348,107 @@ def test_batch_input_checks_and_capacity_sizing():
     assert capacity_for(0.01, 1.0) == 16
     with pytest.raises(DataError, match='rate > 0'):
         capacity_for(10.0, 0.0)
+
+
+HOUR = 3600 * NS
+
+
+def steady(buffer, first, count, step=ns(0.01), stream='pair'):
+    """Feed ``count`` samples every ``step`` from stamp ``first``; return the verdicts."""
+    verdicts = []
+    for k in range(first, first + count):
+        stamp = k * step
+        if stream == 'pair':
+            verdicts.extend(buffer.add_pair(stamp, float(k % 7), float(k)))
+        else:
+            verdicts.append(buffer.add_output(stamp, float(k)))
+    return verdicts
+
+
+def test_a_stamp_an_hour_ahead_does_not_capture_the_stream():
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    steady(buffer, 1, 300)
+    assert buffer.add_output(ns(3.005) + HOUR, 1e6) is Admission.PENDING
+    assert buffer.stats().y.pending == 1
+    # The next sample of the stream's own clock is admitted and refuses the stray one.
+    assert set(steady(buffer, 301, 300)) == {Admission.ACCEPTED}
+    stats = buffer.stats().y
+    assert (stats.accepted, stats.out_of_clock, stats.late, stats.pending) == (600, 1, 0, 0)
+    window = buffer.window(5.0, 0.01, ns(6.0))
+    assert window.complete and window.data.y.max() == 600.0
+    assert window.refused[1] == Refusals(window.refused[1].stream, out_of_clock=1)
+    assert window.warnings == ('output: 1 samples refused in this window (out of clock 1)',)
+
+
+@pytest.mark.parametrize('stray', ['random', 'zero', 'ahead', 'behind'])
+def test_stray_stamps_among_good_ones_are_refused_and_counted(stray):
+    rng = np.random.default_rng(4)
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    refused = 0
+    for k in range(1, 1001):
+        buffer.add_pair(ns(0.01 * k) + HOUR, float(k % 7), float(k))
+        if k % 10 == 5:
+            stamp = {'random': int(rng.integers(0, 2 ** 62)), 'zero': 0,
+                     'ahead': ns(0.01 * k + 30.0) + HOUR,
+                     'behind': ns(0.01 * k - 20.0) + HOUR}[stray]
+            verdict = buffer.add_output(stamp, -1.0)
+            refused += 1
+            assert verdict in (Admission.PENDING, Admission.OUT_OF_CLOCK, Admission.LATE)
+    stats = buffer.stats()
+    assert stats.y.accepted == 1000 and stats.y.out_of_clock + stats.y.late == refused
+    window = buffer.window(9.0, 0.01, ns(10.0) + HOUR)
+    assert window.complete and np.all(window.data.y > 0)
+    assert window.refused[1].total == 90 and window.refused[0].total == 0
+
+
+def test_a_stream_resuming_after_a_silence_or_losing_most_messages_loses_nothing():
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    steady(buffer, 1, 200)
+    verdicts = steady(buffer, 1200, 200)
+    # The first two samples after 10 s of silence wait for a third to confirm the new clock.
+    assert verdicts[:6] == [Admission.PENDING] * 4 + [Admission.ACCEPTED] * 2
+    stats = buffer.stats()
+    assert stats.u.accepted == stats.y.accepted == 400 and stats.y.out_of_clock == 0
+    lossy = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.01)
+    rng = np.random.default_rng(2)
+    kept = np.flatnonzero(rng.uniform(size=3000) < 0.3)
+    for k in kept:
+        lossy.add_output(ns(0.005 * k), float(k))
+    stats = lossy.stats().y
+    assert stats.accepted == kept.size and stats.out_of_clock == stats.pending == 0
+
+
+def test_a_publisher_restarted_on_an_earlier_clock_re_anchors_the_stream():
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    # The first sample is stamped an hour ahead: every later one is behind it.
+    buffer.add_pair(HOUR, 0.0, 0.0)
+    verdicts = steady(buffer, 1, 100)
+    stats = buffer.stats()
+    assert stats.y.reanchors == 1 and stats.y.first == pytest.approx(0.01)
+    # Refused until the stamps behind the clock spanned max_gap, then admitted after all.
+    assert verdicts[:2] == [Admission.OUT_OF_CLOCK] * 2 and verdicts[-1] is Admission.ACCEPTED
+    assert stats.y.accepted == 101 and stats.y.size == 100 and stats.y.out_of_clock == 0
+    # A simulated clock restarting from zero.
+    steady(buffer, 10_000, 300)
+    verdicts = steady(buffer, 1, 300)
+    assert buffer.stats().y.reanchors == 2 and buffer.stats().y.last == pytest.approx(3.0)
+    window = buffer.window(2.0, 0.01, ns(3.0))
+    assert window.complete and window.data.y[-1] == 300.0
+
+
+def test_refused_samples_of_the_window_are_reported():
+    # Issue 16: 1 in 11 input samples and 1 in 7 output samples non-finite.
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    for k in range(1, 1001):
+        u = math.nan if k % 11 == 0 else float(k % 5)
+        y = math.nan if k % 7 == 0 else float(k)
+        buffer.add_pair(ns(0.01 * k), u, y)
+    window = buffer.window(5.0, 0.01, ns(10.0))
+    assert [refusals.non_finite for refusals in window.refused] == [45, 71]
+    assert window.warnings[:2] == (
+        'input: 45 samples refused in this window (non-finite 45)',
+        'output: 71 samples refused in this window (non-finite 71)')
+    assert window.missing == (45, 71)
+    assert 'input: 45 of 500 instants without a sample of their own' in window.warnings[2]
+    # The lost outputs are interpolated between their neighbours (a ramp: exactly).
+    np.testing.assert_allclose(window.data.y, np.arange(501.0, 1001.0), rtol=0, atol=1e-9)
