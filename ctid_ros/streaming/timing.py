@@ -82,6 +82,9 @@ class Lattice:
         Fraction of the stamps within a quarter period of an instant.
     count : int
         Number of stamps fitted.
+    centre : float
+        Mean offset (ns) of the fitted stamps from ``reference``: where the fitted line is
+        most precise.
 
     """
 
@@ -91,6 +94,7 @@ class Lattice:
     jitter: float
     inliers: float
     count: int
+    centre: float = 0.0
 
     @property
     def periodic(self) -> bool:
@@ -150,7 +154,7 @@ def fit_lattice(stamps: np.ndarray, base: float) -> Optional[Lattice]:
     if np.count_nonzero(close) >= 2 and np.ptp(index[close]) > 0:
         origin, period = _line(index[close], relative[close])
     return Lattice(reference, origin, period, jitter, float(np.count_nonzero(keep)) / count,
-                   count)
+                   count, float(relative[close].mean()) if np.any(close) else 0.0)
 
 
 def stream_lattice(stamps: np.ndarray) -> Optional[Lattice]:
@@ -379,10 +383,13 @@ def _with_output(plan: GridPlan, output: Optional[Lattice], stamps: np.ndarray, 
         return GridPlan(plan.reference, plan.origin, plan.step, plan.follows_input,
                         plan.input_period, 0.0, None, plan.tolerance, tuple(warnings),
                         description + f'; {name} interpolated ({why})')
-    # The output instant nearest the newest grid instant, and its offset modulo its period.
+    # The output's instant at the centre of its stamps (where its fitted line is most
+    # precise), and its offset from the grid instant before it, modulo its period.
     shift = float(output.reference - plan.reference)
-    newest = plan.origin + round((shift - plan.origin) / plan.step) * plan.step
-    offset = shift + output.origin - newest
+    centre = output.origin + round((output.centre - output.origin) / output.period) * \
+        output.period
+    before = plan.origin + math.floor((shift + centre - plan.origin) / plan.step) * plan.step
+    offset = shift + centre - before
     skew = offset - math.floor(offset / output.period) * output.period
     if min(skew, output.period - skew) < SKEW_SNAP * plan.step:
         skew = 0.0
