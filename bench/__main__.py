@@ -2,12 +2,15 @@
 
 import sys
 
-from bench import estimator
+from bench import estimator, stamps
 
 
 def main() -> int:
-    """Run the estimator benchmark, then the node throughput benchmark if it is available."""
+    """Run the estimator and stamps benchmarks, then node throughput if it is available."""
     estimator.main(['--runs', '100', '--json', 'bench/results-estimator.json'] + sys.argv[1:])
+    # Stamps at five phases, before and after the grid followed the input; the live node part
+    # is skipped (with a note) where rclpy is missing.
+    stamps.main(['--json', 'bench/results-stamps.json'])
     try:
         from bench import node_throughput
     except ImportError as error:       # rclpy missing: the core benchmark still stands

@@ -57,7 +57,8 @@ from typing import Any, List, Optional, Tuple
 from ctid_ros.core.data import Data
 from ctid_ros.errors import DataError
 from ctid_ros.streaming.contract import NANOSECONDS
-from ctid_ros.streaming.timing import GridPlan, LATTICE_SLACK, plan_grid
+from ctid_ros.streaming.timing import (assign_instants, GridPlan, LATTICE_SLACK,
+                                       MIN_EARLY, plan_grid)
 import numpy as np
 
 __all__ = ['Admission', 'BufferStats', 'CLOCK_HORIZON_NS', 'CONFIRMATIONS', 'Gap', 'INPUT',
@@ -272,7 +273,7 @@ class Window:
                                                                 'interpolated')):
             if count:
                 notes.append(f'{name}: {count} of {len(self.data)} instants without a sample '
-                             f'of their own (dropped messages): {treatment}')
+                             f'of their own (messages dropped or bunched): {treatment}')
         if self.dropped:
             notes.append(f'{self.dropped} of {self.requested} samples left out by '
                          f'{len(self.gaps)} gap(s) in the data')
@@ -597,16 +598,22 @@ def _refusals(name: str, stamps: np.ndarray, kinds: np.ndarray, begin: int, end:
     return Refusals(name, *(int(value) for value in counts))
 
 
+def _early(plan: GridPlan, period: float) -> float:
+    """Return how early (in periods) a stamp may be for its instant: the plan's tolerance."""
+    return min(LATTICE_SLACK, max(plan.tolerance / period, MIN_EARLY))
+
+
 def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPlan,
           max_gap_ns: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     Hold the input on its own instants: the sample of the latest instant at or before each.
 
-    Every input sample belongs to the nearest instant of the input's lattice (within a quarter
-    period; others are ignored; of two, the nearer wins); grid instant ``t_k`` takes the sample
-    of the latest lattice instant at or before it, so jitter cannot move a sample to the next
-    grid instant. Valid at the sample's own instant, where that sample and the next one are at
-    most ``max_gap`` apart, or, after the newest sample, up to ``max_gap`` after it.
+    Every input sample belongs to an instant of the input's lattice
+    (:func:`~ctid_ros.streaming.timing.assign_instants`: the nearest, or a free one before it
+    for a burst of late messages); grid instant ``t_k`` takes the sample of the latest lattice
+    instant at or before it, so jitter cannot move a sample to the next grid instant. Valid at
+    the sample's own instant, where that sample and the next one are at most ``max_gap``
+    apart, or, after the newest sample, up to ``max_gap`` after it.
 
     Where instants lost their samples (dropped messages) between two samples of different
     values, the command changed at one of them, unknown which: each takes the expected value
@@ -623,15 +630,11 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
     """
     period = plan.input_period
     relative = (stamps - plan.reference).astype(float) - plan.origin
-    lattice = np.round(relative / period)
-    distance = np.abs(relative - lattice * period)
-    chosen = np.flatnonzero(distance < LATTICE_SLACK * period)
+    lattice, assigned = assign_instants(relative / period, _early(plan, period))
+    chosen = np.flatnonzero(assigned)
     if chosen.size == 0:
         nothing = np.zeros(grid.size, dtype=bool)
         return values[np.zeros(grid.size, dtype=int)], nothing, nothing
-    # Of several samples on one instant keep the nearest (stable: the first of equals).
-    chosen = chosen[np.lexsort((distance[chosen], lattice[chosen]))]
-    chosen = chosen[np.concatenate(([True], np.diff(lattice[chosen]) > 0))]
     instants = lattice[chosen]
     position_float = ((grid - plan.reference).astype(float) - plan.origin) / period
     wanted = np.floor(position_float + 1e-6)
@@ -662,20 +665,20 @@ def _own_samples(stamps: np.ndarray, grid: np.ndarray, plan: GridPlan) -> np.nda
     """
     Return, per grid instant, the index of the output sample measured at it (or -1).
 
-    The sample within a quarter of the output's period of ``t_k + skew`` (the nearest of
-    several).
+    The output's samples are given the instants of its own lattice, ``skew`` after the grid
+    instants and every output period (:func:`~ctid_ros.streaming.timing.assign_instants`);
+    the grid instants take those on them.
     """
     own = np.full(grid.size, -1)
     if stamps.size == 0:
         return own
+    every = max(1, round(plan.step / plan.output_period))
+    # The grid's subdivision rather than the output's own period: the two clocks may drift.
+    period = plan.step / every
     relative = (stamps - grid[0]).astype(float) - plan.skew
-    index = np.round(relative / plan.step)
-    distance = np.abs(relative - index * plan.step)
-    close = np.flatnonzero((distance < LATTICE_SLACK * plan.output_period) & (index >= 0) &
-                           (index < grid.size))
-    # Assign nearest last, so it wins.
-    order = close[np.argsort(-distance[close], kind='stable')]
-    own[index[order].astype(int)] = order
+    index, assigned = assign_instants(relative / period, _early(plan, period))
+    on_grid = assigned & (np.mod(index, every) == 0) & (index >= 0) & (index < every * grid.size)
+    own[index[on_grid] // every] = np.flatnonzero(on_grid)
     return own
 
 

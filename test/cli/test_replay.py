@@ -243,7 +243,7 @@ def test_nan_samples_are_counted(tmp_path, capsys):
     assert 'warning: output /plant/y (data): 39 samples refused in this window (non-finite ' \
         '39)' in out
     assert 'warning: output /plant/y (data): 39 of 1999 instants without a sample of their ' \
-        'own (dropped messages): interpolated' in out
+        'own (messages dropped or bunched): interpolated' in out
 
 
 def test_progress_bar_only_on_a_terminal():

@@ -83,6 +83,25 @@ def test_dead_time_with_the_output_read_before_its_command():
     assert_dead_time(result)
 
 
+def test_dead_time_from_a_publisher_whose_timer_fires_late():
+    # Float64 stamped by DDS source times: each firing of the publisher's timer sends the
+    # samples that came due, input then output 20 us later; a fifth of the firings come 0.3 to
+    # 4 samples late (the README's ctid_plant on a loaded machine).
+    u_stamps, u, _, y = stamped_record(0.37, seed=9, jitter=0.0, read=0.0)
+    rng = np.random.default_rng(9)
+    lateness = np.where(rng.uniform(size=u.size) < 0.2, rng.uniform(0.3, 4.0, u.size),
+                        rng.uniform(0.0, 0.05, u.size)) * TS * NS
+    fired = np.maximum.accumulate(u_stamps + lateness)
+    # A sample goes with the first firing at or after its instant.
+    sent = fired[np.searchsorted(fired, u_stamps, side='left')]
+    sent = sent + 20_000 * (np.arange(u.size) - np.searchsorted(sent, sent))
+    sent = np.round(sent).astype(np.int64)
+    window, result = identify((sent, u, sent + 20_000, y))
+    assert window.plan.follows_input and window.plan.output_period is not None
+    assert len(window.data) >= 1990
+    assert_dead_time(result, TRUTH['tau'] + 20e-6)
+
+
 def test_a_finer_sample_time_counts_only_the_measurements():
     record = stamped_record(0.37, seed=7, count=1000)
     window, result = identify(record)

@@ -256,8 +256,8 @@ def test_dead_time_from_stamps_at_a_phase_of_the_sample(ros):
     update = node.last_update
     assert update.window.plan.follows_input
     assert update.window.data.output_skew == pytest.approx(0.03 * ts, abs=5e-4 * ts)
-    tau, std = (dict(zip(update.names, values))['tau'] for values in (update.values,
-                                                                       update.stds))
+    tau, std = (dict(zip(update.names, values))['tau']
+                for values in (update.values, update.stds))
     assert abs(tau - truth['tau']) <= 0.03 * ts and abs(tau - truth['tau']) <= 3 * std, \
         (tau, std)
 
