@@ -566,6 +566,9 @@ def _recent(stamps: np.ndarray, values: np.ndarray, begin: int, end: int, max_ga
     of them: a publisher restarted inside the window may have a new phase.
     """
     inside = (stamps >= begin) & (stamps <= end)
+    if not np.any(inside):
+        # Nothing in the range yet (a buffer just cleared): the grid still needs a reference.
+        return stamps, values
     stamps, values = stamps[inside], values[inside]
     silences = np.flatnonzero(np.diff(stamps) > max_gap_ns)
     if silences.size and stamps.size - silences[-1] - 1 >= stamps.size // 2:

@@ -452,3 +452,12 @@ def test_refused_samples_of_the_window_are_reported():
     assert 'input: 45 of 500 instants without a sample of their own' in window.warnings[2]
     # The lost outputs are interpolated between their neighbours (a ramp: exactly).
     np.testing.assert_allclose(window.data.y, np.arange(501.0, 1001.0), rtol=0, atol=1e-9)
+
+
+def test_a_window_with_no_sample_in_its_range_says_so():
+    # Just after a reset: a few samples, all newer than the settled end of the window.
+    buffer = SampleBuffer(100, max_gap=0.5, reorder_horizon=0.05)
+    for k in range(3):
+        buffer.add_pair(ns(5.0 + 0.01 * k), 1.0, 2.0)
+    with pytest.raises(DataError, match='not enough contiguous data'):
+        buffer.window(4.0, 0.01)
