@@ -15,6 +15,7 @@ from typing import Callable, Dict, List, Optional
 BENCHMARKS: Dict[str, List[str]] = {
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
+    'stamps': [],
     'hostile_files': [],
     'node_throughput': [],
 }

@@ -15,6 +15,7 @@ Examples
 """
 
 import argparse
+from dataclasses import replace
 import json
 from typing import Dict, List, Optional, Tuple
 
@@ -129,14 +130,17 @@ def run(arguments: argparse.Namespace) -> int:
     inputs = _input_names(arguments.input)
     model = Model(arguments.model, controller=arguments.controller, inputs=inputs,
                   output=arguments.output)
+    notes = []
     data = load_csv(arguments.csv, input_column=inputs, output_column=arguments.output,
-                    ts=arguments.ts)
+                    ts=arguments.ts, notes=notes)
     estimation = _select(data, arguments.estimate_range, arguments.detrend, 'estimation')
     result = estimate(model, estimation, arguments.initial or 'auto', bounds=arguments.bounds,
                       method=arguments.method, intersample=arguments.intersample,
                       max_iterations=arguments.max_iterations,
                       initial_state=arguments.initial_state,
                       output_offset=arguments.output_offset)
+    # What the resampling of a jittered time column did comes first among the warnings.
+    result = replace(result, warnings=notes + list(result.warnings))
     summary = result.to_dict()
     if arguments.validate or arguments.validate_range:
         source = data if arguments.validate is None else load_csv(

@@ -94,5 +94,5 @@ def format_stats(stats: BufferStats, names: Sequence[str], messages: int) -> str
     for name, stream in zip(names, (stats.u, stats.y)):
         lines.append(f'{name}: {stream.accepted} samples used of {stream.received} '
                      f'(non-finite {stream.non_finite}, duplicates {stream.duplicates}, '
-                     f'late {stream.late})')
+                     f'late {stream.late}, out of clock {stream.out_of_clock})')
     return '\n'.join(lines)

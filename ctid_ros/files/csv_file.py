@@ -13,18 +13,22 @@ import csv
 import gzip
 from numbers import Real
 from pathlib import Path
-from typing import BinaryIO, Dict, Iterator, Optional, Sequence, Tuple, Union
+from typing import BinaryIO, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 import zlib
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.limits import (check_readable, MAX_BLANK_LINES, MAX_CSV_BYTES,
                                   MAX_LINE_BYTES, MAX_SAMPLES, size_text)
 from ctid_ros.errors import bounded_repr, DataError
+from ctid_ros.streaming.buffer import resample
+from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-__all__ = ['load_csv', 'read_columns', 'uniform_sample_time']
+__all__ = ['load_csv', 'read_columns', 'timed_data', 'uniform_sample_time']
 
 _RELATIVE_JITTER = 1e-3
+# A time column step longer than this many sample times is a gap, not jitter or a lost row.
+_GAP_STEPS = 10
 _GZIP_MAGIC = b'\x1f\x8b'
 # Other containers a CSV may arrive in, recognised by their first bytes.
 _OTHER_FORMATS = ((b'BZh', 'bzip2-compressed'), (b'\xfd7zXZ\x00', 'xz-compressed'),
@@ -177,6 +181,18 @@ def _column_names(input_column: Union[str, Sequence[str]]) -> Tuple[str, ...]:
     return inputs
 
 
+def _steps(time: np.ndarray, what: str) -> np.ndarray:
+    """Return the steps of increasing stamps, or say where they are not."""
+    steps = np.diff(time)
+    if steps.size == 0:
+        raise DataError(f'{what} has a single sample: cannot infer the sample time')
+    bad = np.flatnonzero(steps <= 0)
+    if bad.size:
+        raise DataError(f'{what} is not increasing at row {bad[0] + 1} '
+                        f'({time[bad[0]]:g} -> {time[bad[0] + 1]:g}); sort or deduplicate it')
+    return steps
+
+
 def uniform_sample_time(time: np.ndarray, what: str = 'time column') -> float:
     """
     Return the sample time of uniformly spaced, increasing stamps.
@@ -187,13 +203,7 @@ def uniform_sample_time(time: np.ndarray, what: str = 'time column') -> float:
         If the stamps decrease, repeat, or are not uniform to 0.1 % of the sample time.
 
     """
-    steps = np.diff(time)
-    if steps.size == 0:
-        raise DataError(f'{what} has a single sample: cannot infer the sample time')
-    bad = np.flatnonzero(steps <= 0)
-    if bad.size:
-        raise DataError(f'{what} is not increasing at row {bad[0] + 1} '
-                        f'({time[bad[0]]:g} -> {time[bad[0] + 1]:g}); sort or deduplicate it')
+    steps = _steps(time, what)
     ts = float(np.median(steps))
     worst = int(np.argmax(np.abs(steps - ts)))
     if abs(steps[worst] - ts) > _RELATIVE_JITTER * ts:
@@ -203,11 +213,82 @@ def uniform_sample_time(time: np.ndarray, what: str = 'time column') -> float:
     return ts
 
 
-def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] = 'u',
-             output_column: str = 'y', time_column: str = 't', ts: Optional[float] = None
-             ) -> Data:
+def timed_data(time: np.ndarray, u: np.ndarray, y: np.ndarray, what: str = 'time column',
+               ts: Optional[float] = None) -> Tuple[Data, Tuple[str, ...]]:
     """
-    Load uniformly sampled data from a CSV file whose first line names the columns.
+    Return samples stamped by a time column as ``Data``, resampled as the live node does.
+
+    Uniform stamps (to 0.1 % of the sample time) are taken as they are. Jittered ones go
+    through the node's buffer (:func:`~ctid_ros.streaming.buffer.resample`): the grid is the
+    input's own instants, its period and phase fitted to the stamps, every row its own sample
+    (a lost row is held or interpolated and reported).
+
+    Parameters
+    ----------
+    time : ndarray
+        Stamps in seconds, one per row.
+    u, y : ndarray
+        Input (a column per input) and output, one row per stamp.
+    what : str
+        How the time column is called in messages.
+    ts : float, optional
+        The sample time the caller expects (``--ts``), checked against the stamps.
+
+    Returns
+    -------
+    (Data, tuple of str)
+        The data and what a user should know about their resampling.
+
+    Raises
+    ------
+    DataError
+        If the stamps are not increasing, have a gap longer than ten sample times, follow no
+        period, or contradict ``ts``.
+
+    """
+    steps = _steps(time, what)
+    median = float(np.median(steps))
+    if np.all(np.abs(steps - median) <= _RELATIVE_JITTER * median):
+        data, notes = Data(u, y, median, float(time[0])), ()
+    else:
+        data, notes = _resampled(time, u, y, steps, median, what)
+    if ts is not None and abs(ts - data.ts) > _RELATIVE_JITTER * data.ts:
+        raise DataError(f'--ts {ts:g} contradicts the time column ({what}, sample time '
+                        f'{data.ts:g} s)')
+    return data, notes
+
+
+def _resampled(time: np.ndarray, u: np.ndarray, y: np.ndarray, steps: np.ndarray,
+               median: float, what: str) -> Tuple[Data, Tuple[str, ...]]:
+    """Resample jittered rows through the node's buffer; refuse gaps and aperiodic stamps."""
+    gap = int(np.argmax(steps))
+    if steps[gap] > _GAP_STEPS * median:
+        raise DataError(f'{what} has a gap of {steps[gap]:g} s at row {gap + 1} (median step '
+                        f'{median:g} s); split the file there')
+    stamps = np.round((time - time[0]) * NANOSECONDS).astype(np.int64)
+    window, _ = resample(stamps, u, stamps, y, median, max_gap=_GAP_STEPS * median,
+                         reorder_horizon=0.0, names=('input', 'output'))
+    plan = window.plan
+    if not plan.follows_input:
+        worst = int(np.argmax(np.abs(steps - median)))
+        raise DataError(f'{what} is not uniformly sampled: step {steps[worst]:g} s at row '
+                        f'{worst + 1} against a median of {median:g} s, and its stamps follow no '
+                        'period (jittered stamps are resampled as the live node does); resample '
+                        'the data first')
+    data = window.data
+    notes = (f'{what} jitters (robust std {plan.tolerance / 4 / NANOSECONDS:.3g} s, largest '
+             f'step {steps.max():g} s): resampled on its own instants, every '
+             f'{data.ts:.9g} s, as the live node does',) + window.warnings
+    return Data(data.u, data.y, data.ts, float(time[0]) + data.t0), notes
+
+
+def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] = 'u',
+             output_column: str = 'y', time_column: str = 't', ts: Optional[float] = None,
+             notes: Optional[List[str]] = None) -> Data:
+    """
+    Load sampled data from a CSV file whose first line names the columns.
+
+    A time column whose stamps jitter is resampled as the live node does (:func:`timed_data`).
 
     Parameters
     ----------
@@ -221,6 +302,8 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
         Column of time stamps in seconds, used if present to infer and check the sample time.
     ts : float, optional
         Sample time; required if the file has no time column.
+    notes : list, optional
+        Gets what a user should know about the resampling of a jittered time column.
 
     Returns
     -------
@@ -229,8 +312,9 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
     Raises
     ------
     DataError
-        On a missing file or column, non-numeric cells, or non-uniform sampling; on a file that
-        is broken or beyond the limits of :mod:`ctid_ros.core.limits` (see :func:`read_columns`).
+        On a missing file or column, non-numeric cells, or stamps that follow no period; on a
+        file that is broken or beyond the limits of :mod:`ctid_ros.core.limits` (see
+        :func:`read_columns`).
 
     """
     path = Path(path)
@@ -240,15 +324,14 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
         raise DataError(f'the sample time must be a positive number, got {bounded_repr(ts)}')
     time = time_column
     columns = read_columns(path, inputs + (output_column,), optional=(time,))
-    if time in columns:
-        inferred = uniform_sample_time(columns[time], f'{path} column {time!r}')
-        if ts is not None and abs(ts - inferred) > _RELATIVE_JITTER * inferred:
-            raise DataError(f'--ts {ts:g} contradicts the time column of {path} '
-                            f'(sample time {inferred:g} s)')
-    else:
-        if ts is None:
-            raise DataError(f'{path} has no {time!r} column: give the sample time (--ts)')
-        inferred = ts
     signals = [columns[name] for name in inputs]
     u = signals[0] if len(signals) == 1 else np.column_stack(signals)
-    return Data(u, columns[output_column], inferred, columns[time][0] if time in columns else 0.0)
+    if time in columns:
+        data, found = timed_data(columns[time], u, columns[output_column],
+                                 f'{path} column {time!r}', ts)
+        if notes is not None:
+            notes.extend(found)
+        return data
+    if ts is None:
+        raise DataError(f'{path} has no {time!r} column: give the sample time (--ts)')
+    return Data(u, columns[output_column], ts, 0.0)

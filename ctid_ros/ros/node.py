@@ -334,8 +334,9 @@ class IdentificationNode(Node):
         return {f'{role}_{key}': value for key, value in (
             ('received', stats.received), ('accepted', stats.accepted),
             ('duplicates', stats.duplicates), ('late', stats.late),
-            ('non_finite', stats.non_finite), ('evicted', stats.evicted),
-            ('field_errors', self._field_errors[role]))}
+            ('non_finite', stats.non_finite), ('out_of_clock', stats.out_of_clock),
+            ('pending', stats.pending), ('reanchors', stats.reanchors),
+            ('evicted', stats.evicted), ('field_errors', self._field_errors[role]))}
 
     def _publish_status(self, level: int, text: str, values: Dict[str, Any]) -> None:
         stats = self._buffer.stats()

@@ -12,14 +12,32 @@ Admission rules, per stream (stamps are integer nanoseconds):
 * a non-finite value is rejected and counted;
 * a stamp equal to one already held is a duplicate: the first sample is kept;
 * a stamp older than the stream's newest one is inserted in order if it is within the
-  reorder horizon of it, otherwise it is dropped and counted as late;
+  reorder horizon of it, otherwise it is dropped and counted as late, or as out of clock if
+  more than ``CLOCK_HORIZON_NS`` (or ``max_gap``) older;
+* a stamp newer than the stream's newest one by more than the reorder horizon and
+  ``JUMP_STEPS`` of its recent intervals is held as a candidate (:attr:`Admission.PENDING`)
+  and admitted only once ``CONFIRMATIONS`` consistent stamps follow it with no sample admitted
+  in between (a stream resuming after a silence); otherwise it is refused as out of clock.
+  One message stamped an hour ahead, random or zero stamps therefore never capture a stream;
+* a stream whose every new stamp is refused as too old, consistently for ``max_gap`` and
+  ``CONFIRMATIONS`` stamps, re-anchors on them (a publisher restarted with an earlier clock):
+  its samples of the old clock are dropped;
 * beyond ``capacity`` samples the oldest are evicted (counted).
 
-Resampling onto the grid ``t_k = k * sample_time`` (absolute time, so successive windows share
-instants):
+Each refusal is remembered with the stream's clock at the time, so a window reports how many
+samples of each stream were refused while its data arrived (:attr:`Window.refused`).
 
-* input, zero-order hold: the value of the last input sample at or before ``t_k``;
-* output, linear interpolation between the samples that bracket ``t_k``.
+Resampling (see :mod:`ctid_ros.streaming.timing`, which chooses the grid): the grid follows the
+input's own hold instants when the input is periodic, its phase and period fitted to the
+input's stamps in the window (jitter, dropped messages and a drifting publisher clock
+included); otherwise it is the absolute grid ``t_k = k * sample_time``.
+
+* input, zero-order hold: on the input's instants, the sample of the latest input instant at
+  or before ``t_k`` (a stamp jittered past ``t_k`` still counts for ``t_k``); on the absolute
+  grid, the last input sample at or before ``t_k``;
+* output: a periodic output at the grid step (or a whole fraction of it) is taken at its own
+  samples, ``Data.output_skew`` after the grid instants; any other output is interpolated
+  linearly at ``t_k``.
 
 A stream is missing where two consecutive samples are more than ``max_gap`` apart (the whole
 interval between them) and after its newest sample: the output beyond it, the input beyond it
@@ -34,15 +52,18 @@ import enum
 import math
 import operator
 import threading
-from typing import Optional, Tuple
+from typing import Any, List, Optional, Tuple
 
 from ctid_ros.core.data import Data
 from ctid_ros.errors import DataError
 from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.timing import (assign_instants, GridPlan, LATTICE_SLACK,
+                                       MIN_EARLY, plan_grid)
 import numpy as np
 
-__all__ = ['Admission', 'BufferStats', 'Gap', 'INPUT', 'OUTPUT', 'SampleBuffer', 'StreamStats',
-           'Window', 'capacity_for', 'resample']
+__all__ = ['Admission', 'BufferStats', 'CLOCK_HORIZON_NS', 'CONFIRMATIONS', 'Gap', 'INPUT',
+           'JUMP_STEPS', 'OUTPUT', 'Refusals', 'SampleBuffer', 'StreamStats', 'Window',
+           'capacity_for', 'resample']
 
 INPUT = 'input'
 OUTPUT = 'output'
@@ -88,6 +109,8 @@ class Admission(enum.Enum):
     DUPLICATE = 'duplicate'
     LATE = 'late'
     NON_FINITE = 'non_finite'
+    OUT_OF_CLOCK = 'out_of_clock'
+    PENDING = 'pending'
 
 
 @dataclass(frozen=True)
@@ -103,6 +126,12 @@ class StreamStats:
         Samples admitted (some may since have been evicted).
     duplicates, late, non_finite, evicted : int
         Samples refused or removed for each reason.
+    out_of_clock : int
+        Samples refused because their stamps were far from the stream's clock.
+    pending : int
+        Samples held as candidates of a new clock (see the module notes).
+    reanchors : int
+        Times the stream restarted on an earlier clock (its older samples were dropped).
     size : int
         Samples currently held.
     first, last : float or None
@@ -125,6 +154,32 @@ class StreamStats:
     last: Optional[float]
     span: float
     gaps: int
+    out_of_clock: int = 0
+    pending: int = 0
+    reanchors: int = 0
+
+
+@dataclass(frozen=True)
+class Refusals:
+    """Samples of one stream refused while the data of a window arrived, by reason."""
+
+    stream: str
+    non_finite: int = 0
+    late: int = 0
+    duplicates: int = 0
+    out_of_clock: int = 0
+
+    @property
+    def total(self) -> int:
+        """Return the number of refused samples."""
+        return self.non_finite + self.late + self.duplicates + self.out_of_clock
+
+    def describe(self) -> str:
+        """Return e.g. ``input /u (data): 12 samples refused (non-finite 10, late 2)``."""
+        reasons = ', '.join(f'{label} {count}' for label, count in (
+            ('non-finite', self.non_finite), ('late', self.late),
+            ('duplicate', self.duplicates), ('out of clock', self.out_of_clock)) if count)
+        return f'{self.stream}: {self.total} samples refused in this window ({reasons})'
 
 
 @dataclass(frozen=True)
@@ -169,6 +224,17 @@ class Window:
         oldest first; ``data`` is one of them.
     gaps : tuple of Gap
         Missing intervals of either stream that overlap the requested range.
+    start_ns : int
+        First instant of :attr:`data` in integer nanoseconds.
+    plan : GridPlan or None
+        How the grid was chosen (its step is ``data.ts``, its skew ``data.output_skew``).
+    refused : tuple of Refusals
+        Samples of the input and of the output refused while the data of :attr:`data`
+        arrived.
+    missing : (int, int)
+        Instants of :attr:`data` without a sample of their own (dropped messages): input
+        instants held from the sample before, output instants interpolated. Counted only for
+        a stream on its own lattice.
 
     """
 
@@ -176,6 +242,10 @@ class Window:
     requested: int
     segments: Tuple[Tuple[float, float], ...]
     gaps: Tuple[Gap, ...]
+    start_ns: int = 0
+    plan: Optional[GridPlan] = None
+    refused: Tuple[Refusals, ...] = ()
+    missing: Tuple[int, int] = (0, 0)
 
     @property
     def dropped(self) -> int:
@@ -187,6 +257,41 @@ class Window:
         """Return True if the whole requested range was returned."""
         return self.dropped == 0
 
+    @property
+    def end_ns(self) -> int:
+        """Return the last instant of :attr:`data` in integer nanoseconds."""
+        return self.start_ns + round((len(self.data) - 1) * self.data.ts * NANOSECONDS)
+
+    @property
+    def warnings(self) -> Tuple[str, ...]:
+        """Return what a user should know about the data: the grid, refused samples, gaps."""
+        notes = list(self.plan.warnings) if self.plan is not None else []
+        notes.extend(refusals.describe() for refusals in self.refused if refusals.total)
+        names = [refusals.stream for refusals in self.refused] or [INPUT, OUTPUT]
+        for name, count, treatment in zip(names, self.missing, ('held or, between different '
+                                                                'values, interpolated',
+                                                                'interpolated')):
+            if count:
+                notes.append(f'{name}: {count} of {len(self.data)} instants without a sample '
+                             f'of their own (messages dropped or bunched): {treatment}')
+        if self.dropped:
+            notes.append(f'{self.dropped} of {self.requested} samples left out by '
+                         f'{len(self.gaps)} gap(s) in the data')
+        return tuple(notes)
+
+
+# Codes of the refusal events a stream remembers (for the counts of a window).
+_NON_FINITE, _LATE, _DUPLICATE, _OUT_OF_CLOCK = range(4)
+# A stamp further ahead of its stream's newest one than this many of its recent intervals (and
+# than the reorder horizon) starts a new clock only once this many consistent stamps follow.
+JUMP_STEPS = 3
+CONFIRMATIONS = 3
+# A stamp older than its stream's newest one by more than this (or max_gap if longer) is out of
+# clock rather than late.
+CLOCK_HORIZON_NS = NANOSECONDS
+# Before every stamp: a window from here takes all the data.
+_EARLIEST = -2 ** 62
+
 
 class _Stream:
     """
@@ -195,25 +300,42 @@ class _Stream:
     The samples occupy ``[start, stop)`` of arrays twice the capacity long, so every view is
     contiguous; when the end is reached the live part is copied to the front, once per at
     least ``capacity`` appends, which keeps appending O(1) amortised.
+
+    Stamps far from the stream's own clock (its newest sample) wait in a *run* of candidates
+    until they are confirmed or refused (see :class:`SampleBuffer`); refusals are remembered,
+    with the stream's newest stamp when they happened, in a ring of ``capacity`` events.
     """
 
-    def __init__(self, name: str, capacity: int, horizon_ns: int, width: int = 1):
+    def __init__(self, name: str, capacity: int, horizon_ns: int, max_gap_ns: int,
+                 width: int = 1):
         self.name = name
         self.capacity = capacity
         self.horizon_ns = horizon_ns
+        self.max_gap_ns = max_gap_ns
         self.width = width
         self._stamps = np.empty(2 * capacity, dtype=np.int64)
         # One value per stamp, or a row of ``width`` values (several inputs in one message).
         self._values = np.empty(2 * capacity if width == 1 else (2 * capacity, width))
+        self._event_stamps = np.zeros(capacity, dtype=np.int64)
+        self._event_kinds = np.zeros(capacity, dtype=np.int8)
         self.clear()
 
     def clear(self) -> None:
         self._start = self._stop = 0
         self.received = self.accepted = self.duplicates = 0
         self.late = self.non_finite = self.evicted = 0
+        self.out_of_clock = self.reanchors = 0
+        self._events = 0
+        # Candidates (stamp, value) ahead of the clock, or (stamp, value, late) behind it.
+        self._run: List[Tuple[Any, ...]] = []
+        self._run_forward = True
 
     def __len__(self) -> int:
         return self._stop - self._start
+
+    @property
+    def pending(self) -> int:
+        return len(self._run) if self._run_forward else 0
 
     @property
     def stamps(self) -> np.ndarray:
@@ -230,24 +352,23 @@ class _Stream:
             self._values[:count] = self._values[self._start:self._stop]
             self._start, self._stop = 0, count
 
-    def append(self, stamp: int, value) -> Admission:
-        self.received += 1
-        if not (math.isfinite(value) if self.width == 1 else np.all(np.isfinite(value))):
-            self.non_finite += 1
-            return Admission.NON_FINITE
+    def _newest(self, default: int) -> int:
+        return int(self._stamps[self._stop - 1]) if self._stop > self._start else default
+
+    def _refuse(self, kind: int, stamp: int) -> None:
+        """Remember a refusal at the stream's current clock (its newest stamp)."""
+        slot = self._events % self.capacity
+        self._event_stamps[slot] = self._newest(stamp)
+        self._event_kinds[slot] = kind
+        self._events += 1
+
+    def _store(self, stamp: int, value) -> None:
+        """Insert a sample whose stamp is not held yet, in order."""
+        self._make_room()
         if self._stop == self._start or stamp > self._stamps[self._stop - 1]:
-            self._make_room()
             position = self._stop
         else:
-            if stamp < self._stamps[self._stop - 1] - self.horizon_ns:
-                self.late += 1
-                return Admission.LATE
-            offset = int(np.searchsorted(self.stamps, stamp))
-            if self._stamps[self._start + offset] == stamp:
-                self.duplicates += 1
-                return Admission.DUPLICATE
-            self._make_room()
-            position = self._start + offset
+            position = self._start + int(np.searchsorted(self.stamps, stamp))
             # Late arrivals lie within the horizon, so only a few newer samples move.
             self._stamps[position + 1:self._stop + 1] = self._stamps[position:self._stop]
             self._values[position + 1:self._stop + 1] = self._values[position:self._stop]
@@ -258,7 +379,107 @@ class _Stream:
         if len(self) > self.capacity:
             self._start += 1
             self.evicted += 1
+
+    def _jump_ns(self) -> int:
+        """Return how far ahead of the newest stamp a new one is still in the stream's clock."""
+        recent = self._stamps[max(self._start, self._stop - 33):self._stop]
+        if recent.size < 3:
+            return max(self.horizon_ns, self.max_gap_ns)
+        return max(self.horizon_ns, JUMP_STEPS * int(np.median(np.diff(recent))))
+
+    def append(self, stamp: int, value) -> Admission:
+        self.received += 1
+        if not (math.isfinite(value) if self.width == 1 else np.all(np.isfinite(value))):
+            self.non_finite += 1
+            self._refuse(_NON_FINITE, stamp)
+            return Admission.NON_FINITE
+        if self._stop == self._start:
+            self._drop_run()
+            self._store(stamp, value)
+            return Admission.ACCEPTED
+        newest = int(self._stamps[self._stop - 1])
+        if stamp > newest:
+            if stamp - newest > self.horizon_ns and stamp - newest > self._jump_ns():
+                return self._candidate(stamp, value)
+        elif stamp < newest - self.horizon_ns:
+            return self._behind(stamp, value, newest)
+        elif self._stamps[self._start + int(np.searchsorted(self.stamps, stamp))] == stamp:
+            self.duplicates += 1
+            self._refuse(_DUPLICATE, stamp)
+            return Admission.DUPLICATE
+        self._drop_run()
+        self._store(stamp, value)
         return Admission.ACCEPTED
+
+    def _candidate(self, stamp: int, value) -> Admission:
+        """
+        Hold a stamp far ahead of the stream's clock until it is confirmed or refused.
+
+        Candidates form a run: increasing stamps, each within ``max_gap`` (or the jump
+        horizon) of the one before, received while no sample was admitted. CONFIRMATIONS of
+        them make the stream's new clock (a stream resuming after a silence, a publisher
+        restarted with a later clock); an admitted sample or a stamp that does not continue the
+        run refuses them as out of clock.
+        """
+        run = self._run
+        if not (run and self._run_forward and
+                run[-1][0] < stamp <= run[-1][0] + max(self._jump_ns(), self.max_gap_ns)):
+            self._drop_run()
+            self._run_forward = True
+        run.append((stamp, value))
+        if len(run) < CONFIRMATIONS:
+            return Admission.PENDING
+        for held_stamp, held_value in run:
+            self._store(held_stamp, held_value)
+        run.clear()
+        return Admission.ACCEPTED
+
+    def _behind(self, stamp: int, value, newest: int) -> Admission:
+        """
+        Refuse a stamp older than the reorder horizon, unless the stream's clock went back.
+
+        It is late if within the clock horizon of the newest stamp, else out of clock. A run
+        of such stamps (as for :meth:`_candidate`) that holds CONFIRMATIONS of them and spans
+        ``max_gap`` with no sample admitted in between is a publisher restarted with an earlier
+        clock: the samples of the old clock are dropped and the run is admitted.
+        """
+        late = stamp >= newest - max(self.max_gap_ns, CLOCK_HORIZON_NS)
+        if late:
+            self.late += 1
+        else:
+            self.out_of_clock += 1
+        self._refuse(_LATE if late else _OUT_OF_CLOCK, stamp)
+        run = self._run
+        if not (run and not self._run_forward and
+                run[-1][0] < stamp <= run[-1][0] + self._jump_ns()):
+            self._drop_run()
+            self._run_forward = False
+        run.append((stamp, value, late))
+        if len(run) < CONFIRMATIONS or run[-1][0] - run[0][0] < self.max_gap_ns:
+            return Admission.LATE if late else Admission.OUT_OF_CLOCK
+        self._start = self._stop = 0
+        self.reanchors += 1
+        for held_stamp, held_value, was_late in run:
+            if was_late:
+                self.late -= 1
+            else:
+                self.out_of_clock -= 1
+            self._store(held_stamp, held_value)
+        run.clear()
+        return Admission.ACCEPTED
+
+    def _drop_run(self) -> None:
+        """End the run of candidates; those ahead of the clock are refused as out of clock."""
+        if self._run_forward:
+            for stamp, _ in self._run:
+                self.out_of_clock += 1
+                self._refuse(_OUT_OF_CLOCK, stamp)
+        self._run.clear()
+
+    def events(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Copy the remembered refusals: the stream's clock at each (ns) and its reason code."""
+        count = min(self._events, self.capacity)
+        return self._event_stamps[:count].copy(), self._event_kinds[:count].copy()
 
     def stats(self, max_gap_ns: int) -> StreamStats:
         stamps = self.stamps
@@ -269,7 +490,8 @@ class _Stream:
             late=self.late, non_finite=self.non_finite, evicted=self.evicted, size=stamps.size,
             first=first, last=last,
             span=float(stamps[-1] - stamps[0]) / NANOSECONDS if stamps.size else 0.0,
-            gaps=int(np.count_nonzero(np.diff(stamps) > max_gap_ns)))
+            gaps=int(np.count_nonzero(np.diff(stamps) > max_gap_ns)),
+            out_of_clock=self.out_of_clock, pending=self.pending, reanchors=self.reanchors)
 
     def snapshot(self, begin: int, end: int) -> Tuple[np.ndarray, np.ndarray]:
         """Copy the samples that bear on instants in ``[begin, end]``: one before, one after."""
@@ -322,6 +544,147 @@ def _runs(valid: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return edges[0::2], edges[1::2]
 
 
+def _counts(length: float, sample_time: float, min_length: Optional[float],
+            count: Optional[int] = None) -> Tuple[int, int]:
+    """Return the instants of a window and the contiguous ones needed, or raise."""
+    if count is None:
+        count = round(float(length) / float(sample_time))
+    needed = max(2, math.ceil(count / 2) if min_length is None
+                 else round(float(min_length) / float(sample_time)))
+    if count < needed:
+        raise DataError(f'a window of {length:.6g} s holds {count} samples of '
+                        f'{sample_time:.6g} s, fewer than the {needed} required')
+    return count, needed
+
+
+def _recent(stamps: np.ndarray, values: np.ndarray, begin: int, end: int, max_gap_ns: int
+            ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the samples a stream's lattice is fitted to: those in ``[begin, end]``.
+
+    Only those after the last silence longer than ``max_gap`` count, if they are at least half
+    of them: a publisher restarted inside the window may have a new phase.
+    """
+    inside = (stamps >= begin) & (stamps <= end)
+    if not np.any(inside):
+        # Nothing in the range yet (a buffer just cleared): the grid still needs a reference.
+        return stamps, values
+    stamps, values = stamps[inside], values[inside]
+    silences = np.flatnonzero(np.diff(stamps) > max_gap_ns)
+    if silences.size and stamps.size - silences[-1] - 1 >= stamps.size // 2:
+        stamps, values = stamps[silences[-1] + 1:], values[silences[-1] + 1:]
+    return stamps, values
+
+
+def _grid(plan: GridPlan, length: float, min_length: Optional[float], begin: int, end_ns: int,
+          start_ns: Optional[int]) -> Tuple[np.ndarray, int]:
+    """
+    Return the grid instants (ns) of a window and the contiguous instants it needs.
+
+    The last instant is the latest whose output is measured by ``end_ns`` (up to the jitter
+    tolerance); there are ``length / step`` instants, or all from ``start_ns`` on.
+    """
+    seconds = plan.step / NANOSECONDS
+    last = plan.index_at_or_before(end_ns - round(plan.skew) + round(plan.tolerance))
+    if start_ns is None:
+        count = round(float(length) / seconds)
+    else:
+        count = last - plan.index_at_or_before(begin - round(plan.tolerance) - 1)
+    count, needed = _counts(count * seconds, seconds, min_length, count)
+    return plan.instants(last - count + 1, count), needed
+
+
+def _refusals(name: str, stamps: np.ndarray, kinds: np.ndarray, begin: int, end: int
+              ) -> Refusals:
+    """Count the refusal events of a stream whose clock was in ``[begin, end]``."""
+    counts = np.bincount(kinds[(stamps >= begin) & (stamps <= end)], minlength=4)
+    return Refusals(name, *(int(value) for value in counts))
+
+
+def _early(plan: GridPlan, period: float) -> float:
+    """Return how early (in periods) a stamp may be for its instant: the plan's tolerance."""
+    return min(LATTICE_SLACK, max(plan.tolerance / period, MIN_EARLY))
+
+
+def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPlan,
+          max_gap_ns: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Hold the input on its own instants: the sample of the latest instant at or before each.
+
+    Every input sample belongs to an instant of the input's lattice
+    (:func:`~ctid_ros.streaming.timing.assign_instants`: the nearest, or a free one before it
+    for a burst of late messages); grid instant ``t_k`` takes the sample of the latest lattice
+    instant at or before it, so jitter cannot move a sample to the next grid instant. Valid at
+    the sample's own instant, where that sample and the next one are at most ``max_gap``
+    apart, or, after the newest sample, up to ``max_gap`` after it.
+
+    Where instants lost their samples (dropped messages) between two samples of different
+    values, the command changed at one of them, unknown which: each takes the expected value
+    under a change equally likely at every one of them, the line from the sample before to the
+    sample after (holding the one before would move every such change late, biasing the dead
+    time).
+
+    Returns
+    -------
+    (u, valid, missing) : (ndarray, ndarray, ndarray)
+        The input at each grid instant, its validity, and whether the instant is one of the
+        input's whose own sample is missing.
+
+    """
+    period = plan.input_period
+    relative = (stamps - plan.reference).astype(float) - plan.origin
+    lattice, assigned = assign_instants(relative / period, _early(plan, period))
+    chosen = np.flatnonzero(assigned)
+    if chosen.size == 0:
+        nothing = np.zeros(grid.size, dtype=bool)
+        return values[np.zeros(grid.size, dtype=int)], nothing, nothing
+    instants = lattice[chosen]
+    position_float = ((grid - plan.reference).astype(float) - plan.origin) / period
+    wanted = np.floor(position_float + 1e-6)
+    position = np.searchsorted(instants, wanted, side='right') - 1
+    known = position >= 0
+    position = np.maximum(position, 0)
+    held = stamps[chosen]
+    following = np.minimum(position + 1, chosen.size - 1)
+    has_next = position + 1 < chosen.size
+    own = instants[position] == wanted
+    bridged = has_next & (held[following] - held[position] <= max_gap_ns)
+    valid = known & (own | bridged | (~has_next & (grid - held[position] <= max_gap_ns)))
+    u = values[chosen[position]]
+    lost = known & ~own & bridged
+    if np.any(lost):
+        before, after = chosen[position[lost]], chosen[following[lost]]
+        fraction = (wanted[lost] - instants[position[lost]]) / (
+            instants[following[lost]] - instants[position[lost]])
+        if u.ndim == 2:
+            fraction = fraction[:, None]
+        u[lost] = values[before] + fraction * (values[after] - values[before])
+    # Instants of the input's lattice whose own sample is missing (a finer grid has others).
+    instant = np.abs(position_float - wanted) < 1e-3
+    return u, valid, known & instant & ~own
+
+
+def _own_samples(stamps: np.ndarray, grid: np.ndarray, plan: GridPlan) -> np.ndarray:
+    """
+    Return, per grid instant, the index of the output sample measured at it (or -1).
+
+    The output's samples are given the instants of its own lattice, ``skew`` after the grid
+    instants and every output period (:func:`~ctid_ros.streaming.timing.assign_instants`);
+    the grid instants take those on them.
+    """
+    own = np.full(grid.size, -1)
+    if stamps.size == 0:
+        return own
+    every = max(1, round(plan.step / plan.output_period))
+    # The grid's subdivision rather than the output's own period: the two clocks may drift.
+    period = plan.step / every
+    relative = (stamps - grid[0]).astype(float) - plan.skew
+    index, assigned = assign_instants(relative / period, _early(plan, period))
+    on_grid = assigned & (np.mod(index, every) == 0) & (index >= 0) & (index < every * grid.size)
+    own[index[on_grid] // every] = np.flatnonzero(on_grid)
+    return own
+
+
 class SampleBuffer:
     """
     Thread-safe buffer of timestamped input and output samples, resampled on demand.
@@ -362,8 +725,9 @@ class SampleBuffer:
             raise DataError('max_gap must be positive')
         self._horizon_ns = _to_ns(reorder_horizon, 'reorder_horizon')
         self.names = tuple(names)
-        self._input = _Stream(self.names[0], capacity, self._horizon_ns, operator.index(inputs))
-        self._output = _Stream(self.names[1], capacity, self._horizon_ns)
+        self._input = _Stream(self.names[0], capacity, self._horizon_ns, self._max_gap_ns,
+                              operator.index(inputs))
+        self._output = _Stream(self.names[1], capacity, self._horizon_ns, self._max_gap_ns)
         self._lock = threading.Lock()
 
     @property
@@ -455,27 +819,32 @@ class SampleBuffer:
             return self._coverage(settled)
 
     def window(self, length: float, sample_time: float, end_ns: Optional[int] = None, *,
-               min_length: Optional[float] = None) -> Window:
+               min_length: Optional[float] = None, start_ns: Optional[int] = None) -> Window:
         """
-        Resample the latest ``length`` seconds onto the grid of multiples of ``sample_time``.
+        Resample the latest ``length`` seconds onto the grid of the input's instants.
 
         Parameters
         ----------
         length : float
-            Window length in seconds; the grid has ``round(length / sample_time)`` instants,
-            the last one the latest multiple of ``sample_time`` at or before ``end_ns``.
+            Window length in seconds; the grid has ``round(length / step)`` instants, the last
+            one the latest grid instant at or before ``end_ns`` (minus the output skew).
         sample_time : float
-            Grid spacing in seconds (used rounded to whole nanoseconds).
+            Configured grid step in seconds; the grid itself follows the input's instants
+            (:func:`~ctid_ros.streaming.timing.plan_grid`), else its multiples.
         end_ns : int, optional
             End of the window in nanoseconds; default the settled end of :meth:`coverage`.
         min_length : float, optional
             Shortest acceptable contiguous segment in seconds (default half the window).
+        start_ns : int, optional
+            Take every grid instant from ``start_ns`` on (whose input and output samples are
+            held, up to the jitter of their stamps) instead of ``length`` seconds.
 
         Returns
         -------
         Window
             The latest contiguous segment of at least ``min_length`` seconds as ``Data`` (input
-            held, output interpolated), with the segments and gaps found.
+            held, output at its own samples or interpolated), with the segments and gaps found,
+            the grid plan and the refused samples.
 
         Raises
         ------
@@ -487,24 +856,32 @@ class SampleBuffer:
         step = _to_ns(sample_time, 'sample_time')
         if step == 0:
             raise DataError(f'sample_time must be positive, got {sample_time!r}')
-        count = round(float(length) / float(sample_time))
-        needed = max(2, math.ceil(count / 2) if min_length is None
-                     else round(float(min_length) / float(sample_time)))
-        if count < needed:
-            raise DataError(f'a window of {length} s holds {count} samples of {sample_time} s, '
-                            f'fewer than the {needed} required')
+        _counts(length, sample_time, min_length)
         with self._lock:
             self._require_samples()
             if end_ns is None:
                 end_ns = self._coverage(settled=True)[1]
-            last = operator.index(end_ns) // step
-            grid = np.arange(last - count + 1, last + 1, dtype=np.int64) * step
-            su, vu = self._input.snapshot(int(grid[0]), int(grid[-1]))
-            sy, vy = self._output.snapshot(int(grid[0]), int(grid[-1]))
+            end_ns = operator.index(end_ns)
+            begin = end_ns - _to_ns(length, 'length') if start_ns is None else start_ns
+            # Stamps around the window: the grid's phase is fitted to them, a held input and
+            # the interpolation may reach back up to max_gap before its first instant.
+            margin = self._max_gap_ns + step
+            su, vu = self._input.snapshot(begin - margin, end_ns + margin)
+            sy, vy = self._output.snapshot(begin - margin, end_ns + margin)
             oldest = (int(self._input.stamps[0]), int(self._output.stamps[0]))
             evicted = (self._input.evicted, self._output.evicted)
-        return self._resample(su, vu, sy, vy, grid, needed, step / NANOSECONDS, oldest,
-                              evicted)
+            events = (self._input.events(), self._output.events())
+        plan = plan_grid(*_recent(su, vu, begin, end_ns, self._max_gap_ns),
+                         _recent(sy, vy, begin, end_ns, self._max_gap_ns)[0], step, self.names)
+        if start_ns is not None:
+            # The first instant whose input and output are both measured at or after start_ns.
+            begin = max(begin, oldest[0], oldest[1] - round(plan.skew))
+        grid, needed = _grid(plan, length, min_length, begin, end_ns, start_ns)
+        window = self._resample(su, vu, sy, vy, grid, needed, plan, oldest, evicted)
+        refused = tuple(_refusals(name, *stream_events, window.start_ns, window.end_ns)
+                        for name, stream_events in zip(self.names, events))
+        return Window(window.data, window.requested, window.segments, window.gaps,
+                      window.start_ns, plan, refused, window.missing)
 
     def _silence(self) -> str:
         silent = [stream for stream in (self._input, self._output) if not len(stream)]
@@ -512,20 +889,33 @@ class SampleBuffer:
         for stream in silent:
             refused = stream.received - stream.accepted
             detail = (f'{stream.received} received, all refused (non-finite {stream.non_finite}'
-                      f', late {stream.late}, duplicates {stream.duplicates})'
+                      f', late {stream.late}, duplicates {stream.duplicates}, out of clock '
+                      f'{stream.out_of_clock}, pending {stream.pending})'
                       if refused else 'none received')
             parts.append(f'{stream.name}: {detail}')
         return ('no samples yet from ' + '; '.join(parts) +
                 ': check that the topic is published, the field exists and the QoS matches')
 
     def _resample(self, su: np.ndarray, vu: np.ndarray, sy: np.ndarray, vy: np.ndarray,
-                  grid: np.ndarray, needed: int, sample_time: float, oldest: Tuple[int, int],
+                  grid: np.ndarray, needed: int, plan: GridPlan, oldest: Tuple[int, int],
                   evicted: Tuple[int, int]) -> Window:
         gap = self._max_gap_ns
-        index_u, inside_u, after_u = _bracket(su, grid, gap)
-        index_y, inside_y, _ = _bracket(sy, grid, gap)
-        held = after_u & (grid - su[index_u] <= gap)
-        valid = (inside_u | held) & inside_y
+        sample_time = plan.step / NANOSECONDS
+        held = None
+        if plan.input_period is None:
+            index_u, inside_u, after_u = _bracket(su, grid, gap)
+            valid_u = inside_u | (after_u & (grid - su[index_u] <= gap))
+            u = vu[index_u]
+        else:
+            u, valid_u, held = _held(su, vu, grid, plan, gap)
+        skew = round(plan.skew)
+        index_y, inside_y, _ = _bracket(sy, grid + skew, gap)
+        valid_y = inside_y
+        own = None
+        if plan.output_period is not None:
+            own = _own_samples(sy, grid, plan)
+            valid_y = valid_y | (own >= 0)
+        valid = valid_u & valid_y
         gaps = (_gaps(self.names[0], su, int(grid[0]), int(grid[-1]), gap, gap) +
                 _gaps(self.names[1], sy, int(grid[0]), int(grid[-1]), gap, 0))
         starts, stops = _runs(valid)
@@ -538,11 +928,19 @@ class SampleBuffer:
             raise DataError(self._shortage(longest, needed, grid, sample_time, gaps, oldest,
                                            evicted))
         first, stop = int(starts[long_enough[-1]]), int(stops[long_enough[-1]])
-        instants = grid[first:stop]
+        instants = grid[first:stop] + skew
         origin = instants[0]
         y = np.interp((instants - origin).astype(float), (sy - origin).astype(float), vy)
-        data = Data(vu[index_u[first:stop]], y, sample_time, float(seconds[first]))
-        return Window(data, grid.size, segments, gaps)
+        missing = [0, 0]
+        if own is not None:
+            taken = own[first:stop]
+            y[taken >= 0] = vy[taken[taken >= 0]]
+            missing[1] = int(np.count_nonzero(taken < 0))
+        if held is not None:
+            missing[0] = int(np.count_nonzero(held[first:stop]))
+        data = Data(u[first:stop], y, sample_time, float(seconds[first]),
+                    plan.skew / NANOSECONDS)
+        return Window(data, grid.size, segments, gaps, int(grid[first]), missing=tuple(missing))
 
     def _shortage(self, longest: int, needed: int, grid: np.ndarray, sample_time: float,
                   gaps: Tuple[Gap, ...], oldest: Tuple[int, int], evicted: Tuple[int, int]
@@ -627,7 +1025,8 @@ def resample(input_stamps, input_values, output_stamps, output_values, sample_ti
     if end_ns is None:
         end_ns = last
     if length is None:
-        step = _to_ns(sample_time, 'sample_time')
-        count = end_ns // step - -(-first // step) + 1
-        length = max(count, 2) * step / NANOSECONDS
+        # Every grid instant whose input and output are both measured.
+        length = max(end_ns - first, 0) / NANOSECONDS
+        return buffer.window(length, sample_time, end_ns, min_length=min_length,
+                             start_ns=_EARLIEST), buffer.stats()
     return buffer.window(length, sample_time, end_ns, min_length=min_length), buffer.stats()

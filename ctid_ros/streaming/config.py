@@ -168,8 +168,11 @@ class IdentificationConfig:
         (), 'double_array', 'Upper bounds in parameter_names order (.inf = none); empty = '
         'no bounds.')
     sample_time: float = _param(
-        0.01, 'double', 'Sample time (s, > 0) of the uniform grid the messages are resampled '
-        'onto; use the actuator update period for a zero-order-hold input.', minimum=0.0)
+        0.01, 'double', 'Sample time (s, > 0) of the grid the messages are resampled onto, '
+        "normally the actuator update period; the grid follows the input's own instants when "
+        "it is a whole multiple or fraction of the input's period (finer than the data's own "
+        "rate: the data's period, with a warning), else the multiples of sample_time.",
+        minimum=0.0)
     window: float = _param(
         10.0, 'double', f'Length (s) of the data window used by each estimate; at least '
         f'{MIN_WINDOW_SAMPLES} sample times.', minimum=0.0)

@@ -12,7 +12,8 @@ each per update:
 * ``~/params/<name>``: ``std_msgs/msg/Float64``, one topic per parameter;
 * ``~/prediction``: ``std_msgs/msg/Float64MultiArray``, the model output at every grid instant
   of the window, label ``prediction``; its first and last instants are ``window_start`` and
-  ``window_end`` of the diagnostics sent with it;
+  ``window_end`` of the diagnostics sent with it (plus their ``output_skew``: the output is
+  predicted where it was measured);
 * ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray`` with one status named
   ``ctid_node: estimate`` (also after an update that gave no estimate).
 

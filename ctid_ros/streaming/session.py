@@ -60,18 +60,19 @@ class Update:
 
     @property
     def prediction_times_ns(self) -> np.ndarray:
-        """Return the grid instants of :attr:`prediction` in nanoseconds."""
-        step = int(round(self.window.data.ts * NANOSECONDS))
-        return self.start_ns + step * np.arange(self.prediction.size, dtype=np.int64)
+        """Return the instants of :attr:`prediction` (the outputs' instants) in nanoseconds."""
+        data = self.window.data
+        offsets = (np.arange(self.prediction.size) * data.ts + data.output_skew) * NANOSECONDS
+        return self.start_ns + np.round(offsets).astype(np.int64)
 
     @property
     def warnings(self) -> Tuple[str, ...]:
-        """Return what a user should know about this estimate (gaps, bounds, convergence)."""
-        notes = list(self.result.warnings)
-        if self.window.dropped:
-            notes.append(f'{self.window.dropped} of {self.window.requested} samples left out '
-                         f'by {len(self.window.gaps)} gap(s) in the data')
-        return tuple(notes)
+        """
+        Return what a user should know about this estimate.
+
+        The window's (grid, refused samples, gaps) and the estimator's (bounds, convergence).
+        """
+        return tuple(self.window.warnings) + tuple(self.result.warnings)
 
     def diagnostics(self) -> Dict[str, Any]:
         """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
@@ -85,6 +86,9 @@ class Update:
             'window_end': self.end_ns / NANOSECONDS,
             'window_span': (self.end_ns - self.start_ns) / NANOSECONDS,
             'samples': int(self.prediction.size),
+            'grid': self.window.plan.description if self.window.plan is not None else '',
+            'grid_step': self.window.data.ts,
+            'output_skew': self.window.data.output_skew,
             'compute_time': self.compute_time,
             'warnings': list(self.warnings),
         }
@@ -209,11 +213,8 @@ class IdentificationSession:
         self._settling = settling_time(result.model.coefficients(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
         data = window.data
-        step_ns = int(round(data.ts * NANOSECONDS))
-        # Grid instants are whole multiples of the sample time (see buffer.SampleBuffer.window).
-        start_ns = int(round(data.t0 * NANOSECONDS / step_ns)) * step_ns
         return Update(
-            end_ns=start_ns + step_ns * (len(data) - 1), start_ns=start_ns,
+            end_ns=window.end_ns, start_ns=window.start_ns,
             names=config.names,
             values=np.array([result.params[name] for name in order]),
             stds=np.array([result.std[name] for name in order]),

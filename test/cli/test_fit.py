@@ -88,3 +88,25 @@ def test_model_error_points_at_the_column(record, capsys):
     assert code == 2 and out == ''
     assert err.splitlines() == ["ctid fit: error: expected ')' but found end of expression at "
                                 'column 23', '  K*exp(-tau*s)/(T*s + 1', ' ' * 24 + '^']
+
+
+def test_a_jittered_time_column_is_resampled_as_the_node_does(record, tmp_path, capsys):
+    rows = record.read_text().splitlines()
+    rng = np.random.default_rng(3)
+    # The same samples, stamped 3.7 ms after the hundredths with jitter up to 0.5 % of TS.
+    jittered = [rows[0]] + [
+        f'{float(t) + 0.0037 + rng.uniform(-0.005, 0.005) * TS!r},{rest}'
+        for t, rest in (row.split(',', 1) for row in rows[1:])]
+    path = tmp_path / 'jittered.csv'
+    path.write_text('\n'.join(jittered) + '\n')
+    arguments = ['--model', MODEL, '--initial', 'K=1,T=2', '--bounds', 'T=0.001:,tau=0:1',
+                 '--json']
+    code, out, err = fit(capsys, path, *arguments)
+    assert code == 0, err
+    result = json.loads(out)
+    assert result['warnings'][0].startswith(f"{path} column 't' jitters")
+    # The data are the rows themselves: the estimate is the one of the uniform file.
+    code, out, err = fit(capsys, record, *arguments)
+    uniform = json.loads(out)
+    assert result['params'] == pytest.approx(uniform['params'], rel=1e-4)
+    assert result['std'] == pytest.approx(uniform['std'], rel=1e-3)

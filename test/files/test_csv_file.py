@@ -5,7 +5,7 @@ import os
 import threading
 
 from ctid_ros.errors import DataError
-from ctid_ros.files.csv_file import load_csv, uniform_sample_time
+from ctid_ros.files.csv_file import load_csv, timed_data, uniform_sample_time
 import numpy as np
 import pytest
 
@@ -161,3 +161,42 @@ def test_bad_arguments(tmp_path, kwargs, message):
     path.write_bytes(GOOD)
     with pytest.raises(DataError, match=message):
         load_csv(path, **kwargs)
+
+
+def test_a_jittered_time_column_is_resampled_on_its_own_instants():
+    rng = np.random.default_rng(5)
+    k = np.arange(400)
+    # Rows every 10 ms, 3.7 ms after the whole hundredths, stamps jittered by up to 50 us.
+    t = 12.0037 + 0.01 * k + rng.uniform(-5e-5, 5e-5, k.size)
+    u, y = np.sign(np.sin(k / 7.0)), np.cos(k / 11.0)
+    data, notes = timed_data(t, u, y, 'column t')
+    # Every row is its own sample: nothing is held over or interpolated between rows.
+    np.testing.assert_array_equal(data.u, u)
+    np.testing.assert_array_equal(data.y, y)
+    assert data.ts == pytest.approx(0.01, rel=1e-5) and data.output_skew == 0.0
+    assert data.t0 == pytest.approx(12.0037, abs=1e-5)
+    assert notes[0].startswith('column t jitters') and len(notes) == 1
+    # A lost row: its input is held (the same value on both sides), its output interpolated.
+    lost = np.delete(np.arange(k.size), 200)
+    data, notes = timed_data(t[lost], u[lost], y[lost], 'column t')
+    assert len(data) == 400 and data.u[200] == u[199] == u[201]
+    # Interpolated between the stamps of its neighbours, which jitter by up to 0.5 %.
+    assert data.y[200] == pytest.approx((y[199] + y[201]) / 2, abs=2e-4)
+    assert 'input: 1 of 400 instants without a sample of their own' in notes[1]
+    assert 'output: 1 of 400 instants without a sample of their own' in notes[2]
+
+
+@pytest.mark.parametrize('time, message', [
+    (np.r_[0.0:1.0:0.01, 1.5:2.0:0.01], r'a gap of 0\.51 s at row 100'),
+    (np.cumsum(np.random.default_rng(1).uniform(0.005, 0.015, 100)), 'follow no period'),
+])
+def test_gaps_and_irregular_time_columns_are_refused(time, message):
+    with pytest.raises(DataError, match=message):
+        timed_data(time, np.ones(time.size), np.ones(time.size), 'column t')
+
+
+def test_uniform_time_columns_are_taken_as_they_are():
+    t = 2.5 + 0.1 * np.arange(20)
+    t[7] += 5e-5
+    data, notes = timed_data(t, np.sin(t), np.cos(t))
+    assert (data.ts, data.t0, notes) == (pytest.approx(0.1), 2.5, ())

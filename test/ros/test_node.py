@@ -18,9 +18,13 @@ import sys
 import threading
 import time
 
+from ctid_ros import Model
+from ctid_ros.core.excitation import prbs
 from ctid_ros.ros.node import IdentificationNode
 from ctid_ros.ros.plant_node import PlantNode
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PointStamped
+import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
@@ -204,6 +208,58 @@ def test_open_loop_fractional_delay(ros):
     values = keys(ros.latest(ros.statuses))
     assert float(values['fit_percent']) > 95.0
     assert int(values['input_received']) > 500 and int(values['output_received']) > 500
+
+
+def test_dead_time_from_stamps_at_a_phase_of_the_sample(ros):
+    # Issue 13 live: header stamps 0.13 of a sample after the multiples of 10 ms, jittered by
+    # up to 0.5 % of it, the output read 3 % of a sample after its command; published in real
+    # time by a thread of this test. tau = 5.37 samples.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    truth = {'K': 1.5, 'T': 0.08, 'tau': 0.0537}
+    ts, count = 0.01, 1400
+    rng = np.random.default_rng(13)
+    u = np.resize(prbs(10, 4), count)
+    y = model.simulate(truth, u, ts, output_skew=0.03 * ts)
+    y = y + 0.02 * rng.standard_normal(count)
+    node = ros.identifier(**first_order(
+        input_field='point.x', output_field='point.x', sample_time=ts, window=8.0,
+        update_period=2.0, lower=[0.001, 0.001, 0.0], upper=[100.0, 10.0, 0.5]))
+    publishers = {topic: ros.observer.create_publisher(PointStamped, topic, 1000)
+                  for topic in 'uy'}
+    wait_for(lambda: all(p.get_subscription_count() for p in publishers.values()), 20.0,
+             'ctid_node subscribed to u and y')
+    start = (time.time_ns() // 10_000_000 + 20) * 10_000_000
+    jitter = rng.uniform(-0.005, 0.005, (count, 2)) * ts
+    stop = threading.Event()
+
+    def publish():
+        for k in range(count):
+            for column, (topic, offset, value) in enumerate((('u', 0.13, u[k]),
+                                                             ('y', 0.16, y[k]))):
+                stamp = start + round(((k + offset) * ts + jitter[k, column]) * 1e9)
+                delay = (stamp - time.time_ns()) / 1e9
+                if delay > 0 and stop.wait(delay):
+                    return
+                message = PointStamped()
+                message.point.x = float(value)
+                message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 10 ** 9)
+                publishers[topic].publish(message)
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: node.last_update is not None and
+                 node.last_update.window.data.y.size * ts > 8.0, 40.0, 'an 8 s window')
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+    update = node.last_update
+    assert update.window.plan.follows_input
+    assert update.window.data.output_skew == pytest.approx(0.03 * ts, abs=5e-4 * ts)
+    tau, std = (dict(zip(update.names, values))['tau']
+                for values in (update.values, update.stds))
+    assert abs(tau - truth['tau']) <= 0.03 * ts and abs(tau - truth['tau']) <= 3 * std, \
+        (tau, std)
 
 
 def test_closed_loop_pi(ros):

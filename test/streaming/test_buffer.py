@@ -4,7 +4,8 @@ import math
 import threading
 
 from ctid_ros.errors import DataError
-from ctid_ros.streaming.buffer import Admission, capacity_for, Gap, resample, SampleBuffer
+from ctid_ros.streaming.buffer import (Admission, capacity_for, Gap, Refusals, resample,
+                                       SampleBuffer)
 import numpy as np
 import pytest
 
@@ -85,7 +86,11 @@ def test_default_end_is_the_settled_coverage():
     assert buffer.coverage(settled=False) == (ns(0.5), ns(1.6))
     assert buffer.coverage() == (ns(0.5), ns(1.55))
     window = buffer.window(1.0, 0.01)
-    assert window.complete and window.data.time[-1] == pytest.approx(1.55)
+    # Two input samples are no periodic input: the grid is the multiples of 10 ms. The output
+    # is taken at its own samples, 2 ms after them: the last measured by 1.55 s is 1.542 s.
+    assert window.complete and window.data.time[-1] == pytest.approx(1.54)
+    assert window.data.output_skew == pytest.approx(0.002)
+    assert window.data.y[-1] == math.sin(154 / 10)
     assert window.data.u[0] == 1.0 and window.data.u[-1] == 2.0
 
 
@@ -175,19 +180,21 @@ def gapped_buffer(output_silence=(), input_silence=(), input_end=6.5):
 def test_a_gap_splits_the_window_and_the_latest_long_segment_is_returned():
     buffer = gapped_buffer(output_silence=(3.0, 4.0))
     window = buffer.window(6.0, 0.01, ns(6.0), min_length=1.0)
-    assert window.segments == ((0.01, 2.99), (4.01, 6.0))
+    # The grid follows the input's instants, 3 ms after the multiples of 10 ms.
+    assert window.segments == ((0.003, 2.993), (4.003, 5.993))
     assert window.gaps == (Gap('output', 2.993, 4.003),)
     assert window.gaps[0].duration == pytest.approx(1.01)
     data = window.data
-    assert data.t0 == pytest.approx(4.01) and len(data) == 200
+    assert data.t0 == pytest.approx(4.003) and len(data) == 200
     assert window.dropped == 400 and not window.complete
-    # Nothing bridged the silence: all values come from samples after it.
-    assert np.max(np.abs(data.y - output_signal(data.time))) < 1e-3
+    assert window.warnings == ('400 of 600 samples left out by 1 gap(s) in the data',)
+    # Nothing bridged the silence: all values are samples after it.
+    np.testing.assert_allclose(data.y, output_signal(data.time), rtol=0, atol=1e-12)
 
     # The latest segment is too short for 2.5 s: the earlier one is the latest long enough.
     earlier = buffer.window(6.0, 0.01, ns(6.0), min_length=2.5).data
-    assert earlier.t0 == pytest.approx(0.01) and earlier.time[-1] == pytest.approx(2.99)
-    with pytest.raises(DataError, match=r'2\.99 s of input and output available together in the '
+    assert earlier.t0 == pytest.approx(0.003) and earlier.time[-1] == pytest.approx(2.993)
+    with pytest.raises(DataError, match=r'3 s of input and output available together in the '
                                         r'6 s window .* need at least 3\.5 s; output missing for '
                                         r'1\.01 s from t=2\.993 s \(max_gap 0\.2 s\)'):
         buffer.window(6.0, 0.01, ns(6.0), min_length=3.5)
@@ -197,9 +204,9 @@ def test_the_input_is_never_held_across_a_gap_and_only_max_gap_after_its_end():
     buffer = gapped_buffer(input_silence=(3.0, 4.0), input_end=5.01)
     window = buffer.window(6.0, 0.01, ns(6.0), min_length=1.0)
     # Held 0.2 s after the last input sample at 5.003 s, then missing.
-    assert window.segments == ((0.01, 2.99), (4.01, 5.2))
+    assert window.segments == ((0.003, 2.993), (4.003, 5.203))
     assert window.gaps == (Gap('input', 2.993, 4.003), Gap('input', 5.003, None))
-    np.testing.assert_array_equal(window.data.u, np.floor(window.data.time - 0.003))
+    np.testing.assert_array_equal(window.data.u, np.floor(window.data.time.round(3)))
     with pytest.raises(DataError, match=r'input silent since t=5\.003 s'):
         buffer.window(6.0, 0.01, ns(6.0), min_length=3.5)
 
@@ -275,8 +282,8 @@ def test_batch_resampling_equals_the_live_buffer_fed_the_same_samples():
     events = messy_streams(11)
     live = SampleBuffer(10_000, max_gap=0.7, reorder_horizon=0.04)
     verdicts = feed(live, events)
-    for verdict in Admission:
-        assert verdict in verdicts
+    assert set(verdicts) == {Admission.ACCEPTED, Admission.DUPLICATE, Admission.LATE,
+                             Admission.NON_FINITE}
     end = live.coverage()[1]
     window = live.window(5.0, 0.01, end)
 
@@ -300,10 +307,12 @@ def test_batch_defaults_cover_all_complete_data():
     window, stats = resample(stamps, values > 0, stamps, values, 0.01)
     data = window.data
     assert window.complete
-    assert data.t0 == pytest.approx(0.01) and data.time[-1] == pytest.approx(2.99)
+    # Every other input instant (the input never changes: those nearest the multiples of
+    # 10 ms), from the first sample to the last; the output at its own samples there.
+    assert data.t0 == pytest.approx(0.002) and data.time[-1] == pytest.approx(2.992)
+    assert (data.ts, data.output_skew) == (0.01, 0.0)
     assert stats.u.received == stamps.size
-    # Linear interpolation of samples 5 ms apart: error below 0.005**2/8 = 3.1e-6.
-    np.testing.assert_allclose(data.y, np.sin(data.time), rtol=0, atol=3.2e-6)
+    np.testing.assert_array_equal(data.y, values[::2])
 
 
 def test_missing_data_errors_say_which_stream_and_how_much():
@@ -339,3 +348,116 @@ def test_batch_input_checks_and_capacity_sizing():
     assert capacity_for(0.01, 1.0) == 16
     with pytest.raises(DataError, match='rate > 0'):
         capacity_for(10.0, 0.0)
+
+
+HOUR = 3600 * NS
+
+
+def steady(buffer, first, count, step=ns(0.01), stream='pair'):
+    """Feed ``count`` samples every ``step`` from stamp ``first``; return the verdicts."""
+    verdicts = []
+    for k in range(first, first + count):
+        stamp = k * step
+        if stream == 'pair':
+            verdicts.extend(buffer.add_pair(stamp, float(k % 7), float(k)))
+        else:
+            verdicts.append(buffer.add_output(stamp, float(k)))
+    return verdicts
+
+
+def test_a_stamp_an_hour_ahead_does_not_capture_the_stream():
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    steady(buffer, 1, 300)
+    assert buffer.add_output(ns(3.005) + HOUR, 1e6) is Admission.PENDING
+    assert buffer.stats().y.pending == 1
+    # The next sample of the stream's own clock is admitted and refuses the stray one.
+    assert set(steady(buffer, 301, 300)) == {Admission.ACCEPTED}
+    stats = buffer.stats().y
+    assert (stats.accepted, stats.out_of_clock, stats.late, stats.pending) == (600, 1, 0, 0)
+    window = buffer.window(5.0, 0.01, ns(6.0))
+    assert window.complete and window.data.y.max() == 600.0
+    assert window.refused[1] == Refusals(window.refused[1].stream, out_of_clock=1)
+    assert window.warnings == ('output: 1 samples refused in this window (out of clock 1)',)
+
+
+@pytest.mark.parametrize('stray', ['random', 'zero', 'ahead', 'behind'])
+def test_stray_stamps_among_good_ones_are_refused_and_counted(stray):
+    rng = np.random.default_rng(4)
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    refused = 0
+    for k in range(1, 1001):
+        buffer.add_pair(ns(0.01 * k) + HOUR, float(k % 7), float(k))
+        if k % 10 == 5:
+            stamp = {'random': int(rng.integers(0, 2 ** 62)), 'zero': 0,
+                     'ahead': ns(0.01 * k + 30.0) + HOUR,
+                     'behind': ns(0.01 * k - 20.0) + HOUR}[stray]
+            verdict = buffer.add_output(stamp, -1.0)
+            refused += 1
+            assert verdict in (Admission.PENDING, Admission.OUT_OF_CLOCK, Admission.LATE)
+    stats = buffer.stats()
+    assert stats.y.accepted == 1000 and stats.y.out_of_clock + stats.y.late == refused
+    window = buffer.window(9.0, 0.01, ns(10.0) + HOUR)
+    assert window.complete and np.all(window.data.y > 0)
+    assert window.refused[1].total == 90 and window.refused[0].total == 0
+
+
+def test_a_stream_resuming_after_a_silence_or_losing_most_messages_loses_nothing():
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    steady(buffer, 1, 200)
+    verdicts = steady(buffer, 1200, 200)
+    # The first two samples after 10 s of silence wait for a third to confirm the new clock.
+    assert verdicts[:6] == [Admission.PENDING] * 4 + [Admission.ACCEPTED] * 2
+    stats = buffer.stats()
+    assert stats.u.accepted == stats.y.accepted == 400 and stats.y.out_of_clock == 0
+    lossy = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.01)
+    rng = np.random.default_rng(2)
+    kept = np.flatnonzero(rng.uniform(size=3000) < 0.3)
+    for k in kept:
+        lossy.add_output(ns(0.005 * k), float(k))
+    stats = lossy.stats().y
+    assert stats.accepted == kept.size and stats.out_of_clock == stats.pending == 0
+
+
+def test_a_publisher_restarted_on_an_earlier_clock_re_anchors_the_stream():
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    # The first sample is stamped an hour ahead: every later one is behind it.
+    buffer.add_pair(HOUR, 0.0, 0.0)
+    verdicts = steady(buffer, 1, 100)
+    stats = buffer.stats()
+    assert stats.y.reanchors == 1 and stats.y.first == pytest.approx(0.01)
+    # Refused until the stamps behind the clock spanned max_gap, then admitted after all.
+    assert verdicts[:2] == [Admission.OUT_OF_CLOCK] * 2 and verdicts[-1] is Admission.ACCEPTED
+    assert stats.y.accepted == 101 and stats.y.size == 100 and stats.y.out_of_clock == 0
+    # A simulated clock restarting from zero.
+    steady(buffer, 10_000, 300)
+    verdicts = steady(buffer, 1, 300)
+    assert buffer.stats().y.reanchors == 2 and buffer.stats().y.last == pytest.approx(3.0)
+    window = buffer.window(2.0, 0.01, ns(3.0))
+    assert window.complete and window.data.y[-1] == 300.0
+
+
+def test_refused_samples_of_the_window_are_reported():
+    # Issue 16: 1 in 11 input samples and 1 in 7 output samples non-finite.
+    buffer = SampleBuffer(5000, max_gap=0.5, reorder_horizon=0.05)
+    for k in range(1, 1001):
+        u = math.nan if k % 11 == 0 else float(k % 5)
+        y = math.nan if k % 7 == 0 else float(k)
+        buffer.add_pair(ns(0.01 * k), u, y)
+    window = buffer.window(5.0, 0.01, ns(10.0))
+    assert [refusals.non_finite for refusals in window.refused] == [45, 71]
+    assert window.warnings[:2] == (
+        'input: 45 samples refused in this window (non-finite 45)',
+        'output: 71 samples refused in this window (non-finite 71)')
+    assert window.missing == (45, 71)
+    assert 'input: 45 of 500 instants without a sample of their own' in window.warnings[2]
+    # The lost outputs are interpolated between their neighbours (a ramp: exactly).
+    np.testing.assert_allclose(window.data.y, np.arange(501.0, 1001.0), rtol=0, atol=1e-9)
+
+
+def test_a_window_with_no_sample_in_its_range_says_so():
+    # Just after a reset: a few samples, all newer than the settled end of the window.
+    buffer = SampleBuffer(100, max_gap=0.5, reorder_horizon=0.05)
+    for k in range(3):
+        buffer.add_pair(ns(5.0 + 0.01 * k), 1.0, 2.0)
+    with pytest.raises(DataError, match='not enough contiguous data'):
+        buffer.window(4.0, 0.01)

@@ -58,10 +58,13 @@ def test_sliding_agrees_with_a_buffer_fed_message_by_message():
             if name == topic and stamp <= until_ns])]
 
     # A tick at T estimates on what was logged up to T, whatever the buffer size; the span is
-    # the window plus the settling transient the session asks for.
+    # the window plus the settling transient the session asks for. The output is logged 1 ms
+    # after the input: taken at its own samples, 1 ms after the grid instants.
+    last = updates[-1].window.data
+    assert last.output_skew == pytest.approx(0.001)
     window, _ = resample(*streams(T0_NS + 12 * 10 ** 9), TS,
-                         length=updates[-1].window.requested * TS, end_ns=updates[-1].end_ns,
-                         min_length=4.0)
+                         length=updates[-1].window.requested * TS,
+                         end_ns=updates[-1].end_ns + 1_000_000, min_length=4.0)
     assert np.array_equal(window.data.y, updates[-1].window.data.y)
     big = replay_messages(messages, config, sliding=True, capacity=100_000).updates
     assert [update.values.tolist() for update in big] == [update.values.tolist()
