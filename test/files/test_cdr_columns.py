@@ -36,8 +36,8 @@ def stamp(rng):
     # Zero stamps now and then: the sampler then takes the receive time.
     if rng.random() < 0.1:
         return STORE.types['builtin_interfaces/msg/Time'](0, 0)
-    return STORE.types['builtin_interfaces/msg/Time'](int(rng.integers(-2**31, 2**31)),
-                                                     int(rng.integers(0, 10**9)))
+    time_type = STORE.types['builtin_interfaces/msg/Time']
+    return time_type(int(rng.integers(-2**31, 2**31)), int(rng.integers(0, 10**9)))
 
 
 def header(rng):
