@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
-EXTRAS := ros,bag,plot,test
+EXTRAS := ros,bag,plot,fleet,test
 
 .PHONY: setup test demo bench lint clean
 
