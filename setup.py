@@ -49,7 +49,7 @@ setup(
                 'zstandard>=0.20', 'lz4>=4'],
         'plot': ['matplotlib>=3.7'],
         # ctid fleet: bags as tasks on Dask distributed, results as Parquet.
-        'fleet': ['dask[distributed]>=2024.1', 'pyarrow>=14'],
+        'fleet': ['dask>=2024.1', 'distributed>=2024.1', 'pyarrow>=14'],
         'test': ['pytest>=7'] + LINT,
     },
     zip_safe=True,

@@ -18,6 +18,8 @@ PYTHON = {
     'mcap_ros2': ('mcap-ros2-support', 'mcap-ros2-support'),
     'threadpoolctl': (None, 'threadpoolctl'),
     'zstandard': ('python3-zstandard', 'zstandard'), 'lz4': ('python3-lz4', 'lz4'),
+    # ctid fleet (pip only: no rosdep keys).
+    'distributed': (None, 'distributed'), 'pyarrow': (None, 'pyarrow'),
 }
 # Imported by name at run time, not by an import statement: the node's output messages and
 # the header stamp nested in them.
