@@ -32,6 +32,8 @@ _MODULE_COMMANDS = {
     'fit': ('ctid_ros.cli.fit', 'estimate a model from a CSV file'),
     'replay': ('ctid_ros.cli.replay', 'estimate from a rosbag2 directory or an MCAP file'),
     'node': ('ctid_ros.cli.node', 'run the live identification node (same as ctid_node)'),
+    'fleet': ('ctid_ros.cli.fleet', 'estimate on every bag of a fleet with Dask; Parquet '
+              'results and a fleet report'),
 }
 
 
