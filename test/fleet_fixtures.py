@@ -5,7 +5,8 @@ Each robot's wheel drive is ``exp(-tau*s)/(J*s + b)`` from the torque command ``
 the wheel speed ``velocity[0]``, driven by a PRBS, with white speed noise; one robot carries a
 heavier payload (a larger inertia J). Bags are rosbag2 directories with MCAP storage written by
 rosbags, laid out as ``ROBOT/DATE/run_N/``, stamped at the sample instants (header) and logged
-with a small jitter. Shared by test/cli/test_fleet.py and bench/fleet.py (which puts test/ on the path).
+with a small jitter. Shared by test/cli/test_fleet.py and bench/fleet.py (which puts test/
+on the path).
 """
 
 from pathlib import Path
