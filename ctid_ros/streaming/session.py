@@ -16,7 +16,7 @@ from typing import Any, Dict, Optional, Tuple
 
 from ctid_ros.estimation.estimate import Estimate, estimate
 from ctid_ros.estimation.problem import settling_time
-from ctid_ros.streaming.buffer import capacity_for, SampleBuffer, Window
+from ctid_ros.streaming.buffer import SampleBuffer, Window
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
@@ -100,20 +100,13 @@ class Update:
 
 
 def history_span(config: IdentificationConfig) -> float:
-    """
-    Return the longest span (s) of data a session asks for.
-
-    It is the fitted window plus the transient before it that only settles the model's state
-    (a window cut from a running plant does not start at rest); an automatic transient is at
-    most one window long.
-
-    """
-    return config.window + (config.transient if config.transient >= 0 else config.window)
+    """Return the longest span (s) of data a session asks for (see the config's property)."""
+    return config.history_span
 
 
 def buffer_capacity(config: IdentificationConfig, rate_hz: float) -> int:
     """Size a buffer for :func:`history_span` plus ``max_gap`` and the reorder horizon."""
-    return capacity_for(history_span(config) + config.max_gap + config.reorder_horizon, rate_hz)
+    return config.buffer_capacity(rate_hz)
 
 
 class IdentificationSession:
