@@ -45,6 +45,8 @@ class Update:
         The window it was computed from.
     compute_time : float
         Wall-clock seconds spent estimating.
+    covariance : ndarray or None
+        Parameter covariance in the order of :attr:`names`.
 
     """
 
@@ -57,6 +59,7 @@ class Update:
     result: Estimate
     window: Window
     compute_time: float
+    covariance: Optional[np.ndarray] = None
 
     @property
     def prediction_times_ns(self) -> np.ndarray:
@@ -73,9 +76,22 @@ class Update:
                          f'by {len(self.window.gaps)} gap(s) in the data')
         return tuple(notes)
 
+    @property
+    def residuals(self) -> Optional[str]:
+        """
+        Return the estimator's verdict on the residuals (e.g. ``'white'``), if it gives one.
+
+        Hook for ``Estimate.residuals`` (being added to the estimator): its ``verdict``, or its
+        text; None while the estimator has no such attribute.
+        """
+        residuals = getattr(self.result, 'residuals', None)
+        if residuals is None:
+            return None
+        return str(getattr(residuals, 'verdict', residuals))
+
     def diagnostics(self) -> Dict[str, Any]:
         """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
-        return {
+        values = {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
             'converged': self.result.converged,
@@ -88,6 +104,9 @@ class Update:
             'compute_time': self.compute_time,
             'warnings': list(self.warnings),
         }
+        if self.residuals is not None:
+            values['residuals'] = self.residuals
+        return values
 
     def to_dict(self) -> Dict[str, Any]:
         """Return the ``ctid fit --json`` object of this window plus its end time (s)."""
@@ -201,6 +220,7 @@ class IdentificationSession:
         self._previous = dict(result.params)
         self._settling = settling_time(result.model.coefficients(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
+        index = np.asarray(config.model_index, dtype=int)
         data = window.data
         step_ns = int(round(data.ts * NANOSECONDS))
         # Grid instants are whole multiples of the sample time (see buffer.SampleBuffer.window).
@@ -211,4 +231,5 @@ class IdentificationSession:
             values=np.array([result.params[name] for name in order]),
             stds=np.array([result.std[name] for name in order]),
             prediction=result.simulate(data), result=result, window=window,
-            compute_time=elapsed)
+            compute_time=elapsed,
+            covariance=np.asarray(result.covariance, dtype=float)[np.ix_(index, index)])

@@ -150,3 +150,20 @@ def test_joint_names_select_the_joint_in_a_recording(tmp_path, capsys, kind):
     assert code != 0
     assert "no joint 'wheel_left' in name; names seen: wheel_right, joint, arm" in \
         capsys.readouterr().err
+
+
+def test_update_covariance_is_in_publishing_order():
+    u, y = simulate(OPEN_LOOP, 10.0)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    messages = [(record.topic, record.time_ns, build_message(typestore, FLOAT64, record.fields))
+                for record in float_records(u, y)]
+    config = IdentificationConfig(model=OPEN_LOOP['model'], input_topic='/plant/u',
+                                  output_topic='/plant/y', parameter_names=('k', 'm', 'd'),
+                                  lower=(0.0, 0.001, 0.0), upper=(1000.0, 100.0, 100.0))
+    (update,) = replay_messages(messages, config).updates
+    assert update.names == ('k', 'm', 'd')
+    assert update.covariance.shape == (3, 3)
+    np.testing.assert_allclose(np.sqrt(np.diag(update.covariance)), update.stds, rtol=1e-12)
+    model_order = update.result.model.parameters
+    assert update.covariance[0, 1] == update.result.covariance[model_order.index('k'),
+                                                               model_order.index('m')]
