@@ -533,7 +533,6 @@ class IdentificationConfig:
                 raise ConfigError(f'delay_max ({self.delay_max} s) must be shorter than the '
                                   f'window ({self.window} s)')
 
-
     def _check_resources(self) -> None:
         """Refuse what one estimate or the live buffer could not afford, before allocating."""
         samples = self.window_samples

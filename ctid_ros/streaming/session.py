@@ -79,7 +79,7 @@ class Update:
     @property
     def residuals(self) -> Optional[str]:
         """
-        Return the estimator's verdict on the residuals (e.g. ``'white'``), if it gives one.
+        Return the estimator's verdict on the residuals, e.g. ``'white'``, if it gives one.
 
         Hook for ``Estimate.residuals`` (being added to the estimator): its ``verdict``, or its
         text; None while the estimator has no such attribute.

@@ -5,7 +5,7 @@ from ctid_ros.streaming.contract import (diagnostics_message, ERROR, estimate_li
                                          estimate_messages, failure_status, format_diagnostic,
                                          LATCHED, matrix_multiarray, multiarray, NodeTopics, OK,
                                          PublisherQos, resolve_topic, STREAM, update_status,
-                                         WARN, warm_up_text)
+                                         warm_up_text, WARN)
 import numpy as np
 import pytest
 

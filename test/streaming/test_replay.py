@@ -122,7 +122,7 @@ def test_ticks_without_an_estimate_are_reported_with_their_status_level():
 
 @pytest.mark.parametrize('kind', ['sqlite3', 'mcap-file'])
 def test_joint_names_select_the_joint_in_a_recording(tmp_path, capsys, kind):
-    """JointStates of three joints in a changing order; the fields select one joint by name."""
+    """Select one of three joints by name in JointStates that list them in a changing order."""
     u, y = simulate(OPEN_LOOP, 20.0)
     records = joint_state_records(u, y, latency_ns=2_000_000)
     orders = (['wheel_right', 'joint', 'arm'], ['joint', 'arm', 'wheel_right'],
