@@ -57,7 +57,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.ros.messages import field_problem, import_message, to_message
-from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer, StreamStats
+from ctid_ros.streaming.buffer import Gap, INPUT, OUTPUT, SampleBuffer, StreamStats
 from ctid_ros.streaming.config import IdentificationConfig, PARAMETER_NAMES, PARAMETERS
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message, ERROR,
                                          estimate_line, estimate_messages, estimate_summary,
@@ -506,7 +506,11 @@ class IdentificationNode(LifecycleNode):
                   ) -> None:
         if key not in self._logged or (again_if_changed and self._logged[key] != text):
             self._logged[key] = text
-            (self.get_logger().error if error else self.get_logger().warning)(text)
+            # One severity per call site: rclpy refuses to mix them.
+            if error:
+                self.get_logger().error(text)
+            else:
+                self.get_logger().warning(text)
 
     def _lost(self, topic: str, info: Any) -> None:
         with self._lock:
@@ -630,7 +634,7 @@ class IdentificationNode(LifecycleNode):
             try:
                 window = session.take_window(buffer)
             except DataError as error:
-                return None, self._no_window(config, buffer, error)
+                return None, self._no_window(config, buffer, session, error)
             try:
                 update = session.update(window)
             except CtidError as error:
@@ -648,7 +652,7 @@ class IdentificationNode(LifecycleNode):
         level, text = update_status(update.names, update.values, update.stds, values)
         available = self._available(buffer)
         if available is not None and available < config.window:
-            text = f'{warm_up_text(available, config.window, 0.5 * config.window)}; {text}'
+            text = f'{warm_up_text(available, config.window)}; {text}'
         if self._skipped_since_estimate:
             level = max(level, WARN)
             text = (f'{self._skipped_since_estimate} tick(s) skipped: an estimate takes '
@@ -678,14 +682,41 @@ class IdentificationNode(LifecycleNode):
         return (last - first) / NANOSECONDS
 
     def _no_window(self, config: IdentificationConfig, buffer: SampleBuffer,
-                   error: DataError) -> str:
-        """Report why there is no window: still warming up (OK), or the data problem (WARN)."""
-        available = None if self._estimated_since_start else self._available(buffer)
-        if available is not None and available < 0.5 * config.window:
-            text = warm_up_text(available, config.window, 0.5 * config.window)
-            self._publish_status(OK, text, {'window': config.window, 'data': available})
+                   session: IdentificationSession, error: DataError) -> str:
+        """
+        Report why there is no window to estimate on.
+
+        Collecting the first half window: OK, ``warming up: 1.2 of 4 s of data``, against the
+        configured window. Collecting it again after a gap: WARN, the same with the gaps (in
+        seconds since the first sample). Anything else (no samples): WARN with the error.
+        """
+        needed = 0.5 * config.window
+        try:
+            latest = buffer.window(session.window_length(), config.sample_time,
+                                   min_length=2 * config.sample_time)
+            available, gaps = len(latest.data) * config.sample_time, latest.gaps
+        except DataError:
+            # Not even two grid instants yet: the span both streams cover, if they have data.
+            available, gaps = self._available(buffer), ()
+        if available is None or available >= needed:
+            return self._failed(error)
+        text = warm_up_text(available, config.window, needed)
+        values = {'window': config.window, 'data': available}
+        if not gaps and not self._estimated_since_start:
+            self._publish_status(OK, text, values)
             return text
-        return self._failed(error)
+        gaps = '; '.join(map(self._describe_gap, gaps)) or 'data missing before'
+        text = f'{text}, again after a gap: {gaps}'
+        self.get_logger().warning(f'no estimate: {text}', throttle_duration_sec=ERROR_LOG_PERIOD)
+        self._publish_status(WARN, text, values)
+        return text
+
+    def _describe_gap(self, gap: Gap) -> str:
+        origin = (self._origin_ns or 0) / NANOSECONDS
+        if gap.end is None:
+            return f'{gap.stream} silent since t={gap.start - origin:.2f} s'
+        return (f'{gap.stream} missing for {gap.duration:.3g} s from t={gap.start - origin:.2f} '
+                's')
 
     def _check_silence(self, config: IdentificationConfig, buffer: SampleBuffer) -> None:
         """

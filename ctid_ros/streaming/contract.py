@@ -370,15 +370,19 @@ def estimate_line(names: Sequence[str], values: Sequence[float], stds: Sequence[
     return '; '.join(parts)
 
 
-def warm_up_text(available_s: float, window_s: float, first_estimate_s: float) -> str:
+def warm_up_text(available_s: float, window_s: float,
+                 first_estimate_s: Optional[float] = None) -> str:
     """
     Return the status text while the node collects its first window of data.
 
     E.g. ``'warming up: 6.4 of 10 s of data (first estimate after 5 s)'``: the configured
-    window, not the longer span (with the settling transient) the node asks for.
+    window, not the longer span (with the settling transient) the node asks for. Without
+    ``first_estimate_s`` (estimates already come) the parenthesis is left out.
     """
-    return (f'warming up: {max(available_s, 0.0):.1f} of {window_s:g} s of data (first '
-            f'estimate after {first_estimate_s:g} s)')
+    text = f'warming up: {max(available_s, 0.0):.1f} of {window_s:g} s of data'
+    if first_estimate_s is None:
+        return text
+    return f'{text} (first estimate after {first_estimate_s:g} s)'
 
 
 def update_status(names: Sequence[str], values: Sequence[float],

@@ -118,3 +118,4 @@ def test_hardware_id_and_texts_for_people():
     assert estimate_line(['K'], [2.0], [0.1], 3.0) == 't=3.00 s: K = 2 +- 0.1'
     assert warm_up_text(6.43, 10.0, 5.0) == \
         'warming up: 6.4 of 10 s of data (first estimate after 5 s)'
+    assert warm_up_text(6.43, 10.0) == 'warming up: 6.4 of 10 s of data'
