@@ -12,8 +12,12 @@ answered within the validation bound, the node's RSS within 100 MB of its start 
 sample buffer of this configuration is 1 MB).
 """
 
+import threading
+
 from bench.node_storm import ATTACKS, run
+import ctid_ros.ros.node as node_module
 from ctid_ros.ros.node import VALIDATION_TIMEOUT
+from ctid_ros.streaming.config import IdentificationConfig
 from diagnostic_msgs.msg import DiagnosticStatus
 from node_harness import Harness, keys, wait_for
 import pytest
@@ -135,3 +139,41 @@ def test_exceptions_in_callbacks_are_caught_and_reported(ros, monkeypatch):
     assert set_window(3.0).successful and node.config.window == 3.0
     wait_for(lambda: keys(ros.latest(ros.statuses)).get('internal_errors') == '2', 20.0,
              'the count on /diagnostics')
+
+
+def test_a_validation_that_never_ends_cannot_block_the_node(ros, monkeypatch):
+    """A model text that takes forever to analyse: refused after the bound, the node goes on."""
+    node = ros.identifier(input_topic='u', output_topic='y', model='K/(T*s + 1)',
+                          sample_time=0.01, window=2.0, update_period=0.5)
+    wait_for(lambda: ros.statuses, 20.0, 'a status')
+    released = threading.Event()
+    original = IdentificationConfig.updated
+
+    def endless(config, changes):
+        released.wait()
+        return original(config, changes)
+
+    monkeypatch.setattr(node_module, 'VALIDATION_TIMEOUT', 0.5)
+    monkeypatch.setattr(IdentificationConfig, 'updated', endless)
+    client = AsyncParameterClient(ros.observer, f'{ros.namespace}/ctid_node')
+    assert client.wait_for_services(timeout_sec=30.0)
+
+    def set_model(text):
+        future = client.set_parameters([Parameter('model', value=text)])
+        wait_for(future.done, 30.0, 'set_parameters')
+        return future.result().results[0]
+
+    result = set_model('K/(T*s + 1) + 0*a')
+    assert not result.successful
+    assert result.reason == ('checking the new parameters took longer than 0.5 s: refused, the '
+                             'node keeps its configuration')
+    # While that check still runs, further updates are refused at once; the node reports on.
+    result = set_model('K/(T1*s + 1)')
+    assert not result.successful and 'still being checked' in result.reason
+    count = len(ros.statuses)
+    wait_for(lambda: len(ros.statuses) > count + 1, 20.0, 'statuses while the check runs')
+    released.set()
+    monkeypatch.undo()
+    wait_for(lambda: set_model('K/(T1*s + 1)').successful, 20.0, 'a valid update accepted')
+    assert node.config.compiled_model.parameters == ('K', 'T1')
+    assert node.config.model == 'K/(T1*s + 1)'
