@@ -202,13 +202,16 @@ class IdentificationConfig:
         (), 'double_array', 'Upper bounds in parameter_names order (.inf = none); empty = '
         'no bounds.')
     sample_time: float = _param(
-        0.01, 'double', 'Sample time (s, > 0) of the uniform grid the messages are resampled '
-        'onto; use the actuator update period for a zero-order-hold input.', minimum=0.0)
+        0.01, 'double', 'Sample time (s, at least 1e-6) of the uniform grid the messages are '
+        'resampled onto; use the actuator update period for a zero-order-hold input.',
+        minimum=0.0)
     window: float = _param(
         10.0, 'double', f'Length (s) of the data window used by each estimate; at least '
-        f'{MIN_WINDOW_SAMPLES} sample times.', minimum=0.0)
+        f'{MIN_WINDOW_SAMPLES} sample times, and with its settling transient at most '
+        f'{MAX_WINDOW_SAMPLES} samples.', minimum=0.0)
     update_period: float = _param(
-        1.0, 'double', 'Seconds (> 0) between successive estimates.', minimum=0.0)
+        1.0, 'double', f'Seconds ({MIN_UPDATE_PERIOD:g} to {MAX_DURATION:g}) between successive '
+        'estimates.', minimum=0.0)
     method: str = _param(
         'iv', 'string', "'iv': least squares then instrumental-variable iterations "
         "(consistent under noise); 'ls': least-squares iterations only; 'gn': Gauss-Newton on "
@@ -224,16 +227,16 @@ class IdentificationConfig:
         'best_effort', 'string', 'Subscription reliability; best_effort also matches reliable '
         'publishers.', choices=RELIABILITIES, read_only=True)
     qos_depth: int = _param(
-        500, 'integer', 'Subscription queue depth (keep last); deep, so bursts are not lost.',
-        minimum=1, read_only=True)
+        500, 'integer', f'Subscription queue depth (keep last, at most {MAX_QOS_DEPTH}); deep, so '
+        'bursts are not lost.', minimum=1, read_only=True)
     max_message_rate: float = _param(
         1000.0, 'double', 'Highest message rate (Hz) per topic the live sample buffer is sized '
         'for (1/sample_time if that is higher); faster messages shorten the history it holds. '
         'With window, transient and max_gap it sets the buffer memory, which is limited.',
         minimum=0.0)
     max_gap: float = _param(
-        0.5, 'double', 'Seconds (> 0) without a sample after which a stream counts as missing: '
-        'data are never interpolated or held across such a gap.', minimum=0.0)
+        0.5, 'double', 'Seconds (at least 1e-6) without a sample after which a stream counts as '
+        'missing: data are never interpolated or held across such a gap.', minimum=0.0)
     reorder_horizon: float = _param(
         0.05, 'double', 'Seconds a sample may arrive out of order and still be used; older '
         'late samples are dropped and counted.', minimum=0.0)
@@ -244,7 +247,8 @@ class IdentificationConfig:
         0.0, 'double', 'Upper end (s) of the dead-time search range (see delay_min).',
         minimum=0.0)
     max_iterations: int = _param(
-        100, 'integer', 'Largest number of iterations of one estimate.', minimum=1)
+        100, 'integer', f'Largest number of iterations of one estimate (at most '
+        f'{MAX_ITERATIONS}).', minimum=1)
     tolerance: float = _param(
         1e-8, 'double', 'Stop when the largest relative parameter change falls below it (> 0).',
         minimum=0.0)
