@@ -254,10 +254,11 @@ class IdentificationNode(LifecycleNode):
 
     def _start(self) -> None:
         """Configure and activate at once (``lifecycle: false``); raise what went wrong."""
-        if self.trigger_configure() != _SUCCESS:
-            raise ConfigError(self._transition_error or 'configure failed')
-        if self.trigger_activate() != _SUCCESS:
-            raise ConfigError(self._transition_error or 'activate failed')
+        for transition in (self.trigger_configure, self.trigger_activate):
+            if transition() != _SUCCESS:
+                self._stopping = True          # the node will not be spun: end the thread
+                self._wakeup.set()
+                raise ConfigError(self._transition_error or 'the node could not start')
 
     @property
     def config(self) -> Optional[IdentificationConfig]:
@@ -297,14 +298,20 @@ class IdentificationNode(LifecycleNode):
             self._config, self._sampler, self._buffer = config, sampler, buffer
             self._session = IdentificationSession(config)
             self._restart_counters()
-        for message in estimate_messages(self._node_topics, (), (), (), (),
-                                         covariance=np.empty((0, 0))):
-            self._publisher(message)
-        self._own_services = [
-            self.create_service(Trigger, '~/reset', self._reset,
-                                callback_group=self._estimation_group),
-            self.create_service(Trigger, '~/estimate_now', self._estimate_now,
-                                callback_group=self._estimation_group)]
+        try:
+            # The fixed topics exist from configure on, so subscribers can match early.
+            for message in estimate_messages(self._node_topics, (), (), (), (),
+                                             covariance=np.empty((0, 0))):
+                self._publisher(message)
+            self._own_services = [
+                self.create_service(Trigger, '~/reset', self._reset,
+                                    callback_group=self._estimation_group),
+                self.create_service(Trigger, '~/estimate_now', self._estimate_now,
+                                    callback_group=self._estimation_group)]
+        except Exception as error:  # noqa: B902 - a bug must not escape a transition
+            self._internal_error('configure', error)
+            self._teardown()
+            return self._transition_failed('configure', error)
         self.get_logger().info(f'configured: model {config.model!r}, window {config.window:g} s '
                                f'on a {config.sample_time:g} s grid, an estimate every '
                                f'{config.update_period:g} s')
@@ -597,12 +604,15 @@ class IdentificationNode(LifecycleNode):
                 self._internal_error('estimation', error)
 
     def destroy_node(self) -> None:
-        """Stop the estimation thread, then destroy the node."""
+        """Stop the estimation thread, then destroy the node and its lifecycle state machine."""
         self._stopping = True
         self._active = False
         self._wakeup.set()
         self._worker.join()
         super().destroy_node()
+        # rclpy's LifecycleNode leaves its state machine to the garbage collector, whose
+        # finaliser crashes a forked child (multiprocessing) that collects it: end it here.
+        self._state_machine.destroy_when_not_in_use()
 
     def estimate(self, started: Optional[float] = None) -> Tuple[Optional[Update], str]:
         """

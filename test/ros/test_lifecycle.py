@@ -9,6 +9,8 @@ only from configure, subscriptions only while active, the buffer gone after clea
 
 import math
 
+from ctid_ros.errors import ConfigError
+from ctid_ros.ros.node import IdentificationNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from node_harness import converge, Harness, keys, wait_for
@@ -142,3 +144,11 @@ def test_unmanaged_node_has_no_lifecycle_services_and_starts_active(ros):
     future = client.set_parameters([Parameter('lifecycle', value=True)])
     wait_for(future.done, 30.0, 'set lifecycle')
     assert not future.result().results[0].successful
+
+
+def test_unmanaged_node_refuses_to_start_on_an_invalid_configuration(ros):
+    overrides = [Parameter(name, value=value) for name, value in
+                 parameters(lifecycle=False, window=5e8).items()]
+    with pytest.raises(ConfigError, match='samples per estimate, more than the limit'):
+        IdentificationNode(context=ros.context, namespace=ros.namespace,
+                           parameter_overrides=overrides)
