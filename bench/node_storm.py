@@ -277,7 +277,10 @@ def run(workdir: Path, burst: int = BURST, recovery_timeout: float = 40.0,
         processes.append(node)
         sampler = _Sampler(node.pid)
         sampler.start()
-        storm.wait(lambda: storm.statuses, 60.0, 'the first status of the node')
+        # The node has seen the String publisher (and not subscribed to it) before the plant.
+        storm.wait(lambda: any("String has no field 'point'" in status.message for status in
+                               storm.since(storm.statuses, 0.0)), 60.0,
+                   'the String publisher reported')
         figures['rss_start'] = _rss_mb(node.pid)
         first_plant = plant()
         started = time.monotonic()
