@@ -106,11 +106,18 @@ class Data:
         Sample time in seconds (> 0).
     t0 : float, optional
         Time of the first sample, only used for reporting.
+    output_skew : float, optional
+        Seconds by which every output sample lags its input sample, ``0 <= output_skew < ts``:
+        ``u[k]`` is applied at ``t_k = t0 + k*ts`` (and held, or interpolated, until
+        ``t_{k+1}``), ``y[k]`` is measured at ``t_k + output_skew``. Estimation, simulation and
+        prediction evaluate the model output at those instants exactly (``docs/algorithm.md``
+        section 2). Default 0: both are sampled at ``t_k``.
 
     Raises
     ------
     DataError
-        On unequal lengths, non-finite values or a non-positive sample time.
+        On unequal lengths, non-finite values, a non-positive sample time or an output skew
+        outside ``[0, ts)``.
 
     """
 
@@ -118,6 +125,7 @@ class Data:
     y: np.ndarray
     ts: float
     t0: float = 0.0
+    output_skew: float = 0.0
 
     def __post_init__(self):
         u = as_inputs(self.u)
@@ -135,17 +143,22 @@ class Data:
         if not np.isfinite(t0 + ts * y.size):
             raise DataError(f'the sample times overflow: t0 {t0:g} s plus {y.size} samples of '
                             f'{ts:g} s is not a finite time')
+        skew = _real(self.output_skew, 'output skew')
+        if not (np.isfinite(skew) and 0.0 <= skew < ts):
+            raise DataError(f'output skew must lie in [0, ts) = [0, {ts:g}) seconds, got '
+                            f'{bounded_repr(self.output_skew)}')
         object.__setattr__(self, 'u', u)
         object.__setattr__(self, 'y', y)
         object.__setattr__(self, 'ts', ts)
         object.__setattr__(self, 't0', t0)
+        object.__setattr__(self, 'output_skew', skew)
 
     def __len__(self) -> int:
         return self.y.size
 
     @property
     def time(self) -> np.ndarray:
-        """Return the sample instants in seconds."""
+        """Return the input sample instants in seconds (outputs: plus :attr:`output_skew`)."""
         return self.t0 + self.ts * np.arange(self.y.size)
 
     @property
@@ -168,9 +181,10 @@ class Data:
         with np.errstate(over='ignore', invalid='ignore'):
             if kind == 'mean':
                 return Data(self.u - self.u.mean(axis=0), self.y - self.y.mean(), self.ts,
-                            self.t0)
+                            self.t0, self.output_skew)
             if kind == 'initial':
-                return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0)
+                return Data(self.u - self.u[0], self.y - self.y[0], self.ts, self.t0,
+                            self.output_skew)
         raise DataError(f"detrend kind must be 'mean' or 'initial', got {bounded_repr(kind)}")
 
     def segment(self, start: int, stop: Optional[int] = None) -> 'Data':
@@ -182,4 +196,4 @@ class Data:
                                 f'{bounded_repr(value)}')
         start, stop, _ = slice(start, stop).indices(len(self))
         return Data(self.u[start:stop], self.y[start:stop], self.ts,
-                    self.t0 + start * self.ts)
+                    self.t0 + start * self.ts, self.output_skew)

@@ -23,7 +23,8 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 from ctid_ros.core.data import as_inputs
 from ctid_ros.core.expression import (LAPLACE, MAX_DEGREE, MAX_TERMS, MAX_WORK,
                                       parse_model_text, Parsed, work)
-from ctid_ros.core.simulation import ContinuousFilter, INTERSAMPLE
+from ctid_ros.core.simulation import (ContinuousFilter, INTERSAMPLE, skew_delay,
+                                      skew_extended)
 from ctid_ros.errors import ModelError
 import numpy as np
 import sympy as sp
@@ -409,7 +410,7 @@ class Model:
         return columns
 
     def simulate(self, params: ParameterValues, u, ts: float, *,
-                 intersample: str = 'zoh') -> np.ndarray:
+                 intersample: str = 'zoh', output_skew: float = 0.0) -> np.ndarray:
         """
         Exact response of the model to sampled input ``u`` (the reference, in closed loop).
 
@@ -424,15 +425,20 @@ class Model:
             Sample time in seconds.
         intersample : {'zoh', 'foh'}
             Input behaviour between samples.
+        output_skew : float
+            Seconds after ``t_k`` at which the outputs are wanted, ``0 <= output_skew < ts``
+            (see :class:`~ctid_ros.core.data.Data`).
 
         Returns
         -------
         ndarray
-            Output samples at ``t_k``.
+            Output samples at ``t_k + output_skew``.
 
         """
         if intersample not in INTERSAMPLE:
             raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
+        if output_skew and not (np.isfinite(output_skew) and 0.0 < output_skew < ts):
+            raise ModelError(f'output skew must lie in [0, ts), got {output_skew}')
         coefficients = self.coefficients(params)
         if coefficients.delay < 0.0:
             raise ModelError(f'the dead time is negative ({coefficients.delay:g} s) at '
@@ -440,11 +446,12 @@ class Model:
         if coefficients.den[0] == 0.0:
             raise ModelError(f'the leading denominator coefficient vanishes at '
                              f'{self.as_dict(self.vector(params))}: the model order drops')
-        discrete = ContinuousFilter(coefficients.den).discretize(ts, coefficients.delay,
-                                                                 intersample)
-        channels = self.input_channels(u)
-        return sum(discrete.outputs(channels[:, index], [num])[0]
-                   for index, num in enumerate(coefficients.num))
+        discrete = ContinuousFilter(coefficients.den).discretize(
+            ts, coefficients.delay + skew_delay(ts, output_skew), intersample)
+        channels = skew_extended(self.input_channels(u), output_skew)
+        output = sum(discrete.outputs(channels[:, index], [num])[0]
+                     for index, num in enumerate(coefficients.num))
+        return output[1:] if output_skew else output
 
     def frequency_response(self, params: ParameterValues, omega,
                            input_name: Optional[str] = None) -> np.ndarray:

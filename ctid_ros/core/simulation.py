@@ -329,6 +329,31 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
     return (out_map @ modal).real
 
 
+def skew_delay(ts: float, output_skew: float) -> float:
+    """
+    Extra input delay that brings outputs measured ``output_skew`` late onto the input grid.
+
+    The response with dead time ``tau`` at ``t_k + output_skew`` equals the response with dead
+    time ``tau + ts - output_skew`` at ``t_{k+1}``: simulate the input extended by one sample
+    (:func:`skew_extended`) with this much more delay and drop the first output sample. Zero
+    when there is no skew, so unskewed data take the unchanged path.
+    """
+    return ts - output_skew if output_skew else 0.0
+
+
+def skew_extended(values: np.ndarray, output_skew: float) -> np.ndarray:
+    """
+    Return the input with its last sample repeated once if ``output_skew`` is nonzero.
+
+    The extra sample is the input after the record: a held input never reaches the outputs with
+    it (the extra delay :func:`skew_delay` is positive); a linearly interpolated one is taken
+    as constant over the last interval.
+    """
+    if not output_skew:
+        return values
+    return np.concatenate([values, values[-1:]], axis=0)
+
+
 def response(num, den, values, ts: float, *, delay: float = 0.0,
              intersample: str = 'zoh') -> np.ndarray:
     """

@@ -105,4 +105,6 @@ def prewhitened_delay(data: Data) -> float:
     significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
     if significant.size == 0:
         return 0.0
-    return max(significant[0] - 0.5, 0.0) * data.ts
+    # An output measured output_skew after its input instant shows the response that much
+    # earlier in lags.
+    return max((significant[0] - 0.5) * data.ts - data.output_skew, 0.0)

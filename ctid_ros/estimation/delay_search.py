@@ -86,7 +86,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         return DelaySearch(local.state, [], local.history)
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
                       [start.theta[delay_index], problem.delay_guess])
-    grid = np.unique(np.clip(data.ts * np.round(grid / data.ts), low, high))
+    grid = np.unique(np.clip([problem.on_delay_lattice(tau) for tau in grid], low, high))
     frozen = np.zeros(start.theta.size, dtype=bool)
     frozen[delay_index] = True
     filters = StateVariableFilters(problem, filter_bandwidths(data, FILTER_COUNT))

@@ -134,10 +134,15 @@ class Estimate:
 
     def simulate(self, data: Union[Data, Sequence[float]], ts: Optional[float] = None
                  ) -> np.ndarray:
-        """Simulate the identified model on ``data`` (or on an input array with ``ts``)."""
+        """
+        Simulate the identified model on ``data`` (or on an input array with ``ts``).
+
+        The output is evaluated at the output instants of ``data`` (its ``output_skew``).
+        """
         if isinstance(data, Data):
             return self.model.simulate(self.params, data.u, data.ts,
-                                       intersample=self.intersample)
+                                       intersample=self.intersample,
+                                       output_skew=data.output_skew)
         if ts is None:
             raise ValueError('give the sample time ts when simulating an input array')
         return self.model.simulate(self.params, data, ts, intersample=self.intersample)
@@ -341,7 +346,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             else float(integrator_cutoff)
         fitted_model = StabilizedModel(model, cutoff)
         fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
-                           data.t0)
+                           data.t0, data.output_skew)
     problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
                       initial_state == 'estimate', output_offset)
     # The matrices are tiny: threaded BLAS only adds spin-waiting, which dominates under load.

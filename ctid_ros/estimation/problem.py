@@ -142,7 +142,7 @@ class Problem:
         self.data = data
         self.lower = lower
         self.upper = upper
-        self.bank = SignalBank(model, data.u, data.y, data.ts, intersample)
+        self.bank = SignalBank(model, data.u, data.y, data.ts, intersample, data.output_skew)
         self.initial_state = initial_state
         self.output_offset = output_offset
         self.evaluations = 0
@@ -155,6 +155,16 @@ class Problem:
         """Return the data's own dead-time guess (:func:`prewhitened_delay`), computed once."""
         # The start, the delay bracket, the residual checks and the grid all ask for it.
         return prewhitened_delay(self.data)
+
+    def on_delay_lattice(self, tau: float) -> float:
+        """
+        Return the dead time nearest ``tau`` at which the delayed input is a whole-sample shift.
+
+        That is where the simulated input delay (``tau`` plus the output skew's extra delay) is
+        a multiple of the sample time: ``tau = output_skew + k ts``.
+        """
+        ts, offset = self.data.ts, self.data.output_skew
+        return offset + ts * round((tau - offset) / ts)
 
     @property
     def measured(self) -> np.ndarray:

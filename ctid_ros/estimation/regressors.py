@@ -20,7 +20,8 @@ from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
+from ctid_ros.core.simulation import (ContinuousFilter, DiscreteFilter, skew_delay,
+                                      skew_extended)
 from ctid_ros.errors import EstimationError
 import numpy as np
 
@@ -67,15 +68,27 @@ def _pad(poly: np.ndarray, length: int) -> np.ndarray:
 
 
 class SignalBank:
-    """Computes outputs and sensitivities of a model on one data record."""
+    """
+    Computes outputs and sensitivities of a model on one data record.
+
+    With an ``output_skew`` (outputs measured that long after the input instants) every
+    input-driven signal is simulated with ``ts - output_skew`` more dead time on the input
+    extended by one sample, and its first sample dropped: exactly the model at the output
+    instants (``docs/algorithm.md`` section 2).
+    """
 
     def __init__(self, model: Model, u: np.ndarray, y: np.ndarray, ts: float,
-                 intersample: str = 'zoh'):
+                 intersample: str = 'zoh', output_skew: float = 0.0):
         self.model = model
         self.channels = model.input_channels(u)
         self.y = y
         self.ts = ts
         self.intersample = intersample
+        self.output_skew = output_skew
+        # What the input-driven simulations run on, and the delay they add (none unskewed).
+        self.driving = skew_extended(self.channels, output_skew)
+        self.extra_delay = skew_delay(ts, output_skew)
+        self.trim = 1 if output_skew else 0
         self._realizations: Dict[Hashable, ContinuousFilter] = {}
         self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
@@ -96,8 +109,9 @@ class SignalBank:
     def output(self, coefficients: Coefficients) -> np.ndarray:
         """Model output ``sum_j N_j/D u_j`` at given coefficients (no sensitivities), read-only."""
         def simulate() -> np.ndarray:
-            discrete = self._discrete(coefficients.den, coefficients.delay, self.intersample)
-            output = sum(discrete.outputs(self.channels[:, j], [num])[0]
+            discrete = self._discrete(coefficients.den, coefficients.delay + self.extra_delay,
+                                      self.intersample)
+            output = sum(discrete.outputs(self.driving[:, j], [num])[0][self.trim:]
                          for j, num in enumerate(coefficients.num))
             output.setflags(write=False)
             return output
@@ -115,16 +129,17 @@ class SignalBank:
         order = den.size - 1
         params = coefficients.num_jacobian.shape[0]
         delay_used = np.any(coefficients.delay_gradient != 0.0)
-        bank_u = self._discrete(den, coefficients.delay, self.intersample)
+        delay = coefficients.delay + self.extra_delay
+        bank_u = self._discrete(den, delay, self.intersample)
         # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
-        bank_sensitivity = self._discrete(np.convolve(den, den), coefficients.delay,
-                                          self.intersample)
+        bank_sensitivity = self._discrete(np.convolve(den, den), delay, self.intersample)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         psi = np.zeros((params, self.y.size))
         u_regressors = np.zeros((params, self.y.size))
+        trim = self.trim
         for j, num in enumerate(coefficients.num):
-            signal = self.channels[:, j]
+            signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
             num_jac = np.array([_pad(row, order + 1) for row in coefficients.num_jacobian[:, j]])
             if delay_used and num_full[0] != 0.0:
@@ -137,7 +152,7 @@ class SignalBank:
                 u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
             if regressors:
                 u_numerators.extend(num_jac)
-            u_parts = bank_u.outputs(signal, u_numerators)
+            u_parts = bank_u.outputs(signal, u_numerators)[:, trim:]
             output += u_parts[0]
             if delay_used:
                 derivative += u_parts[1]
@@ -147,7 +162,7 @@ class SignalBank:
             sensitivity_numerators = [
                 np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
                 for i in range(params)]
-            psi += bank_sensitivity.outputs(signal, sensitivity_numerators)
+            psi += bank_sensitivity.outputs(signal, sensitivity_numerators)[:, trim:]
         delay_term = -np.outer(coefficients.delay_gradient, derivative)
         psi += delay_term
         phi = None

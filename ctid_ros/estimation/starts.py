@@ -195,9 +195,8 @@ def _initial_delays(problem: Problem, given: Mapping[str, float], pinned: Mappin
     low, high = problem.delay_bracket(delay_index, delay_range)
     taus = [given[name]] if name in given else []
     taus.append(float(np.clip(problem.delay_guess, low, high)))
-    ts = problem.data.ts
     lower, upper = problem.lower[delay_index], problem.upper[delay_index]
-    whole = [ts * round(tau / ts) for tau in taus]
+    whole = [problem.on_delay_lattice(tau) for tau in taus]
     return list(dict.fromkeys(rounded if lower <= rounded <= upper else tau
                               for tau, rounded in zip(taus, whole)))
 
@@ -280,17 +279,19 @@ class StateVariableFilters:
         them) are projected out first.
 
         """
+        bank = self._problem.bank
         ts = self._problem.data.ts
-        whole = int(round(tau / ts))
-        on_lattice = abs(tau - whole * ts) <= 1e-9 * ts
+        delay = tau + bank.extra_delay
+        whole = int(round(delay / ts))
+        on_lattice = abs(delay - whole * ts) <= 1e-9 * ts
         factors = []
         for realization, y_parts, nuisance, undelayed_inputs in self._filters:
             if on_lattice:
                 if not undelayed_inputs:
                     undelayed_inputs[0] = self._input_parts(realization, 0.0)
-                u_parts = shifted(undelayed_inputs[0], -whole)
+                u_parts = shifted(undelayed_inputs[0], -whole)[bank.trim:]
             else:
-                u_parts = self._input_parts(realization, tau)
+                u_parts = self._input_parts(realization, delay)[bank.trim:]
             columns = np.hstack(nuisance + [y_parts, -u_parts])
             scales = np.linalg.norm(columns, axis=0)
             scales[scales == 0.0] = 1.0
@@ -312,12 +313,17 @@ class StateVariableFilters:
         chosen._filters = self._filters[index:index + 1]
         return chosen
 
-    def _input_parts(self, realization: ContinuousFilter, tau: float) -> np.ndarray:
-        """Return ``p^j/E e^{-tau p} u_c`` for every channel, as columns."""
+    def _input_parts(self, realization: ContinuousFilter, delay: float) -> np.ndarray:
+        """
+        Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns.
+
+        The input is the one the simulations run on (extended by a sample under an output
+        skew, whose extra dead time ``delay`` includes): the caller drops the first row then.
+        """
         problem = self._problem
-        discrete = realization.discretize(problem.data.ts, tau, problem.bank.intersample)
+        discrete = realization.discretize(problem.data.ts, delay, problem.bank.intersample)
         return np.vstack([discrete.outputs(channel, self._u_powers)
-                          for channel in problem.bank.channels.T]).T
+                          for channel in problem.bank.driving.T]).T
 
 
 def filter_bandwidths(data: Data, count: int) -> np.ndarray:

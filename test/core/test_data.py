@@ -124,3 +124,17 @@ def test_segment_indices_must_be_integers():
     for start, stop in ((1.5, None), ('2', None), (0, 4.0), (True, 3)):
         with pytest.raises(DataError, match='integer sample index'):
             data.segment(start, stop)
+
+
+def test_output_skew_is_validated_and_kept():
+    data = Data(np.arange(10.0), np.arange(10.0), 0.5, t0=1.0, output_skew=0.2)
+    assert data.output_skew == 0.2
+    assert data.segment(2, 6).output_skew == 0.2
+    assert data.detrend('mean').output_skew == 0.2
+    assert data.detrend('initial').output_skew == 0.2
+    assert Data(np.ones(3), np.ones(3), 0.5).output_skew == 0.0
+    for skew in (-0.1, 0.5, 0.7, np.nan, np.inf):
+        with pytest.raises(DataError, match='output skew'):
+            Data(np.ones(3), np.ones(3), 0.5, output_skew=skew)
+    with pytest.raises(DataError, match='output skew'):
+        Data(np.ones(3), np.ones(3), 0.5, output_skew='0.1')

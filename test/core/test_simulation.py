@@ -333,3 +333,25 @@ def test_tiny_records():
     assert response([1.0], [1.0, 1.0], np.zeros(0), 0.1).shape == (0,)
     np.testing.assert_array_equal(response([1.0], [1.0, 1.0], [5.0], 0.1), [0.0])
     np.testing.assert_array_equal(response([2.0, 1.0], [1.0, 1.0], [5.0], 0.1), [10.0])
+
+
+@pytest.mark.parametrize('text,params', [
+    ('K*exp(-tau*s)/(T*s + 1)', {'K': 2.0, 'T': 0.7, 'tau': 0.234}),
+    ('K*exp(-tau*s)/(T*s + 1)', {'K': 2.0, 'T': 0.7, 'tau': 0.0}),
+    ('(b1*s + b0)/(s**2 + a1*s + a0)', {'b1': 1.0, 'b0': 4.0, 'a1': 0.8, 'a0': 9.0}),
+])
+@pytest.mark.parametrize('skew', [0.03, 0.05, 0.099])
+def test_output_skew_gives_the_response_at_the_output_instants(text, params, skew):
+    # The reference: the same held input on a grid 1000 times finer, read at t_k + skew.
+    model, ts, fine = Model(text), 0.1, 1000
+    u = test_input(np.random.default_rng(3), 300)
+    reference = model.simulate(params, np.repeat(u, fine), ts / fine)[
+        int(round(skew * fine / ts))::fine]
+    skewed = model.simulate(params, u, ts, output_skew=skew)
+    assert skewed.shape == u.shape
+    np.testing.assert_allclose(skewed, reference, rtol=0.0, atol=1e-10 * np.max(abs(reference)))
+    # No skew is the unchanged path, bit for bit.
+    np.testing.assert_array_equal(model.simulate(params, u, ts, output_skew=0.0),
+                                  model.simulate(params, u, ts))
+    with pytest.raises(ModelError, match='skew'):
+        model.simulate(params, u, ts, output_skew=ts)
