@@ -37,8 +37,8 @@ from ctid_ros.core.model import Model
 from ctid_ros.errors import DataError, EstimationError
 from ctid_ros.estimation.delay_search import delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
-from ctid_ros.estimation.iteration import (column_scales, iterate, Iteration, IterationResult,
-                                           StopReason)
+from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
+                                           IterationResult, StopReason)
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem, State,
@@ -48,7 +48,10 @@ from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-__all__ = ['Estimate', 'INITIAL_STATES', 'METHODS', 'covariance', 'estimate', 'fit_percent']
+__all__ = [
+    'Estimate', 'INITIAL_STATES', 'METHODS', 'build_problem', 'covariance', 'estimate',
+    'fit_percent',
+]
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
@@ -213,17 +216,22 @@ def _check_excitation(model: Model, data: Data) -> None:
 
 def _blind_combination(problem: Problem, state: State) -> Optional[str]:
     """Explain why the output is (almost) blind to a parameter combination, or None."""
+    free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
+    if not np.any(free):
+        return None
+    names = [name for name, keep in zip(problem.model.parameters, free) if keep]
     lin = problem.linearize(state.coefficients, regressors=False)
-    norms = np.linalg.norm(lin.psi, axis=0)
+    psi = lin.psi[:, free]
+    norms = np.linalg.norm(psi, axis=0)
     if np.any(norms == 0.0):
-        dead = ', '.join(problem.model.parameters[i] for i in np.flatnonzero(norms == 0.0))
+        dead = ', '.join(names[i] for i in np.flatnonzero(norms == 0.0))
         return f'the output does not depend on {dead} on these data: the input does not excite it'
-    singular, vectors = np.linalg.svd(lin.psi / norms, full_matrices=False)[1:]
+    singular, vectors = np.linalg.svd(psi / norms, full_matrices=False)[1:]
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
     if condition <= _IDENTIFIABILITY_LIMIT:
         return None
-    names = [f'{weight:+.2f}*{name}' for weight, name in
-             zip(vectors[-1], problem.model.parameters) if abs(weight) > 0.1]
+    names = [f'{weight:+.2f}*{name}' for weight, name in zip(vectors[-1], names)
+             if abs(weight) > 0.1]
     return ('the parameters are not identifiable from these data: the combination '
             f'{" ".join(names)} has (almost) no effect on the output (condition number '
             f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
@@ -236,7 +244,7 @@ def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optiona
         theta = np.clip(theta, problem.lower, problem.upper)
         coefficients = problem.admissible(theta)
         if coefficients is not None:
-            return State(theta, coefficients, problem.cost(coefficients))
+            return problem.state(theta, coefficients)
     return None
 
 
@@ -339,16 +347,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         transient=transient, initial_state=initial_state, output_offset=output_offset,
         integrator_cutoff=integrator_cutoff)
     _check_excitation(model, data)
-    lower, upper = bound_vectors(model, bounds)
-    fitted_model, fitted_data, cutoff = model, data, None
-    if model.integrators:
-        cutoff = default_cutoff(len(data) * data.ts) if integrator_cutoff is None \
-            else float(integrator_cutoff)
-        fitted_model = StabilizedModel(model, cutoff)
-        fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
-                           data.t0, data.output_skew)
-    problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
-                      initial_state == 'estimate', output_offset)
+    problem, cutoff = build_problem(model, data, bounds=bounds, intersample=intersample,
+                                    initial_state=initial_state, output_offset=output_offset,
+                                    integrator_cutoff=integrator_cutoff)
     # The matrices are tiny: threaded BLAS only adds spin-waiting, which dominates under load.
     with warnings.catch_warnings(), _thread_pools().limit(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
@@ -375,10 +376,10 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                 start, profile, history = search.state, search.profile, search.history
             refined = delay_index is not None
         frozen = np.zeros(len(model.parameters), dtype=bool)
+        settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
+                    'tolerance': tolerance, 'check_optimality': True}
         # A start refined by iterations needs no least-squares step.
-        final = iterate(problem, start, method=method, frozen=frozen,
-                        max_iterations=max_iterations, tolerance=tolerance,
-                        first_ls=not refined)
+        final = iterate(problem, start, first_ls=not refined, **settings)
         history.extend(final.history)
         rng = np.random.default_rng(0)
         for _ in range(_SYMMETRY_RESTARTS):
@@ -387,9 +388,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             nudged = _nudged(problem, final.state, rng)
             if nudged is None:
                 break
-            final = iterate(problem, nudged, method=method, frozen=frozen,
-                            max_iterations=max_iterations, tolerance=tolerance, first_ls=False)
+            final = _lower(final, iterate(problem, nudged, first_ls=False, **settings))
             history.extend(final.history)
+        final = _from_best_seen(problem, final, history, settings)
         blind = _blind_combination(problem, final.state)
         if blind is not None:
             raise EstimationError(blind)
@@ -407,13 +408,72 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         output_offset=output_offset, integrator_cutoff=cutoff)
 
 
+def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
+                  intersample: str = 'zoh', initial_state: str = 'zero',
+                  output_offset: bool = False, integrator_cutoff: Optional[float] = None
+                  ) -> Tuple[Problem, Optional[float]]:
+    """
+    Return the :class:`Problem` :func:`estimate` solves, and the integrator cutoff it used.
+
+    The options mean what they mean for :func:`estimate`; an integrating model is replaced by
+    its stable reformulation. The problem's cost is the output-error cost every estimate
+    reports, so other optimisers can be compared on it (``bench/real_records.py``).
+    """
+    lower, upper = bound_vectors(model, bounds)
+    fitted_model, fitted_data, cutoff = model, data, None
+    if model.integrators:
+        cutoff = default_cutoff(len(data) * data.ts) if integrator_cutoff is None \
+            else float(integrator_cutoff)
+        fitted_model = StabilizedModel(model, cutoff)
+        fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
+                           data.t0, data.output_skew)
+    problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
+                      initial_state == 'estimate', output_offset)
+    return problem, cutoff
+
+
+def _lower(first: IterationResult, second: IterationResult) -> IterationResult:
+    """Return the result of lower cost (the first on a tie)."""
+    return second if second.state.cost < first.state.cost else first
+
+
+def _from_best_seen(problem: Problem, final: IterationResult, history: List[Iteration],
+                    settings: dict) -> IterationResult:
+    """
+    Continue from the best point evaluated if the iteration ended above it.
+
+    Every start, profile point and line-search candidate is a point of the same cost
+    (:attr:`Problem.best`); the estimate may not be worse than any of them, nor than its start
+    (``docs/algorithm.md`` section 8). Least-squares projections (``method='ls'``) follow their
+    own fixed point and are left where they end.
+    """
+    for _ in range(2):
+        best = problem.best
+        if settings['method'] == 'ls' or best is None or best.cost >= final.state.cost:
+            return final
+        again = iterate(problem, best, first_ls=False, **settings)
+        history.extend(again.history)
+        final = again if again.state.cost <= final.state.cost else final
+    return final
+
+
 def _started(problem: Problem, start: State, transient: Union[float, str]) -> State:
-    """Anchor the sign of D's leading coefficient and leave out the transient, from ``start``."""
+    """
+    Prepare the problem at ``start`` and return the start, moved into the box if need be.
+
+    Anchors the sign of D's leading coefficient, bounds parameters whose zero would drop the
+    order of D (:meth:`Problem.limit_reductions`) and leaves out the transient.
+    """
     problem.anchor(start.coefficients)
-    if not transient:
+    theta = problem.limit_reductions(start.theta)
+    if np.array_equal(theta, start.theta) and not transient:
         return start
-    problem.exclude_transient(transient, start.coefficients)
-    return State(start.theta, start.coefficients, problem.cost(start.coefficients))
+    coefficients = problem.admissible(theta)
+    if coefficients is None:
+        theta, coefficients = start.theta, start.coefficients
+    if transient:
+        problem.exclude_transient(transient, coefficients)
+    return problem.state(theta, coefficients)
 
 
 def _warnings(problem: Problem, result: IterationResult) -> List[str]:

@@ -18,8 +18,8 @@ from ctid_ros.estimation.regressors import Linearization
 import numpy as np
 
 __all__ = [
-    'Iteration', 'IterationResult', 'NEGLIGIBLE_STEP', 'StopReason',
-    'column_scales', 'iterate',
+    'Iteration', 'IterationResult', 'NEGLIGIBLE_STEP', 'OPTIMALITY_LIMIT', 'StopReason',
+    'column_scales', 'free_parameters', 'iterate', 'optimality',
 ]
 
 _HALVINGS = 14
@@ -31,6 +31,11 @@ _LM_DAMPINGS = (1e-2, 1.0, 1e2)
 # An update smaller than this many standard deviations of the estimate changes nothing a user
 # can see: the iteration stops instead of resolving noise to the last digit.
 NEGLIGIBLE_STEP = 1e-3
+# A point is a minimum for a user when the Gauss-Newton step from it (the projected gradient in
+# the metric of the estimate's uncertainty) is below this many standard deviations.
+OPTIMALITY_LIMIT = 0.1
+# Relative singular values of the scaled sensitivities below this carry no gradient information.
+_OPTIMALITY_RCOND = 1e-8
 
 
 class StopReason(enum.Enum):
@@ -49,11 +54,13 @@ class StopReason(enum.Enum):
     COST_DECREASE = 'relative cost decrease below resolution'
     EXACT_FIT = 'output reproduced exactly'
     ITERATION_LIMIT = 'iteration limit ({max_iterations}) reached'
+    STALLED = 'stalled: the cost still decreases along its gradient'
 
     @property
     def converged(self) -> bool:
         """Return True for a convergence test, False for the limit or a check that gave up."""
-        return self not in (StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT)
+        return self not in (StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT,
+                            StopReason.STALLED)
 
     def describe(self, tolerance: float, max_iterations: int) -> str:
         """Return the text users see, with the iteration's settings filled in."""
@@ -106,15 +113,73 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
+def _shrinking(lin: Linearization) -> Linearization:
+    """Return the linearisation for a shrinking dead time (itself where both sides agree)."""
+    if lin.delay_jump is None:
+        return lin
+    return Linearization(lin.output, None if lin.phi is None else lin.phi + lin.delay_jump,
+                         lin.psi + lin.delay_jump, None, lin.delay_gradient)
+
+
+def _delay_change(lin: Linearization, step: np.ndarray) -> float:
+    """Change of the dead time along ``step``, to first order (0 without a jump)."""
+    if lin.delay_jump is None:
+        return 0.0
+    return float(lin.delay_gradient @ step)
+
+
+def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
+                       at_lower: np.ndarray, at_upper: np.ndarray, damping: float = 0.0,
+                       rcond: Optional[float] = None) -> Optional[np.ndarray]:
+    """
+    :func:`_direction`, with parameters on a bound that it would push outward held.
+
+    A parameter on a bound is free when the cost falls inward, but the joint direction may
+    still move it outward (through its correlation with the others); the box would then cut
+    the step to nothing. Such parameters are held and the direction solved again.
+    """
+    free = free.copy()
+    while True:
+        step = _direction(kind, lin, error, free, damping, rcond)
+        if step is None:
+            return None
+        outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
+        if not np.any(outward):
+            return step
+        free &= ~outward
+        if not np.any(free):
+            return None
+
+
 def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-               damping: float = 0.0) -> Optional[np.ndarray]:
+               damping: float = 0.0, rcond: Optional[float] = None) -> Optional[np.ndarray]:
     """
     Update direction on the free parameters (zeros elsewhere), or None if singular.
 
     ``kind`` is ``'ls'``, ``'iv'``, ``'gn'`` or ``'lm'``: equations (5.1)-(5.4) of
-    ``docs/algorithm.md``, on columns scaled by the instrument norms.
+    ``docs/algorithm.md``, on columns scaled by the instrument norms. Where the dead time sits
+    on the sample lattice and the sensitivities differ on its two sides, the direction is
+    solved with the side it moves the dead time to; if neither side's solution moves it to
+    its own side (a kink that is a minimum along the dead time), the dead time is held.
+    ``rcond`` truncates the singular values of a Gauss-Newton solve (default: rounding).
 
     """
+    step = _one_sided_direction(kind, lin, error, free, damping, rcond)
+    if lin.delay_jump is None or step is None or _delay_change(lin, step) >= 0.0:
+        return step
+    down = _shrinking(lin)
+    step = _one_sided_direction(kind, down, error, free, damping, rcond)
+    if step is None or _delay_change(lin, step) <= 0.0:
+        return step
+    held = free & (lin.delay_gradient == 0.0)
+    if not np.any(held):
+        return None
+    return _one_sided_direction(kind, lin, error, held, damping, rcond)
+
+
+def _one_sided_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
+                         damping: float, rcond: Optional[float] = None) -> Optional[np.ndarray]:
+    """Direction of :func:`_direction` with the sensitivities as given."""
     psi = lin.psi[:, free]
     scales = column_scales(psi)
     psi_s = psi / scales
@@ -128,7 +193,7 @@ def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarra
             return None
         step = np.linalg.solve(matrix, psi_s.T @ error)
     elif kind == 'gn':
-        step = np.linalg.lstsq(psi_s, error, rcond=None)[0]
+        step = np.linalg.lstsq(psi_s, error, rcond=rcond)[0]
     else:
         gram = psi_s.T @ psi_s
         try:
@@ -153,27 +218,94 @@ def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray,
     return limit if limit >= 1.0 else 0.999 * limit
 
 
+def _one_sided_gradients(lin: Linearization, error: np.ndarray
+                         ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Rates at which the cost falls when each parameter rises, and when it falls.
+
+    ``-dV/dtheta_i`` from the right, and ``+dV/dtheta_i`` from the left: with a dead time on the
+    sample lattice the two sides have different sensitivities (the side a parameter moves the
+    dead time to decides). Elsewhere the second is minus the first.
+    """
+    up = lin.psi.T @ error                                   # -dV/dtheta, growing dead time
+    if lin.delay_jump is None:
+        return up, -up
+    down = up + lin.delay_jump.T @ error                     # the same, shrinking dead time
+    # A parameter that shrinks the dead time when it rises takes the other side's derivative.
+    raises = lin.delay_gradient >= 0.0
+    rising = np.where(raises, up, down)
+    falling = -np.where(raises, down, up)
+    return rising, falling
+
+
+def _on_bounds(theta: np.ndarray, problem: Problem) -> Tuple[np.ndarray, np.ndarray]:
+    """Parameters on their lower and on their upper bound (within 1e-9 relative)."""
+    span = np.maximum(np.abs(theta), 1.0)
+    return theta - problem.lower <= 1e-9 * span, problem.upper - theta <= 1e-9 * span
+
+
 def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
                problem: Problem, frozen: np.ndarray) -> np.ndarray:
-    """Active set: drop parameters that sit on a bound and whose gradient pushes outward."""
-    gradient = lin.psi.T @ error                     # -dV/dtheta
-    span = np.maximum(np.abs(theta), 1.0)
-    at_lower = (theta - problem.lower <= 1e-9 * span) & (gradient < 0)
-    at_upper = (problem.upper - theta <= 1e-9 * span) & (gradient > 0)
-    return ~(frozen | at_lower | at_upper)
+    """
+    Active set: hold parameters that can only move where the cost rises.
+
+    A parameter on a bound is held if the cost rises inward (the one-sided derivative into the
+    box), and a dead time on the sample lattice is held where the cost rises on both sides.
+    """
+    rising, falling = _one_sided_gradients(lin, error)
+    at_lower, at_upper = _on_bounds(theta, problem)
+    kink = (rising < 0) & (falling < 0)
+    return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
+
+
+def free_parameters(problem: Problem, state: State, frozen: np.ndarray) -> np.ndarray:
+    """
+    Parameters the data determine at ``state``: not frozen, not held at a bound or kink.
+
+    A parameter on a bound whose cost rises inward is held there by the bound, not by the
+    data (:func:`_free_mask`); identifiability and covariance concern the others.
+    """
+    lin = problem.linearize(state.coefficients, regressors=False)
+    return _free_mask(state.theta, lin, problem.measured - lin.output, problem, frozen)
+
+
+def optimality(problem: Problem, state: State, frozen: np.ndarray) -> float:
+    """
+    First-order optimality of ``state``, in standard deviations of the estimate.
+
+    The Gauss-Newton step of the free parameters (those not held by :func:`_free_mask`: at an
+    active bound only an inward decrease counts, at a dead-time kink the side that decreases)
+    measured as ``|Psi step| / sigma``, i.e. ``sqrt(g^T (Psi^T Psi)^-1 g) / sigma`` with ``g``
+    the projected gradient. Zero at a stationary point; ``docs/algorithm.md`` section 8.
+    """
+    lin = problem.linearize(state.coefficients, regressors=False)
+    error = problem.measured - lin.output
+    free = _free_mask(state.theta, lin, error, problem, frozen)
+    if not np.any(free):
+        return 0.0
+    # Combinations the data barely determine (their sensitivities nearly dependent, as where
+    # two time constants coincide) have no first-order information: the measure leaves them
+    # out rather than reading rounding as a gradient.
+    step = _bounded_direction('gn', lin, error, free, *_on_bounds(state.theta, problem),
+                              rcond=_OPTIMALITY_RCOND)
+    if step is None:
+        return np.inf
+    return _step_size(lin, error, step)
 
 
 def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
               scales: Sequence[float]) -> Optional[Tuple[State, float]]:
     """First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V."""
     limit = _box_limit(state.theta, step, problem.lower, problem.upper)
+    if not limit > 0.0:
+        return None
     for scale in scales:
         candidate = state.theta + limit * scale * step
         coefficients = problem.admissible(candidate)
         if coefficients is not None:
-            cost = problem.cost(coefficients)
-            if not monotone or cost <= state.cost:
-                return State(candidate, coefficients, cost), limit * scale
+            new_state = problem.state(candidate, coefficients)
+            if not monotone or new_state.cost <= state.cost:
+                return new_state, limit * scale
     return None
 
 
@@ -183,12 +315,14 @@ def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float
     variance = float(error @ error) / max(count - params, 1)
     if variance == 0.0:
         return np.inf
-    return float(np.linalg.norm(lin.psi @ step) / np.sqrt(variance))
+    psi = lin.psi if _delay_change(lin, step) >= 0.0 else _shrinking(lin).psi
+    return float(np.linalg.norm(psi @ step) / np.sqrt(variance))
 
 
 def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             max_iterations: int, tolerance: float, first_ls: bool = True,
-            trust_first_ls: bool = False, full_steps_only: bool = False) -> IterationResult:
+            trust_first_ls: bool = False, full_steps_only: bool = False,
+            check_optimality: bool = False) -> IterationResult:
     """
     Run the controlled projection iteration from ``state``.
 
@@ -217,6 +351,11 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         Give up (:attr:`StopReason.NO_FULL_STEP`, not converged) at the first update that needs
         a shorter or damped step: a quick check of a start that is either close to a minimum or
         not worth the halving.
+    check_optimality : bool
+        Before a rule that claims convergence stops the iteration, test first-order optimality
+        (:func:`optimality` below :data:`OPTIMALITY_LIMIT`): a small step or a small decrease
+        away from a minimum does not stop it, and where no admissible step decreases the cost
+        away from a minimum it stops as :attr:`StopReason.STALLED` (not converged).
 
     Returns
     -------
@@ -236,10 +375,16 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         return IterationResult(state, history, reason,
                                reason.describe(tolerance, max_iterations))
 
+    def optimal() -> bool:
+        # LS follows its own fixed point, not the minimum of V.
+        return not check_optimality or method == 'ls' or \
+            optimality(problem, state, frozen) <= OPTIMALITY_LIMIT
+
     for iteration in range(max_iterations):
         lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
         free = _free_mask(state.theta, lin, error, problem, frozen)
+        bounded = _on_bounds(state.theta, problem)
         if not np.any(free):
             return stop(StopReason.ALL_AT_BOUNDS)
         primary = 'gn' if method == 'gn' else ('ls' if method == 'ls' or (
@@ -248,7 +393,8 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
 
         def direction(kind: str, damping: float) -> Optional[np.ndarray]:
             if (kind, damping) not in directions:
-                directions[kind, damping] = _direction(kind, lin, error, free, damping)
+                directions[kind, damping] = _bounded_direction(kind, lin, error, free,
+                                                               *bounded, damping)
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
@@ -281,15 +427,17 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
                 accepted = (kind, step, outcome)
                 break
         if accepted is None:
-            return stop(StopReason.NO_FULL_STEP if full_steps_only else StopReason.NO_DECREASE)
+            if full_steps_only:
+                return stop(StopReason.NO_FULL_STEP)
+            return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
         kind, step, (new_state, scale) = accepted
         change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
         decrease = (state.cost - new_state.cost) / max(state.cost, np.finfo(float).tiny)
         state = new_state
         history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
-        if change < tolerance:
+        if change < tolerance and optimal():
             return stop(StopReason.PARAMETER_CHANGE)
-        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls':
+        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls' and optimal():
             return stop(StopReason.COST_DECREASE)
         if state.cost <= 1e-30 * max(float(problem.measured @ problem.measured), 1e-300):
             return stop(StopReason.EXACT_FIT)

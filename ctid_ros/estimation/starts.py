@@ -121,7 +121,7 @@ def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
     coefficients = problem.admissible(theta)
     if coefficients is None:
         return None
-    return State(theta, coefficients, problem.cost(coefficients))
+    return problem.state(theta, coefficients)
 
 
 def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Optional[State]:
@@ -131,9 +131,9 @@ def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Option
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
-        cost = problem.cost(coefficients)
-        if best is None or cost < best.cost:
-            best = State(theta, coefficients, cost)
+        state = problem.state(theta, coefficients)
+        if best is None or state.cost < best.cost:
+            best = state
     return best
 
 

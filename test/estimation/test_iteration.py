@@ -46,9 +46,10 @@ def test_stop_reasons_read_as_before_and_say_whether_they_converged():
         StopReason.COST_DECREASE: 'relative cost decrease below resolution',
         StopReason.EXACT_FIT: 'output reproduced exactly',
         StopReason.ITERATION_LIMIT: 'iteration limit (100) reached',
+        StopReason.STALLED: 'stalled: the cost still decreases along its gradient',
     }
     assert {reason for reason in StopReason if not reason.converged} == \
-        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT}
+        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT, StopReason.STALLED}
 
 
 def test_first_least_squares_step_lands_next_to_the_truth_from_far_away():
