@@ -40,6 +40,7 @@ from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
                                            IterationResult, StopReason)
 from ctid_ros.estimation.options import check_options
+from ctid_ros.estimation.noise import coloured_covariance, NoiseModel
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem, State,
                                          with_fitted_nuisance)
@@ -49,8 +50,8 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 __all__ = [
-    'Estimate', 'INITIAL_STATES', 'METHODS', 'build_problem', 'covariance', 'estimate',
-    'fit_percent',
+    'Estimate', 'INITIAL_STATES', 'METHODS', 'Uncertainty', 'build_problem', 'covariance',
+    'estimate', 'fit_percent',
 ]
 
 METHODS = ('iv', 'ls', 'gn')
@@ -248,25 +249,67 @@ def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optiona
     return None
 
 
-def covariance(problem: Problem, state: State) -> Tuple[np.ndarray, float, float]:
+@dataclass
+class Uncertainty:
     """
-    Return the parameter covariance, the noise variance and the condition number at ``state``.
+    What :func:`covariance` finds at an estimate.
 
-    ``sigma^2 (Psi^T Psi)^-1`` with ``sigma^2 = |e|^2 / (N - n_theta)``, computed from the
-    singular values of the column-scaled instruments ``Psi`` (the output sensitivities), whose
-    condition number is the third value (``docs/algorithm.md`` section 15).
+    Attributes
+    ----------
+    covariance : ndarray
+        Parameter covariance valid under coloured residuals, ``model.parameters`` order; rows
+        and columns of parameters held at a bound are NaN.
+    variance : float
+        ``|e|^2 / (N - n)``, the residual variance.
+    condition : float
+        Condition number of the column-scaled sensitivities of the free parameters.
+    weakest : ndarray
+        The (unit, scaled) parameter combination the data determine worst, over all
+        parameters (zero for held ones).
+    noise : NoiseModel
+        The autoregressive model of the residual behind the covariance.
+    free : ndarray of bool
+        Parameters the data determine (not held at a bound).
+
+    """
+
+    covariance: np.ndarray
+    variance: float
+    condition: float
+    weakest: np.ndarray
+    noise: NoiseModel
+    free: np.ndarray
+
+
+def covariance(problem: Problem, state: State) -> Uncertainty:
+    """
+    Return the parameter covariance at ``state`` and what it rests on.
+
+    The sandwich ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` of the output-error estimate,
+    ``Sigma`` from an autoregressive model of the residual (:mod:`~ctid_ros.estimation.noise`):
+    ``sigma^2 (Psi^T Psi)^-1``, ``sigma^2 = |e|^2 / (N - n_theta)``, when the residual is white.
+    Only parameters the data determine enter (a parameter held at a bound gets NaN); the
+    column-scaled sensitivities give the condition number and the weakest combination
+    (``docs/algorithm.md`` section 15).
 
     """
     lin = problem.linearize(state.coefficients, regressors=False)
     error = problem.measured - lin.output
+    free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    scales = column_scales(lin.psi)
-    _, singular, vt = np.linalg.svd(lin.psi / scales, full_matrices=False)
-    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
-    inverse = (vt.T / singular ** 2) @ vt
-    covariance = variance * inverse / np.outer(scales, scales)
-    return covariance, variance, condition
+    psi = lin.psi[:, free]
+    scales = column_scales(psi)
+    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)))
+    result = np.full((params, params), np.nan)
+    result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    weakest = np.zeros(params)
+    condition = 1.0
+    if np.any(free):
+        singular, vt = np.linalg.svd(psi / scales, full_matrices=False)[1:]
+        condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
+        weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
+    return Uncertainty(result, variance, condition, weakest, model, free)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -394,8 +437,10 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         blind = _blind_combination(problem, final.state)
         if blind is not None:
             raise EstimationError(blind)
-        parameter_covariance, variance, condition = covariance(problem, final.state)
-    std = np.sqrt(np.maximum(np.diag(parameter_covariance), 0.0))
+        uncertainty = covariance(problem, final.state)
+    parameter_covariance = uncertainty.covariance
+    variance, condition = uncertainty.variance, uncertainty.condition
+    std = np.sqrt(np.abs(np.diag(parameter_covariance)))
     notes = _warnings(problem, final)
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     return Estimate(
