@@ -130,7 +130,8 @@ def _delay_change(lin: Linearization, step: np.ndarray) -> float:
 
 def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
                        at_lower: np.ndarray, at_upper: np.ndarray, damping: float = 0.0,
-                       rcond: Optional[float] = None) -> Optional[np.ndarray]:
+                       rcond: Optional[float] = None, side: str = 'auto'
+                       ) -> Optional[np.ndarray]:
     """
     :func:`_direction`, with parameters on a bound that it would push outward held.
 
@@ -140,7 +141,7 @@ def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: n
     """
     free = free.copy()
     while True:
-        step = _direction(kind, lin, error, free, damping, rcond)
+        step = _direction(kind, lin, error, free, damping, rcond, side)
         if step is None:
             return None
         outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
@@ -152,7 +153,8 @@ def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: n
 
 
 def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-               damping: float = 0.0, rcond: Optional[float] = None) -> Optional[np.ndarray]:
+               damping: float = 0.0, rcond: Optional[float] = None, side: str = 'auto'
+               ) -> Optional[np.ndarray]:
     """
     Update direction on the free parameters (zeros elsewhere), or None if singular.
 
@@ -162,16 +164,27 @@ def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarra
     solved with the side it moves the dead time to; if neither side's solution moves it to
     its own side (a kink that is a minimum along the dead time), the dead time is held.
     ``rcond`` truncates the singular values of a Gauss-Newton solve (default: rounding).
+    ``side`` ``'up'`` or ``'down'`` asks for a direction that grows (shrinks) the dead time or
+    holds it.
 
     """
-    step = _one_sided_direction(kind, lin, error, free, damping, rcond)
-    if lin.delay_jump is None or step is None or _delay_change(lin, step) >= 0.0:
-        return step
-    down = _shrinking(lin)
-    step = _one_sided_direction(kind, down, error, free, damping, rcond)
-    if step is None or _delay_change(lin, step) <= 0.0:
-        return step
+    if lin.delay_jump is None:
+        return _one_sided_direction(kind, lin, error, free, damping, rcond)
     held = free & (lin.delay_gradient == 0.0)
+    if side == 'auto':
+        # The side where the cost falls faster first, then the other.
+        rising, falling = _one_sided_gradients(lin, error)
+        delays = free & (lin.delay_gradient != 0.0)
+        down_first = np.max(falling[delays], initial=0.0) > np.max(rising[delays], initial=0.0)
+        sides = ('down', 'up') if down_first else ('up', 'down')
+    else:
+        sides = (side,)
+    for which in sides:
+        sided = lin if which == 'up' else _shrinking(lin)
+        step = _one_sided_direction(kind, sided, error, free, damping, rcond)
+        change = 0.0 if step is None else _delay_change(lin, step)
+        if step is None or (change >= 0.0 if which == 'up' else change <= 0.0):
+            return step
     if not np.any(held):
         return None
     return _one_sided_direction(kind, lin, error, held, damping, rcond)
@@ -260,13 +273,17 @@ def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
 
 def free_parameters(problem: Problem, state: State, frozen: np.ndarray) -> np.ndarray:
     """
-    Parameters the data determine at ``state``: not frozen, not held at a bound or kink.
+    Parameters the data determine at ``state``: not frozen, not held at a bound.
 
     A parameter on a bound whose cost rises inward is held there by the bound, not by the
-    data (:func:`_free_mask`); identifiability and covariance concern the others.
+    data (:func:`_free_mask`); identifiability and covariance concern the others. A dead time
+    at a kink of the cost on the sample lattice is a minimum the data chose: it stays free.
     """
     lin = problem.linearize(state.coefficients, regressors=False)
-    return _free_mask(state.theta, lin, problem.measured - lin.output, problem, frozen)
+    error = problem.measured - lin.output
+    rising, falling = _one_sided_gradients(lin, error)
+    at_lower, at_upper = _on_bounds(state.theta, problem)
+    return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)))
 
 
 def optimality(problem: Problem, state: State, frozen: np.ndarray) -> float:
@@ -307,6 +324,31 @@ def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
             if not monotone or new_state.cost <= state.cost:
                 return new_state, limit * scale
     return None
+
+
+def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.ndarray,
+                 free: np.ndarray, bounded: Tuple[np.ndarray, np.ndarray], kind: str
+                 ) -> Optional[Tuple[str, np.ndarray, Tuple[State, float]]]:
+    """
+    At a dead time on the lattice where the cost falls to both sides, take the better side.
+
+    Such a kink separates two basins; both one-sided directions are tried (full step, then
+    halved until the cost falls) and the lower cost wins (None if neither lowers it: the usual
+    attempts follow).
+    """
+    rising, falling = _one_sided_gradients(lin, error)
+    delays = free & (lin.delay_gradient != 0.0)
+    if not np.any(delays & (rising > 0.0) & (falling > 0.0)):
+        return None
+    best = None
+    for side in ('up', 'down'):
+        step = _bounded_direction(kind, lin, error, free, *bounded, side=side)
+        if step is None or _delay_change(lin, step) == 0.0:
+            continue
+        outcome = _try_step(problem, state, step, True, _ALL_STEPS)
+        if outcome is not None and (best is None or outcome[0].cost < best[2][0].cost):
+            best = (kind, step, outcome)
+    return best
 
 
 def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float:
@@ -398,6 +440,10 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
+        if primary != 'ls' and first is None:
+            # The IV matrix is singular where two parameters act alike (coinciding time
+            # constants); the minimum-norm Gauss-Newton step measures the update then.
+            first = direction('gn', 0.0)
         if primary != 'ls' and first is not None and \
                 _step_size(lin, error, first) < NEGLIGIBLE_STEP:
             return stop(StopReason.NEGLIGIBLE_UPDATE)
@@ -416,8 +462,12 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             attempts = [(kind, damping, _FULL_STEP, monotone)
                         for kind, damping, _, monotone in attempts if kind != 'lm']
         accepted = None
+        if not trusted and lin.delay_jump is not None:
+            accepted = _across_kink(problem, state, lin, error, free, bounded, primary)
         tried = set()
         for kind, damping, scales, monotone in attempts:
+            if accepted is not None:
+                break
             step = direction(kind, damping)
             if step is None or (kind, damping, scales) in tried:
                 continue
