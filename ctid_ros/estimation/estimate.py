@@ -39,24 +39,29 @@ from ctid_ros.estimation.delay_search import delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
                                            IterationResult, StopReason)
+from ctid_ros.estimation.noise import coloured_covariance, measured_every, NoiseModel
 from ctid_ros.estimation.options import check_options
-from ctid_ros.estimation.noise import coloured_covariance, NoiseModel
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
-                                         nuisance_columns, orthonormal_basis, Problem, State,
-                                         with_fitted_nuisance)
+                                         nuisance_columns, orthonormal_basis, Problem,
+                                         settling_time, State, with_fitted_nuisance)
+from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
+                                                   ResidualAnalysis)
 from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
                                         initial_estimate, local_fit)
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
 __all__ = [
-    'Estimate', 'INITIAL_STATES', 'METHODS', 'Uncertainty', 'build_problem', 'covariance',
-    'estimate', 'fit_percent',
+    'Estimate', 'ILL_CONDITIONED', 'INITIAL_STATES', 'METHODS', 'Uncertainty', 'build_problem',
+    'covariance', 'estimate', 'fit_percent',
 ]
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
 _IDENTIFIABILITY_LIMIT = 1e10
+# Above this condition number of the scaled sensitivities a combination is reported as weak.
+ILL_CONDITIONED = 1e3
+_MAX_RESIDUAL_LAGS = 200
 _SYMMETRY_RESTARTS = 3
 # Random perturbations tried at a point where symmetric parameters coincide.
 _NUDGES = 14
@@ -108,6 +113,11 @@ class Estimate:
     initial_state, output_offset, integrator_cutoff
         The options of :func:`estimate` that shaped the fit (:meth:`compare` uses the first
         two on validation data).
+    residuals : ResidualAnalysis or None
+        Autocorrelation of the residual and its cross-correlation with every input, their 99 %
+        bounds and a one-line ``verdict`` (``white`` / ``input_correlated`` / ``feedback``), as
+        MATLAB's ``resid``; also the order of the residual's noise model behind the
+        covariance and how many samples apart the output was measured.
 
     """
 
@@ -130,6 +140,7 @@ class Estimate:
     initial_state: str = 'zero'
     output_offset: bool = False
     integrator_cutoff: Optional[float] = None
+    residuals: Optional[ResidualAnalysis] = None
 
     @property
     def theta(self) -> np.ndarray:
@@ -172,17 +183,23 @@ class Estimate:
 
     def to_dict(self) -> dict:
         """Summary as plain JSON-serialisable types (the ``ctid fit --json`` object)."""
-        return {
+        summary = {
             'params': dict(self.params),
-            'std': dict(self.std),
+            # A parameter held at a bound has no standard deviation: null, not NaN.
+            'std': {name: float(value) if np.isfinite(value) else None
+                    for name, value in self.std.items()},
             'fit': float(self.fit),
             'converged': bool(self.converged),
             'iterations': int(self.iterations),
             'cost': float(self.cost),
             'stop_reason': self.stop_reason,
             'start': self.start,
+            'condition': float(self.condition),
             'warnings': list(self.warnings),
         }
+        if self.residuals is not None:
+            summary['residual'] = self.residuals.to_dict()
+        return summary
 
 
 def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
@@ -298,7 +315,10 @@ def covariance(problem: Problem, state: State) -> Uncertainty:
     free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    psi = lin.psi[:, free]
+    psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
+    # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
+    # sensitivities differ; their mean stands for both.
+    psi = psi[:, free]
     scales = column_scales(psi)
     scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)))
     result = np.full((params, params), np.nan)
@@ -441,8 +461,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     parameter_covariance = uncertainty.covariance
     variance, condition = uncertainty.variance, uncertainty.condition
     std = np.sqrt(np.abs(np.diag(parameter_covariance)))
-    notes = _warnings(problem, final)
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
+    residuals = _residual_analysis(problem, final.state, uncertainty.noise)
+    notes = _warnings(problem, final, uncertainty, std, fit, residuals)
     return Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
         covariance=parameter_covariance, fit=fit, converged=final.converged,
@@ -450,7 +471,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         history=history, noise_variance=variance,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
-        output_offset=output_offset, integrator_cutoff=cutoff)
+        output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
 
 
 def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
@@ -521,16 +542,77 @@ def _started(problem: Problem, start: State, transient: Union[float, str]) -> St
     return problem.state(theta, coefficients)
 
 
-def _warnings(problem: Problem, result: IterationResult) -> List[str]:
-    """Return the active bounds and, if it did not converge, why the final iteration stopped."""
+def _residual_analysis(problem: Problem, state: State, noise: NoiseModel) -> ResidualAnalysis:
+    """
+    Analyse the final residual against the inputs (section 11 of ``docs/algorithm.md``).
+
+    The lags cover the dead time and twice the slowest time constant, at least the 25 of
+    MATLAB's ``resid``, at most 200 or a quarter of the samples.
+    """
+    data = problem.data
+    horizon = max(state.coefficients.delay, 0.0) + 0.4 * settling_time(state.coefficients)
+    lags = int(min(max(DEFAULT_LAGS, np.ceil(horizon / data.ts)), _MAX_RESIDUAL_LAGS))
+    residual = problem.measured - problem.prediction(state.coefficients)
+    inputs = data.u.reshape(len(data), -1)[problem.skip:]
+    analysis = analyse_residual(residual, inputs, problem.model.inputs, lags)
+    analysis.noise_order = noise.order
+    analysis.noise_power_ratio = noise.variance_ratio
+    analysis.measured_every = measured_every(problem.measured)
+    return analysis
+
+
+def _combination(weights: np.ndarray, names: Sequence[str]) -> str:
+    """Return ``'+0.71*T1 -0.70*T2'`` for the entries above 0.1."""
+    return ' '.join(f'{weight:+.2f}*{name}' for weight, name in zip(weights, names)
+                    if abs(weight) > 0.1)
+
+
+def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertainty,
+              std: np.ndarray, fit: float, residuals: ResidualAnalysis) -> List[str]:
+    """
+    Return what a user should know about the estimate, in words.
+
+    Active bounds (and lags the data would drop), no convergence, a weakly determined
+    combination, a negative fit, standard deviations above the value, a residual correlated
+    with the input, an output interpolated from a slower measurement (section 15).
+    """
     state = result.state
+    names = problem.model.parameters
     notes = []
     span = np.maximum(np.abs(state.theta), 1.0)
-    for index, name in enumerate(problem.model.parameters):
-        if state.theta[index] - problem.lower[index] <= 1e-6 * span[index]:
-            notes.append(f'{name} is at its lower bound {problem.lower[index]:g}')
-        elif problem.upper[index] - state.theta[index] <= 1e-6 * span[index]:
-            notes.append(f'{name} is at its upper bound {problem.upper[index]:g}')
+    for index, name in enumerate(names):
+        held = '' if uncertainty.free[index] else \
+            ' (the fit would go beyond it, so it has no standard deviation)'
+        side = 'lower' if state.theta[index] - problem.lower[index] <= 1e-6 * span[index] \
+            else 'upper' if problem.upper[index] - state.theta[index] <= 1e-6 * span[index] \
+            else None
+        if side is None:
+            continue
+        bound = problem.lower[index] if side == 'lower' else problem.upper[index]
+        if problem.reductions.get(index) == bound:
+            notes.append(f'{name} went to {bound:.3g}, where the pole it adds is 1000 times '
+                         f'faster than the Nyquist frequency: the data prefer the model without '
+                         f'it ({name} = 0, one order lower){held}')
+        else:
+            notes.append(f'{name} is at its {side} bound {bound:g}{held}')
     if not result.converged:
         notes.append(f'not converged: {result.message}')
+    if fit < 0.0:
+        notes.append(f'fit {fit:.1f} %: the model does not explain these data (its output is '
+                     'further from the measurements than their mean is)')
+    if uncertainty.condition > ILL_CONDITIONED:
+        notes.append(f'the data barely determine {_combination(uncertainty.weakest, names)} '
+                     f'(condition number {uncertainty.condition:.1e}): these parameters trade '
+                     'off against each other; fix one, reparameterise or use a richer input')
+    for index, name in enumerate(names):
+        if np.isfinite(std[index]) and std[index] > abs(state.theta[index]):
+            notes.append(f'the data do not determine {name}: its standard deviation '
+                         f'{std[index]:.3g} exceeds its value {state.theta[index]:.3g}')
+    if residuals.input_correlated:
+        notes.append(f'residual {residuals.verdict}')
+    if residuals.measured_every > 1:
+        notes.append(f'the output changes only every {residuals.measured_every} samples (held '
+                     'or interpolated from a slower measurement): the sample time is finer '
+                     'than the data; the standard deviations count the correlated '
+                     'interpolated samples, not them as new measurements')
     return notes
