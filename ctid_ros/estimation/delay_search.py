@@ -26,6 +26,8 @@ _REFINED_MINIMA = 2
 _REFINEMENT_MARGIN = 3.0
 _COARSE_STRIDE = 3
 _JOINT_ITERATIONS = 10
+# Dead times tried around the refined minimum, in samples.
+_PROBE_OFFSETS = (-1.0, 1.0, -2.0, 2.0)
 
 
 @dataclass
@@ -59,8 +61,8 @@ def _local_minima(profile: List[Tuple[float, float, State]]) -> List[State]:
     return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
 
 
-def delay_search(problem: Problem, start: State, delay_index: int, delay_range: DelayRange
-                 ) -> DelaySearch:
+def delay_search(problem: Problem, start: State, delay_index: int, delay_range: DelayRange,
+                 fixed: Optional[np.ndarray] = None) -> DelaySearch:
     """
     Locate the dead time: a local fit if it explains the data, else a profile over a grid.
 
@@ -76,19 +78,30 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     state-variable filter; the filter that gave the lowest cost there serves the whole profile
     (one filter throughout, so the profile's minima are not artefacts of switching filters).
     The best local minima of the profile get a few projection iterations with ``tau`` frozen,
-    then joint ones.
+    then joint ones. On coarse data, where the bracket spans fewer samples than the grid has
+    points, the grid adds the half-sample points: for a model of relative degree one the
+    cost has a kink on every sample, and its minima lie between them.
+
+    ``fixed`` parameters (default none) keep their start values throughout (the search for a
+    nested structure).
 
     """
     data = problem.data
+    fixed = np.zeros(start.theta.size, dtype=bool) if fixed is None else fixed
     low, high = problem.delay_bracket(delay_index, delay_range)
-    local = local_fit(problem, start, 'iv', first_ls=True)
+    local = local_fit(problem, start, 'iv', first_ls=True, frozen=fixed)
     if explains_data(problem, local.state, delay_index, delay_range):
         return DelaySearch(local.state, [], local.history)
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
                       [start.theta[delay_index], problem.delay_guess])
     grid = np.unique(np.clip([problem.on_delay_lattice(tau) for tau in grid], low, high))
-    frozen = np.zeros(start.theta.size, dtype=bool)
-    frozen[delay_index] = True
+    lattice = problem.on_delay_lattice(low)
+    if (high - lattice) / data.ts < _GRID_POINTS:
+        halves = np.arange(lattice + 0.5 * data.ts, high, data.ts)
+        grid = np.union1d(grid, halves[halves > low])
+    delay_mask = np.zeros(start.theta.size, dtype=bool)
+    delay_mask[delay_index] = True
+    frozen = fixed | delay_mask
     filters = StateVariableFilters(problem, filter_bandwidths(data, FILTER_COUNT))
     coarse = np.zeros(grid.size, dtype=bool)
     coarse[::_COARSE_STRIDE] = True
@@ -99,7 +112,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         # A non-affine fit starts from the hint and from the best fit so far (moved to this
         # tau), not from random draws: the start's multi-start has been done at its own tau.
         sources = [start] if problem.model.is_affine else [start, lowest[0]]
-        starts = distinct([np.where(frozen, tau, state.theta) for state in sources])
+        starts = distinct([np.where(delay_mask, tau, state.theta) for state in sources])
         state = best_candidate(problem, distinct(equation_error_fits(
             problem, starts, ~frozen, tau, chosen)))
         if state is not None and state.cost < lowest[0].cost:
@@ -133,8 +146,41 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         state = iterate(problem, state, method='iv', frozen=frozen,
                         max_iterations=frozen_iterations, tolerance=1e-6,
                         trust_first_ls=True).state
-        joint = iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+        joint = iterate(problem, state, method='iv', frozen=fixed,
                         max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
         if best is None or joint.state.cost < best.cost:
             best, history, margin = joint.state, joint.history, profiled - joint.state.cost
+    best, history = _probe_neighbours(problem, best, history, delay_index, profile, frozen,
+                                      fixed, frozen_iterations)
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
+
+
+def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,
+                      profile: List[Tuple[float, float, State]], frozen: np.ndarray,
+                      fixed: np.ndarray, iterations: int) -> Tuple[State, List[Iteration]]:
+    """
+    Refine the profile's fits one and two samples either side of the best dead time too.
+
+    The equation-error profile is only a proxy of the output-error one: its minimum can sit a
+    sample or two off, next to the basin of another structure (a lag traded for dead time, a
+    lag collapsed onto its limit). Each neighbour's own fit is iterated with the dead time
+    frozen; one that beats ``best`` is refined jointly, and the better end kept.
+    """
+    ts = problem.data.ts
+    centre = best.theta[delay_index]
+    taus = np.array([tau for tau, _, _ in profile])
+    tried = set()
+    for offset in _PROBE_OFFSETS:
+        index = int(np.argmin(np.abs(taus - (centre + offset * ts))))
+        if abs(taus[index] - (centre + offset * ts)) > 0.5 * ts or index in tried:
+            continue
+        tried.add(index)
+        probe = iterate(problem, profile[index][2], method='iv', frozen=frozen,
+                        max_iterations=iterations, tolerance=1e-6, trust_first_ls=True).state
+        if probe.cost >= best.cost:
+            continue
+        joint = iterate(problem, probe, method='iv', frozen=fixed,
+                        max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+        if joint.state.cost < best.cost:
+            best, history = joint.state, joint.history
+    return best, history

@@ -34,7 +34,7 @@ import warnings
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.errors import DataError, EstimationError
+from ctid_ros.errors import DataError, EstimationError, ModelError
 from ctid_ros.estimation.delay_search import delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
@@ -69,6 +69,8 @@ _NUDGES = 14
 # unconverged, which then pay for the automatic start and search; more only delay the search
 # for a guess that cannot explain the data.
 _WARM_START_ITERATIONS = 6
+# Iterations that fit a nested structure without a dead time to search.
+_NESTED_ITERATIONS = 10
 
 
 @dataclass
@@ -232,9 +234,18 @@ def _check_excitation(model: Model, data: Data) -> None:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
 
 
-def _blind_combination(problem: Problem, state: State) -> Optional[str]:
-    """Explain why the output is (almost) blind to a parameter combination, or None."""
+def _blind_combination(problem: Problem, state: State, limits_hold: bool = True
+                       ) -> Optional[str]:
+    """
+    Explain why the output is (almost) blind to a parameter combination, or None.
+
+    Parameters held at a bound are left out; with ``limits_hold`` False, those held at an
+    order-reduction limit (not a bound the user or the dead time set) count too.
+    """
     free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
+    if not limits_hold:
+        for index, value in problem.reductions.items():
+            free[index] |= state.theta[index] in (problem.lower[index], problem.upper[index])
     if not np.any(free):
         return None
     names = [name for name, keep in zip(problem.model.parameters, free) if keep]
@@ -253,6 +264,21 @@ def _blind_combination(problem: Problem, state: State) -> Optional[str]:
     return ('the parameters are not identifiable from these data: the combination '
             f'{" ".join(names)} has (almost) no effect on the output (condition number '
             f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
+
+
+def _blind_nearby(problem: Problem, state: State, rng: np.random.Generator) -> bool:
+    """
+    Return True if the output stays blind to a combination around ``state`` too.
+
+    A structural lack of identifiability holds everywhere; at a point where interchangeable
+    parameters coincide (two equal time constants, where the data put the minimum) the
+    sensitivities are dependent only there. That estimate is returned, with the weakly
+    determined combination in its warnings, rather than refused.
+    """
+    nudged = _nudged(problem, state, rng)
+    # A lag held at its order-reduction limit is no bound the data respect: a structural
+    # blindness must not hide behind it.
+    return nudged is None or _blind_combination(problem, nudged, limits_hold=False) is not None
 
 
 def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optional[State]:
@@ -437,7 +463,10 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             if delay_index is not None:
                 search = delay_search(problem, start, delay_index, delay_range)
                 start, profile, history = search.state, search.profile, search.history
-            refined = delay_index is not None
+            nested = _nested_start(problem, initial, delay_range, delay_index, start)
+            if nested is not None:
+                start, history = nested
+            refined = delay_index is not None or nested is not None
         frozen = np.zeros(len(model.parameters), dtype=bool)
         settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
                     'tolerance': tolerance, 'check_optimality': True}
@@ -455,7 +484,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             history.extend(final.history)
         final = _from_best_seen(problem, final, history, settings)
         blind = _blind_combination(problem, final.state)
-        if blind is not None:
+        if blind is not None and _blind_nearby(problem, final.state, rng):
             raise EstimationError(blind)
         uncertainty = covariance(problem, final.state)
     parameter_covariance = uncertainty.covariance
@@ -496,6 +525,83 @@ def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
     problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
                       initial_state == 'estimate', output_offset)
     return problem, cutoff
+
+
+def _reductions(problem: Problem, theta: np.ndarray, delay_index: Optional[int]
+                ) -> Dict[int, float]:
+    """
+    Parameters whose limit gives a simpler structure, and that limit; one per distinct one.
+
+    A lag or mass at its order-reduction limit (:attr:`Problem.reductions`) unless that leaves
+    a static model, and a dead time at its lower bound. Of two parameters that play the same
+    role (the model is unchanged when they are swapped, as ``T1`` and ``T2`` in
+    ``(T1 s + 1)(T2 s + 1)``) only the first counts: both give the same nested structure.
+    """
+    # The structure one order lower still has dynamics only if D had degree 2 or more.
+    limits = dict(problem.reductions) if problem.model.den_degree >= 2 else {}
+    if delay_index is not None:
+        limits[delay_index] = problem.lower[delay_index]
+    model = problem.model
+    probe = theta * np.random.default_rng(0).uniform(1.1, 1.9, theta.size)
+    distinct: Dict[int, float] = {}
+    for index, value in sorted(limits.items()):
+        if any(_interchangeable(model, probe, index, other) for other in distinct):
+            continue
+        distinct[index] = value
+    return distinct
+
+
+def _interchangeable(model, theta: np.ndarray, first: int, second: int) -> bool:
+    """Return True if swapping two parameters leaves the model's coefficients unchanged."""
+    swapped = theta.copy()
+    swapped[[first, second]] = theta[[second, first]]
+    try:
+        one, other = model.coefficients(theta), model.coefficients(swapped)
+    except ModelError:
+        return False
+    return bool(np.allclose(one.num, other.num) and np.allclose(one.den, other.den)
+                and np.isclose(one.delay, other.delay))
+
+
+def _nested_start(problem: Problem, initial: Initial, delay_range: DelayRange,
+                  delay_index: Optional[int], start: State
+                  ) -> Optional[Tuple[State, List[Iteration]]]:
+    """
+    Return the best nested structure's optimum if it is better than ``start``, else None.
+
+    Each structure a parameter's limit leaves (:func:`_reductions`: a lag dropped, the dead
+    time removed) is fitted by the same automatic start and dead-time search with that
+    parameter held at its limit; the final iteration then releases it. So a structure is never
+    left worse than one it contains (``docs/algorithm.md`` section 12).
+    """
+    names = problem.model.parameters
+    hints = {name: float(np.clip(value, problem.lower[names.index(name)],
+                                 problem.upper[names.index(name)]))
+             for name, value in _given_hints(initial).items()}
+    best = None
+    for index, value in _reductions(problem, start.theta, delay_index).items():
+        fixed = np.zeros(len(names), dtype=bool)
+        fixed[index] = True
+        try:
+            nested = initial_estimate(problem, hints or 'auto', delay_range,
+                                      pin={names[index]: value})
+        except (EstimationError, ModelError):
+            continue
+        if delay_index is not None and index != delay_index:
+            found = delay_search(problem, nested, delay_index, delay_range, fixed=fixed)
+        else:
+            found = local_fit(problem, nested, 'iv', first_ls=True, frozen=fixed,
+                              iterations=_NESTED_ITERATIONS)
+        if found.state.cost < (start.cost if best is None else best[0].cost):
+            best = (found.state, found.history)
+    return best
+
+
+def _given_hints(initial: Initial) -> Dict[str, float]:
+    """Return the user's initial values as a dict (none for 'auto')."""
+    if initial is None or isinstance(initial, str):
+        return {}
+    return {name: float(value) for name, value in initial.items()}
 
 
 def _lower(first: IterationResult, second: IterationResult) -> IterationResult:

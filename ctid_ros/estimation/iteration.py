@@ -34,8 +34,9 @@ NEGLIGIBLE_STEP = 1e-3
 # A point is a minimum for a user when the Gauss-Newton step from it (the projected gradient in
 # the metric of the estimate's uncertainty) is below this many standard deviations.
 OPTIMALITY_LIMIT = 0.1
-# Relative singular values of the scaled sensitivities below this carry no gradient information.
-_OPTIMALITY_RCOND = 1e-8
+# Relative singular values of the scaled sensitivities below this carry no usable gradient
+# information: the first-order model is swamped by second-order terms along such directions.
+_OPTIMALITY_RCOND = 1e-6
 
 
 class StopReason(enum.Enum):
@@ -440,10 +441,13 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
-        if primary != 'ls' and first is None:
-            # The IV matrix is singular where two parameters act alike (coinciding time
-            # constants); the minimum-norm Gauss-Newton step measures the update then.
-            first = direction('gn', 0.0)
+        if primary != 'ls' and (first is None or _step_size(lin, error, first)
+                                >= NEGLIGIBLE_STEP):
+            # Where two parameters act alike (coinciding time constants) the IV step is
+            # singular or large along what the data cannot see; the Gauss-Newton step without
+            # those directions measures the update then.
+            first = _bounded_direction('gn', lin, error, free, *bounded,
+                                       rcond=_OPTIMALITY_RCOND)
         if primary != 'ls' and first is not None and \
                 _step_size(lin, error, first) < NEGLIGIBLE_STEP:
             return stop(StopReason.NEGLIGIBLE_UPDATE)
@@ -482,13 +486,22 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
         kind, step, (new_state, scale) = accepted
         change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
-        decrease = (state.cost - new_state.cost) / max(state.cost, np.finfo(float).tiny)
+        previous = max(state.cost, np.finfo(float).tiny)
+        decrease = (state.cost - new_state.cost) / previous
         state = new_state
         history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
         if change < tolerance and optimal():
             return stop(StopReason.PARAMETER_CHANGE)
         if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls' and optimal():
             return stop(StopReason.COST_DECREASE)
+        # A decrease smaller than a step of NEGLIGIBLE_STEP standard deviations would give,
+        # (8.1) squared: progress along directions the data barely see (coinciding time
+        # constants) that no user could tell from here.
+        count, params = lin.psi.shape
+        variance = 2.0 * state.cost / max(count - params, 1)
+        if check_optimality and method != 'ls' and kind != 'ls' and \
+                decrease * previous < 0.5 * NEGLIGIBLE_STEP ** 2 * variance and optimal():
+            return stop(StopReason.NEGLIGIBLE_UPDATE)
         if state.cost <= 1e-30 * max(float(problem.measured @ problem.measured), 1e-300):
             return stop(StopReason.EXACT_FIT)
     return stop(StopReason.ITERATION_LIMIT)

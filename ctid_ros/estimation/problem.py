@@ -14,7 +14,7 @@ from typing import Dict, Mapping, Optional, Tuple, Union
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import ContinuousFilter
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
 from ctid_ros.errors import ModelError
 from ctid_ros.estimation.correlation import prewhitened_delay
 from ctid_ros.estimation.integrating import StabilizedModel
@@ -45,18 +45,21 @@ class State:
 
 
 def nuisance_columns(den: np.ndarray, count: int, ts: float, initial_state: bool,
-                     output_offset: bool) -> Optional[np.ndarray]:
+                     output_offset: bool, discrete: Optional[DiscreteFilter] = None
+                     ) -> Optional[np.ndarray]:
     """
     Return the output components fitted besides ``G u`` as columns, or None.
 
     ``initial_state``: the free responses of ``1/D`` (a nonzero initial state);
     ``output_offset``: a constant. Their coefficients enter linearly, so they are projected out
     of every residual, regressor and instrument (variable projection, ``docs/algorithm.md``
-    section 9).
+    section 9). ``discrete``: a discretisation of ``1/D`` at ``ts`` to reuse (any dead time).
     """
     columns = []
     if initial_state:
-        columns.append(ContinuousFilter(den).discretize(ts).free_responses(count))
+        if discrete is None:
+            discrete = ContinuousFilter(den).discretize(ts)
+        columns.append(discrete.free_responses(count))
     if output_offset:
         columns.append(np.ones((count, 1)))
     return np.hstack(columns) if columns else None
@@ -208,8 +211,11 @@ class Problem:
         return self.data.y[self.skip:]
 
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
+        # The simulation's own discretisation of 1/D serves the free responses too.
+        discrete = self.bank.realized(coefficients.den, coefficients.delay) \
+            if self.initial_state else None
         columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
-                                   self.initial_state, self.output_offset)
+                                   self.initial_state, self.output_offset, discrete)
         return None if columns is None else orthonormal_basis(columns[self.skip:])
 
     def prediction(self, coefficients: Coefficients) -> np.ndarray:

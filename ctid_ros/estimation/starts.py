@@ -45,6 +45,8 @@ _START_TOLERANCE = 1e-6
 _START_ITERATIONS = 100
 _RANDOM_STARTS = 4
 _LOCAL_ITERATIONS = 4
+# Fractions of a sample whose filtered input is kept (the lattice, half samples, a hint).
+_REMEMBERED_FRACTIONS = 4
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -64,25 +66,29 @@ def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
     return values
 
 
-def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange) -> State:
+def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange,
+                     pin: Optional[Mapping[str, float]] = None) -> State:
     """
     Return the starting state of the iteration.
 
     The user's values compete with the equation-error multi-start described in the module
     docstring (missing values are fitted, given ones serve as hints, or stay fixed while others
     are missing); the candidate with the lowest output-error cost wins. A far or unstable guess
-    therefore costs robustness nothing.
+    therefore costs robustness nothing. ``pin`` holds further parameters at given values (a
+    nested structure: a lag at its limit).
 
     """
     model = problem.model
     given = _given_values(model, initial)
+    pin = dict(pin or {})
     for name, value in given.items():
         index = model.parameters.index(name)
         if not problem.lower[index] <= value <= problem.upper[index]:
             raise ModelError(f'initial value {name}={value:g} lies outside its bounds '
                              f'[{problem.lower[index]:g}, {problem.upper[index]:g}]')
     # A complete guess is a hint for every parameter; a partial one pins the given values.
-    pinned = {} if len(given) == len(model.parameters) else given
+    pinned = dict({} if len(given) == len(model.parameters) else given, **pin)
+    given = dict(given, **pin)
     delay_index = delay_parameter(model)
     filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
     free = np.array([name not in pinned for name in model.parameters])
@@ -245,9 +251,9 @@ class StateVariableFilters:
     Signals ``p^j/E`` of the data for the state-variable filters ``E = (p + lam)^n``.
 
     The output, initial-state and offset parts do not depend on the dead time and are filtered
-    once. The input parts of a dead time of whole samples are shifts of one undelayed filtering
-    (exact: the filters start at rest), so a delay grid on the sample lattice filters the input
-    once per filter.
+    once. The input parts of a dead time ``(d + f) ts`` are the input parts of ``f ts`` shifted
+    by ``d`` samples (exact: the filters start at rest), so a delay grid on the sample lattice
+    (or on half samples) filters the input once per filter and fraction.
 
     """
 
@@ -282,16 +288,15 @@ class StateVariableFilters:
         bank = self._problem.bank
         ts = self._problem.data.ts
         delay = tau + bank.extra_delay
-        whole = int(round(delay / ts))
-        on_lattice = abs(delay - whole * ts) <= 1e-9 * ts
+        whole = int(np.floor(delay / ts + 1e-9))
+        fraction = round(max(delay / ts - whole, 0.0), 9)
         factors = []
-        for realization, y_parts, nuisance, undelayed_inputs in self._filters:
-            if on_lattice:
-                if not undelayed_inputs:
-                    undelayed_inputs[0] = self._input_parts(realization, 0.0)
-                u_parts = shifted(undelayed_inputs[0], -whole)[bank.trim:]
-            else:
-                u_parts = self._input_parts(realization, delay)[bank.trim:]
+        for realization, y_parts, nuisance, by_fraction in self._filters:
+            if fraction not in by_fraction:
+                if len(by_fraction) >= _REMEMBERED_FRACTIONS:
+                    del by_fraction[next(iter(by_fraction))]
+                by_fraction[fraction] = self._input_parts(realization, fraction * ts)
+            u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
             columns = np.hstack(nuisance + [y_parts, -u_parts])
             scales = np.linalg.norm(columns, axis=0)
             scales[scales == 0.0] = 1.0
@@ -448,18 +453,21 @@ class _EquationError:
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
-              full_steps_only: bool = False, iterations: int = _LOCAL_ITERATIONS
-              ) -> IterationResult:
+              full_steps_only: bool = False, iterations: int = _LOCAL_ITERATIONS,
+              frozen: Optional[np.ndarray] = None) -> IterationResult:
     """
-    Return the outcome of a few iterations from ``start``, unfrozen, to a loose tolerance.
+    Return the outcome of a few iterations from ``start`` to a loose tolerance.
+
+    ``frozen`` parameters (default none) keep their start values.
 
     With ``full_steps_only`` its reason is :attr:`StopReason.NO_FULL_STEP` if it gave up;
     otherwise (converged or not) the residual test of :func:`explains_data` judges the result.
 
     """
-    return iterate(problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
-                   max_iterations=iterations, tolerance=1e-6, first_ls=first_ls,
-                   full_steps_only=full_steps_only)
+    if frozen is None:
+        frozen = np.zeros(start.theta.size, dtype=bool)
+    return iterate(problem, start, method=method, frozen=frozen, max_iterations=iterations,
+                   tolerance=1e-6, first_ls=first_ls, full_steps_only=full_steps_only)
 
 
 def explains_data(problem: Problem, state: State, delay_index: Optional[int],
