@@ -28,6 +28,8 @@ _COARSE_STRIDE = 3
 _JOINT_ITERATIONS = 10
 # Dead times tried around the refined minimum, in samples.
 _PROBE_OFFSETS = (-1.0, 1.0, -2.0, 2.0)
+# Shares of the dead time given to a lag that collapsed onto its limit.
+_LAG_SHARES = (0.5, 0.25, 0.75)
 
 
 @dataclass
@@ -91,7 +93,9 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     low, high = problem.delay_bracket(delay_index, delay_range)
     local = local_fit(problem, start, 'iv', first_ls=True, frozen=fixed)
     if explains_data(problem, local.state, delay_index, delay_range):
-        return DelaySearch(local.state, [], local.history)
+        state, history = _lag_for_delay(problem, local.state, local.history, delay_index, low,
+                                        fixed)
+        return DelaySearch(state, [], history)
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
                       [start.theta[delay_index], problem.delay_guess])
     grid = np.unique(np.clip([problem.on_delay_lattice(tau) for tau in grid], low, high))
@@ -152,7 +156,41 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
             best, history, margin = joint.state, joint.history, profiled - joint.state.cost
     best, history = _probe_neighbours(problem, best, history, delay_index, profile, frozen,
                                       fixed, frozen_iterations)
+    best, history = _lag_for_delay(problem, best, history, delay_index, low, fixed)
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
+
+
+def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], delay_index: int,
+                   low: float, fixed: np.ndarray) -> Tuple[State, List[Iteration]]:
+    """
+    Trade dead time for a lag that collapsed onto its order-reduction limit.
+
+    A lag ``T`` and a dead time delay low frequencies alike (``1/(T s + 1) ~ exp(-T s)``), so
+    a fit can end with the lag at its limit and the dead time doing its work: a boundary
+    minimum next to the basin where both share it. From there a part of the dead time,
+    ``delta`` = a quarter, half and three quarters of it, is given to the lag
+    (``T = delta``, ``tau - delta``) and iterated jointly; the better end is kept.
+    """
+    tau = best.theta[delay_index]
+    collapsed = [index for index, limit in problem.reductions.items()
+                 if not fixed[index] and best.theta[index] == limit]
+    for index in collapsed:
+        for share in _LAG_SHARES:
+            delta = share * (tau - low)
+            if delta <= abs(problem.reductions[index]):
+                continue
+            theta = best.theta.copy()
+            theta[index] = np.sign(problem.reductions[index]) * delta
+            theta[delay_index] = tau - delta
+            coefficients = problem.admissible(theta)
+            if coefficients is None:
+                continue
+            joint = iterate(problem, problem.state(theta, coefficients), method='iv',
+                            frozen=fixed, max_iterations=_JOINT_ITERATIONS, tolerance=1e-6,
+                            first_ls=False)
+            if joint.state.cost < best.cost:
+                best, history = joint.state, joint.history
+    return best, history
 
 
 def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,

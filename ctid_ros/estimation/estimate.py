@@ -594,6 +594,12 @@ def _nested_start(problem: Problem, initial: Initial, delay_range: DelayRange,
                               iterations=_NESTED_ITERATIONS)
         if found.state.cost < (start.cost if best is None else best[0].cost):
             best = (found.state, found.history)
+    if best is not None:
+        # The search's own result may be a few iterations short of its minimum: it competes
+        # refined, or a nested structure wins on an unfinished comparison.
+        own = local_fit(problem, start, 'iv', first_ls=False, iterations=_NESTED_ITERATIONS)
+        if own.state.cost <= best[0].cost:
+            return own.state, own.history
     return best
 
 
