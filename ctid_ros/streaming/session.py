@@ -75,6 +75,7 @@ class Update:
 
     def diagnostics(self) -> Dict[str, Any]:
         """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
+        residual = self.result.residuals
         return {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
@@ -86,6 +87,9 @@ class Update:
             'window_span': (self.end_ns - self.start_ns) / NANOSECONDS,
             'samples': int(self.prediction.size),
             'compute_time': self.compute_time,
+            'residual': residual.verdict if residual else '',
+            'residual_white': bool(residual.white) if residual else False,
+            'residual_input_correlated': bool(residual.input_correlated) if residual else False,
             'warnings': list(self.warnings),
         }
 
@@ -93,7 +97,9 @@ class Update:
         """Return the ``ctid fit --json`` object of this window plus its end time (s)."""
         summary = self.result.to_dict()
         summary['params'] = {name: float(value) for name, value in zip(self.names, self.values)}
-        summary['std'] = {name: float(value) for name, value in zip(self.names, self.stds)}
+        # A parameter held at a bound has no standard deviation: null, as in Estimate.to_dict.
+        summary['std'] = {name: float(value) if np.isfinite(value) else None
+                          for name, value in zip(self.names, self.stds)}
         summary['warnings'] = list(self.warnings)
         summary['time'] = self.end_ns / NANOSECONDS
         return summary
