@@ -346,13 +346,14 @@ def covariance(problem: Problem, state: State) -> Uncertainty:
     # sensitivities differ; their mean stands for both.
     psi = psi[:, free]
     scales = column_scales(psi)
-    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)))
+    svd = np.linalg.svd(psi / scales, full_matrices=False)
+    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd)
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
     condition = 1.0
     if np.any(free):
-        singular, vt = np.linalg.svd(psi / scales, full_matrices=False)[1:]
+        singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free)
@@ -527,20 +528,19 @@ def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
     return problem, cutoff
 
 
-def _reductions(problem: Problem, theta: np.ndarray, delay_index: Optional[int]
-                ) -> Dict[int, float]:
+def _reductions(problem: Problem, theta: np.ndarray) -> Dict[int, float]:
     """
     Parameters whose limit gives a simpler structure, and that limit; one per distinct one.
 
     A lag or mass at its order-reduction limit (:attr:`Problem.reductions`) unless that leaves
-    a static model, and a dead time at its lower bound. Of two parameters that play the same
-    role (the model is unchanged when they are swapped, as ``T1`` and ``T2`` in
-    ``(T1 s + 1)(T2 s + 1)``) only the first counts: both give the same nested structure.
+    a static model. Of two parameters that play the same role (the model is unchanged when
+    they are swapped, as ``T1`` and ``T2`` in ``(T1 s + 1)(T2 s + 1)``) only the first counts:
+    both give the same nested structure. The dead time's own nested structure (no dead time) is
+    the first point of the dead-time profile, refined if it is among its best minima, and a
+    dead time on its lower bound is released when the cost falls inward (section 7).
     """
     # The structure one order lower still has dynamics only if D had degree 2 or more.
     limits = dict(problem.reductions) if problem.model.den_degree >= 2 else {}
-    if delay_index is not None:
-        limits[delay_index] = problem.lower[delay_index]
     model = problem.model
     probe = theta * np.random.default_rng(0).uniform(1.1, 1.9, theta.size)
     distinct: Dict[int, float] = {}
@@ -579,7 +579,7 @@ def _nested_start(problem: Problem, initial: Initial, delay_range: DelayRange,
                                  problem.upper[names.index(name)]))
              for name, value in _given_hints(initial).items()}
     best = None
-    for index, value in _reductions(problem, start.theta, delay_index).items():
+    for index, value in _reductions(problem, start.theta).items():
         fixed = np.zeros(len(names), dtype=bool)
         fixed[index] = True
         try:
@@ -587,7 +587,7 @@ def _nested_start(problem: Problem, initial: Initial, delay_range: DelayRange,
                                       pin={names[index]: value})
         except (EstimationError, ModelError):
             continue
-        if delay_index is not None and index != delay_index:
+        if delay_index is not None:
             found = delay_search(problem, nested, delay_index, delay_range, fixed=fixed)
         else:
             found = local_fit(problem, nested, 'iv', first_ls=True, frozen=fixed,

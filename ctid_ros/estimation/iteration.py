@@ -26,6 +26,8 @@ _HALVINGS = 14
 _FULL_STEP = (1.0,)
 _HALVED_STEPS = tuple(0.5 ** np.arange(1, _HALVINGS))
 _ALL_STEPS = _FULL_STEP + _HALVED_STEPS
+# Steps tried on each side of a dead-time kink: enough to enter a basin, not to resolve it.
+_KINK_STEPS = _ALL_STEPS[:4]
 _IV_CONDITION_LIMIT = 1e10
 _LM_DAMPINGS = (1e-2, 1.0, 1e2)
 # An update smaller than this many standard deviations of the estimate changes nothing a user
@@ -334,8 +336,8 @@ def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.n
     At a dead time on the lattice where the cost falls to both sides, take the better side.
 
     Such a kink separates two basins; both one-sided directions are tried (full step, then
-    halved until the cost falls) and the lower cost wins (None if neither lowers it: the usual
-    attempts follow).
+    halved at most three times until the cost falls) and the lower cost wins (None if neither
+    lowers it: the usual attempts follow).
     """
     rising, falling = _one_sided_gradients(lin, error)
     delays = free & (lin.delay_gradient != 0.0)
@@ -346,7 +348,7 @@ def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.n
         step = _bounded_direction(kind, lin, error, free, *bounded, side=side)
         if step is None or _delay_change(lin, step) == 0.0:
             continue
-        outcome = _try_step(problem, state, step, True, _ALL_STEPS)
+        outcome = _try_step(problem, state, step, True, _KINK_STEPS)
         if outcome is not None and (best is None or outcome[0].cost < best[2][0].cost):
             best = (kind, step, outcome)
     return best
@@ -423,6 +425,8 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         return not check_optimality or method == 'ls' or \
             optimality(problem, state, frozen) <= OPTIMALITY_LIMIT
 
+    # Set when the last update needed another direction or a shorter step.
+    struggling = False
     for iteration in range(max_iterations):
         lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
@@ -441,11 +445,12 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
-        if primary != 'ls' and (first is None or _step_size(lin, error, first)
-                                >= NEGLIGIBLE_STEP):
+        if primary != 'ls' and (first is None or struggling and _step_size(
+                lin, error, first) >= NEGLIGIBLE_STEP):
             # Where two parameters act alike (coinciding time constants) the IV step is
-            # singular or large along what the data cannot see; the Gauss-Newton step without
-            # those directions measures the update then.
+            # singular or large along what the data cannot see, and the updates that pass are
+            # damped or halved; the Gauss-Newton step without those directions measures the
+            # update then.
             first = _bounded_direction('gn', lin, error, free, *bounded,
                                        rcond=_OPTIMALITY_RCOND)
         if primary != 'ls' and first is not None and \
@@ -485,6 +490,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
                 return stop(StopReason.NO_FULL_STEP)
             return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
         kind, step, (new_state, scale) = accepted
+        struggling = kind != primary or scale < 1.0
         change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
         previous = max(state.cost, np.finfo(float).tiny)
         decrease = (state.cost - new_state.cost) / previous

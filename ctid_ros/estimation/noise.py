@@ -17,7 +17,7 @@ sample grid from a slower measurement, so the estimate can say so.
 """
 
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 from scipy import signal
@@ -27,6 +27,7 @@ __all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model']
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
 _ORDER_FRACTION = 0.05
+_PATIENCE = 10
 # Interpolation is recognised when this share of an output's bends falls on one phase.
 _PHASE_SHARE = 0.99
 _MAX_FACTOR = 64
@@ -69,7 +70,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel
 
     The Yule-Walker estimate from the biased autocovariance, whose polynomial is always stable.
     Orders ``0..min(max_order, 5 % of the samples)`` are compared by
-    ``N log(innovation variance) + p log N``.
+    ``N log(innovation variance) + p log N``; the search ends ten orders after the best.
     """
     residual = np.asarray(residual, dtype=float)
     count = residual.size
@@ -81,7 +82,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel
     size = 1 << int(np.ceil(np.log2(2 * count)))
     spectrum = np.fft.rfft(centred, size)
     autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
-    best = (count * np.log(variance), np.ones(1), variance)
+    best = (count * np.log(variance), np.ones(1), variance, 0)
     ar = np.ones(1)
     error = autocovariance[0]
     for order in range(1, top + 1):
@@ -92,11 +93,15 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel
             break
         criterion = count * np.log(error) + order * np.log(count)
         if criterion < best[0]:
-            best = (criterion, ar.copy(), error)
+            best = (criterion, ar.copy(), error, order)
+        elif order - best[3] >= _PATIENCE:
+            # Each further order costs log N in BIC; ten without a gain end the search.
+            break
     return NoiseModel(best[1], float(best[2]), variance)
 
 
-def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int
+def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
+                        svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
                         ) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
@@ -107,11 +112,12 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int
     ``(Psi^T Psi)^-1 Psi^T = V S^-1 U^T`` and ``U^T Sigma U = sigma_w^2 Z^T Z``, ``Z = H^T U``
     with ``H`` the (causal) impulse-response matrix of ``1/A``: ``Z`` is ``U`` filtered through
     ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
-    normal equations would square away.
+    normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``
+    if the caller has it.
     """
     count = residual.size
     model = noise_model(residual)
-    left, singular, right_t = np.linalg.svd(psi, full_matrices=False)
+    left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
     mapping = right_t.T / singular                       # V S^-1
@@ -141,7 +147,10 @@ def measured_every(y: np.ndarray) -> int:
         moving = np.flatnonzero(np.abs(differences) > 1e-9 * scale)
         if moving.size < 4:
             continue
-        for factor in range(2, _MAX_FACTOR + 1):
+        # One phase of m holds at most a 1/m share of the samples: measured data, which move
+        # on (nearly) every sample, rule out every factor at once.
+        largest = int(min(_MAX_FACTOR, differences.size / (_PHASE_SHARE * moving.size) + 1))
+        for factor in range(2, largest + 1):
             phases = np.bincount(moving % factor, minlength=factor)
             if phases.max() >= _PHASE_SHARE * moving.size and \
                     phases.max() >= 0.5 * differences.size / factor:

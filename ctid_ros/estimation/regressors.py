@@ -178,7 +178,9 @@ class SignalBank:
                 derivative += u_parts[1]
                 # d yhat / d tau = -s yhat, whose feedthrough of the delayed held input takes
                 # the input just before t_k for a growing dead time (its left limit).
-                feedthrough = bank_u.continuous.output_map(u_numerators[1])[1]
+                on_lattice = bank_u.feed_left is not None and bank_u.feed_left != bank_u.feed
+                feedthrough = bank_u.continuous.output_map(u_numerators[1])[1] \
+                    if on_lattice else 0.0
                 if feedthrough != 0.0:
                     jump += feedthrough * (bank_u.delayed_input(signal, left=True)
                                            - bank_u.delayed_input(signal))[trim:]

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import List, Sequence, Tuple
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 __all__ = ['DEFAULT_LAGS', 'ResidualAnalysis', 'analyse_residual', 'cross_correlation']
 
@@ -36,15 +36,27 @@ def cross_correlation(first: np.ndarray, second: np.ndarray, lags: int) -> np.nd
 
     Means are removed first; computed by FFT. ``r(0)`` of a signal with itself is 1.
     """
-    first = np.asarray(first, dtype=float) - np.mean(first)
-    second = np.asarray(second, dtype=float) - np.mean(second)
-    count = first.size
-    size = 1 << int(np.ceil(np.log2(2 * count)))
-    spectrum = np.fft.rfft(first, size) * np.conj(np.fft.rfft(second, size))
-    full = np.fft.irfft(spectrum, size)
-    values = np.concatenate([full[size - lags:], full[:lags + 1]]) if lags else full[:1]
-    scale = np.sqrt((first @ first) * (second @ second))
-    return values / scale if scale > 0.0 else np.zeros(2 * lags + 1)
+    first, second = _Spectrum(first), _Spectrum(second)
+    return first.correlation(second, lags)
+
+
+class _Spectrum:
+    """A centred signal with its zero-padded FFT, for several correlations without refiltering."""
+
+    def __init__(self, values: np.ndarray):
+        values = np.asarray(values, dtype=float)
+        self.centred = values - np.mean(values)
+        self.size = 1 << int(np.ceil(np.log2(2 * values.size)))
+        self.spectrum = np.fft.rfft(self.centred, self.size)
+        self.energy = float(self.centred @ self.centred)
+
+    def correlation(self, other: '_Spectrum', lags: int) -> np.ndarray:
+        """Return the normalised correlation with ``other`` at lags ``-lags..lags``."""
+        full = np.fft.irfft(self.spectrum * np.conj(other.spectrum), self.size)
+        values = np.concatenate([full[self.size - lags:], full[:lags + 1]]) if lags \
+            else full[:1]
+        scale = np.sqrt(self.energy * other.energy)
+        return values / scale if scale > 0.0 else np.zeros(2 * lags + 1)
 
 
 @dataclass
@@ -134,7 +146,7 @@ class ResidualAnalysis:
 
 def _family_bound(tests: int) -> float:
     """Return the normal quantile for about 1 % false alarms over ``tests`` values."""
-    return float(stats.norm.ppf(1.0 - (1.0 - _FAMILY) / (2.0 * max(tests, 1))))
+    return float(special.ndtri(1.0 - (1.0 - _FAMILY) / (2.0 * max(tests, 1))))
 
 
 def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[str],
@@ -158,17 +170,19 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     count = residual.size
     inputs = np.asarray(inputs, dtype=float).reshape(count, -1)
     lags = int(max(1, min(lags, count // 4)))
-    auto = cross_correlation(residual, residual, lags)[lags:]
-    z_lag = float(stats.norm.ppf(0.5 + _PER_LAG / 2.0))
+    error = _Spectrum(residual)
+    auto = error.correlation(error, lags)[lags:]
+    z_lag = float(special.ndtri(0.5 + _PER_LAG / 2.0))
     auto_bound = z_lag / np.sqrt(count)
     # Bartlett: var r_eu(k) = sum_j rho_e(j) rho_u(j) / N, summed where both are correlated.
     span = int(min(count // 4, max(4 * lags, 50)))
-    rho_e = cross_correlation(residual, residual, span)
+    rho_e = error.correlation(error, span)
     cross = np.zeros((2 * lags + 1, inputs.shape[1]))
     spreads = np.zeros(inputs.shape[1])
     for j in range(inputs.shape[1]):
-        cross[:, j] = cross_correlation(residual, inputs[:, j], lags)
-        rho_u = cross_correlation(inputs[:, j], inputs[:, j], span)
+        signal = _Spectrum(inputs[:, j])
+        cross[:, j] = error.correlation(signal, lags)
+        rho_u = signal.correlation(signal, span)
         spreads[j] = np.sqrt(max(float(rho_e @ rho_u), 1.0) / count)
     cross_bounds = z_lag * spreads
     z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
