@@ -475,16 +475,18 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         final = iterate(problem, start, first_ls=not refined, **settings)
         history.extend(final.history)
         rng = np.random.default_rng(0)
+        final = _from_best_seen(problem, final, history, settings)
+        blind = _blind_combination(problem, final.state)
         for _ in range(_SYMMETRY_RESTARTS):
-            if _blind_combination(problem, final.state) is None:
+            if blind is None:
                 break
             nudged = _nudged(problem, final.state, rng)
             if nudged is None:
                 break
-            final = _lower(final, iterate(problem, nudged, first_ls=False, **settings))
-            history.extend(final.history)
-        final = _from_best_seen(problem, final, history, settings)
-        blind = _blind_combination(problem, final.state)
+            restarted = iterate(problem, nudged, first_ls=False, **settings)
+            history.extend(restarted.history)
+            final = _from_best_seen(problem, _lower(final, restarted), history, settings)
+            blind = _blind_combination(problem, final.state)
         if blind is not None and _blind_nearby(problem, final.state, rng):
             raise EstimationError(blind)
         uncertainty = covariance(problem, final.state)

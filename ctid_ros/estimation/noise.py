@@ -79,7 +79,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel
     top = int(min(max_order, _ORDER_FRACTION * count))
     if variance == 0.0 or top < 1:
         return NoiseModel(np.ones(1), variance, variance)
-    size = 1 << int(np.ceil(np.log2(2 * count)))
+    size = 1 << int(np.ceil(np.log2(count + top + 1)))
     spectrum = np.fft.rfft(centred, size)
     autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
     best = (count * np.log(variance), np.ones(1), variance, 0)

@@ -36,17 +36,22 @@ def cross_correlation(first: np.ndarray, second: np.ndarray, lags: int) -> np.nd
 
     Means are removed first; computed by FFT. ``r(0)`` of a signal with itself is 1.
     """
-    first, second = _Spectrum(first), _Spectrum(second)
+    first, second = _Spectrum(first, lags), _Spectrum(second, lags)
     return first.correlation(second, lags)
 
 
 class _Spectrum:
-    """A centred signal with its zero-padded FFT, for several correlations without refiltering."""
+    """
+    A centred signal with its zero-padded FFT, for several correlations without refiltering.
 
-    def __init__(self, values: np.ndarray):
+    Padded to at least the length plus ``lags`` samples: enough for correlations up to that lag
+    without wrapping around.
+    """
+
+    def __init__(self, values: np.ndarray, lags: int):
         values = np.asarray(values, dtype=float)
         self.centred = values - np.mean(values)
-        self.size = 1 << int(np.ceil(np.log2(2 * values.size)))
+        self.size = 1 << int(np.ceil(np.log2(values.size + lags + 1)))
         self.spectrum = np.fft.rfft(self.centred, self.size)
         self.energy = float(self.centred @ self.centred)
 
@@ -170,17 +175,17 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     count = residual.size
     inputs = np.asarray(inputs, dtype=float).reshape(count, -1)
     lags = int(max(1, min(lags, count // 4)))
-    error = _Spectrum(residual)
-    auto = error.correlation(error, lags)[lags:]
+    span = int(min(count // 4, max(4 * lags, 50)))
+    error = _Spectrum(residual, span)
+    rho_e = error.correlation(error, span)
+    auto = rho_e[span:span + lags + 1]
     z_lag = float(special.ndtri(0.5 + _PER_LAG / 2.0))
     auto_bound = z_lag / np.sqrt(count)
     # Bartlett: var r_eu(k) = sum_j rho_e(j) rho_u(j) / N, summed where both are correlated.
-    span = int(min(count // 4, max(4 * lags, 50)))
-    rho_e = error.correlation(error, span)
     cross = np.zeros((2 * lags + 1, inputs.shape[1]))
     spreads = np.zeros(inputs.shape[1])
     for j in range(inputs.shape[1]):
-        signal = _Spectrum(inputs[:, j])
+        signal = _Spectrum(inputs[:, j], span)
         cross[:, j] = error.correlation(signal, lags)
         rho_u = signal.correlation(signal, span)
         spreads[j] = np.sqrt(max(float(rho_e @ rho_u), 1.0) / count)
