@@ -27,7 +27,7 @@ _REFINEMENT_MARGIN = 3.0
 _COARSE_STRIDE = 3
 _JOINT_ITERATIONS = 10
 # Dead times tried around the refined minimum, in samples.
-_PROBE_OFFSETS = (-1.0, 1.0, -2.0, 2.0)
+_PROBE_OFFSETS = (-1.0, 1.0)
 # Shares of the dead time given to a lag that collapsed onto its limit.
 _LAG_SHARES = (0.5, 0.25, 0.75)
 
@@ -197,10 +197,10 @@ def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], d
                       profile: List[Tuple[float, float, State]], frozen: np.ndarray,
                       fixed: np.ndarray, iterations: int) -> Tuple[State, List[Iteration]]:
     """
-    Refine the profile's fits one and two samples either side of the best dead time too.
+    Refine the profile's fits one sample either side of the best dead time too.
 
     The equation-error profile is only a proxy of the output-error one: its minimum can sit a
-    sample or two off, next to the basin of another structure (a lag traded for dead time, a
+    sample off, next to the basin of another structure (a lag traded for dead time, a
     lag collapsed onto its limit). Each neighbour's own fit is iterated with the dead time
     frozen; one that beats ``best`` is refined jointly, and the better end kept.
     """

@@ -485,7 +485,10 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                 break
             restarted = iterate(problem, nudged, first_ls=False, **settings)
             history.extend(restarted.history)
-            final = _from_best_seen(problem, _lower(final, restarted), history, settings)
+            if restarted.state.cost >= final.state.cost:
+                # Back where it started, or worse: the data put the minimum at the coincidence.
+                break
+            final = _from_best_seen(problem, restarted, history, settings)
             blind = _blind_combination(problem, final.state)
         if blind is not None and _blind_nearby(problem, final.state, rng):
             raise EstimationError(blind)

@@ -36,6 +36,9 @@ NEGLIGIBLE_STEP = 1e-3
 # A point is a minimum for a user when the Gauss-Newton step from it (the projected gradient in
 # the metric of the estimate's uncertainty) is below this many standard deviations.
 OPTIMALITY_LIMIT = 0.1
+# After a damped or halved update the statistical stop also measures the Gauss-Newton step
+# without the directions the data barely see.
+_STRUGGLING = 1
 # Relative singular values of the scaled sensitivities below this carry no usable gradient
 # information: the first-order model is swamped by second-order terms along such directions.
 _OPTIMALITY_RCOND = 1e-6
@@ -425,8 +428,8 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         return not check_optimality or method == 'ls' or \
             optimality(problem, state, frozen) <= OPTIMALITY_LIMIT
 
-    # Set when the last update needed another direction or a shorter step.
-    struggling = False
+    # Updates so far that needed another direction or a shorter step.
+    struggling = 0
     for iteration in range(max_iterations):
         lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
@@ -445,7 +448,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
-        if primary != 'ls' and (first is None or struggling and _step_size(
+        if primary != 'ls' and (first is None or struggling >= _STRUGGLING and _step_size(
                 lin, error, first) >= NEGLIGIBLE_STEP):
             # Where two parameters act alike (coinciding time constants) the IV step is
             # singular or large along what the data cannot see, and the updates that pass are
@@ -490,7 +493,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
                 return stop(StopReason.NO_FULL_STEP)
             return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
         kind, step, (new_state, scale) = accepted
-        struggling = kind != primary or scale < 1.0
+        struggling += kind != primary or scale < 1.0
         change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
         previous = max(state.cost, np.finfo(float).tiny)
         decrease = (state.cost - new_state.cost) / previous
