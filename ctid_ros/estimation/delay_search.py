@@ -26,6 +26,8 @@ _REFINED_MINIMA = 2
 _REFINEMENT_MARGIN = 3.0
 _COARSE_STRIDE = 3
 _JOINT_ITERATIONS = 10
+# A profile whose best fit leaves more than this share of the output's spread explains nothing.
+_UNEXPLAINED = 0.9
 # Dead times tried around the refined minimum, in samples.
 _PROBE_OFFSETS = (-1.0, 1.0)
 # Shares of the dead time given to a lag that collapsed onto its limit.
@@ -80,9 +82,12 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     state-variable filter; the filter that gave the lowest cost there serves the whole profile
     (one filter throughout, so the profile's minima are not artefacts of switching filters).
     The best local minima of the profile get a few projection iterations with ``tau`` frozen,
-    then joint ones. On coarse data, where the bracket spans fewer samples than the grid has
-    points, the grid adds the half-sample points: for a model of relative degree one the
-    cost has a kink on every sample, and its minima lie between them.
+    then joint ones. A profile whose lowest point is the end of an automatic bracket, or whose
+    best fit explains less than a tenth of the output's spread, goes on over a bracket twice as
+    long (at most half the record). On coarse data, where the bracket
+    spans fewer samples than the grid has points, the grid adds the half-sample points: for a
+    model of relative degree one the cost has a kink on every sample, and its minima lie
+    between them.
 
     ``fixed`` parameters (default none) keep their start values throughout (the search for a
     nested structure).
@@ -136,6 +141,26 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     # where the fit would have to anticipate the input) drops out of the profile.
     profile = [(float(tau), states[tau].cost, states[tau]) for tau in grid
                if states[tau] is not None]
+    # An automatic bracket rests on the data's guess; a profile still falling at its end, or
+    # whose best fit explains nothing (a tenth of the output's spread), says the dead time lies
+    # beyond: the bracket is doubled (at most to half the record) until neither holds.
+    automatic = delay_range is None and not np.isfinite(problem.upper[delay_index])
+    ceiling = 0.5 * data.ts * len(data)
+    spread = problem.measured - np.mean(problem.measured)
+    nothing = 0.5 * (_UNEXPLAINED * np.linalg.norm(spread)) ** 2
+
+    def beyond() -> bool:
+        lowest = min(profile, key=lambda point: point[1])
+        return lowest is profile[-1] or lowest[1] > nothing
+
+    while automatic and profile and high < ceiling and beyond():
+        extended = min(2.0 * high, ceiling)
+        more = np.unique([problem.on_delay_lattice(tau) for tau in
+                          np.linspace(high, extended, _GRID_POINTS)])
+        more = more[(more > high) & (more <= extended)]
+        profile += [(float(tau), state.cost, state) for tau, state in
+                    ((tau, fitted(tau, chosen)) for tau in more) if state is not None]
+        high = extended
     if not profile:
         return DelaySearch(start)
     # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
@@ -172,8 +197,9 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     (``T = delta``, ``tau - delta``) and iterated jointly; the better end is kept.
     """
     tau = best.theta[delay_index]
+    # At the limit up to the box truncation's last thousandth of a step.
     collapsed = [index for index, limit in problem.reductions.items()
-                 if not fixed[index] and best.theta[index] == limit]
+                 if not fixed[index] and abs(best.theta[index] - limit) <= 0.01 * abs(limit)]
     for index in collapsed:
         for share in _LAG_SHARES:
             delta = share * (tau - low)

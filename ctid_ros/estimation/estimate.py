@@ -47,7 +47,7 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
-                                        initial_estimate, local_fit)
+                                        initial_estimate, local_fit, random_starts)
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -71,6 +71,8 @@ _NUDGES = 14
 _WARM_START_ITERATIONS = 6
 # Iterations that fit a nested structure without a dead time to search.
 _NESTED_ITERATIONS = 10
+# Output-error updates from each random draw when the residual says the model misses dynamics.
+_ELSEWHERE_ITERATIONS = 20
 
 
 @dataclass
@@ -234,18 +236,13 @@ def _check_excitation(model: Model, data: Data) -> None:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
 
 
-def _blind_combination(problem: Problem, state: State, limits_hold: bool = True
-                       ) -> Optional[str]:
+def _blind_combination(problem: Problem, state: State) -> Optional[str]:
     """
     Explain why the output is (almost) blind to a parameter combination, or None.
 
-    Parameters held at a bound are left out; with ``limits_hold`` False, those held at an
-    order-reduction limit (not a bound the user or the dead time set) count too.
+    Parameters held at a bound are left out.
     """
     free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
-    if not limits_hold:
-        for index, value in problem.reductions.items():
-            free[index] |= state.theta[index] in (problem.lower[index], problem.upper[index])
     if not np.any(free):
         return None
     names = [name for name, keep in zip(problem.model.parameters, free) if keep]
@@ -266,19 +263,41 @@ def _blind_combination(problem: Problem, state: State, limits_hold: bool = True
             f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
 
 
-def _blind_nearby(problem: Problem, state: State, rng: np.random.Generator) -> bool:
+def _structurally_blind(model, theta: np.ndarray, rng: np.random.Generator) -> bool:
     """
-    Return True if the output stays blind to a combination around ``state`` too.
+    Return True if the transfer function itself ignores a combination of the parameters.
 
-    A structural lack of identifiability holds everywhere; at a point where interchangeable
-    parameters coincide (two equal time constants, where the data put the minimum) the
-    sensitivities are dependent only there. That estimate is returned, with the weakly
-    determined combination in its warnings, rather than refused.
+    The map from ``theta`` to the normalised coefficients (``N/d_0``, ``D/d_0`` without its
+    leading 1, the dead time) is rank deficient at ``theta`` and at two random points near it:
+    no data can separate such parameters (``g/(J s^2 + b s + k)``: only ratios count), so the
+    model must change. Where the data alone cannot (time constants that coincide, lags far
+    below the sample time acting as dead time, a poorly exciting input) the estimate is
+    returned with the weakly determined combination in its warnings instead.
     """
-    nudged = _nudged(problem, state, rng)
-    # A lag held at its order-reduction limit is no bound the data respect: a structural
-    # blindness must not hide behind it.
-    return nudged is None or _blind_combination(problem, nudged, limits_hold=False) is not None
+    points = [theta] + [theta * (1.0 + 0.1 * rng.standard_normal(theta.size))
+                        for _ in range(2)]
+    for point in points:
+        try:
+            coefficients = model.coefficients(point)
+        except ModelError:
+            continue
+        lead = coefficients.den[0]
+        if lead == 0.0:
+            continue
+        values = np.concatenate([coefficients.num.ravel(), coefficients.den[1:]]) / lead
+        lead_gradient = coefficients.den_jacobian[:, 0]
+        jacobian = np.hstack([
+            coefficients.num_jacobian.reshape(point.size, -1) / lead,
+            coefficients.den_jacobian[:, 1:] / lead,
+            coefficients.delay_gradient[:, None]])
+        jacobian[:, :values.size] -= np.outer(lead_gradient, values) / lead
+        # Rows: parameters; scaled by their size, so units do not matter.
+        scaled = jacobian * np.maximum(np.abs(point), 1e-12)[:, None]
+        singular = np.linalg.svd(scaled, compute_uv=False)
+        if singular.size and singular[-1] > 1e-9 * singular[0] and \
+                singular.size >= point.size:
+            return False
+    return True
 
 
 def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optional[State]:
@@ -490,7 +509,11 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                 break
             final = _from_best_seen(problem, restarted, history, settings)
             blind = _blind_combination(problem, final.state)
-        if blind is not None and _blind_nearby(problem, final.state, rng):
+        if not from_initial and blind is None:
+            final = _elsewhere(problem, final, history, settings, delay_index)
+            blind = _blind_combination(problem, final.state)
+        if blind is not None and (blind.startswith('the output does not depend') or
+                                  _structurally_blind(problem.model, final.state.theta, rng)):
             raise EstimationError(blind)
         uncertainty = covariance(problem, final.state)
     parameter_covariance = uncertainty.covariance
@@ -613,6 +636,42 @@ def _given_hints(initial: Initial) -> Dict[str, float]:
     if initial is None or isinstance(initial, str):
         return {}
     return {name: float(value) for name, value in initial.items()}
+
+
+def _elsewhere(problem: Problem, final: IterationResult, history: List[Iteration],
+               settings: dict, delay_index: Optional[int]) -> IterationResult:
+    """
+    Look elsewhere when the residual is not white.
+
+    A residual that is correlated with the input, or coloured (section 11; a coloured input
+    makes the two hard to tell apart), can mean the model misses something: a structure that
+    cannot do better, or a local minimum. For a non-affine structure, whose equation-error
+    start can miss the output-error basin altogether, the random draws of the automatic start
+    are then iterated on the output error directly (twenty updates each); a better end is
+    iterated to convergence and kept. Automatic searches only; ``docs/algorithm.md`` section 12.
+    """
+    if problem.model.is_affine or settings['method'] == 'ls':
+        return final
+    residual = problem.measured - problem.prediction(final.state.coefficients)
+    inputs = problem.data.u.reshape(len(problem.data), -1)[problem.skip:]
+    verdict = analyse_residual(residual, inputs, problem.model.inputs)
+    if verdict.white and not verdict.input_correlated:
+        return final
+    frozen = np.zeros(final.state.theta.size, dtype=bool)
+    best = None
+    for theta in random_starts(problem, final.state.theta, delay_index):
+        coefficients = problem.admissible(theta)
+        if coefficients is None:
+            continue
+        trial = iterate(problem, problem.state(theta, coefficients), method='iv',
+                        frozen=frozen, max_iterations=_ELSEWHERE_ITERATIONS, tolerance=1e-6)
+        if trial.state.cost < (final.state.cost if best is None else best.state.cost):
+            best = trial
+    if best is None:
+        return final
+    again = iterate(problem, best.state, first_ls=False, **settings)
+    history.extend(best.history + again.history)
+    return _from_best_seen(problem, _lower(final, again), history, settings)
 
 
 def _lower(first: IterationResult, second: IterationResult) -> IterationResult:

@@ -382,8 +382,8 @@ class Problem:
         Return the interval the dead time is searched in (``docs/algorithm.md`` section 12).
 
         ``delay_range`` within the bounds if given; else the bounds, with an infinite upper
-        bound replaced by ``max(3 guess, guess + 20 ts)`` (at most half the record), where
-        ``guess`` is :attr:`delay_guess`.
+        bound replaced by ``max(3 guess, guess + 20 ts, 5 % of the record)`` (at most half the
+        record), where ``guess`` is :attr:`delay_guess`.
 
         """
         data = self.data
@@ -396,5 +396,8 @@ class Problem:
         high = self.upper[delay_index]
         if not np.isfinite(high):
             guess = self.delay_guess
-            high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
+            # The guess can fail (a slowly held or coloured input); a twentieth of the record
+            # is searched whatever it says.
+            high = min(max(3.0 * guess, guess + 20.0 * data.ts, 0.05 * data.ts * len(data)),
+                       0.5 * data.ts * len(data))
         return low, max(high, low + data.ts)

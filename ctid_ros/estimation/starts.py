@@ -34,7 +34,7 @@ from scipy import optimize
 __all__ = [
     'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
     'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths', 'initial_estimate',
-    'local_fit',
+    'local_fit', 'random_starts', 'stabilized',
 ]
 
 # Initial values by parameter name, or 'auto'/None for none.
@@ -45,6 +45,8 @@ _START_TOLERANCE = 1e-6
 _START_ITERATIONS = 100
 _RANDOM_STARTS = 4
 _LOCAL_ITERATIONS = 4
+# A model explaining the data leaves a residual below this share of the output's spread.
+_UNEXPLAINED = 0.9
 # Fractions of a sample whose filtered input is kept (the lattice, half samples, a hint).
 _REMEMBERED_FRACTIONS = 4
 
@@ -110,12 +112,51 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
         given.get(model.parameters[delay_index], taus[0])
     best = _lower_cost(fit, best_candidate(
         problem, _start_points(problem, given, pinned, delay_index, hinted_tau)))
+    if best is None and model.is_affine:
+        # Every fit has an unstable D (a lightly damped plant, a biased equation error): its
+        # unstable roots mirrored into the left half plane give a stable start nearby.
+        for tau in taus:
+            hint = _start_points(problem, given, pinned, delay_index, tau)[:1]
+            for index in range(filters.count):
+                fits = equation_error_fits(problem, hint, free, tau, filters.select(index))
+                mirrored = (stabilized(problem, theta, free) for theta in fits)
+                best = _lower_cost(best, best_candidate(
+                    problem, [theta for theta in mirrored if theta is not None]))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
             'out-of-bounds D(s), and the automatic initialisation found none either; give '
             'initial values that make the model stable, or check the bounds')
     return best
+
+
+def stabilized(problem: Problem, theta: np.ndarray, free: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return ``theta`` with the unstable roots of ``D`` mirrored into the left half plane.
+
+    For an affine structure ``D`` is linear in the parameters: the free ones are refitted by
+    least squares to the mirrored polynomial (the others kept); None if that is impossible.
+    """
+    model = problem.model
+    try:
+        coefficients = model.coefficients(theta)
+    except ModelError:
+        return None
+    den = coefficients.den
+    if den.size < 2 or den[0] == 0.0:
+        return None
+    roots = np.roots(den)
+    scale = max(float(np.max(np.abs(roots))), np.finfo(float).tiny)
+    mirrored = np.where(roots.real >= 0.0, -np.abs(roots.real) - 1e-3 * scale + 1j * roots.imag,
+                        roots)
+    target = np.real(den[0] * np.poly(mirrored))
+    jacobian = coefficients.den_jacobian[free].T            # d den / d theta_free
+    if not np.any(jacobian):
+        return None
+    step = np.linalg.lstsq(jacobian, target - den, rcond=None)[0]
+    result = theta.copy()
+    result[free] = theta[free] + step
+    return np.clip(result, problem.lower, problem.upper)
 
 
 def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
@@ -205,6 +246,18 @@ def _initial_delays(problem: Problem, given: Mapping[str, float], pinned: Mappin
     whole = [problem.on_delay_lattice(tau) for tau in taus]
     return list(dict.fromkeys(rounded if lower <= rounded <= upper else tau
                               for tau, rounded in zip(taus, whole)))
+
+
+def random_starts(problem: Problem, theta: np.ndarray, delay_index: Optional[int]
+                  ) -> List[np.ndarray]:
+    """
+    Return the random draws of the automatic start (none for an affine structure).
+
+    The same seeded, log-uniform draws the equation-error multi-start uses, with the dead time
+    of ``theta``: starts for output-error iterations elsewhere in the parameter space.
+    """
+    tau = 0.0 if delay_index is None else float(theta[delay_index])
+    return _start_points(problem, {}, {}, delay_index, tau)[1:]
 
 
 def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[str, float],
@@ -478,13 +531,19 @@ def explains_data(problem: Problem, state: State, delay_index: Optional[int],
     The lags tested cover the model's settling time (its dead time included) plus, for a
     dead-time parameter, the upper end of its search range: a wrong dead time or a missed mode
     shows there (:mod:`ctid_ros.estimation.correlation`, ``docs/algorithm.md`` section 11).
+    A model must also explain a tenth of the output's spread (a fit above 10 %): a model that
+    explains nothing (a gain near zero) leaves the output itself as residual, which passes the
+    test when its dynamics lie beyond the lags tested.
 
     """
     data = problem.data
+    residual = np.zeros(len(data))
+    residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
+    spread = problem.measured - np.mean(problem.measured)
+    if np.linalg.norm(residual) > _UNEXPLAINED * np.linalg.norm(spread):
+        return False
     horizon = settling_time(state.coefficients)
     if delay_index is not None:
         horizon += problem.delay_bracket(delay_index, delay_range)[1]
     lags = int(np.ceil(horizon / data.ts))
-    residual = np.zeros(len(data))
-    residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
     return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
