@@ -12,14 +12,14 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
-from ctid_ros.estimation.iteration import iterate, Iteration
+from ctid_ros.estimation.iteration import iterate, Iteration, IterationResult
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, distinct, equation_error_fits,
                                         explains_data, filter_bandwidths, FILTER_COUNT,
                                         local_fit, StateVariableFilters)
 import numpy as np
 
-__all__ = ['DelaySearch', 'delay_search']
+__all__ = ['DelaySearch', 'across_the_sample', 'delay_search']
 
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
@@ -30,6 +30,8 @@ _JOINT_ITERATIONS = 10
 _UNEXPLAINED = 0.9
 # Dead times tried around the refined minimum, in samples.
 _PROBE_OFFSETS = (-1.0, 1.0)
+# A lag below this many times its order-reduction limit counts as collapsed.
+_COLLAPSED = 10.0
 # Shares of the dead time given to a lag that collapsed onto its limit.
 _LAG_SHARES = (0.5, 0.25, 0.75)
 
@@ -185,6 +187,39 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
 
 
+def across_the_sample(problem: Problem, best: State, delay_index: int,
+                      delay_range: DelayRange) -> Optional[IterationResult]:
+    """
+    Try the other side of the sample instant nearest the dead time, for a kinked cost.
+
+    For a model of relative degree one the cost has a kink at every whole sample of dead time
+    (section 3 of ``docs/algorithm.md``); a minimum just past one has a twin just before it
+    that the iteration, which sees one side at a time, cannot reach. The dead time mirrored
+    across the nearest lattice point is iterated jointly (ten updates); the result if it ends
+    lower than ``best``, else None.
+    """
+    low, high = problem.delay_bracket(delay_index, delay_range)
+    fixed = np.zeros(best.theta.size, dtype=bool)
+    num = best.coefficients.num
+    order = best.coefficients.den.size - 1
+    # Relative degree one: some numerator reaches s^(n-1).
+    if order < 1 or num.shape[1] < order or not np.any(num[:, num.shape[1] - order]):
+        return None
+    tau = best.theta[delay_index]
+    knot = problem.on_delay_lattice(tau)
+    mirrored = 2.0 * knot - tau
+    if abs(tau - knot) < 1e-9 * problem.data.ts or not low <= mirrored <= high:
+        return None
+    theta = best.theta.copy()
+    theta[delay_index] = mirrored
+    admissible = problem.admissible(theta)
+    if admissible is None:
+        return None
+    joint = iterate(problem, problem.state(theta, admissible), method='iv', frozen=fixed,
+                    max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+    return joint if joint.state.cost < best.cost else None
+
+
 def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], delay_index: int,
                    low: float, fixed: np.ndarray) -> Tuple[State, List[Iteration]]:
     """
@@ -197,9 +232,9 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     (``T = delta``, ``tau - delta``) and iterated jointly; the better end is kept.
     """
     tau = best.theta[delay_index]
-    # At the limit up to the box truncation's last thousandth of a step.
+    # Within ten times its limit a lag's pole is a hundred times the Nyquist frequency: gone.
     collapsed = [index for index, limit in problem.reductions.items()
-                 if not fixed[index] and abs(best.theta[index] - limit) <= 0.01 * abs(limit)]
+                 if not fixed[index] and abs(best.theta[index]) <= _COLLAPSED * abs(limit)]
     for index in collapsed:
         for share in _LAG_SHARES:
             delta = share * (tau - low)

@@ -35,7 +35,7 @@ import warnings
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
 from ctid_ros.errors import DataError, EstimationError, ModelError
-from ctid_ros.estimation.delay_search import delay_search
+from ctid_ros.estimation.delay_search import across_the_sample, delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
                                            IterationResult, StopReason)
@@ -511,6 +511,12 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             blind = _blind_combination(problem, final.state)
         if not from_initial and blind is None:
             final = _elsewhere(problem, final, history, settings, delay_index)
+            if delay_index is not None:
+                across = across_the_sample(problem, final.state, delay_index, delay_range)
+                if across is not None:
+                    again = iterate(problem, across.state, first_ls=False, **settings)
+                    history.extend(across.history + again.history)
+                    final = _from_best_seen(problem, _lower(final, again), history, settings)
             blind = _blind_combination(problem, final.state)
         if blind is not None and (blind.startswith('the output does not depend') or
                                   _structurally_blind(problem.model, final.state.theta, rng)):
