@@ -509,8 +509,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                 break
             final = _from_best_seen(problem, restarted, history, settings)
             blind = _blind_combination(problem, final.state)
+        analysis = _residual_analysis(problem, final.state)
         if not from_initial and blind is None:
-            final = _elsewhere(problem, final, history, settings, delay_index)
+            final = _elsewhere(problem, final, history, settings, delay_index, analysis)
             if delay_index is not None:
                 across = across_the_sample(problem, final.state, delay_index, delay_range)
                 if across is not None:
@@ -522,11 +523,14 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                                   _structurally_blind(problem.model, final.state.theta, rng)):
             raise EstimationError(blind)
         uncertainty = covariance(problem, final.state)
+        residuals = analysis if analysis.state is final.state else \
+            _residual_analysis(problem, final.state)
+    residuals.noise_order = uncertainty.noise.order
+    residuals.noise_power_ratio = uncertainty.noise.variance_ratio
     parameter_covariance = uncertainty.covariance
     variance, condition = uncertainty.variance, uncertainty.condition
     std = np.sqrt(np.abs(np.diag(parameter_covariance)))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
-    residuals = _residual_analysis(problem, final.state, uncertainty.noise)
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
     return Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
@@ -645,7 +649,8 @@ def _given_hints(initial: Initial) -> Dict[str, float]:
 
 
 def _elsewhere(problem: Problem, final: IterationResult, history: List[Iteration],
-               settings: dict, delay_index: Optional[int]) -> IterationResult:
+               settings: dict, delay_index: Optional[int], verdict: ResidualAnalysis
+               ) -> IterationResult:
     """
     Look elsewhere when the residual is not white.
 
@@ -656,12 +661,8 @@ def _elsewhere(problem: Problem, final: IterationResult, history: List[Iteration
     are then iterated on the output error directly (twenty updates each); a better end is
     iterated to convergence and kept. Automatic searches only; ``docs/algorithm.md`` section 12.
     """
-    if problem.model.is_affine or settings['method'] == 'ls':
-        return final
-    residual = problem.measured - problem.prediction(final.state.coefficients)
-    inputs = problem.data.u.reshape(len(problem.data), -1)[problem.skip:]
-    verdict = analyse_residual(residual, inputs, problem.model.inputs)
-    if verdict.white and not verdict.input_correlated:
+    if problem.model.is_affine or settings['method'] == 'ls' or \
+            verdict.white and not verdict.input_correlated:
         return final
     frozen = np.zeros(final.state.theta.size, dtype=bool)
     best = None
@@ -724,12 +725,13 @@ def _started(problem: Problem, start: State, transient: Union[float, str]) -> St
     return problem.state(theta, coefficients)
 
 
-def _residual_analysis(problem: Problem, state: State, noise: NoiseModel) -> ResidualAnalysis:
+def _residual_analysis(problem: Problem, state: State) -> ResidualAnalysis:
     """
-    Analyse the final residual against the inputs (section 11 of ``docs/algorithm.md``).
+    Analyse the residual at ``state`` against the inputs (``docs/algorithm.md`` section 11).
 
     The lags cover the dead time and twice the slowest time constant, at least the 25 of
-    MATLAB's ``resid``, at most 200 or a quarter of the samples.
+    MATLAB's ``resid``, at most 200 or a quarter of the samples. ``state`` is attached (as
+    ``analysis.state``) so the analysis is not repeated for the same state.
     """
     data = problem.data
     horizon = max(state.coefficients.delay, 0.0) + 0.4 * settling_time(state.coefficients)
@@ -737,9 +739,8 @@ def _residual_analysis(problem: Problem, state: State, noise: NoiseModel) -> Res
     residual = problem.measured - problem.prediction(state.coefficients)
     inputs = data.u.reshape(len(data), -1)[problem.skip:]
     analysis = analyse_residual(residual, inputs, problem.model.inputs, lags)
-    analysis.noise_order = noise.order
-    analysis.noise_power_ratio = noise.variance_ratio
     analysis.measured_every = measured_every(problem.measured)
+    analysis.state = state
     return analysis
 
 

@@ -18,7 +18,7 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 """
 
 from dataclasses import dataclass, field
-from typing import List, Sequence, Tuple
+from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import special
@@ -125,6 +125,8 @@ class ResidualAnalysis:
     noise_order: int = 0
     noise_power_ratio: float = 1.0
     measured_every: int = 1
+    # The estimator's state the residual belongs to (not part of the summary).
+    state: Optional[Any] = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         """Return the summary as JSON-serialisable types (the ``--json`` ``residual`` object)."""
