@@ -343,7 +343,8 @@ class Uncertainty:
     free: np.ndarray
 
 
-def covariance(problem: Problem, state: State) -> Uncertainty:
+def covariance(problem: Problem, state: State,
+               autocorrelation: Optional[np.ndarray] = None) -> Uncertainty:
     """
     Return the parameter covariance at ``state`` and what it rests on.
 
@@ -352,7 +353,7 @@ def covariance(problem: Problem, state: State) -> Uncertainty:
     ``sigma^2 (Psi^T Psi)^-1``, ``sigma^2 = |e|^2 / (N - n_theta)``, when the residual is white.
     Only parameters the data determine enter (a parameter held at a bound gets NaN); the
     column-scaled sensitivities give the condition number and the weakest combination
-    (``docs/algorithm.md`` section 15).
+    (``docs/algorithm.md`` section 15). ``autocorrelation``: the residual's, if known.
 
     """
     lin = problem.linearize(state.coefficients, regressors=False)
@@ -366,7 +367,8 @@ def covariance(problem: Problem, state: State) -> Uncertainty:
     psi = psi[:, free]
     scales = column_scales(psi)
     svd = np.linalg.svd(psi / scales, full_matrices=False)
-    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd)
+    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
+                                        autocorrelation)
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
@@ -522,9 +524,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         if blind is not None and (blind.startswith('the output does not depend') or
                                   _structurally_blind(problem.model, final.state.theta, rng)):
             raise EstimationError(blind)
-        uncertainty = covariance(problem, final.state)
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
+        uncertainty = covariance(problem, final.state, residuals.long_autocorrelation)
     residuals.noise_order = uncertainty.noise.order
     residuals.noise_power_ratio = uncertainty.noise.variance_ratio
     parameter_covariance = uncertainty.covariance

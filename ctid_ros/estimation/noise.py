@@ -64,13 +64,16 @@ class NoiseModel:
         return float(self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
 
 
-def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel:
+def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
+                autocorrelation: Optional[np.ndarray] = None) -> NoiseModel:
     """
     Fit an autoregressive model to ``residual`` (Levinson-Durbin, order by BIC).
 
     The Yule-Walker estimate from the biased autocovariance, whose polynomial is always stable.
     Orders ``0..min(max_order, 5 % of the samples)`` are compared by
     ``N log(innovation variance) + p log N``; the search ends ten orders after the best.
+    ``autocorrelation``: the residual's normalised autocorrelation at lags 0, 1, ... if the
+    caller has it (the residual analysis does), so it is not computed again.
     """
     residual = np.asarray(residual, dtype=float)
     count = residual.size
@@ -79,9 +82,12 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel
     top = int(min(max_order, _ORDER_FRACTION * count))
     if variance == 0.0 or top < 1:
         return NoiseModel(np.ones(1), variance, variance)
-    size = 1 << int(np.ceil(np.log2(count + top + 1)))
-    spectrum = np.fft.rfft(centred, size)
-    autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
+    if autocorrelation is not None and autocorrelation.size > top:
+        autocovariance = variance * autocorrelation[:top + 1]
+    else:
+        size = 1 << int(np.ceil(np.log2(count + top + 1)))
+        spectrum = np.fft.rfft(centred, size)
+        autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
     best = (count * np.log(variance), np.ones(1), variance, 0)
     ar = np.ones(1)
     error = autocovariance[0]
@@ -101,7 +107,8 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER) -> NoiseModel
 
 
 def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
-                        svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+                        svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                        autocorrelation: Optional[np.ndarray] = None
                         ) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
@@ -112,11 +119,11 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     ``(Psi^T Psi)^-1 Psi^T = V S^-1 U^T`` and ``U^T Sigma U = sigma_w^2 Z^T Z``, ``Z = H^T U``
     with ``H`` the (causal) impulse-response matrix of ``1/A``: ``Z`` is ``U`` filtered through
     ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
-    normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``
-    if the caller has it.
+    normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``,
+    ``autocorrelation``: that of the residual, if the caller has them.
     """
     count = residual.size
-    model = noise_model(residual)
+    model = noise_model(residual, autocorrelation=autocorrelation)
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model

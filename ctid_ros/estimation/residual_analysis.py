@@ -127,6 +127,9 @@ class ResidualAnalysis:
     measured_every: int = 1
     # The estimator's state the residual belongs to (not part of the summary).
     state: Optional[Any] = field(default=None, repr=False, compare=False)
+    # The residual's autocorrelation over the longer range of Bartlett's sum (lags 0, 1, ...).
+    long_autocorrelation: Optional[np.ndarray] = field(default=None, repr=False,
+                                                       compare=False)
 
     def to_dict(self) -> dict:
         """Return the summary as JSON-serialisable types (the ``--json`` ``residual`` object)."""
@@ -210,7 +213,7 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     verdict = _verdict(white, correlated, worst, feedback)
     return ResidualAnalysis(verdict, white, bool(correlated), feedback, lags, count, auto,
                             cross, list(names), float(auto_bound), cross_bounds, correlated,
-                            worst)
+                            worst, long_autocorrelation=rho_e[span:])
 
 
 def _verdict(white: bool, correlated: List[str], worst: List[Tuple[str, int, float]],
