@@ -15,6 +15,8 @@ from typing import Callable, Dict, List, Optional
 BENCHMARKS: Dict[str, List[str]] = {
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
+    'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
+    'real_records': ['--json', 'bench/results-real-records.json'],
     'hostile_files': [],
     'node_throughput': [],
 }
