@@ -16,6 +16,8 @@ BENCHMARKS: Dict[str, List[str]] = {
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
     'stamps': [],
+    'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
+    'real_records': ['--json', 'bench/results-real-records.json'],
     'hostile_files': [],
     'node_throughput': [],
     'node_storm': ['--json', 'bench/results-node-storm.json'],

@@ -1,5 +1,5 @@
 """
-Figures of an identification: output fit, estimates over time, Bode plot with uncertainty.
+Figures of an identification: output fit, estimates over time, Bode plot, residual analysis.
 
 Every function builds a :class:`matplotlib.figure.Figure` on its own Agg canvas (never through
 ``pyplot``), so it works without a display and does not change the backend or the figures of
@@ -23,7 +23,7 @@ from matplotlib.figure import Figure
 import numpy as np
 
 __all__ = ['BodeData', 'bode', 'bode_data', 'default_omega', 'fit_figure', 'parameters_figure',
-           'replay_figure_paths', 'write_replay_figures']
+           'replay_figure_paths', 'residual_figure', 'write_replay_figures']
 
 PathLike = Union[str, os.PathLike]
 # A constant truth per parameter, or a function of time (s) returning each parameter's values.
@@ -298,12 +298,57 @@ def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 1
     return _finish(figure, path)
 
 
-def replay_figure_paths(path: Path, sliding: bool) -> Tuple[Path, Optional[Path], Path]:
-    """Return the measured-vs-simulated, parameters (sliding only) and Bode figure paths."""
+def residual_figure(result: Estimate, path: Optional[PathLike] = None) -> Figure:
+    """
+    Plot the residual analysis of an estimate, as MATLAB's ``resid``.
+
+    The autocorrelation of the residual (lags ``0..M``) and its cross-correlation with every
+    input (lags ``-M..M``; negative lags: the input reacting to the output), each with its 99 %
+    band under independence; the verdict is the title.
+
+    Raises
+    ------
+    ValueError
+        If the estimate carries no residual analysis.
+
+    """
+    analysis = result.residuals
+    if analysis is None:
+        raise ValueError('the estimate has no residual analysis')
+    inputs = analysis.inputs
+    figure = _new_figure(9.0, 1.2 + 2.3 * (1 + len(inputs)))
+    panels = figure.subplots(1 + len(inputs), 1, squeeze=False)[:, 0]
+    series = [(np.arange(analysis.lags + 1), analysis.autocorrelation, analysis.auto_bound,
+               'autocorrelation of the residual')]
+    series += [(np.arange(-analysis.lags, analysis.lags + 1), analysis.cross_correlation[:, j],
+                analysis.cross_bounds[j], f'cross-correlation of the residual with {name}')
+               for j, name in enumerate(inputs)]
+    for axes, (lags, values, bound, label) in zip(panels, series):
+        axes.axhspan(-bound, bound, color='tab:blue', alpha=0.15, label='99 % band')
+        axes.vlines(lags, 0.0, values, color='0.2', linewidth=1.0)
+        axes.plot(lags, values, '.', color='0.2', markersize=3)
+        axes.axhline(0.0, color='0.5', linewidth=0.5)
+        axes.set_ylabel('correlation')
+        axes.set_title(label, fontsize=10)
+        axes.grid(True, alpha=0.3)
+        axes.legend(loc='upper right', fontsize=8)
+    panels[-1].set_xlabel('lag (samples)')
+    # The verdict can be long: wrapped at the figure's width.
+    words, lines = f'Residual: {analysis.verdict}'.split(), ['']
+    for word in words:
+        lines[-1:] = [f'{lines[-1]} {word}'.strip()] if len(lines[-1]) + len(word) < 95 \
+            else [lines[-1], word]
+    figure.suptitle('\n'.join(lines), fontsize=10)
+    return _finish(figure, path)
+
+
+def replay_figure_paths(path: Path, sliding: bool
+                        ) -> Tuple[Path, Optional[Path], Path, Path]:
+    """Return the fit, parameters (sliding only), Bode and residual figure paths."""
     def sibling(suffix: str) -> Path:
         return path.with_name(f'{path.stem}_{suffix}{path.suffix or ".png"}')
 
-    return path, sibling('params') if sliding else None, sibling('bode')
+    return path, sibling('params') if sliding else None, sibling('bode'), sibling('residual')
 
 
 def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, sliding: bool,
@@ -312,11 +357,12 @@ def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, 
     Write the replay's figures as PNG files and return their paths.
 
     ``path`` gets measured vs. simulated output of the last window; ``<stem>_bode.png`` the Bode
-    plot of the last estimate up to the Nyquist frequency of the data; with ``sliding`` also
+    plot of the last estimate up to the Nyquist frequency of the data; ``<stem>_residual.png``
+    the residual analysis of the last estimate (:func:`residual_figure`); with ``sliding`` also
     ``<stem>_params.png``, the estimates over time with their ±2σ bands (against ``truth`` if
     given).
     """
-    fit_path, params_path, bode_path = replay_figure_paths(path, sliding)
+    fit_path, params_path, bode_path, residual_path = replay_figure_paths(path, sliding)
     last = updates[-1]
     times = (last.prediction_times_ns - origin_ns) / NANOSECONDS
     fit_figure(times, last.window.data.y, last.prediction, fit=last.result.fit, path=fit_path)
@@ -329,4 +375,7 @@ def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, 
         written.append(params_path)
     bode(last.result, max_omega=np.pi / last.window.data.ts, path=bode_path)
     written.append(bode_path)
+    if last.result.residuals is not None:
+        residual_figure(last.result, path=residual_path)
+        written.append(residual_path)
     return written

@@ -20,11 +20,17 @@ def format_table(result: Estimate) -> str:
              f'{"95% interval":>27}']
     for name, value in result.params.items():
         std = result.std[name]
-        lines.append(f'{name:<{max(width, 9)}}  {value:>13.6g}  {std:>11.3g}  '
-                     f'[{value - 1.96 * std:>12.6g}, {value + 1.96 * std:>12.6g}]')
+        if np.isfinite(std):
+            lines.append(f'{name:<{max(width, 9)}}  {value:>13.6g}  {std:>11.3g}  '
+                         f'[{value - 1.96 * std:>12.6g}, {value + 1.96 * std:>12.6g}]')
+        else:
+            # Held at a bound: the value is the bound's, the data give no interval.
+            lines.append(f'{name:<{max(width, 9)}}  {value:>13.6g}  {"at bound":>11}')
     lines.append('')
     lines.append(f'fit {result.fit:.2f} %   iterations {result.iterations}   '
                  f'converged {"yes" if result.converged else "no"} ({result.stop_reason})')
+    if result.residuals is not None:
+        lines.append(f'residual: {result.residuals.verdict}')
     lines.extend(f'warning: {note}' for note in result.warnings)
     return '\n'.join(lines)
 

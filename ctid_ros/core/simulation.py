@@ -24,7 +24,7 @@ Python loop runs per sample.
 """
 
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Tuple
+from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
@@ -145,6 +145,13 @@ class ContinuousFilter:
             whole = int(round(delay / ts))
             fraction = 0.0
         segments, feed = _delayed_segments(whole, fraction, intersample)
+        # On the sample lattice a held input jumps at the sample instants themselves: the
+        # delayed input just before t_k is the previous sample (zoh), or reads as zero before
+        # the first one (foh). Elsewhere both limits are the feedthrough value.
+        feed_left = feed
+        if fraction == 0.0:
+            feed_left = {(-whole - 1, False): 1.0} if intersample == 'zoh' else \
+                {(-whole, True): 1.0}
         n = self.order
         transition = np.eye(n)
         drive: Dict[Sample, np.ndarray] = {}
@@ -159,7 +166,7 @@ class ContinuousFilter:
         if not all(np.all(np.isfinite(matrix)) for matrix in [transition, *drive.values()]):
             raise ModelError(f'the denominator {self.den} has roots too many decades apart to '
                              f'discretise with sample time {ts}')
-        return DiscreteFilter(self, transition, drive, feed)
+        return DiscreteFilter(self, transition, drive, feed, feed_left)
 
 
 def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
@@ -242,6 +249,7 @@ class DiscreteFilter:
     transition: np.ndarray
     drive: Dict[Sample, np.ndarray]
     feed: Dict[Sample, float]
+    feed_left: Optional[Dict[Sample, float]] = None
 
     def states(self, values: np.ndarray) -> np.ndarray:
         """State trajectory (N x n) for the sampled signal, starting at rest."""
@@ -271,10 +279,41 @@ class DiscreteFilter:
         # x[k+1] = A^T x[k] + row^T impulse[k] gives x[k+1] = (row A^k)^T: all n columns at once.
         return _propagate(self.transition.T, impulse, row[None, :], np.eye(n))[:, 1:].T
 
-    def delayed_input(self, values: np.ndarray) -> np.ndarray:
-        """Return the delayed, held input at the sample instants (the feedthrough signal)."""
+    def impulse_responses(self, numerators: Iterable, count: int) -> np.ndarray:
+        """
+        Impulse responses of the strictly proper ``N_q(s)/D(s)`` at ``t = k ts``, shape (q, count).
+
+        The response to a unit impulse at ``t = 0`` (the free response from the state it leaves),
+        exact at the samples. The free responses of :meth:`free_responses` are those of the
+        numerators ``s^j``, ``j < deg D``, in another basis.
+        """
+        continuous = self.continuous
+        rows = []
+        for num in numerators:
+            row, feed = continuous.output_map(num)
+            if feed != 0.0:
+                raise ModelError('an impulse response needs a strictly proper N/D')
+            rows.append(row)
+        n = continuous.order
+        if n == 0:
+            return np.zeros((len(rows), count))
+        impulse = np.zeros((1, count + 1))
+        impulse[0, 0] = 1.0
+        # A unit impulse in seconds is `scale` units of impulse in the scaled time.
+        return _propagate(self.transition, impulse, continuous.scale * continuous.b[None, :],
+                          np.asarray(rows))[:, 1:]
+
+    def delayed_input(self, values: np.ndarray, left: bool = False) -> np.ndarray:
+        """
+        Return the delayed, held input at the sample instants (the feedthrough signal).
+
+        Its right limit (the value from ``t_k`` on), or with ``left`` its left limit (just
+        before ``t_k``); they differ only where the delayed input jumps at the sample instants,
+        i.e. for a held input whose dead time is a whole number of samples.
+        """
+        feed = self.feed_left if left and self.feed_left is not None else self.feed
         result = np.zeros(values.shape[0])
-        for sample, weight in self.feed.items():
+        for sample, weight in feed.items():
             result += weight * _sampled(values, sample)
         return result
 

@@ -9,6 +9,10 @@ those listed before it (the method is described in ``docs/algorithm.md``):
 * :mod:`~ctid_ros.estimation.correlation`: residual-input correlation and the data's own
   dead-time guess;
 * :mod:`~ctid_ros.estimation.integrating`: the stable reformulation of integrating plants;
+* :mod:`~ctid_ros.estimation.noise`: the residual's noise model, the covariance valid under
+  coloured residuals, the rate the output was measured at;
+* :mod:`~ctid_ros.estimation.residual_analysis`: MATLAB ``resid``-style correlations, bounds
+  and verdict;
 * :mod:`~ctid_ros.estimation.problem`: data, model and bounds of one estimation, its cost and
   linearisation, :class:`~ctid_ros.estimation.problem.State`;
 * :mod:`~ctid_ros.estimation.iteration`: the controlled projection iteration and its stop

@@ -12,20 +12,28 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
-from ctid_ros.estimation.iteration import iterate, Iteration
+from ctid_ros.estimation.iteration import iterate, Iteration, IterationResult
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, distinct, equation_error_fits,
                                         explains_data, filter_bandwidths, FILTER_COUNT,
                                         local_fit, StateVariableFilters)
 import numpy as np
 
-__all__ = ['DelaySearch', 'delay_search']
+__all__ = ['DelaySearch', 'across_the_sample', 'delay_search']
 
 _GRID_POINTS = 30
 _REFINED_MINIMA = 2
 _REFINEMENT_MARGIN = 3.0
 _COARSE_STRIDE = 3
 _JOINT_ITERATIONS = 10
+# A profile whose best fit leaves more than this share of the output's spread explains nothing.
+_UNEXPLAINED = 0.9
+# Dead times tried around the refined minimum, in samples.
+_PROBE_OFFSETS = (-1.0, 1.0)
+# A lag below this many times its order-reduction limit counts as collapsed.
+_COLLAPSED = 10.0
+# Shares of the dead time given to a lag that collapsed onto its limit.
+_LAG_SHARES = (0.5, 0.25, 0.75)
 
 
 @dataclass
@@ -59,8 +67,8 @@ def _local_minima(profile: List[Tuple[float, float, State]]) -> List[State]:
     return [profile[i][2] for i in indices[:_REFINED_MINIMA]]
 
 
-def delay_search(problem: Problem, start: State, delay_index: int, delay_range: DelayRange
-                 ) -> DelaySearch:
+def delay_search(problem: Problem, start: State, delay_index: int, delay_range: DelayRange,
+                 fixed: Optional[np.ndarray] = None) -> DelaySearch:
     """
     Locate the dead time: a local fit if it explains the data, else a profile over a grid.
 
@@ -76,19 +84,35 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     state-variable filter; the filter that gave the lowest cost there serves the whole profile
     (one filter throughout, so the profile's minima are not artefacts of switching filters).
     The best local minima of the profile get a few projection iterations with ``tau`` frozen,
-    then joint ones.
+    then joint ones. A profile whose lowest point is the end of an automatic bracket, or whose
+    best fit explains less than a tenth of the output's spread, goes on over a bracket twice as
+    long (at most half the record). On coarse data, where the bracket
+    spans fewer samples than the grid has points, the grid adds the half-sample points: for a
+    model of relative degree one the cost has a kink on every sample, and its minima lie
+    between them.
+
+    ``fixed`` parameters (default none) keep their start values throughout (the search for a
+    nested structure).
 
     """
     data = problem.data
+    fixed = np.zeros(start.theta.size, dtype=bool) if fixed is None else fixed
     low, high = problem.delay_bracket(delay_index, delay_range)
-    local = local_fit(problem, start, 'iv', first_ls=True)
+    local = local_fit(problem, start, 'iv', first_ls=True, frozen=fixed)
     if explains_data(problem, local.state, delay_index, delay_range):
-        return DelaySearch(local.state, [], local.history)
+        state, history = _lag_for_delay(problem, local.state, local.history, delay_index, low,
+                                        fixed)
+        return DelaySearch(state, [], history)
     grid = np.union1d(np.linspace(low, high, _GRID_POINTS),
                       [start.theta[delay_index], problem.delay_guess])
     grid = np.unique(np.clip([problem.on_delay_lattice(tau) for tau in grid], low, high))
-    frozen = np.zeros(start.theta.size, dtype=bool)
-    frozen[delay_index] = True
+    lattice = problem.on_delay_lattice(low)
+    if (high - lattice) / data.ts < _GRID_POINTS:
+        halves = np.arange(lattice + 0.5 * data.ts, high, data.ts)
+        grid = np.union1d(grid, halves[halves > low])
+    delay_mask = np.zeros(start.theta.size, dtype=bool)
+    delay_mask[delay_index] = True
+    frozen = fixed | delay_mask
     filters = StateVariableFilters(problem, filter_bandwidths(data, FILTER_COUNT))
     coarse = np.zeros(grid.size, dtype=bool)
     coarse[::_COARSE_STRIDE] = True
@@ -99,7 +123,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         # A non-affine fit starts from the hint and from the best fit so far (moved to this
         # tau), not from random draws: the start's multi-start has been done at its own tau.
         sources = [start] if problem.model.is_affine else [start, lowest[0]]
-        starts = distinct([np.where(frozen, tau, state.theta) for state in sources])
+        starts = distinct([np.where(delay_mask, tau, state.theta) for state in sources])
         state = best_candidate(problem, distinct(equation_error_fits(
             problem, starts, ~frozen, tau, chosen)))
         if state is not None and state.cost < lowest[0].cost:
@@ -119,6 +143,26 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     # where the fit would have to anticipate the input) drops out of the profile.
     profile = [(float(tau), states[tau].cost, states[tau]) for tau in grid
                if states[tau] is not None]
+    # An automatic bracket rests on the data's guess; a profile still falling at its end, or
+    # whose best fit explains nothing (a tenth of the output's spread), says the dead time lies
+    # beyond: the bracket is doubled (at most to half the record) until neither holds.
+    automatic = delay_range is None and not np.isfinite(problem.upper[delay_index])
+    ceiling = 0.5 * data.ts * len(data)
+    spread = problem.measured - np.mean(problem.measured)
+    nothing = 0.5 * (_UNEXPLAINED * np.linalg.norm(spread)) ** 2
+
+    def beyond() -> bool:
+        lowest = min(profile, key=lambda point: point[1])
+        return lowest is profile[-1] or lowest[1] > nothing
+
+    while automatic and profile and high < ceiling and beyond():
+        extended = min(2.0 * high, ceiling)
+        more = np.unique([problem.on_delay_lattice(tau) for tau in
+                          np.linspace(high, extended, _GRID_POINTS)])
+        more = more[(more > high) & (more <= extended)]
+        profile += [(float(tau), state.cost, state) for tau, state in
+                    ((tau, fitted(tau, chosen)) for tau in more) if state is not None]
+        high = extended
     if not profile:
         return DelaySearch(start)
     # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
@@ -133,8 +177,109 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         state = iterate(problem, state, method='iv', frozen=frozen,
                         max_iterations=frozen_iterations, tolerance=1e-6,
                         trust_first_ls=True).state
-        joint = iterate(problem, state, method='iv', frozen=np.zeros_like(frozen),
+        joint = iterate(problem, state, method='iv', frozen=fixed,
                         max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
         if best is None or joint.state.cost < best.cost:
             best, history, margin = joint.state, joint.history, profiled - joint.state.cost
+    best, history = _probe_neighbours(problem, best, history, delay_index, profile, frozen,
+                                      fixed, frozen_iterations)
+    best, history = _lag_for_delay(problem, best, history, delay_index, low, fixed)
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
+
+
+def across_the_sample(problem: Problem, best: State, delay_index: int,
+                      delay_range: DelayRange) -> Optional[IterationResult]:
+    """
+    Try the other side of the sample instant nearest the dead time, for a kinked cost.
+
+    For a model of relative degree one the cost has a kink at every whole sample of dead time
+    (section 3 of ``docs/algorithm.md``); a minimum just past one has a twin just before it
+    that the iteration, which sees one side at a time, cannot reach. The dead time mirrored
+    across the nearest lattice point is iterated jointly (ten updates); the result if it ends
+    lower than ``best``, else None.
+    """
+    low, high = problem.delay_bracket(delay_index, delay_range)
+    fixed = np.zeros(best.theta.size, dtype=bool)
+    num = best.coefficients.num
+    order = best.coefficients.den.size - 1
+    # Relative degree one: some numerator reaches s^(n-1).
+    if order < 1 or num.shape[1] < order or not np.any(num[:, num.shape[1] - order]):
+        return None
+    tau = best.theta[delay_index]
+    knot = problem.on_delay_lattice(tau)
+    mirrored = 2.0 * knot - tau
+    if abs(tau - knot) < 1e-9 * problem.data.ts or not low <= mirrored <= high:
+        return None
+    theta = best.theta.copy()
+    theta[delay_index] = mirrored
+    admissible = problem.admissible(theta)
+    if admissible is None:
+        return None
+    joint = iterate(problem, problem.state(theta, admissible), method='iv', frozen=fixed,
+                    max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+    return joint if joint.state.cost < best.cost else None
+
+
+def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], delay_index: int,
+                   low: float, fixed: np.ndarray) -> Tuple[State, List[Iteration]]:
+    """
+    Trade dead time for a lag that collapsed onto its order-reduction limit.
+
+    A lag ``T`` and a dead time delay low frequencies alike (``1/(T s + 1) ~ exp(-T s)``), so
+    a fit can end with the lag at its limit and the dead time doing its work: a boundary
+    minimum next to the basin where both share it. From there a part of the dead time,
+    ``delta`` = a quarter, half and three quarters of it, is given to the lag
+    (``T = delta``, ``tau - delta``) and iterated jointly; the better end is kept.
+    """
+    tau = best.theta[delay_index]
+    # Within ten times its limit a lag's pole is a hundred times the Nyquist frequency: gone.
+    collapsed = [index for index, limit in problem.reductions.items()
+                 if not fixed[index] and abs(best.theta[index]) <= _COLLAPSED * abs(limit)]
+    for index in collapsed:
+        for share in _LAG_SHARES:
+            delta = share * (tau - low)
+            if delta <= abs(problem.reductions[index]):
+                continue
+            theta = best.theta.copy()
+            theta[index] = np.sign(problem.reductions[index]) * delta
+            theta[delay_index] = tau - delta
+            coefficients = problem.admissible(theta)
+            if coefficients is None:
+                continue
+            joint = iterate(problem, problem.state(theta, coefficients), method='iv',
+                            frozen=fixed, max_iterations=_JOINT_ITERATIONS, tolerance=1e-6,
+                            first_ls=False)
+            if joint.state.cost < best.cost:
+                best, history = joint.state, joint.history
+    return best, history
+
+
+def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,
+                      profile: List[Tuple[float, float, State]], frozen: np.ndarray,
+                      fixed: np.ndarray, iterations: int) -> Tuple[State, List[Iteration]]:
+    """
+    Refine the profile's fits one sample either side of the best dead time too.
+
+    The equation-error profile is only a proxy of the output-error one: its minimum can sit a
+    sample off, next to the basin of another structure (a lag traded for dead time, a
+    lag collapsed onto its limit). Each neighbour's own fit is iterated with the dead time
+    frozen; one that beats ``best`` is refined jointly, and the better end kept.
+    """
+    ts = problem.data.ts
+    centre = best.theta[delay_index]
+    taus = np.array([tau for tau, _, _ in profile])
+    tried = set()
+    for offset in _PROBE_OFFSETS:
+        index = int(np.argmin(np.abs(taus - (centre + offset * ts))))
+        if abs(taus[index] - (centre + offset * ts)) > 0.5 * ts or index in tried:
+            continue
+        tried.add(index)
+        probe = iterate(problem, profile[index][2], method='iv', frozen=frozen,
+                        max_iterations=iterations, tolerance=1e-6, trust_first_ls=True).state
+        if probe.cost >= best.cost:
+            continue
+        joint = iterate(problem, probe, method='iv', frozen=fixed,
+                        max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+        if joint.state.cost < best.cost:
+            best, history = joint.state, joint.history
+    return best, history

@@ -34,25 +34,34 @@ import warnings
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.errors import DataError, EstimationError
-from ctid_ros.estimation.delay_search import delay_search
+from ctid_ros.errors import DataError, EstimationError, ModelError
+from ctid_ros.estimation.delay_search import across_the_sample, delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
-from ctid_ros.estimation.iteration import (column_scales, iterate, Iteration, IterationResult,
-                                           StopReason)
+from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
+                                           IterationResult, StopReason)
+from ctid_ros.estimation.noise import coloured_covariance, measured_every, NoiseModel
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
-                                         nuisance_columns, orthonormal_basis, Problem, State,
-                                         with_fitted_nuisance)
+                                         nuisance_columns, orthonormal_basis, Problem,
+                                         settling_time, State, with_fitted_nuisance)
+from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
+                                                   ResidualAnalysis)
 from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
-                                        initial_estimate, local_fit)
+                                        initial_estimate, local_fit, random_starts)
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-__all__ = ['Estimate', 'INITIAL_STATES', 'METHODS', 'covariance', 'estimate', 'fit_percent']
+__all__ = [
+    'Estimate', 'ILL_CONDITIONED', 'INITIAL_STATES', 'METHODS', 'Uncertainty', 'build_problem',
+    'covariance', 'estimate', 'fit_percent',
+]
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
 _IDENTIFIABILITY_LIMIT = 1e10
+# Above this condition number of the scaled sensitivities a combination is reported as weak.
+ILL_CONDITIONED = 1e3
+_MAX_RESIDUAL_LAGS = 200
 _SYMMETRY_RESTARTS = 3
 # Random perturbations tried at a point where symmetric parameters coincide.
 _NUDGES = 14
@@ -60,6 +69,10 @@ _NUDGES = 14
 # unconverged, which then pay for the automatic start and search; more only delay the search
 # for a guess that cannot explain the data.
 _WARM_START_ITERATIONS = 6
+# Iterations that fit a nested structure without a dead time to search.
+_NESTED_ITERATIONS = 10
+# Output-error updates from each random draw when the residual says the model misses dynamics.
+_ELSEWHERE_ITERATIONS = 20
 
 
 @dataclass
@@ -104,6 +117,11 @@ class Estimate:
     initial_state, output_offset, integrator_cutoff
         The options of :func:`estimate` that shaped the fit (:meth:`compare` uses the first
         two on validation data).
+    residuals : ResidualAnalysis or None
+        Autocorrelation of the residual and its cross-correlation with every input, their 99 %
+        bounds and a one-line ``verdict`` (``white`` / ``input_correlated`` / ``feedback``), as
+        MATLAB's ``resid``; also the order of the residual's noise model behind the
+        covariance and how many samples apart the output was measured.
 
     """
 
@@ -126,6 +144,7 @@ class Estimate:
     initial_state: str = 'zero'
     output_offset: bool = False
     integrator_cutoff: Optional[float] = None
+    residuals: Optional[ResidualAnalysis] = None
 
     @property
     def theta(self) -> np.ndarray:
@@ -168,17 +187,23 @@ class Estimate:
 
     def to_dict(self) -> dict:
         """Summary as plain JSON-serialisable types (the ``ctid fit --json`` object)."""
-        return {
+        summary = {
             'params': dict(self.params),
-            'std': dict(self.std),
+            # A parameter held at a bound has no standard deviation: null, not NaN.
+            'std': {name: float(value) if np.isfinite(value) else None
+                    for name, value in self.std.items()},
             'fit': float(self.fit),
             'converged': bool(self.converged),
             'iterations': int(self.iterations),
             'cost': float(self.cost),
             'stop_reason': self.stop_reason,
             'start': self.start,
+            'condition': float(self.condition),
             'warnings': list(self.warnings),
         }
+        if self.residuals is not None:
+            summary['residual'] = self.residuals.to_dict()
+        return summary
 
 
 def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
@@ -212,21 +237,67 @@ def _check_excitation(model: Model, data: Data) -> None:
 
 
 def _blind_combination(problem: Problem, state: State) -> Optional[str]:
-    """Explain why the output is (almost) blind to a parameter combination, or None."""
+    """
+    Explain why the output is (almost) blind to a parameter combination, or None.
+
+    Parameters held at a bound are left out.
+    """
+    free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
+    if not np.any(free):
+        return None
+    names = [name for name, keep in zip(problem.model.parameters, free) if keep]
     lin = problem.linearize(state.coefficients, regressors=False)
-    norms = np.linalg.norm(lin.psi, axis=0)
+    psi = lin.psi[:, free]
+    norms = np.linalg.norm(psi, axis=0)
     if np.any(norms == 0.0):
-        dead = ', '.join(problem.model.parameters[i] for i in np.flatnonzero(norms == 0.0))
+        dead = ', '.join(names[i] for i in np.flatnonzero(norms == 0.0))
         return f'the output does not depend on {dead} on these data: the input does not excite it'
-    singular, vectors = np.linalg.svd(lin.psi / norms, full_matrices=False)[1:]
+    singular, vectors = np.linalg.svd(psi / norms, full_matrices=False)[1:]
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
     if condition <= _IDENTIFIABILITY_LIMIT:
         return None
-    names = [f'{weight:+.2f}*{name}' for weight, name in
-             zip(vectors[-1], problem.model.parameters) if abs(weight) > 0.1]
+    names = [f'{weight:+.2f}*{name}' for weight, name in zip(vectors[-1], names)
+             if abs(weight) > 0.1]
     return ('the parameters are not identifiable from these data: the combination '
             f'{" ".join(names)} has (almost) no effect on the output (condition number '
             f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
+
+
+def _structurally_blind(model, theta: np.ndarray, rng: np.random.Generator) -> bool:
+    """
+    Return True if the transfer function itself ignores a combination of the parameters.
+
+    The map from ``theta`` to the normalised coefficients (``N/d_0``, ``D/d_0`` without its
+    leading 1, the dead time) is rank deficient at ``theta`` and at two random points near it:
+    no data can separate such parameters (``g/(J s^2 + b s + k)``: only ratios count), so the
+    model must change. Where the data alone cannot (time constants that coincide, lags far
+    below the sample time acting as dead time, a poorly exciting input) the estimate is
+    returned with the weakly determined combination in its warnings instead.
+    """
+    points = [theta] + [theta * (1.0 + 0.1 * rng.standard_normal(theta.size))
+                        for _ in range(2)]
+    for point in points:
+        try:
+            coefficients = model.coefficients(point)
+        except ModelError:
+            continue
+        lead = coefficients.den[0]
+        if lead == 0.0:
+            continue
+        values = np.concatenate([coefficients.num.ravel(), coefficients.den[1:]]) / lead
+        lead_gradient = coefficients.den_jacobian[:, 0]
+        jacobian = np.hstack([
+            coefficients.num_jacobian.reshape(point.size, -1) / lead,
+            coefficients.den_jacobian[:, 1:] / lead,
+            coefficients.delay_gradient[:, None]])
+        jacobian[:, :values.size] -= np.outer(lead_gradient, values) / lead
+        # Rows: parameters; scaled by their size, so units do not matter.
+        scaled = jacobian * np.maximum(np.abs(point), 1e-12)[:, None]
+        singular = np.linalg.svd(scaled, compute_uv=False)
+        if singular.size and singular[-1] > 1e-9 * singular[0] and \
+                singular.size >= point.size:
+            return False
+    return True
 
 
 def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optional[State]:
@@ -236,29 +307,77 @@ def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optiona
         theta = np.clip(theta, problem.lower, problem.upper)
         coefficients = problem.admissible(theta)
         if coefficients is not None:
-            return State(theta, coefficients, problem.cost(coefficients))
+            return problem.state(theta, coefficients)
     return None
 
 
-def covariance(problem: Problem, state: State) -> Tuple[np.ndarray, float, float]:
+@dataclass
+class Uncertainty:
     """
-    Return the parameter covariance, the noise variance and the condition number at ``state``.
+    What :func:`covariance` finds at an estimate.
 
-    ``sigma^2 (Psi^T Psi)^-1`` with ``sigma^2 = |e|^2 / (N - n_theta)``, computed from the
-    singular values of the column-scaled instruments ``Psi`` (the output sensitivities), whose
-    condition number is the third value (``docs/algorithm.md`` section 15).
+    Attributes
+    ----------
+    covariance : ndarray
+        Parameter covariance valid under coloured residuals, ``model.parameters`` order; rows
+        and columns of parameters held at a bound are NaN.
+    variance : float
+        ``|e|^2 / (N - n)``, the residual variance.
+    condition : float
+        Condition number of the column-scaled sensitivities of the free parameters.
+    weakest : ndarray
+        The (unit, scaled) parameter combination the data determine worst, over all
+        parameters (zero for held ones).
+    noise : NoiseModel
+        The autoregressive model of the residual behind the covariance.
+    free : ndarray of bool
+        Parameters the data determine (not held at a bound).
+
+    """
+
+    covariance: np.ndarray
+    variance: float
+    condition: float
+    weakest: np.ndarray
+    noise: NoiseModel
+    free: np.ndarray
+
+
+def covariance(problem: Problem, state: State,
+               autocorrelation: Optional[np.ndarray] = None) -> Uncertainty:
+    """
+    Return the parameter covariance at ``state`` and what it rests on.
+
+    The sandwich ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` of the output-error estimate,
+    ``Sigma`` from an autoregressive model of the residual (:mod:`~ctid_ros.estimation.noise`):
+    ``sigma^2 (Psi^T Psi)^-1``, ``sigma^2 = |e|^2 / (N - n_theta)``, when the residual is white.
+    Only parameters the data determine enter (a parameter held at a bound gets NaN); the
+    column-scaled sensitivities give the condition number and the weakest combination
+    (``docs/algorithm.md`` section 15). ``autocorrelation``: the residual's, if known.
 
     """
     lin = problem.linearize(state.coefficients, regressors=False)
     error = problem.measured - lin.output
+    free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    scales = column_scales(lin.psi)
-    _, singular, vt = np.linalg.svd(lin.psi / scales, full_matrices=False)
-    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
-    inverse = (vt.T / singular ** 2) @ vt
-    covariance = variance * inverse / np.outer(scales, scales)
-    return covariance, variance, condition
+    psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
+    # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
+    # sensitivities differ; their mean stands for both.
+    psi = psi[:, free]
+    scales = column_scales(psi)
+    svd = np.linalg.svd(psi / scales, full_matrices=False)
+    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
+                                        autocorrelation)
+    result = np.full((params, params), np.nan)
+    result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    weakest = np.zeros(params)
+    condition = 1.0
+    if np.any(free):
+        singular, vt = svd[1:]
+        condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
+        weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
+    return Uncertainty(result, variance, condition, weakest, model, free)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -339,16 +458,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         transient=transient, initial_state=initial_state, output_offset=output_offset,
         integrator_cutoff=integrator_cutoff)
     _check_excitation(model, data)
-    lower, upper = bound_vectors(model, bounds)
-    fitted_model, fitted_data, cutoff = model, data, None
-    if model.integrators:
-        cutoff = default_cutoff(len(data) * data.ts) if integrator_cutoff is None \
-            else float(integrator_cutoff)
-        fitted_model = StabilizedModel(model, cutoff)
-        fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
-                           data.t0, data.output_skew)
-    problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
-                      initial_state == 'estimate', output_offset)
+    problem, cutoff = build_problem(model, data, bounds=bounds, intersample=intersample,
+                                    initial_state=initial_state, output_offset=output_offset,
+                                    integrator_cutoff=integrator_cutoff)
     # The matrices are tiny: threaded BLAS only adds spin-waiting, which dominates under load.
     with warnings.catch_warnings(), _thread_pools().limit(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
@@ -373,30 +485,55 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             if delay_index is not None:
                 search = delay_search(problem, start, delay_index, delay_range)
                 start, profile, history = search.state, search.profile, search.history
-            refined = delay_index is not None
+            nested = _nested_start(problem, initial, delay_range, delay_index, start)
+            if nested is not None:
+                start, history = nested
+            refined = delay_index is not None or nested is not None
         frozen = np.zeros(len(model.parameters), dtype=bool)
+        settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
+                    'tolerance': tolerance, 'check_optimality': True}
         # A start refined by iterations needs no least-squares step.
-        final = iterate(problem, start, method=method, frozen=frozen,
-                        max_iterations=max_iterations, tolerance=tolerance,
-                        first_ls=not refined)
+        final = iterate(problem, start, first_ls=not refined, **settings)
         history.extend(final.history)
         rng = np.random.default_rng(0)
+        final = _from_best_seen(problem, final, history, settings)
+        blind = _blind_combination(problem, final.state)
         for _ in range(_SYMMETRY_RESTARTS):
-            if _blind_combination(problem, final.state) is None:
+            if blind is None:
                 break
             nudged = _nudged(problem, final.state, rng)
             if nudged is None:
                 break
-            final = iterate(problem, nudged, method=method, frozen=frozen,
-                            max_iterations=max_iterations, tolerance=tolerance, first_ls=False)
-            history.extend(final.history)
-        blind = _blind_combination(problem, final.state)
-        if blind is not None:
+            restarted = iterate(problem, nudged, first_ls=False, **settings)
+            history.extend(restarted.history)
+            if restarted.state.cost >= final.state.cost:
+                # Back where it started, or worse: the data put the minimum at the coincidence.
+                break
+            final = _from_best_seen(problem, restarted, history, settings)
+            blind = _blind_combination(problem, final.state)
+        analysis = _residual_analysis(problem, final.state)
+        if not from_initial and blind is None:
+            final = _elsewhere(problem, final, history, settings, delay_index, analysis)
+            if delay_index is not None:
+                across = across_the_sample(problem, final.state, delay_index, delay_range)
+                if across is not None:
+                    again = iterate(problem, across.state, first_ls=False, **settings)
+                    history.extend(across.history + again.history)
+                    final = _from_best_seen(problem, _lower(final, again), history, settings)
+            blind = _blind_combination(problem, final.state)
+        if blind is not None and (blind.startswith('the output does not depend') or
+                                  _structurally_blind(problem.model, final.state.theta, rng)):
             raise EstimationError(blind)
-        parameter_covariance, variance, condition = covariance(problem, final.state)
-    std = np.sqrt(np.maximum(np.diag(parameter_covariance), 0.0))
-    notes = _warnings(problem, final)
+        residuals = analysis if analysis.state is final.state else \
+            _residual_analysis(problem, final.state)
+        uncertainty = covariance(problem, final.state, residuals.long_autocorrelation)
+    residuals.noise_order = uncertainty.noise.order
+    residuals.noise_power_ratio = uncertainty.noise.variance_ratio
+    parameter_covariance = uncertainty.covariance
+    variance, condition = uncertainty.variance, uncertainty.condition
+    std = np.sqrt(np.abs(np.diag(parameter_covariance)))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
+    notes = _warnings(problem, final, uncertainty, std, fit, residuals)
     return Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
         covariance=parameter_covariance, fit=fit, converged=final.converged,
@@ -404,28 +541,263 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         history=history, noise_variance=variance,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
-        output_offset=output_offset, integrator_cutoff=cutoff)
+        output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
+
+
+def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
+                  intersample: str = 'zoh', initial_state: str = 'zero',
+                  output_offset: bool = False, integrator_cutoff: Optional[float] = None
+                  ) -> Tuple[Problem, Optional[float]]:
+    """
+    Return the :class:`Problem` :func:`estimate` solves, and the integrator cutoff it used.
+
+    The options mean what they mean for :func:`estimate`; an integrating model is replaced by
+    its stable reformulation. The problem's cost is the output-error cost every estimate
+    reports, so other optimisers can be compared on it (``bench/real_records.py``).
+    """
+    lower, upper = bound_vectors(model, bounds)
+    fitted_model, fitted_data, cutoff = model, data, None
+    if model.integrators:
+        cutoff = default_cutoff(len(data) * data.ts) if integrator_cutoff is None \
+            else float(integrator_cutoff)
+        fitted_model = StabilizedModel(model, cutoff)
+        fitted_data = Data(data.u, fitted_model.filtered_output(data.y, data.ts), data.ts,
+                           data.t0, data.output_skew)
+    problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
+                      initial_state == 'estimate', output_offset)
+    return problem, cutoff
+
+
+def _reductions(problem: Problem, theta: np.ndarray) -> Dict[int, float]:
+    """
+    Parameters whose limit gives a simpler structure, and that limit; one per distinct one.
+
+    A lag or mass at its order-reduction limit (:attr:`Problem.reductions`) unless that leaves
+    a static model. Of two parameters that play the same role (the model is unchanged when
+    they are swapped, as ``T1`` and ``T2`` in ``(T1 s + 1)(T2 s + 1)``) only the first counts:
+    both give the same nested structure. The dead time's own nested structure (no dead time) is
+    the first point of the dead-time profile, refined if it is among its best minima, and a
+    dead time on its lower bound is released when the cost falls inward (section 7).
+    """
+    # The structure one order lower still has dynamics only if D had degree 2 or more.
+    limits = dict(problem.reductions) if problem.model.den_degree >= 2 else {}
+    model = problem.model
+    probe = theta * np.random.default_rng(0).uniform(1.1, 1.9, theta.size)
+    distinct: Dict[int, float] = {}
+    for index, value in sorted(limits.items()):
+        if any(_interchangeable(model, probe, index, other) for other in distinct):
+            continue
+        distinct[index] = value
+    return distinct
+
+
+def _interchangeable(model, theta: np.ndarray, first: int, second: int) -> bool:
+    """Return True if swapping two parameters leaves the model's coefficients unchanged."""
+    swapped = theta.copy()
+    swapped[[first, second]] = theta[[second, first]]
+    try:
+        one, other = model.coefficients(theta), model.coefficients(swapped)
+    except ModelError:
+        return False
+    return bool(np.allclose(one.num, other.num) and np.allclose(one.den, other.den)
+                and np.isclose(one.delay, other.delay))
+
+
+def _nested_start(problem: Problem, initial: Initial, delay_range: DelayRange,
+                  delay_index: Optional[int], start: State
+                  ) -> Optional[Tuple[State, List[Iteration]]]:
+    """
+    Return the best nested structure's optimum if it is better than ``start``, else None.
+
+    Each structure a parameter's limit leaves (:func:`_reductions`: a lag dropped, the dead
+    time removed) is fitted by the same automatic start and dead-time search with that
+    parameter held at its limit; the final iteration then releases it. So a structure is never
+    left worse than one it contains (``docs/algorithm.md`` section 12).
+    """
+    names = problem.model.parameters
+    hints = {name: float(np.clip(value, problem.lower[names.index(name)],
+                                 problem.upper[names.index(name)]))
+             for name, value in _given_hints(initial).items()}
+    best = None
+    for index, value in _reductions(problem, start.theta).items():
+        fixed = np.zeros(len(names), dtype=bool)
+        fixed[index] = True
+        try:
+            nested = initial_estimate(problem, hints or 'auto', delay_range,
+                                      pin={names[index]: value})
+        except (EstimationError, ModelError):
+            continue
+        if delay_index is not None:
+            found = delay_search(problem, nested, delay_index, delay_range, fixed=fixed)
+        else:
+            found = local_fit(problem, nested, 'iv', first_ls=True, frozen=fixed,
+                              iterations=_NESTED_ITERATIONS)
+        if found.state.cost < (start.cost if best is None else best[0].cost):
+            best = (found.state, found.history)
+    if best is not None:
+        # The search's own result may be a few iterations short of its minimum: it competes
+        # refined, or a nested structure wins on an unfinished comparison.
+        own = local_fit(problem, start, 'iv', first_ls=False, iterations=_NESTED_ITERATIONS)
+        if own.state.cost <= best[0].cost:
+            return own.state, own.history
+    return best
+
+
+def _given_hints(initial: Initial) -> Dict[str, float]:
+    """Return the user's initial values as a dict (none for 'auto')."""
+    if initial is None or isinstance(initial, str):
+        return {}
+    return {name: float(value) for name, value in initial.items()}
+
+
+def _elsewhere(problem: Problem, final: IterationResult, history: List[Iteration],
+               settings: dict, delay_index: Optional[int], verdict: ResidualAnalysis
+               ) -> IterationResult:
+    """
+    Look elsewhere when the residual is not white.
+
+    A residual that is correlated with the input, or coloured (section 11; a coloured input
+    makes the two hard to tell apart), can mean the model misses something: a structure that
+    cannot do better, or a local minimum. For a non-affine structure, whose equation-error
+    start can miss the output-error basin altogether, the random draws of the automatic start
+    are then iterated on the output error directly (twenty updates each); a better end is
+    iterated to convergence and kept. Automatic searches only; ``docs/algorithm.md`` section 12.
+    """
+    if problem.model.is_affine or settings['method'] == 'ls' or \
+            verdict.white and not verdict.input_correlated:
+        return final
+    frozen = np.zeros(final.state.theta.size, dtype=bool)
+    best = None
+    for theta in random_starts(problem, final.state.theta, delay_index):
+        coefficients = problem.admissible(theta)
+        if coefficients is None:
+            continue
+        trial = iterate(problem, problem.state(theta, coefficients), method='iv',
+                        frozen=frozen, max_iterations=_ELSEWHERE_ITERATIONS, tolerance=1e-6)
+        if trial.state.cost < (final.state.cost if best is None else best.state.cost):
+            best = trial
+    if best is None:
+        return final
+    again = iterate(problem, best.state, first_ls=False, **settings)
+    history.extend(best.history + again.history)
+    return _from_best_seen(problem, _lower(final, again), history, settings)
+
+
+def _lower(first: IterationResult, second: IterationResult) -> IterationResult:
+    """Return the result of lower cost (the first on a tie)."""
+    return second if second.state.cost < first.state.cost else first
+
+
+def _from_best_seen(problem: Problem, final: IterationResult, history: List[Iteration],
+                    settings: dict) -> IterationResult:
+    """
+    Continue from the best point evaluated if the iteration ended above it.
+
+    Every start, profile point and line-search candidate is a point of the same cost
+    (:attr:`Problem.best`); the estimate may not be worse than any of them, nor than its start
+    (``docs/algorithm.md`` section 8). Least-squares projections (``method='ls'``) follow their
+    own fixed point and are left where they end.
+    """
+    for _ in range(2):
+        best = problem.best
+        if settings['method'] == 'ls' or best is None or best.cost >= final.state.cost:
+            return final
+        again = iterate(problem, best, first_ls=False, **settings)
+        history.extend(again.history)
+        final = again if again.state.cost <= final.state.cost else final
+    return final
 
 
 def _started(problem: Problem, start: State, transient: Union[float, str]) -> State:
-    """Anchor the sign of D's leading coefficient and leave out the transient, from ``start``."""
+    """
+    Prepare the problem at ``start`` and return the start, moved into the box if need be.
+
+    Anchors the sign of D's leading coefficient, bounds parameters whose zero would drop the
+    order of D (:meth:`Problem.limit_reductions`) and leaves out the transient.
+    """
     problem.anchor(start.coefficients)
-    if not transient:
+    theta = problem.limit_reductions(start.theta)
+    if np.array_equal(theta, start.theta) and not transient:
         return start
-    problem.exclude_transient(transient, start.coefficients)
-    return State(start.theta, start.coefficients, problem.cost(start.coefficients))
+    coefficients = problem.admissible(theta)
+    if coefficients is None:
+        theta, coefficients = start.theta, start.coefficients
+    if transient:
+        problem.exclude_transient(transient, coefficients)
+    return problem.state(theta, coefficients)
 
 
-def _warnings(problem: Problem, result: IterationResult) -> List[str]:
-    """Return the active bounds and, if it did not converge, why the final iteration stopped."""
+def _residual_analysis(problem: Problem, state: State) -> ResidualAnalysis:
+    """
+    Analyse the residual at ``state`` against the inputs (``docs/algorithm.md`` section 11).
+
+    The lags cover the dead time and twice the slowest time constant, at least the 25 of
+    MATLAB's ``resid``, at most 200 or a quarter of the samples. ``state`` is attached (as
+    ``analysis.state``) so the analysis is not repeated for the same state.
+    """
+    data = problem.data
+    horizon = max(state.coefficients.delay, 0.0) + 0.4 * settling_time(state.coefficients)
+    lags = int(min(max(DEFAULT_LAGS, np.ceil(horizon / data.ts)), _MAX_RESIDUAL_LAGS))
+    residual = problem.measured - problem.prediction(state.coefficients)
+    inputs = data.u.reshape(len(data), -1)[problem.skip:]
+    analysis = analyse_residual(residual, inputs, problem.model.inputs, lags)
+    analysis.measured_every = measured_every(problem.measured)
+    analysis.state = state
+    return analysis
+
+
+def _combination(weights: np.ndarray, names: Sequence[str]) -> str:
+    """Return ``'+0.71*T1 -0.70*T2'`` for the entries above 0.1."""
+    return ' '.join(f'{weight:+.2f}*{name}' for weight, name in zip(weights, names)
+                    if abs(weight) > 0.1)
+
+
+def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertainty,
+              std: np.ndarray, fit: float, residuals: ResidualAnalysis) -> List[str]:
+    """
+    Return what a user should know about the estimate, in words.
+
+    Active bounds (and lags the data would drop), no convergence, a weakly determined
+    combination, a negative fit, standard deviations above the value, a residual correlated
+    with the input, an output interpolated from a slower measurement (section 15).
+    """
     state = result.state
+    names = problem.model.parameters
     notes = []
     span = np.maximum(np.abs(state.theta), 1.0)
-    for index, name in enumerate(problem.model.parameters):
-        if state.theta[index] - problem.lower[index] <= 1e-6 * span[index]:
-            notes.append(f'{name} is at its lower bound {problem.lower[index]:g}')
-        elif problem.upper[index] - state.theta[index] <= 1e-6 * span[index]:
-            notes.append(f'{name} is at its upper bound {problem.upper[index]:g}')
+    for index, name in enumerate(names):
+        held = '' if uncertainty.free[index] else \
+            ' (the fit would go beyond it, so it has no standard deviation)'
+        side = 'lower' if state.theta[index] - problem.lower[index] <= 1e-6 * span[index] \
+            else 'upper' if problem.upper[index] - state.theta[index] <= 1e-6 * span[index] \
+            else None
+        if side is None:
+            continue
+        bound = problem.lower[index] if side == 'lower' else problem.upper[index]
+        if problem.reductions.get(index) == bound:
+            notes.append(f'{name} went to {bound:.3g}, where the pole it adds is 1000 times '
+                         f'faster than the Nyquist frequency: the data prefer the model without '
+                         f'it ({name} = 0, one order lower){held}')
+        else:
+            notes.append(f'{name} is at its {side} bound {bound:g}{held}')
     if not result.converged:
         notes.append(f'not converged: {result.message}')
+    if fit < 0.0:
+        notes.append(f'fit {fit:.1f} %: the model does not explain these data (its output is '
+                     'further from the measurements than their mean is)')
+    if uncertainty.condition > ILL_CONDITIONED:
+        notes.append(f'the data barely determine {_combination(uncertainty.weakest, names)} '
+                     f'(condition number {uncertainty.condition:.1e}): these parameters trade '
+                     'off against each other; fix one, reparameterise or use a richer input')
+    for index, name in enumerate(names):
+        if np.isfinite(std[index]) and std[index] > abs(state.theta[index]):
+            notes.append(f'the data do not determine {name}: its standard deviation '
+                         f'{std[index]:.3g} exceeds its value {state.theta[index]:.3g}')
+    if residuals.input_correlated:
+        notes.append(f'residual {residuals.verdict}')
+    if residuals.measured_every > 1:
+        notes.append(f'the output changes only every {residuals.measured_every} samples (held '
+                     'or interpolated from a slower measurement): the sample time is finer '
+                     'than the data; the standard deviations count the correlated '
+                     'interpolated samples, not them as new measurements')
     return notes

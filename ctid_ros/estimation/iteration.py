@@ -18,19 +18,30 @@ from ctid_ros.estimation.regressors import Linearization
 import numpy as np
 
 __all__ = [
-    'Iteration', 'IterationResult', 'NEGLIGIBLE_STEP', 'StopReason',
-    'column_scales', 'iterate',
+    'Iteration', 'IterationResult', 'NEGLIGIBLE_STEP', 'OPTIMALITY_LIMIT', 'StopReason',
+    'column_scales', 'free_parameters', 'iterate', 'optimality',
 ]
 
 _HALVINGS = 14
 _FULL_STEP = (1.0,)
 _HALVED_STEPS = tuple(0.5 ** np.arange(1, _HALVINGS))
 _ALL_STEPS = _FULL_STEP + _HALVED_STEPS
+# Steps tried on each side of a dead-time kink: enough to enter a basin, not to resolve it.
+_KINK_STEPS = _ALL_STEPS[:4]
 _IV_CONDITION_LIMIT = 1e10
 _LM_DAMPINGS = (1e-2, 1.0, 1e2)
 # An update smaller than this many standard deviations of the estimate changes nothing a user
 # can see: the iteration stops instead of resolving noise to the last digit.
 NEGLIGIBLE_STEP = 1e-3
+# A point is a minimum for a user when the Gauss-Newton step from it (the projected gradient in
+# the metric of the estimate's uncertainty) is below this many standard deviations.
+OPTIMALITY_LIMIT = 0.1
+# After a damped or halved update the statistical stop also measures the Gauss-Newton step
+# without the directions the data barely see.
+_STRUGGLING = 1
+# Relative singular values of the scaled sensitivities below this carry no usable gradient
+# information: the first-order model is swamped by second-order terms along such directions.
+_OPTIMALITY_RCOND = 1e-6
 
 
 class StopReason(enum.Enum):
@@ -49,11 +60,13 @@ class StopReason(enum.Enum):
     COST_DECREASE = 'relative cost decrease below resolution'
     EXACT_FIT = 'output reproduced exactly'
     ITERATION_LIMIT = 'iteration limit ({max_iterations}) reached'
+    STALLED = 'stalled: the cost still decreases along its gradient'
 
     @property
     def converged(self) -> bool:
         """Return True for a convergence test, False for the limit or a check that gave up."""
-        return self not in (StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT)
+        return self not in (StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT,
+                            StopReason.STALLED)
 
     def describe(self, tolerance: float, max_iterations: int) -> str:
         """Return the text users see, with the iteration's settings filled in."""
@@ -106,15 +119,86 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
+def _shrinking(lin: Linearization) -> Linearization:
+    """Return the linearisation for a shrinking dead time (itself where both sides agree)."""
+    if lin.delay_jump is None:
+        return lin
+    return Linearization(lin.output, None if lin.phi is None else lin.phi + lin.delay_jump,
+                         lin.psi + lin.delay_jump, None, lin.delay_gradient)
+
+
+def _delay_change(lin: Linearization, step: np.ndarray) -> float:
+    """Change of the dead time along ``step``, to first order (0 without a jump)."""
+    if lin.delay_jump is None:
+        return 0.0
+    return float(lin.delay_gradient @ step)
+
+
+def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
+                       at_lower: np.ndarray, at_upper: np.ndarray, damping: float = 0.0,
+                       rcond: Optional[float] = None, side: str = 'auto'
+                       ) -> Optional[np.ndarray]:
+    """
+    :func:`_direction`, with parameters on a bound that it would push outward held.
+
+    A parameter on a bound is free when the cost falls inward, but the joint direction may
+    still move it outward (through its correlation with the others); the box would then cut
+    the step to nothing. Such parameters are held and the direction solved again.
+    """
+    free = free.copy()
+    while True:
+        step = _direction(kind, lin, error, free, damping, rcond, side)
+        if step is None:
+            return None
+        outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
+        if not np.any(outward):
+            return step
+        free &= ~outward
+        if not np.any(free):
+            return None
+
+
 def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-               damping: float = 0.0) -> Optional[np.ndarray]:
+               damping: float = 0.0, rcond: Optional[float] = None, side: str = 'auto'
+               ) -> Optional[np.ndarray]:
     """
     Update direction on the free parameters (zeros elsewhere), or None if singular.
 
     ``kind`` is ``'ls'``, ``'iv'``, ``'gn'`` or ``'lm'``: equations (5.1)-(5.4) of
-    ``docs/algorithm.md``, on columns scaled by the instrument norms.
+    ``docs/algorithm.md``, on columns scaled by the instrument norms. Where the dead time sits
+    on the sample lattice and the sensitivities differ on its two sides, the direction is
+    solved with the side it moves the dead time to; if neither side's solution moves it to
+    its own side (a kink that is a minimum along the dead time), the dead time is held.
+    ``rcond`` truncates the singular values of a Gauss-Newton solve (default: rounding).
+    ``side`` ``'up'`` or ``'down'`` asks for a direction that grows (shrinks) the dead time or
+    holds it.
 
     """
+    if lin.delay_jump is None:
+        return _one_sided_direction(kind, lin, error, free, damping, rcond)
+    held = free & (lin.delay_gradient == 0.0)
+    if side == 'auto':
+        # The side where the cost falls faster first, then the other.
+        rising, falling = _one_sided_gradients(lin, error)
+        delays = free & (lin.delay_gradient != 0.0)
+        down_first = np.max(falling[delays], initial=0.0) > np.max(rising[delays], initial=0.0)
+        sides = ('down', 'up') if down_first else ('up', 'down')
+    else:
+        sides = (side,)
+    for which in sides:
+        sided = lin if which == 'up' else _shrinking(lin)
+        step = _one_sided_direction(kind, sided, error, free, damping, rcond)
+        change = 0.0 if step is None else _delay_change(lin, step)
+        if step is None or (change >= 0.0 if which == 'up' else change <= 0.0):
+            return step
+    if not np.any(held):
+        return None
+    return _one_sided_direction(kind, lin, error, held, damping, rcond)
+
+
+def _one_sided_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
+                         damping: float, rcond: Optional[float] = None) -> Optional[np.ndarray]:
+    """Direction of :func:`_direction` with the sensitivities as given."""
     psi = lin.psi[:, free]
     scales = column_scales(psi)
     psi_s = psi / scales
@@ -128,7 +212,7 @@ def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarra
             return None
         step = np.linalg.solve(matrix, psi_s.T @ error)
     elif kind == 'gn':
-        step = np.linalg.lstsq(psi_s, error, rcond=None)[0]
+        step = np.linalg.lstsq(psi_s, error, rcond=rcond)[0]
     else:
         gram = psi_s.T @ psi_s
         try:
@@ -153,28 +237,145 @@ def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray,
     return limit if limit >= 1.0 else 0.999 * limit
 
 
+def _one_sided_gradients(lin: Linearization, error: np.ndarray
+                         ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Rates at which the cost falls when each parameter rises, and when it falls.
+
+    ``-dV/dtheta_i`` from the right, and ``+dV/dtheta_i`` from the left: with a dead time on the
+    sample lattice the two sides have different sensitivities (the side a parameter moves the
+    dead time to decides). Elsewhere the second is minus the first.
+    """
+    up = lin.psi.T @ error                                   # -dV/dtheta, growing dead time
+    if lin.delay_jump is None:
+        return up, -up
+    down = up + lin.delay_jump.T @ error                     # the same, shrinking dead time
+    # A parameter that shrinks the dead time when it rises takes the other side's derivative.
+    raises = lin.delay_gradient >= 0.0
+    rising = np.where(raises, up, down)
+    falling = -np.where(raises, down, up)
+    return rising, falling
+
+
+def _on_bounds(theta: np.ndarray, problem: Problem) -> Tuple[np.ndarray, np.ndarray]:
+    """Parameters on their lower and on their upper bound (within 1e-9 relative)."""
+    span = np.maximum(np.abs(theta), 1.0)
+    return theta - problem.lower <= 1e-9 * span, problem.upper - theta <= 1e-9 * span
+
+
 def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
                problem: Problem, frozen: np.ndarray) -> np.ndarray:
-    """Active set: drop parameters that sit on a bound and whose gradient pushes outward."""
-    gradient = lin.psi.T @ error                     # -dV/dtheta
-    span = np.maximum(np.abs(theta), 1.0)
-    at_lower = (theta - problem.lower <= 1e-9 * span) & (gradient < 0)
-    at_upper = (problem.upper - theta <= 1e-9 * span) & (gradient > 0)
-    return ~(frozen | at_lower | at_upper)
+    """
+    Active set: hold parameters that can only move where the cost rises.
+
+    A parameter on a bound is held if the cost rises inward (the one-sided derivative into the
+    box), and a dead time on the sample lattice is held where the cost rises on both sides.
+    """
+    rising, falling = _one_sided_gradients(lin, error)
+    at_lower, at_upper = _on_bounds(theta, problem)
+    kink = (rising < 0) & (falling < 0)
+    return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
+
+
+def free_parameters(problem: Problem, state: State, frozen: np.ndarray) -> np.ndarray:
+    """
+    Parameters the data determine at ``state``: not frozen, not held at a bound.
+
+    A parameter on a bound whose cost rises inward is held there by the bound, not by the
+    data (:func:`_free_mask`); identifiability and covariance concern the others. A dead time
+    at a kink of the cost on the sample lattice is a minimum the data chose: it stays free.
+    """
+    lin = problem.linearize(state.coefficients, regressors=False)
+    error = problem.measured - lin.output
+    rising, falling = _one_sided_gradients(lin, error)
+    at_lower, at_upper = _on_bounds(state.theta, problem)
+    return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)))
+
+
+def optimality(problem: Problem, state: State, frozen: np.ndarray) -> float:
+    """
+    First-order optimality of ``state``, in standard deviations of the estimate.
+
+    The Gauss-Newton step of the free parameters (those not held by :func:`_free_mask`: at an
+    active bound only an inward decrease counts, at a dead-time kink the side that decreases)
+    measured as ``|Psi step| / sigma``, i.e. ``sqrt(g^T (Psi^T Psi)^-1 g) / sigma`` with ``g``
+    the projected gradient. Zero at a stationary point; ``docs/algorithm.md`` section 8.
+    """
+    lin = problem.linearize(state.coefficients, regressors=False)
+    error = problem.measured - lin.output
+    free = _free_mask(state.theta, lin, error, problem, frozen)
+    if not np.any(free):
+        return 0.0
+    # Combinations the data barely determine (their sensitivities nearly dependent, as where
+    # two time constants coincide) have no first-order information: the measure leaves them
+    # out rather than reading rounding as a gradient.
+    step = _bounded_direction('gn', lin, error, free, *_on_bounds(state.theta, problem),
+                              rcond=_OPTIMALITY_RCOND)
+    if step is None:
+        return np.inf
+    return _step_size(lin, error, step)
 
 
 def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
               scales: Sequence[float]) -> Optional[Tuple[State, float]]:
     """First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V."""
     limit = _box_limit(state.theta, step, problem.lower, problem.upper)
+    if not limit > 0.0:
+        return None
     for scale in scales:
         candidate = state.theta + limit * scale * step
         coefficients = problem.admissible(candidate)
         if coefficients is not None:
-            cost = problem.cost(coefficients)
-            if not monotone or cost <= state.cost:
-                return State(candidate, coefficients, cost), limit * scale
+            new_state = problem.state(candidate, coefficients)
+            if not monotone or new_state.cost <= state.cost:
+                return new_state, limit * scale
     return None
+
+
+def _truncated_step_size(lin: Linearization, error: np.ndarray, free: np.ndarray) -> float:
+    """
+    Length in standard deviations of the Gauss-Newton step of the free parameters, truncated.
+
+    ``sqrt(sum_i (v_i^T g)^2 / lambda_i) / sigma`` over the eigenpairs of the scaled ``Psi^T
+    Psi`` whose singular values ``sqrt(lambda_i)`` exceed ``_OPTIMALITY_RCOND`` of the largest:
+    the measure of (8.1) without the directions the data barely see, from the small normal
+    matrix (a measure, not a solve: the squared condition number does no harm above 1e-12).
+    """
+    count, params = lin.psi.shape
+    variance = float(error @ error) / max(count - params, 1)
+    if variance == 0.0:
+        return np.inf
+    psi = lin.psi[:, free]
+    scaled = psi / column_scales(psi)
+    values, vectors = np.linalg.eigh(scaled.T @ scaled)
+    kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], np.finfo(float).tiny)
+    projected = vectors[:, kept].T @ (scaled.T @ error)
+    return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / variance))
+
+
+def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.ndarray,
+                 free: np.ndarray, bounded: Tuple[np.ndarray, np.ndarray], kind: str
+                 ) -> Optional[Tuple[str, np.ndarray, Tuple[State, float]]]:
+    """
+    At a dead time on the lattice where the cost falls to both sides, take the better side.
+
+    Such a kink separates two basins; both one-sided directions are tried (full step, then
+    halved at most three times until the cost falls) and the lower cost wins (None if neither
+    lowers it: the usual attempts follow).
+    """
+    rising, falling = _one_sided_gradients(lin, error)
+    delays = free & (lin.delay_gradient != 0.0)
+    if not np.any(delays & (rising > 0.0) & (falling > 0.0)):
+        return None
+    best = None
+    for side in ('up', 'down'):
+        step = _bounded_direction(kind, lin, error, free, *bounded, side=side)
+        if step is None or _delay_change(lin, step) == 0.0:
+            continue
+        outcome = _try_step(problem, state, step, True, _KINK_STEPS)
+        if outcome is not None and (best is None or outcome[0].cost < best[2][0].cost):
+            best = (kind, step, outcome)
+    return best
 
 
 def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float:
@@ -183,12 +384,14 @@ def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float
     variance = float(error @ error) / max(count - params, 1)
     if variance == 0.0:
         return np.inf
-    return float(np.linalg.norm(lin.psi @ step) / np.sqrt(variance))
+    psi = lin.psi if _delay_change(lin, step) >= 0.0 else _shrinking(lin).psi
+    return float(np.linalg.norm(psi @ step) / np.sqrt(variance))
 
 
 def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             max_iterations: int, tolerance: float, first_ls: bool = True,
-            trust_first_ls: bool = False, full_steps_only: bool = False) -> IterationResult:
+            trust_first_ls: bool = False, full_steps_only: bool = False,
+            check_optimality: bool = False) -> IterationResult:
     """
     Run the controlled projection iteration from ``state``.
 
@@ -217,6 +420,11 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         Give up (:attr:`StopReason.NO_FULL_STEP`, not converged) at the first update that needs
         a shorter or damped step: a quick check of a start that is either close to a minimum or
         not worth the halving.
+    check_optimality : bool
+        Before a rule that claims convergence stops the iteration, test first-order optimality
+        (:func:`optimality` below :data:`OPTIMALITY_LIMIT`): a small step or a small decrease
+        away from a minimum does not stop it, and where no admissible step decreases the cost
+        away from a minimum it stops as :attr:`StopReason.STALLED` (not converged).
 
     Returns
     -------
@@ -236,10 +444,18 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         return IterationResult(state, history, reason,
                                reason.describe(tolerance, max_iterations))
 
+    def optimal() -> bool:
+        # LS follows its own fixed point, not the minimum of V.
+        return not check_optimality or method == 'ls' or \
+            optimality(problem, state, frozen) <= OPTIMALITY_LIMIT
+
+    # Updates so far that needed another direction or a shorter step.
+    struggling = 0
     for iteration in range(max_iterations):
         lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
         free = _free_mask(state.theta, lin, error, problem, frozen)
+        bounded = _on_bounds(state.theta, problem)
         if not np.any(free):
             return stop(StopReason.ALL_AT_BOUNDS)
         primary = 'gn' if method == 'gn' else ('ls' if method == 'ls' or (
@@ -248,13 +464,21 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
 
         def direction(kind: str, damping: float) -> Optional[np.ndarray]:
             if (kind, damping) not in directions:
-                directions[kind, damping] = _direction(kind, lin, error, free, damping)
+                directions[kind, damping] = _bounded_direction(kind, lin, error, free,
+                                                               *bounded, damping)
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
-        if primary != 'ls' and first is not None and \
-                _step_size(lin, error, first) < NEGLIGIBLE_STEP:
-            return stop(StopReason.NEGLIGIBLE_UPDATE)
+        if primary != 'ls':
+            size = np.inf if first is None else _step_size(lin, error, first)
+            if size >= NEGLIGIBLE_STEP and (first is None or struggling >= _STRUGGLING):
+                # Where two parameters act alike (coinciding time constants) the IV step is
+                # singular or large along what the data cannot see, and the updates that pass
+                # are damped or halved; the Gauss-Newton step without those directions
+                # measures the update then.
+                size = _truncated_step_size(lin, error, free)
+            if size < NEGLIGIBLE_STEP:
+                return stop(StopReason.NEGLIGIBLE_UPDATE)
         # Pure P-LS follows its own fixed point, not the output-error descent.
         trusted = method == 'ls' or (trust_first_ls and iteration == 0 and primary == 'ls')
         if trusted:
@@ -270,8 +494,12 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             attempts = [(kind, damping, _FULL_STEP, monotone)
                         for kind, damping, _, monotone in attempts if kind != 'lm']
         accepted = None
+        if not trusted and lin.delay_jump is not None:
+            accepted = _across_kink(problem, state, lin, error, free, bounded, primary)
         tried = set()
         for kind, damping, scales, monotone in attempts:
+            if accepted is not None:
+                break
             step = direction(kind, damping)
             if step is None or (kind, damping, scales) in tried:
                 continue
@@ -281,16 +509,28 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
                 accepted = (kind, step, outcome)
                 break
         if accepted is None:
-            return stop(StopReason.NO_FULL_STEP if full_steps_only else StopReason.NO_DECREASE)
+            if full_steps_only:
+                return stop(StopReason.NO_FULL_STEP)
+            return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
         kind, step, (new_state, scale) = accepted
+        struggling += kind != primary or scale < 1.0
         change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
-        decrease = (state.cost - new_state.cost) / max(state.cost, np.finfo(float).tiny)
+        previous = max(state.cost, np.finfo(float).tiny)
+        decrease = (state.cost - new_state.cost) / previous
         state = new_state
         history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
-        if change < tolerance:
+        if change < tolerance and optimal():
             return stop(StopReason.PARAMETER_CHANGE)
-        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls':
+        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls' and optimal():
             return stop(StopReason.COST_DECREASE)
+        # A decrease smaller than a step of NEGLIGIBLE_STEP standard deviations would give,
+        # (8.1) squared: progress along directions the data barely see (coinciding time
+        # constants) that no user could tell from here.
+        count, params = lin.psi.shape
+        variance = 2.0 * state.cost / max(count - params, 1)
+        if check_optimality and method != 'ls' and kind != 'ls' and \
+                decrease * previous < 0.5 * NEGLIGIBLE_STEP ** 2 * variance and optimal():
+            return stop(StopReason.NEGLIGIBLE_UPDATE)
         if state.cost <= 1e-30 * max(float(problem.measured @ problem.measured), 1e-300):
             return stop(StopReason.EXACT_FIT)
     return stop(StopReason.ITERATION_LIMIT)

@@ -10,11 +10,11 @@ sections 2-4 and 9; the admissible set and the bounds are sections 6 and 7.
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Mapping, Optional, Tuple, Union
+from typing import Dict, Mapping, Optional, Tuple, Union
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import ContinuousFilter
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
 from ctid_ros.errors import ModelError
 from ctid_ros.estimation.correlation import prewhitened_delay
 from ctid_ros.estimation.integrating import StabilizedModel
@@ -24,7 +24,8 @@ from scipy import linalg
 
 __all__ = [
     'Bounds', 'DelayRange', 'FittedModel', 'Problem', 'State', 'bound_vectors', 'delay_parameter',
-    'nuisance_columns', 'orthonormal_basis', 'settling_time', 'with_fitted_nuisance',
+    'nuisance_columns', 'orthonormal_basis', 'reduction_limits', 'settling_time',
+    'with_fitted_nuisance',
 ]
 
 Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
@@ -44,18 +45,21 @@ class State:
 
 
 def nuisance_columns(den: np.ndarray, count: int, ts: float, initial_state: bool,
-                     output_offset: bool) -> Optional[np.ndarray]:
+                     output_offset: bool, discrete: Optional[DiscreteFilter] = None
+                     ) -> Optional[np.ndarray]:
     """
     Return the output components fitted besides ``G u`` as columns, or None.
 
     ``initial_state``: the free responses of ``1/D`` (a nonzero initial state);
     ``output_offset``: a constant. Their coefficients enter linearly, so they are projected out
     of every residual, regressor and instrument (variable projection, ``docs/algorithm.md``
-    section 9).
+    section 9). ``discrete``: a discretisation of ``1/D`` at ``ts`` to reuse (any dead time).
     """
     columns = []
     if initial_state:
-        columns.append(ContinuousFilter(den).discretize(ts).free_responses(count))
+        if discrete is None:
+            discrete = ContinuousFilter(den).discretize(ts)
+        columns.append(discrete.free_responses(count))
     if output_offset:
         columns.append(np.ones((count, 1)))
     return np.hstack(columns) if columns else None
@@ -82,6 +86,39 @@ def settling_time(coefficients: Coefficients) -> float:
     roots = np.roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
     slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
     return 5.0 * slowest + max(coefficients.delay, 0.0)
+
+
+# A pole this many times faster than the Nyquist frequency leaves no trace in sampled data.
+_NEGLIGIBLE_POLE = 1000.0
+
+
+def reduction_limits(model: FittedModel, theta: np.ndarray, ts: float) -> Dict[int, float]:
+    """
+    Parameters whose zero drops the order of ``D``, and the value where that stops mattering.
+
+    For each parameter ``i`` (others at ``theta``) whose value 0 makes ``D``'s leading
+    coefficient vanish while the next one stays nonzero, the value (signed like
+    ``theta_i``) at which the pole that leaves is ``1000 pi / ts`` rad/s: ``|d_1 / (dd_0 /
+    dtheta_i)|`` over that frequency, with ``d_1`` the next coefficient at ``theta_i = 0``.
+    """
+    limits = {}
+    fastest = _NEGLIGIBLE_POLE * np.pi / ts
+    for index in range(theta.size):
+        if theta[index] == 0.0:
+            continue
+        reduced = np.array(theta, dtype=float)
+        reduced[index] = 0.0
+        try:
+            coefficients = model.coefficients(reduced)
+        except ModelError:
+            continue
+        den = coefficients.den
+        slope = coefficients.den_jacobian[index][0]
+        if den.size < 2 or den[0] != 0.0 or den[1] == 0.0 or slope == 0.0 or \
+                coefficients.delay_gradient[index] != 0.0:
+            continue
+        limits[index] = float(np.sign(theta[index]) * abs(den[1] / slope) / fastest)
+    return limits
 
 
 def bound_vectors(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, np.ndarray]:
@@ -147,6 +184,8 @@ class Problem:
         self.output_offset = output_offset
         self.evaluations = 0
         self.skip = 0
+        self.best: Optional[State] = None
+        self.reductions: Dict[int, float] = {}
         self._leading_sign = None
         self._latest: Optional[Tuple[bytes, Linearization]] = None
 
@@ -172,8 +211,11 @@ class Problem:
         return self.data.y[self.skip:]
 
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
+        # The simulation's own discretisation of 1/D serves the free responses too.
+        discrete = self.bank.realized(coefficients.den, coefficients.delay) \
+            if self.initial_state else None
         columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
-                                   self.initial_state, self.output_offset)
+                                   self.initial_state, self.output_offset, discrete)
         return None if columns is None else orthonormal_basis(columns[self.skip:])
 
     def prediction(self, coefficients: Coefficients) -> np.ndarray:
@@ -201,16 +243,57 @@ class Problem:
 
     def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:
         lin = self.bank.linearize(coefficients, regressors)
-        output, phi, psi = (lin.output[self.skip:],
-                            None if lin.phi is None else lin.phi[self.skip:],
-                            lin.psi[self.skip:])
+        skip = self.skip
+        output, phi, psi = (lin.output[skip:], None if lin.phi is None else lin.phi[skip:],
+                            lin.psi[skip:])
+        jump = None if lin.delay_jump is None else lin.delay_jump[skip:]
         basis = self._basis(coefficients)
-        if basis is not None:
-            output = with_fitted_nuisance(self.measured, output, basis)
-            psi = psi - basis @ (basis.T @ psi)
+        if basis is None:
+            return Linearization(output, phi, psi, jump, lin.delay_gradient)
+        if self.initial_state:
+            # The fitted initial-state response moves with D: its derivative at fixed
+            # coefficients belongs to every sensitivity (variable projection, section 9).
+            motion = self._nuisance_motion(coefficients, self.measured - output)
+            psi = psi + motion
             if phi is not None:
-                phi = phi - basis @ (basis.T @ phi)
-        return Linearization(output, phi, psi)
+                phi = phi + motion
+        output = with_fitted_nuisance(self.measured, output, basis)
+
+        def projected(columns: Optional[np.ndarray]) -> Optional[np.ndarray]:
+            return None if columns is None else columns - basis @ (basis.T @ columns)
+
+        return Linearization(output, projected(phi), projected(psi), projected(jump),
+                             lin.delay_gradient)
+
+    def _nuisance_motion(self, coefficients: Coefficients, error: np.ndarray) -> np.ndarray:
+        """
+        Return the derivative of the fitted initial-state response by every parameter.
+
+        The response of an initial state is the impulse response of ``P(s)/D(s)`` with
+        ``deg P < deg D``. With ``P`` fitted to ``error`` (together with the offset, if
+        estimated) and held fixed, its derivative with respect to ``theta_i`` is the impulse
+        response of ``-P D_i / D^2`` (Kaufman's variable-projection Jacobian; the gradient of
+        the projected cost is exact with it). Columns in parameter order, fitted samples only.
+        """
+        den = coefficients.den
+        order = den.size - 1
+        params = coefficients.den_jacobian.shape[0]
+        if order == 0:
+            return np.zeros((error.size, params))
+        count = len(self.data)
+        squared = self.bank.realized(np.convolve(den, den), coefficients.delay)
+        single = self.bank.realized(den, coefficients.delay)
+        powers = [np.eye(order)[j] for j in range(order)]         # s^(n-1) .. s^0
+        columns = [single.impulse_responses(powers, count).T[self.skip:]]
+        if self.output_offset:
+            columns.append(np.ones((error.size, 1)))
+        columns = np.hstack(columns)
+        norms = np.linalg.norm(columns, axis=0)
+        norms[norms == 0.0] = 1.0
+        fitted = np.linalg.lstsq(columns / norms, error, rcond=None)[0] / norms
+        polynomial = fitted[:order]
+        numerators = [-np.convolve(polynomial, row) for row in coefficients.den_jacobian]
+        return squared.impulse_responses(numerators, count).T[self.skip:]
 
     def exclude_transient(self, seconds: Union[float, str], coefficients: Coefficients
                           ) -> None:
@@ -226,7 +309,11 @@ class Problem:
         seconds = float(seconds)
         if not (np.isfinite(seconds) and seconds >= 0.0):
             raise ValueError(f"transient must be 'auto' or a non-negative time, got {seconds}")
-        self.skip = int(min(np.ceil(seconds / self.data.ts), len(self.data) // 2))
+        skip = int(min(np.ceil(seconds / self.data.ts), len(self.data) // 2))
+        if skip != self.skip:
+            # Costs on other samples are not comparable.
+            self.best = None
+        self.skip = skip
 
     def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
         """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
@@ -243,9 +330,33 @@ class Problem:
             return None
         return coefficients
 
+    def limit_reductions(self, theta: np.ndarray) -> np.ndarray:
+        """
+        Bound every parameter whose zero drops the order of ``D`` where it stops mattering.
+
+        A parameter whose value 0 makes ``D``'s leading coefficient vanish (a lag ``T`` in
+        ``T s + 1``, a mass) can approach 0 but never reach it: the model loses an order there.
+        It gets a bound on the side of its value in ``theta`` at ``reduction_limit``, where the
+        pole it leaves is 1000 times faster than the Nyquist frequency (:attr:`reductions`
+        records them; a tighter user bound is kept). Returns ``theta`` moved into the new box.
+        Section 7 of ``docs/algorithm.md``.
+        """
+        for index, value in reduction_limits(self.model, theta, self.data.ts).items():
+            if value > 0.0 and self.lower[index] < value < self.upper[index]:
+                self.lower[index] = value
+            elif value < 0.0 and self.lower[index] < value < self.upper[index]:
+                self.upper[index] = value
+            else:
+                continue
+            self.reductions[index] = value
+        return np.clip(theta, self.lower, self.upper)
+
     def anchor(self, coefficients: Coefficients) -> None:
         """Fix the sign of D's leading coefficient: crossing zero would change the order."""
         self._leading_sign = np.sign(coefficients.den[0])
+        if self.best is not None and np.sign(self.best.coefficients.den[0]) != \
+                self._leading_sign:
+            self.best = None
 
     def cost(self, coefficients: Coefficients) -> float:
         """Return the output-error cost ``0.5 |y - yhat|^2`` on the fitted samples."""
@@ -253,13 +364,26 @@ class Problem:
         error = self.measured - self.prediction(coefficients)
         return 0.5 * float(error @ error)
 
+    def state(self, theta: np.ndarray, coefficients: Coefficients) -> State:
+        """
+        Return the state at admissible ``theta``, remembering it if it is the best so far.
+
+        :attr:`best` is the lowest-cost state evaluated since the fitted samples last changed
+        (every candidate of every start, search and iteration goes through here), so the
+        estimator can return nothing worse than a point it has seen.
+        """
+        state = State(np.array(theta, dtype=float), coefficients, self.cost(coefficients))
+        if self.best is None or state.cost < self.best.cost:
+            self.best = state
+        return state
+
     def delay_bracket(self, delay_index: int, delay_range: DelayRange) -> Tuple[float, float]:
         """
         Return the interval the dead time is searched in (``docs/algorithm.md`` section 12).
 
         ``delay_range`` within the bounds if given; else the bounds, with an infinite upper
-        bound replaced by ``max(3 guess, guess + 20 ts)`` (at most half the record), where
-        ``guess`` is :attr:`delay_guess`.
+        bound replaced by ``max(3 guess, guess + 20 ts, 5 % of the record)`` (at most half the
+        record), where ``guess`` is :attr:`delay_guess`.
 
         """
         data = self.data
@@ -272,5 +396,8 @@ class Problem:
         high = self.upper[delay_index]
         if not np.isfinite(high):
             guess = self.delay_guess
-            high = min(max(3.0 * guess, guess + 20.0 * data.ts), 0.5 * data.ts * len(data))
+            # The guess can fail (a slowly held or coloured input); a twentieth of the record
+            # is searched whatever it says.
+            high = min(max(3.0 * guess, guess + 20.0 * data.ts, 0.05 * data.ts * len(data)),
+                       0.5 * data.ts * len(data))
         return low, max(high, low + data.ts)

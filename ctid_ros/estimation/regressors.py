@@ -35,11 +35,21 @@ Value = TypeVar('Value')
 
 @dataclass
 class Linearization:
-    """Model output and its regressors/instruments at one parameter vector."""
+    """
+    Model output and its regressors/instruments at one parameter vector.
+
+    ``psi`` holds the sensitivities for an increasing dead time. Where the dead time is a whole
+    number of samples and the held input jumps at the sample instants, the output's derivative
+    with respect to the dead time has a different value for a decreasing one:
+    ``psi + delay_jump`` (and ``phi + delay_jump``); ``delay_jump`` is None where both sides
+    agree. ``delay_gradient`` is ``d tau / d theta`` (``docs/algorithm.md`` section 12).
+    """
 
     output: np.ndarray
     phi: Optional[np.ndarray]
     psi: np.ndarray
+    delay_jump: Optional[np.ndarray] = None
+    delay_gradient: Optional[np.ndarray] = None
 
 
 def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
@@ -102,6 +112,15 @@ class SignalBank:
         return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
                            discretized)
 
+    def realized(self, den: np.ndarray, delay: float) -> DiscreteFilter:
+        """
+        Discretisation of ``1/den`` for the input with dead time ``delay`` (cached).
+
+        Its transition and realisation do not depend on the dead time: :meth:`linearize`'s
+        own filters serve impulse responses too.
+        """
+        return self._discrete(den, delay + self.extra_delay, self.intersample)
+
     @staticmethod
     def _output_key(coefficients: Coefficients) -> Hashable:
         return coefficients.den.tobytes(), coefficients.num.tobytes(), float(coefficients.delay)
@@ -135,6 +154,7 @@ class SignalBank:
         bank_sensitivity = self._discrete(np.convolve(den, den), delay, self.intersample)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
+        jump = np.zeros(self.y.size)
         psi = np.zeros((params, self.y.size))
         u_regressors = np.zeros((params, self.y.size))
         trim = self.trim
@@ -156,6 +176,14 @@ class SignalBank:
             output += u_parts[0]
             if delay_used:
                 derivative += u_parts[1]
+                # d yhat / d tau = -s yhat, whose feedthrough of the delayed held input takes
+                # the input just before t_k for a growing dead time (its left limit).
+                on_lattice = bank_u.feed_left is not None and bank_u.feed_left != bank_u.feed
+                feedthrough = bank_u.continuous.output_map(u_numerators[1])[1] \
+                    if on_lattice else 0.0
+                if feedthrough != 0.0:
+                    jump += feedthrough * (bank_u.delayed_input(signal, left=True)
+                                           - bank_u.delayed_input(signal))[trim:]
             if regressors:
                 u_regressors += u_parts[-params:]
             # Both products have degree 2 deg D: the coefficient arrays align.
@@ -163,7 +191,9 @@ class SignalBank:
                 np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
                 for i in range(params)]
             psi += bank_sensitivity.outputs(signal, sensitivity_numerators)[:, trim:]
-        delay_term = -np.outer(coefficients.delay_gradient, derivative)
+        # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
+        delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
+        delay_jump = np.outer(coefficients.delay_gradient, jump).T if np.any(jump) else None
         psi += delay_term
         phi = None
         if regressors:
@@ -172,4 +202,4 @@ class SignalBank:
             phi = (u_regressors - y_parts + delay_term).T
         output.setflags(write=False)
         _remembered(self._outputs, self._output_key(coefficients), lambda: output)
-        return Linearization(output, phi, psi.T)
+        return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)

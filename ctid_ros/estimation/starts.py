@@ -34,7 +34,7 @@ from scipy import optimize
 __all__ = [
     'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
     'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths', 'initial_estimate',
-    'local_fit',
+    'local_fit', 'random_starts', 'stabilized',
 ]
 
 # Initial values by parameter name, or 'auto'/None for none.
@@ -45,6 +45,10 @@ _START_TOLERANCE = 1e-6
 _START_ITERATIONS = 100
 _RANDOM_STARTS = 4
 _LOCAL_ITERATIONS = 4
+# A model explaining the data leaves a residual below this share of the output's spread.
+_UNEXPLAINED = 0.9
+# Fractions of a sample whose filtered input is kept (the lattice, half samples, a hint).
+_REMEMBERED_FRACTIONS = 4
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -64,25 +68,29 @@ def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
     return values
 
 
-def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange) -> State:
+def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange,
+                     pin: Optional[Mapping[str, float]] = None) -> State:
     """
     Return the starting state of the iteration.
 
     The user's values compete with the equation-error multi-start described in the module
     docstring (missing values are fitted, given ones serve as hints, or stay fixed while others
     are missing); the candidate with the lowest output-error cost wins. A far or unstable guess
-    therefore costs robustness nothing.
+    therefore costs robustness nothing. ``pin`` holds further parameters at given values (a
+    nested structure: a lag at its limit).
 
     """
     model = problem.model
     given = _given_values(model, initial)
+    pin = dict(pin or {})
     for name, value in given.items():
         index = model.parameters.index(name)
         if not problem.lower[index] <= value <= problem.upper[index]:
             raise ModelError(f'initial value {name}={value:g} lies outside its bounds '
                              f'[{problem.lower[index]:g}, {problem.upper[index]:g}]')
     # A complete guess is a hint for every parameter; a partial one pins the given values.
-    pinned = {} if len(given) == len(model.parameters) else given
+    pinned = dict({} if len(given) == len(model.parameters) else given, **pin)
+    given = dict(given, **pin)
     delay_index = delay_parameter(model)
     filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
     free = np.array([name not in pinned for name in model.parameters])
@@ -104,12 +112,51 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
         given.get(model.parameters[delay_index], taus[0])
     best = _lower_cost(fit, best_candidate(
         problem, _start_points(problem, given, pinned, delay_index, hinted_tau)))
+    if best is None and model.is_affine:
+        # Every fit has an unstable D (a lightly damped plant, a biased equation error): its
+        # unstable roots mirrored into the left half plane give a stable start nearby.
+        for tau in taus:
+            hint = _start_points(problem, given, pinned, delay_index, tau)[:1]
+            for index in range(filters.count):
+                fits = equation_error_fits(problem, hint, free, tau, filters.select(index))
+                mirrored = (stabilized(problem, theta, free) for theta in fits)
+                best = _lower_cost(best, best_candidate(
+                    problem, [theta for theta in mirrored if theta is not None]))
     if best is None:
         raise EstimationError(
             'no stable starting model was found: the initial values give an unstable or '
             'out-of-bounds D(s), and the automatic initialisation found none either; give '
             'initial values that make the model stable, or check the bounds')
     return best
+
+
+def stabilized(problem: Problem, theta: np.ndarray, free: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return ``theta`` with the unstable roots of ``D`` mirrored into the left half plane.
+
+    For an affine structure ``D`` is linear in the parameters: the free ones are refitted by
+    least squares to the mirrored polynomial (the others kept); None if that is impossible.
+    """
+    model = problem.model
+    try:
+        coefficients = model.coefficients(theta)
+    except ModelError:
+        return None
+    den = coefficients.den
+    if den.size < 2 or den[0] == 0.0:
+        return None
+    roots = np.roots(den)
+    scale = max(float(np.max(np.abs(roots))), np.finfo(float).tiny)
+    mirrored = np.where(roots.real >= 0.0, -np.abs(roots.real) - 1e-3 * scale + 1j * roots.imag,
+                        roots)
+    target = np.real(den[0] * np.poly(mirrored))
+    jacobian = coefficients.den_jacobian[free].T            # d den / d theta_free
+    if not np.any(jacobian):
+        return None
+    step = np.linalg.lstsq(jacobian, target - den, rcond=None)[0]
+    result = theta.copy()
+    result[free] = theta[free] + step
+    return np.clip(result, problem.lower, problem.upper)
 
 
 def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
@@ -121,7 +168,7 @@ def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
     coefficients = problem.admissible(theta)
     if coefficients is None:
         return None
-    return State(theta, coefficients, problem.cost(coefficients))
+    return problem.state(theta, coefficients)
 
 
 def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Optional[State]:
@@ -131,9 +178,9 @@ def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Option
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
-        cost = problem.cost(coefficients)
-        if best is None or cost < best.cost:
-            best = State(theta, coefficients, cost)
+        state = problem.state(theta, coefficients)
+        if best is None or state.cost < best.cost:
+            best = state
     return best
 
 
@@ -201,6 +248,18 @@ def _initial_delays(problem: Problem, given: Mapping[str, float], pinned: Mappin
                               for tau, rounded in zip(taus, whole)))
 
 
+def random_starts(problem: Problem, theta: np.ndarray, delay_index: Optional[int]
+                  ) -> List[np.ndarray]:
+    """
+    Return the random draws of the automatic start (none for an affine structure).
+
+    The same seeded, log-uniform draws the equation-error multi-start uses, with the dead time
+    of ``theta``: starts for output-error iterations elsewhere in the parameter space.
+    """
+    tau = 0.0 if delay_index is None else float(theta[delay_index])
+    return _start_points(problem, {}, {}, delay_index, tau)[1:]
+
+
 def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[str, float],
                   delay_index: Optional[int], tau: float) -> List[np.ndarray]:
     """
@@ -245,9 +304,9 @@ class StateVariableFilters:
     Signals ``p^j/E`` of the data for the state-variable filters ``E = (p + lam)^n``.
 
     The output, initial-state and offset parts do not depend on the dead time and are filtered
-    once. The input parts of a dead time of whole samples are shifts of one undelayed filtering
-    (exact: the filters start at rest), so a delay grid on the sample lattice filters the input
-    once per filter.
+    once. The input parts of a dead time ``(d + f) ts`` are the input parts of ``f ts`` shifted
+    by ``d`` samples (exact: the filters start at rest), so a delay grid on the sample lattice
+    (or on half samples) filters the input once per filter and fraction.
 
     """
 
@@ -282,16 +341,15 @@ class StateVariableFilters:
         bank = self._problem.bank
         ts = self._problem.data.ts
         delay = tau + bank.extra_delay
-        whole = int(round(delay / ts))
-        on_lattice = abs(delay - whole * ts) <= 1e-9 * ts
+        whole = int(np.floor(delay / ts + 1e-9))
+        fraction = round(max(delay / ts - whole, 0.0), 9)
         factors = []
-        for realization, y_parts, nuisance, undelayed_inputs in self._filters:
-            if on_lattice:
-                if not undelayed_inputs:
-                    undelayed_inputs[0] = self._input_parts(realization, 0.0)
-                u_parts = shifted(undelayed_inputs[0], -whole)[bank.trim:]
-            else:
-                u_parts = self._input_parts(realization, delay)[bank.trim:]
+        for realization, y_parts, nuisance, by_fraction in self._filters:
+            if fraction not in by_fraction:
+                if len(by_fraction) >= _REMEMBERED_FRACTIONS:
+                    del by_fraction[next(iter(by_fraction))]
+                by_fraction[fraction] = self._input_parts(realization, fraction * ts)
+            u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
             columns = np.hstack(nuisance + [y_parts, -u_parts])
             scales = np.linalg.norm(columns, axis=0)
             scales[scales == 0.0] = 1.0
@@ -448,18 +506,21 @@ class _EquationError:
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
-              full_steps_only: bool = False, iterations: int = _LOCAL_ITERATIONS
-              ) -> IterationResult:
+              full_steps_only: bool = False, iterations: int = _LOCAL_ITERATIONS,
+              frozen: Optional[np.ndarray] = None) -> IterationResult:
     """
-    Return the outcome of a few iterations from ``start``, unfrozen, to a loose tolerance.
+    Return the outcome of a few iterations from ``start`` to a loose tolerance.
+
+    ``frozen`` parameters (default none) keep their start values.
 
     With ``full_steps_only`` its reason is :attr:`StopReason.NO_FULL_STEP` if it gave up;
     otherwise (converged or not) the residual test of :func:`explains_data` judges the result.
 
     """
-    return iterate(problem, start, method=method, frozen=np.zeros(start.theta.size, dtype=bool),
-                   max_iterations=iterations, tolerance=1e-6, first_ls=first_ls,
-                   full_steps_only=full_steps_only)
+    if frozen is None:
+        frozen = np.zeros(start.theta.size, dtype=bool)
+    return iterate(problem, start, method=method, frozen=frozen, max_iterations=iterations,
+                   tolerance=1e-6, first_ls=first_ls, full_steps_only=full_steps_only)
 
 
 def explains_data(problem: Problem, state: State, delay_index: Optional[int],
@@ -470,13 +531,19 @@ def explains_data(problem: Problem, state: State, delay_index: Optional[int],
     The lags tested cover the model's settling time (its dead time included) plus, for a
     dead-time parameter, the upper end of its search range: a wrong dead time or a missed mode
     shows there (:mod:`ctid_ros.estimation.correlation`, ``docs/algorithm.md`` section 11).
+    A model must also explain a tenth of the output's spread (a fit above 10 %): a model that
+    explains nothing (a gain near zero) leaves the output itself as residual, which passes the
+    test when its dynamics lie beyond the lags tested.
 
     """
     data = problem.data
+    residual = np.zeros(len(data))
+    residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
+    spread = problem.measured - np.mean(problem.measured)
+    if np.linalg.norm(residual) > _UNEXPLAINED * np.linalg.norm(spread):
+        return False
     horizon = settling_time(state.coefficients)
     if delay_index is not None:
         horizon += problem.delay_bracket(delay_index, delay_range)[1]
     lags = int(np.ceil(horizon / data.ts))
-    residual = np.zeros(len(data))
-    residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
     return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))

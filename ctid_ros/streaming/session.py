@@ -79,20 +79,14 @@ class Update:
 
     @property
     def residuals(self) -> Optional[str]:
-        """
-        Return the estimator's verdict on the residuals, e.g. ``'white'``, if it gives one.
-
-        Hook for ``Estimate.residuals`` (being added to the estimator): its ``verdict``, or its
-        text; None while the estimator has no such attribute.
-        """
-        residuals = getattr(self.result, 'residuals', None)
-        if residuals is None:
-            return None
-        return str(getattr(residuals, 'verdict', residuals))
+        """Return the one-line verdict of the estimator on the residuals, if it gave one."""
+        residual = self.result.residuals
+        return None if residual is None else residual.verdict
 
     def diagnostics(self) -> Dict[str, Any]:
         """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
-        values = {
+        residual = self.result.residuals
+        return {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
             'converged': self.result.converged,
@@ -106,17 +100,19 @@ class Update:
             'grid_step': self.window.data.ts,
             'output_skew': self.window.data.output_skew,
             'compute_time': self.compute_time,
+            'residual': residual.verdict if residual else '',
+            'residual_white': bool(residual.white) if residual else False,
+            'residual_input_correlated': bool(residual.input_correlated) if residual else False,
             'warnings': list(self.warnings),
         }
-        if self.residuals is not None:
-            values['residuals'] = self.residuals
-        return values
 
     def to_dict(self) -> Dict[str, Any]:
         """Return the ``ctid fit --json`` object of this window plus its end time (s)."""
         summary = self.result.to_dict()
         summary['params'] = {name: float(value) for name, value in zip(self.names, self.values)}
-        summary['std'] = {name: float(value) for name, value in zip(self.names, self.stds)}
+        # A parameter held at a bound has no standard deviation: null, as in Estimate.to_dict.
+        summary['std'] = {name: float(value) if np.isfinite(value) else None
+                          for name, value in zip(self.names, self.stds)}
         summary['warnings'] = list(self.warnings)
         summary['time'] = self.end_ns / NANOSECONDS
         return summary

@@ -1,7 +1,9 @@
 """Figures: fit, parameters over time against the truth, Bode plot with its uncertainty band."""
 
+from dataclasses import replace
+
 from ctid_ros import Data, estimate, Model
-from ctid_ros.cli.plots import bode, bode_data, fit_figure, parameters_figure
+from ctid_ros.cli.plots import bode, bode_data, fit_figure, parameters_figure, residual_figure
 from ctid_ros.core.excitation import prbs
 import matplotlib
 import numpy as np
@@ -104,3 +106,18 @@ def test_bode_of_a_closed_loop_estimate_shows_the_plant():
     loop = bode_data(closed, np.array([1e-3]), draws=0, closed_loop=True)
     assert loop.magnitude_db[0] == pytest.approx(0.0, abs=0.05)     # integral action
     assert 'plant' in bode(closed, draws=10).axes[0].get_title()
+
+
+def test_residual_figure(tmp_path, result):
+    figure = residual_figure(result, path=tmp_path / 'residual.png')
+    assert written(tmp_path / 'residual.png')
+    autocorrelation, cross = figure.axes
+    assert autocorrelation.get_title() == 'autocorrelation of the residual'
+    assert cross.get_title() == 'cross-correlation of the residual with u'
+    assert cross.get_xlabel() == 'lag (samples)'
+    lags = result.residuals.lags
+    # Cross-correlation over negative and positive lags, autocorrelation from lag 0.
+    assert cross.get_xlim()[0] < -0.9 * lags and autocorrelation.get_xlim()[0] > -0.1 * lags
+    assert figure.texts[0].get_text().startswith('Residual: white')
+    with pytest.raises(ValueError, match='no residual analysis'):
+        residual_figure(replace(result, residuals=None))

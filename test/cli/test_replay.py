@@ -222,11 +222,12 @@ def test_plot_files(tmp_path, capsys):
     params = params_file(tmp_path, OPEN_LOOP)
     code, _, err = replay(capsys, bag, '--params-file', params, '--plot', tmp_path / 'fit.png')
     assert code == 0, err
-    assert sorted(path.name for path in tmp_path.glob('*.png')) == ['fit.png', 'fit_bode.png']
+    assert sorted(path.name for path in tmp_path.glob('*.png')) == [
+        'fit.png', 'fit_bode.png', 'fit_residual.png']
     code, _, err = replay(capsys, bag, '--params-file', params, '--sliding', '--end', '16',
                           '--plot', tmp_path / 'slide.png')
     assert code == 0, err
-    for name in ('slide.png', 'slide_params.png', 'slide_bode.png'):
+    for name in ('slide.png', 'slide_params.png', 'slide_bode.png', 'slide_residual.png'):
         assert (tmp_path / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
 
@@ -329,7 +330,7 @@ def test_plot_without_a_path_never_writes_into_the_bag(tmp_path, capsys, monkeyp
     code, _, err = replay(capsys, '.', '--params-file', params, '--plot')
     assert code == 0, err
     assert sorted(path.name for path in tmp_path.glob('*.png')) == [
-        'run_replay.png', 'run_replay_bode.png']
+        'run_replay.png', 'run_replay_bode.png', 'run_replay_residual.png']
     assert digest(bag) == before and not list(bag.glob('*.png'))
 
 

@@ -75,3 +75,27 @@ def test_long_dead_time_is_found_from_a_start_at_the_wrong_end_of_the_range():
     search = delay_search(problem, start, system.model.parameters.index('tau'), None)
     crlb = np.array([system.crlb_std[name] for name in system.model.parameters])
     assert np.all(np.abs(search.state.theta - system.model.vector(system.truth)) < 4.0 * crlb)
+
+
+def test_an_automatic_range_is_extended_while_the_profile_falls_at_its_end():
+    # The data's guess is overridden with 0.05 s: the automatic range ends at a twentieth of
+    # the 204.4 s record, 10.22 s, while the dead time is 14 s. The profile falls up to the end, so
+    # the range doubles until its lowest point is inside.
+    truth = {'K': 1.5, 'tau': 14.0, 'T': 1.0}
+    u = prbs(9, 4)
+    y = MODEL.simulate(truth, u, 0.1)
+    y = y + 0.05 * np.std(y) * np.random.default_rng(2).standard_normal(u.size)
+    problem = problem_for(MODEL, Data(u, y, 0.1), {'T': (1e-3, None)})
+    problem.__dict__['delay_guess'] = 0.05
+    assert problem.delay_bracket(TAU, None) == (0.0, pytest.approx(10.22))
+    start = initial_estimate(problem, {'K': 1.0, 'T': 1.0, 'tau': 0.5}, None)
+    problem.anchor(start.coefficients)
+    search = delay_search(problem, start, TAU, None)
+    assert max(tau for tau, _ in search.profile) > 14.0
+    assert search.state.theta[TAU] == pytest.approx(14.0, abs=0.02)
+    # A range the user gave is not extended.
+    bounded = problem_for(MODEL, Data(u, y, 0.1), {'T': (1e-3, None), 'tau': (0.0, 10.0)})
+    start = initial_estimate(bounded, {'K': 1.0, 'T': 1.0, 'tau': 0.5}, None)
+    bounded.anchor(start.coefficients)
+    limited = delay_search(bounded, start, TAU, None)
+    assert limited.profile and max(tau for tau, _ in limited.profile) <= 10.0

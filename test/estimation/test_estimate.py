@@ -6,7 +6,7 @@ from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.regressors import SignalBank
 import numpy as np
 import pytest
-from scipy import optimize
+from scipy import optimize, signal
 
 
 def assert_near_truth(result, system, sigmas=4.0):
@@ -279,4 +279,89 @@ def test_stop_reason_and_warning_keep_their_wording(method):
     assert not result.converged
     assert result.stop_reason == 'iteration limit (1) reached'
     assert result.to_dict()['stop_reason'] == result.stop_reason
-    assert result.warnings == ['not converged: iteration limit (1) reached']
+    assert result.warnings[0] == 'not converged: iteration limit (1) reached'
+    # One update from this far start leaves dynamics in the residual, and the warnings say so.
+    assert result.warnings[1].startswith('residual correlated with input u')
+
+
+@pytest.mark.parametrize('factory', [systems.first_order_dead_time,
+                                     systems.second_order_dead_time,
+                                     systems.second_order_nonaffine])
+def test_estimate_is_never_worse_than_its_start(factory):
+    system = factory()
+    data = system.data(seed=11)
+    rng = np.random.default_rng(11)
+    problem_start = {name: value * rng.uniform(0.7, 1.4) for name, value in system.truth.items()}
+    for start in (problem_start, system.truth):
+        result = estimate(system.model, data, start, bounds=system.bounds)
+        start_cost = 0.5 * np.sum((data.y - system.model.simulate(start, data.u, data.ts)) ** 2)
+        assert result.cost <= start_cost
+        assert result.converged
+
+
+def normalised_errors(system, make_data, runs, seed):
+    """Return (estimate - truth) / std over ``runs`` estimates from 'auto' (one row each)."""
+    rng = np.random.default_rng(seed)
+    truth = system.model.vector(system.truth)
+    rows = []
+    for _ in range(runs):
+        result = estimate(system.model, make_data(rng), 'auto', bounds=system.bounds)
+        rows.append((system.model.vector(result.params) - truth)
+                    / system.model.vector(result.std))
+    return np.array(rows)
+
+
+def test_standard_deviations_hold_under_coloured_noise():
+    # AR(1) noise of pole 0.9: the white-noise formula would claim a std about 3x too small
+    # for the slow parameters; the reported ones make (error / std)^2 average 1.
+    system = systems.first_order_dead_time()
+    clean = system.noise_free()
+    sigma = np.std(clean) / 10.0 ** (system.snr_db / 20.0)
+
+    def coloured(rng):
+        white = rng.standard_normal(clean.size + 300)
+        noise = signal.lfilter([np.sqrt(1 - 0.81)], [1.0, -0.9], white)[300:]
+        return Data(system.u, clean + sigma * noise, system.ts)
+
+    errors = normalised_errors(system, coloured, 40, 5)
+    assert np.mean(errors ** 2) == pytest.approx(1.0, abs=0.35)
+    assert np.mean(np.abs(errors) < 1.96) > 0.85
+
+
+def test_a_grid_finer_than_the_data_does_not_shrink_the_standard_deviations():
+    # The output measured every 0.1 s, put on a 0.025 s grid (input held, output linear): 4x
+    # the samples, the same information.
+    system = systems.first_order_dead_time()
+    coarse = system.data(seed=6)
+    count = 4 * len(coarse) - 3
+    fine = Data(np.repeat(coarse.u, 4)[:count],
+                np.interp(np.arange(count) / 4.0, np.arange(len(coarse)), coarse.y),
+                coarse.ts / 4)
+    on_data = estimate(system.model, coarse, 'auto', bounds=system.bounds)
+    on_grid = estimate(system.model, fine, 'auto', bounds=system.bounds)
+    for name in system.truth:
+        assert 0.75 < on_grid.std[name] / on_data.std[name] < 1.4, name
+        assert abs(on_grid.params[name] - system.truth[name]) < 4 * on_grid.std[name]
+    assert on_grid.residuals.measured_every == 4 and on_data.residuals.measured_every == 1
+    assert any('changes only every 4 samples' in note for note in on_grid.warnings)
+
+
+def test_a_model_that_explains_nothing_says_so():
+    system = systems.first_order_dead_time()
+    result = estimate(system.model, system.data(seed=7), {'K': -1.0, 'tau': 1.0, 'T': 5.0},
+                      bounds={'K': (-2.0, -0.5), 'T': (1.0, 10.0), 'tau': (0.0, 3.0)})
+    assert result.fit < 0.0
+    assert any('the model does not explain these data' in note for note in result.warnings)
+    assert any('K is at its upper bound -0.5' in note for note in result.warnings)
+
+
+def test_a_parameter_held_at_its_bound_has_no_standard_deviation():
+    system = systems.first_order_dead_time()
+    result = estimate(system.model, system.data(seed=8), 'auto',
+                      bounds={'T': (6.0, None), 'tau': (0.0, 10.0)})
+    assert result.params['T'] == pytest.approx(6.0)
+    assert np.isnan(result.std['T']) and np.all(np.isnan(result.covariance[:, 2]))
+    assert np.isfinite(result.std['K']) and np.isfinite(result.std['tau'])
+    assert result.to_dict()['std']['T'] is None
+    assert any(note.startswith('T is at its lower bound 6 (the fit would go beyond it')
+               for note in result.warnings)

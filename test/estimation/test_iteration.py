@@ -3,7 +3,8 @@
 from ctid_ros import Data, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.iteration import iterate, IterationResult, StopReason
+from ctid_ros.estimation.iteration import (iterate, IterationResult, optimality,
+                                           OPTIMALITY_LIMIT, StopReason)
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
 import numpy as np
 import pytest
@@ -46,9 +47,10 @@ def test_stop_reasons_read_as_before_and_say_whether_they_converged():
         StopReason.COST_DECREASE: 'relative cost decrease below resolution',
         StopReason.EXACT_FIT: 'output reproduced exactly',
         StopReason.ITERATION_LIMIT: 'iteration limit (100) reached',
+        StopReason.STALLED: 'stalled: the cost still decreases along its gradient',
     }
     assert {reason for reason in StopReason if not reason.converged} == \
-        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT}
+        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT, StopReason.STALLED}
 
 
 def test_first_least_squares_step_lands_next_to_the_truth_from_far_away():
@@ -165,3 +167,51 @@ def test_full_steps_only_gives_up_where_the_iteration_needs_a_shorter_step():
     assert full.history[0].step < 1.0
     crlb = np.array([system.crlb_std[name] for name in system.model.parameters])
     assert np.all(np.abs(full.state.theta - system.model.vector(system.truth)) < 4.0 * crlb)
+
+
+def first_order_dead_time_on_coarse_samples(tau, seed=0, noise=0.01):
+    """Return data of K exp(-tau s)/(T s + 1) sampled every second, T = 0.75 s (coarse)."""
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    truth = {'K': 1.5, 'tau': tau, 'T': 0.75}
+    u = prbs(7, 2, 2)
+    y = model.simulate(truth, u, 1.0)
+    y = y + noise * np.random.default_rng(seed).standard_normal(u.size)
+    return model, truth, problem_for(model, Data(u, y, 1.0))
+
+
+def test_dead_time_leaves_its_lower_bound_when_the_cost_falls_inward():
+    # At tau = 0 (a lattice point and the bound) the cost falls for a growing dead time; the
+    # derivative for a shrinking one says the opposite and used to hold it there.
+    model, truth, problem = first_order_dead_time_on_coarse_samples(0.3)
+    start = start_at(problem, {'K': 1.5, 'tau': 0.0, 'T': 0.75})
+    result = run(problem, start, first_ls=False, check_optimality=True)
+    assert result.converged, result.message
+    assert result.state.theta[1] == pytest.approx(0.3, abs=0.01)
+    assert optimality(problem, result.state, np.zeros(3, dtype=bool)) < OPTIMALITY_LIMIT
+
+
+def test_a_kink_between_two_basins_is_left_to_the_lower_one():
+    # The true dead time is just below two samples; from exactly two samples the cost falls
+    # both ways (a concave kink), much more steeply towards the truth.
+    model, truth, problem = first_order_dead_time_on_coarse_samples(1.99)
+    start = start_at(problem, {'K': 1.4, 'tau': 2.0, 'T': 0.7})
+    result = run(problem, start, first_ls=False, check_optimality=True)
+    assert result.state.theta[1] == pytest.approx(1.99, abs=0.005)
+    assert result.converged
+
+
+def test_a_point_the_iteration_cannot_leave_but_that_is_no_minimum_is_stalled():
+    # Data from an unstable oscillator: the cost keeps falling towards a1 < 0, beyond the
+    # stable models the estimator admits. That boundary is no minimum: not converged.
+    model = Model('b/(s**2 + a1*s + a0)')
+    u = prbs(6, 5)[:200]
+    data = Data(u, model.simulate({'b': 1.0, 'a1': -0.1, 'a0': 4.0}, u, 0.05), 0.05)
+    problem = problem_for(model, data)
+    result = run(problem, start_at(problem, {'b': 1.0, 'a1': 1.0, 'a0': 4.0}),
+                 check_optimality=True)
+    assert result.reason is StopReason.STALLED and not result.converged
+    assert 0.0 < result.state.theta[1] < 1e-3
+    assert optimality(problem, result.state, np.zeros(3, dtype=bool)) > OPTIMALITY_LIMIT
+    # Without the test the same point passed as converged.
+    unchecked = run(problem, start_at(problem, {'b': 1.0, 'a1': 1.0, 'a0': 4.0}))
+    assert unchecked.converged

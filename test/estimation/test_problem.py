@@ -5,8 +5,8 @@ from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.correlation import prewhitened_delay
 from ctid_ros.estimation.problem import (bound_vectors, delay_parameter, nuisance_columns,
-                                         orthonormal_basis, Problem, settling_time,
-                                         with_fitted_nuisance)
+                                         orthonormal_basis, Problem, reduction_limits,
+                                         settling_time, with_fitted_nuisance)
 import numpy as np
 import pytest
 
@@ -136,9 +136,74 @@ def test_delay_bracket():
     assert problem.delay_bracket(1, (2.0, 20.0)) == (2.0, 10.0)
     with pytest.raises(ModelError, match='delay range'):
         problem.delay_bracket(1, (3.0, 1.0))
-    # No upper bound: three times the data's own guess, at least 20 samples beyond it.
+    # No upper bound: three times the data's own guess, at least 20 samples beyond it, and at
+    # least a twentieth of the record (255 s here).
     unbounded = problem_for(system.model, data)
     guess = prewhitened_delay(data)
     assert unbounded.delay_guess == guess
     assert unbounded.delay_bracket(1, None) == \
-        (0.0, pytest.approx(max(3.0 * guess, guess + 2.0), rel=1e-15))
+        (0.0, pytest.approx(max(3.0 * guess, guess + 2.0, 12.75), rel=1e-15))
+
+
+@pytest.mark.parametrize('offset,transient', [(False, 0.0), (True, 0.0), (True, 3.0)])
+def test_projected_cost_gradient_is_exact_with_an_initial_state(offset, transient):
+    # Variable projection: -Psi^T e must be the gradient of the projected cost itself, the
+    # derivative of the fitted initial-state response included (docs/algorithm.md section 9).
+    model = Model('K/((T1*s + 1)*(T2*s + 1))')
+    u = prbs(8, 6)
+    rng = np.random.default_rng(3)
+    y = model.simulate({'K': 2.0, 'T1': 0.4, 'T2': 1.5}, u, 0.05)
+    y = y + 0.7 * np.exp(-np.arange(u.size) * 0.05 / 1.5) + 0.05 * rng.standard_normal(u.size)
+    problem = problem_for(model, Data(u, y + 0.3 * offset, 0.05), initial_state=True,
+                          output_offset=offset)
+    theta = np.array([1.7, 0.5, 1.2])
+    coefficients = problem.admissible(theta)
+    if transient:
+        problem.exclude_transient(transient, coefficients)
+    lin = problem.linearize(coefficients)
+    gradient = -lin.psi.T @ (problem.measured - lin.output)
+    for index in range(3):
+        step = 1e-6 * theta[index]
+        up, down = theta.copy(), theta.copy()
+        up[index] += step
+        down[index] -= step
+        difference = (problem.cost(problem.admissible(up))
+                      - problem.cost(problem.admissible(down))) / (2.0 * step)
+        assert gradient[index] == pytest.approx(difference, rel=1e-5, abs=1e-9)
+
+
+def test_best_state_is_remembered_and_forgotten_when_the_fitted_samples_change():
+    system = systems.first_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=1))
+    assert problem.best is None
+    truth = system.model.vector(system.truth)
+    far = truth * [1.5, 1.0, 2.0]
+    first = problem.state(far, problem.admissible(far))
+    assert problem.best is first
+    best = problem.state(truth, problem.admissible(truth))
+    problem.state(far, problem.admissible(far))
+    assert problem.best is best and best.cost < first.cost
+    problem.exclude_transient(2.0, best.coefficients)
+    assert problem.best is None
+
+
+def test_lags_and_masses_are_bounded_where_their_pole_leaves_the_sampled_band():
+    ts = 0.1
+    sopdt = Model('K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))')          # K, tau, T1, T2
+    limits = reduction_limits(sopdt, np.array([2.0, 0.3, 1.0, 5.0]), ts)
+    assert sorted(limits) == [2, 3]
+    assert limits[2] == pytest.approx(ts / (1000.0 * np.pi))
+    assert limits[3] == pytest.approx(ts / (1000.0 * np.pi))
+    msd = Model('1/(m*s**2 + d*s + k)')
+    assert reduction_limits(msd, np.array([0.5, 2.0, 50.0]), ts) == \
+        {0: pytest.approx(2.0 * ts / (1000.0 * np.pi))}
+    # A monic denominator has no such parameter.
+    assert reduction_limits(Model('K*w**2/(s**2 + 2*z*w*s + w**2)'),
+                            np.array([1.0, 3.0, 0.2]), ts) == {}
+    # The problem applies them unless a bound already keeps the parameter away from zero.
+    data = Data(prbs(7, 2), np.linspace(0.0, 1.0, 254), ts)
+    problem = problem_for(sopdt, data, {'T2': (0.5, None)})
+    theta = problem.limit_reductions(np.array([2.0, 0.3, 1e-6, 5.0]))
+    assert problem.reductions == {2: pytest.approx(ts / (1000.0 * np.pi))}
+    assert problem.lower[2] == problem.reductions[2] and problem.lower[3] == 0.5
+    assert theta[2] == problem.lower[2]

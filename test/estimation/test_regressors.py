@@ -112,3 +112,31 @@ def test_dead_time_of_a_biproper_model_is_refused():
 ])
 def test_hurwitz_test(den, stable):
     assert bool(is_stable(np.array(den))) == stable
+
+
+@pytest.mark.parametrize('samples', [0, 3])
+def test_dead_time_sensitivity_on_the_lattice_is_one_sided(samples):
+    # With a held input and a dead time of whole samples the output has a kink in tau: psi is
+    # the derivative for a growing dead time, psi + delay_jump for a shrinking one.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(7, 3)
+    theta = np.array([2.0, samples * 0.1, 0.4])
+    bank = SignalBank(model, u, np.zeros(u.size), 0.1)
+    lin = bank.linearize(model.coefficients(theta), regressors=False)
+    assert lin.delay_jump is not None and np.any(lin.delay_jump[:, 1])
+    assert not np.any(lin.delay_jump[:, [0, 2]])
+    step = 1e-7
+    here = bank.output(model.coefficients(theta))
+    later = theta + [0.0, step, 0.0]
+    right = (bank.output(model.coefficients(later)) - here) / step
+    scale = np.linalg.norm(right)
+    assert np.linalg.norm(lin.psi[:, 1] - right) < 1e-5 * scale
+    if samples:
+        earlier = theta - [0.0, step, 0.0]
+        left = (here - bank.output(model.coefficients(earlier))) / step
+        shrinking = lin.psi[:, 1] + lin.delay_jump[:, 1]
+        assert np.linalg.norm(shrinking - left) < 1e-5 * scale
+        assert np.linalg.norm(lin.psi[:, 1] - left) > 0.1 * scale
+    # Off the lattice both sides agree.
+    off = bank.linearize(model.coefficients(theta + [0.0, 0.037, 0.0]), regressors=False)
+    assert off.delay_jump is None

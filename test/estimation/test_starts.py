@@ -7,7 +7,7 @@ from ctid_ros.estimation.iteration import StopReason
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, complete_guess, distinct,
                                         explains_data, filter_bandwidths, initial_estimate,
-                                        local_fit, StateVariableFilters)
+                                        local_fit, stabilized, StateVariableFilters)
 import numpy as np
 import pytest
 
@@ -143,3 +143,17 @@ def test_local_fit_from_a_warm_start_converges_near_the_truth():
     assert np.all(np.abs(result.state.theta - system.model.vector(system.truth))
                   < 4.0 * crlb(system))
     assert explains_data(problem, result.state, system.model.parameters.index('tau'), None)
+
+
+def test_an_unstable_fit_is_mirrored_into_a_stable_start():
+    model = Model('(b1*s + b0)/(s**3 + a2*s**2 + a1*s + a0)')
+    problem = problem_for(model, Data(prbs(7, 2), np.zeros(254), 0.1))
+    # D = (s - 1)(s + 2)(s + 3): one root in the right half plane.
+    theta = model.vector({'b1': 1.0, 'b0': 2.0, 'a2': 4.0, 'a1': 1.0, 'a0': -6.0})
+    free = np.ones(theta.size, dtype=bool)
+    mirrored = stabilized(problem, theta, free)
+    roots = np.sort(np.roots(model.coefficients(mirrored).den).real)
+    np.testing.assert_allclose(roots, [-3.0, -2.0, -1.0 - 3e-3], rtol=1e-9)
+    assert problem.admissible(mirrored) is not None
+    # The numerator is untouched.
+    assert mirrored[0] == 1.0 and mirrored[1] == 2.0

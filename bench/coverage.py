@@ -1,0 +1,167 @@
+"""
+Coverage of the reported uncertainty: how often the 95 % intervals contain the truth.
+
+For reference systems with known parameters, Monte Carlo runs (fresh noise each) of
+``estimate(..., 'auto')`` in three cases:
+
+* ``white``: white Gaussian output noise at the system's SNR;
+* ``AR(1) 0.9``: the same variance, coloured by ``1/(1 - 0.9 q^-1)``;
+* ``grid 4x``: white noise, the input held and the output measured every ``ts``, then put on a
+  grid four times finer (input held, output linearly interpolated) and estimated there, as a
+  resampler with a too-fine ``sample_time`` would.
+
+Reported per case and parameter: the fraction of runs whose interval ``estimate +- 1.96 std``
+contains the truth (target 90-98 %), the Monte Carlo spread over the mean reported std, the
+same fraction for the white-noise formula ``sigma^2 (Psi^T Psi)^-1`` at the same estimates
+(what the estimator reported before issue #13), and the median time per estimate.
+
+Run with ``.venv/bin/python -m bench.coverage [--runs 200]``.
+"""
+
+import argparse
+import json
+import time
+from typing import Callable, Dict, List, Optional
+
+from ctid_ros import Data, estimate, EstimationError
+from ctid_ros.core import reference_systems
+from ctid_ros.core.reference_systems import ReferenceSystem
+from ctid_ros.estimation.estimate import build_problem
+import numpy as np
+from scipy import signal
+from threadpoolctl import threadpool_limits
+
+FINER = 4
+Z95 = 1.959964
+
+
+def _noise(system: ReferenceSystem, clean: np.ndarray, rng: np.random.Generator,
+           pole: float) -> np.ndarray:
+    sigma = np.std(clean) / 10.0 ** (system.snr_db / 20.0)
+    white = rng.standard_normal(clean.size + 500)
+    if pole:
+        # Unit variance after the filter; 500 samples discarded so it starts stationary.
+        coloured = signal.lfilter([np.sqrt(1.0 - pole ** 2)], [1.0, -pole], white)[500:]
+        return sigma * coloured
+    return sigma * white[500:]
+
+
+def white_data(system: ReferenceSystem, rng: np.random.Generator) -> Data:
+    """Return the system's data with white output noise."""
+    clean = system.noise_free()
+    return Data(system.u, clean + _noise(system, clean, rng, 0.0), system.ts)
+
+
+def coloured_data(system: ReferenceSystem, rng: np.random.Generator) -> Data:
+    """Return the system's data with AR(1) output noise of pole 0.9, same variance."""
+    clean = system.noise_free()
+    return Data(system.u, clean + _noise(system, clean, rng, 0.9), system.ts)
+
+
+def fine_grid_data(system: ReferenceSystem, rng: np.random.Generator) -> Data:
+    """Return white-noise data measured every ts, put on a grid ts / 4 (u held, y linear)."""
+    measured = white_data(system, rng)
+    count = len(measured) * FINER - (FINER - 1)
+    fine_time = np.arange(count) / FINER
+    u = np.repeat(measured.u, FINER)[:count]
+    y = np.interp(fine_time, np.arange(len(measured)), measured.y)
+    return Data(u, y, system.ts / FINER)
+
+
+CASES: Dict[str, Callable[[ReferenceSystem, np.random.Generator], Data]] = {
+    'white': white_data,
+    'AR(1) 0.9': coloured_data,
+    'grid 4x': fine_grid_data,
+}
+SYSTEMS = (reference_systems.first_order_dead_time, reference_systems.second_order_nonaffine)
+
+
+def white_formula_std(system: ReferenceSystem, data: Data, theta: np.ndarray) -> np.ndarray:
+    """Return the standard deviations of ``sigma^2 (Psi^T Psi)^-1`` at ``theta``."""
+    problem, _ = build_problem(system.model, data, bounds=system.bounds)
+    lin = problem.linearize(problem.model.coefficients(theta), regressors=False)
+    error = problem.measured - lin.output
+    variance = float(error @ error) / (error.size - theta.size)
+    return np.sqrt(np.diag(variance * np.linalg.inv(lin.psi.T @ lin.psi)))
+
+
+def run_case(system: ReferenceSystem, case: str, runs: int, seed: int) -> dict:
+    """Return the coverage of every parameter over ``runs`` estimates."""
+    make = CASES[case]
+    rng = np.random.default_rng(seed)
+    names = system.model.parameters
+    truth = system.model.vector(system.truth)
+    inside = np.zeros(len(names))
+    inside_white = np.zeros(len(names))
+    errors, stds, times, verdicts = [], [], [], {'white': 0, 'coloured': 0, 'input': 0}
+    failures = 0
+    for _ in range(runs):
+        data = make(system, rng)
+        began = time.perf_counter()
+        try:
+            result = estimate(system.model, data, 'auto', bounds=system.bounds)
+        except EstimationError:
+            failures += 1
+            continue
+        times.append(time.perf_counter() - began)
+        theta = system.model.vector(result.params)
+        # A parameter held at a bound has no interval (NaN): it does not cover the truth.
+        std = np.array([result.std[name] for name in names])
+        inside += np.abs(theta - truth) <= Z95 * std
+        inside_white += np.abs(theta - truth) <= Z95 * white_formula_std(system, data, theta)
+        if np.all(np.isfinite(std)):
+            errors.append(theta - truth)
+            stds.append(std)
+        residuals = result.residuals
+        verdicts['input' if residuals.input_correlated else
+                 'white' if residuals.white else 'coloured'] += 1
+    done = max(runs - failures, 1)
+    spread = np.std(np.array(errors), axis=0, ddof=1)
+    return {'system': system.name, 'case': case, 'runs': runs, 'failures': failures,
+            'parameters': list(names), 'coverage': list(inside / done),
+            'white_formula_coverage': list(inside_white / done),
+            'spread_over_std': list(spread / np.mean(np.array(stds), axis=0)),
+            'median_time': float(np.median(times)), 'verdicts': verdicts}
+
+
+def print_table(results: List[dict]) -> None:
+    """Print one line per system and case."""
+    print(f'{"system":<30} {"case":<10} {"runs":>5} {"time s":>7}  coverage of 95 % intervals '
+          '(MC spread / reported std) [white formula]   verdicts white/coloured/input')
+    for result in results:
+        cells = '  '.join(f'{name} {100 * value:5.1f}% ({ratio:.2f}) [{100 * white:4.1f}%]'
+                          for name, value, ratio, white in
+                          zip(result['parameters'], result['coverage'],
+                              result['spread_over_std'], result['white_formula_coverage']))
+        verdicts = result['verdicts']
+        print(f'{result["system"]:<30} {result["case"]:<10} {result["runs"]:>5} '
+              f'{result["median_time"]:>7.3f}  {cells}   {verdicts["white"]}/'
+              f'{verdicts["coloured"]}/{verdicts["input"]}'
+              + (f'  ({result["failures"]} failed)' if result['failures'] else ''))
+
+
+def main(argv: Optional[List[str]] = None) -> List[dict]:
+    """Run every system and case and print the coverage table."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0].strip())
+    parser.add_argument('--runs', type=int, default=200, help='runs per case (default 200)')
+    parser.add_argument('--seed', type=int, default=1)
+    parser.add_argument('--json', default=None, help='also write the results to this file')
+    arguments = parser.parse_args(argv)
+    results = []
+    with threadpool_limits(limits=1, user_api='blas'):
+        for factory in SYSTEMS:
+            system = factory()
+            for index, case in enumerate(CASES):
+                results.append(run_case(system, case, arguments.runs,
+                                        arguments.seed * 100 + index))
+                print_table(results[-1:])
+    print()
+    print_table(results)
+    if arguments.json:
+        with open(arguments.json, 'w') as handle:
+            json.dump(results, handle, indent=2)
+    return results
+
+
+if __name__ == '__main__':
+    main()

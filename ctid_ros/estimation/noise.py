@@ -1,0 +1,165 @@
+"""
+The noise behind an estimate: its colour, the covariance it implies, and the measured rate.
+
+The output-error estimate stops where the residual ``e`` is orthogonal to the sensitivities
+``Psi``, so to first order ``theta_hat - theta = (Psi^T Psi)^-1 Psi^T e``. Its covariance is
+``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` with ``Sigma`` the covariance of the noise.
+``sigma^2 (Psi^T Psi)^-1`` is that for white noise only; real records (unmodelled dynamics,
+drifting disturbances) and outputs interpolated onto a finer grid than they were measured on
+have coloured residuals, and that formula then claims far too much. Here the residual's colour
+is an autoregressive model ``A(q) e = w`` whose order is chosen by BIC (order 0 for a white
+residual: then the formula above is recovered), and ``Psi^T Sigma Psi`` is computed exactly
+for that model by filtering ``Psi`` backwards through ``1/A`` (``docs/algorithm.md``
+section 15).
+
+:func:`measured_every` recognises an output that was held or linearly interpolated onto the
+sample grid from a slower measurement, so the estimate can say so.
+"""
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+from scipy import signal
+
+__all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model']
+
+# Largest autoregressive order tried, and the fraction of the record it may reach.
+_MAX_ORDER = 30
+_ORDER_FRACTION = 0.05
+_PATIENCE = 10
+# Interpolation is recognised when this share of an output's bends falls on one phase.
+_PHASE_SHARE = 0.99
+_MAX_FACTOR = 64
+
+
+@dataclass
+class NoiseModel:
+    """
+    Autoregressive model ``A(q) e = w`` of a residual.
+
+    Attributes
+    ----------
+    ar : ndarray
+        ``[1, a_1, ..., a_p]`` (``[1]`` for a white residual).
+    innovation_variance : float
+        Variance of ``w``.
+    variance : float
+        Variance of the residual itself.
+
+    """
+
+    ar: np.ndarray
+    innovation_variance: float
+    variance: float
+
+    @property
+    def order(self) -> int:
+        """Return the number of autoregressive coefficients (0: white)."""
+        return self.ar.size - 1
+
+    @property
+    def variance_ratio(self) -> float:
+        """Return the low-frequency noise power over that of white noise of equal variance."""
+        return float(self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
+
+
+def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
+                autocorrelation: Optional[np.ndarray] = None) -> NoiseModel:
+    """
+    Fit an autoregressive model to ``residual`` (Levinson-Durbin, order by BIC).
+
+    The Yule-Walker estimate from the biased autocovariance, whose polynomial is always stable.
+    Orders ``0..min(max_order, 5 % of the samples)`` are compared by
+    ``N log(innovation variance) + p log N``; the search ends ten orders after the best.
+    ``autocorrelation``: the residual's normalised autocorrelation at lags 0, 1, ... if the
+    caller has it (the residual analysis does), so it is not computed again.
+    """
+    residual = np.asarray(residual, dtype=float)
+    count = residual.size
+    centred = residual - np.mean(residual)
+    variance = float(centred @ centred) / max(count, 1)
+    top = int(min(max_order, _ORDER_FRACTION * count))
+    if variance == 0.0 or top < 1:
+        return NoiseModel(np.ones(1), variance, variance)
+    if autocorrelation is not None and autocorrelation.size > top:
+        autocovariance = variance * autocorrelation[:top + 1]
+    else:
+        size = 1 << int(np.ceil(np.log2(count + top + 1)))
+        spectrum = np.fft.rfft(centred, size)
+        autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
+    best = (count * np.log(variance), np.ones(1), variance, 0)
+    ar = np.ones(1)
+    error = autocovariance[0]
+    for order in range(1, top + 1):
+        reflection = -(autocovariance[order] + ar[1:] @ autocovariance[order - 1:0:-1]) / error
+        ar = np.append(ar, 0.0) + reflection * np.append(ar, 0.0)[::-1]
+        error *= 1.0 - reflection ** 2
+        if error <= 0.0:
+            break
+        criterion = count * np.log(error) + order * np.log(count)
+        if criterion < best[0]:
+            best = (criterion, ar.copy(), error, order)
+        elif order - best[3] >= _PATIENCE:
+            # Each further order costs log N in BIC; ten without a gain end the search.
+            break
+    return NoiseModel(best[1], float(best[2]), variance)
+
+
+def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
+                        svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                        autocorrelation: Optional[np.ndarray] = None
+                        ) -> Tuple[np.ndarray, NoiseModel]:
+    """
+    Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
+
+    ``Sigma`` is the covariance of the autoregressive model of the residual
+    (:func:`noise_model`), scaled by ``N / (N - parameters)`` like ``|e|^2 / (N - n)``, so a
+    white residual gives exactly ``sigma^2 (Psi^T Psi)^-1``. With ``Psi = U S V^T``,
+    ``(Psi^T Psi)^-1 Psi^T = V S^-1 U^T`` and ``U^T Sigma U = sigma_w^2 Z^T Z``, ``Z = H^T U``
+    with ``H`` the (causal) impulse-response matrix of ``1/A``: ``Z`` is ``U`` filtered through
+    ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
+    normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``,
+    ``autocorrelation``: that of the residual, if the caller has them.
+    """
+    count = residual.size
+    model = noise_model(residual, autocorrelation=autocorrelation)
+    left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
+    if singular.size == 0 or singular[-1] <= 0.0:
+        return np.full((psi.shape[1],) * 2, np.inf), model
+    mapping = right_t.T / singular                       # V S^-1
+    if model.order == 0:
+        variance = float(residual @ residual) / max(count - parameters, 1)
+        return variance * (mapping @ mapping.T), model
+    scale = count / max(count - parameters, 1)
+    filtered = signal.lfilter([1.0], model.ar, left[::-1], axis=0)[::-1]
+    middle = scale * model.innovation_variance * (filtered.T @ filtered)
+    return mapping @ middle @ mapping.T, model
+
+
+def measured_every(y: np.ndarray) -> int:
+    """
+    Return how many samples apart the output was actually measured (1: every sample).
+
+    An output held (zero-order) or linearly interpolated onto the grid from a measurement every
+    ``m`` samples changes slope (or value) only on one phase of ``m``: at least 99 % of its
+    nonzero second (or first) differences fall on samples ``k = r mod m``, for the largest such
+    ``m`` up to 64, and the output bends at half of those samples or more.
+    """
+    y = np.asarray(y, dtype=float)
+    scale = float(np.max(np.abs(y))) if y.size else 0.0
+    best = 1
+    for order in (1, 2):
+        differences = np.diff(y, order)
+        moving = np.flatnonzero(np.abs(differences) > 1e-9 * scale)
+        if moving.size < 4:
+            continue
+        # One phase of m holds at most a 1/m share of the samples: measured data, which move
+        # on (nearly) every sample, rule out every factor at once.
+        largest = int(min(_MAX_FACTOR, differences.size / (_PHASE_SHARE * moving.size) + 1))
+        for factor in range(2, largest + 1):
+            phases = np.bincount(moving % factor, minlength=factor)
+            if phases.max() >= _PHASE_SHARE * moving.size and \
+                    phases.max() >= 0.5 * differences.size / factor:
+                best = max(best, factor)
+    return best

@@ -1,0 +1,66 @@
+"""Noise model, coloured-residual covariance and the measured rate (docs/algorithm.md 15)."""
+
+from ctid_ros.estimation.noise import coloured_covariance, measured_every, noise_model
+import numpy as np
+import pytest
+from scipy import linalg, signal
+
+
+def ar1(pole, count, rng):
+    """Return stationary AR(1) noise of unit variance."""
+    white = rng.standard_normal(count + 500)
+    return signal.lfilter([np.sqrt(1.0 - pole ** 2)], [1.0, -pole], white)[500:]
+
+
+def test_white_residual_gives_order_zero_and_the_white_formula_exactly():
+    rng = np.random.default_rng(1)
+    residual = rng.standard_normal(3000)
+    psi = np.column_stack([np.sin(0.01 * np.arange(3000)), np.ones(3000)])
+    covariance, model = coloured_covariance(psi, residual, 2)
+    assert model.order == 0
+    variance = residual @ residual / (3000 - 2)
+    np.testing.assert_allclose(covariance, variance * np.linalg.inv(psi.T @ psi), rtol=1e-10)
+
+
+def test_ar1_pole_is_recovered():
+    model = noise_model(ar1(0.9, 5000, np.random.default_rng(2)))
+    assert model.order >= 1
+    assert -model.ar[1] == pytest.approx(0.9, abs=0.02)
+    # Low-frequency power over white noise of equal variance: (1 + p) / (1 - p) = 19.
+    assert model.variance_ratio == pytest.approx(19.0, rel=0.15)
+
+
+def test_sandwich_matches_the_exact_covariance_of_a_regression_with_ar1_noise():
+    # Regression y = Psi theta + e with AR(1) noise: the exact covariance of the least-squares
+    # estimate is (Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1 with the true Sigma.
+    count, pole = 2000, 0.8
+    time = np.arange(count)
+    psi = np.column_stack([np.sin(2 * np.pi * time / 400), np.cos(2 * np.pi * time / 150),
+                           np.ones(count)])
+    sigma = linalg.toeplitz(pole ** np.arange(count))
+    gram = np.linalg.inv(psi.T @ psi)
+    exact = gram @ psi.T @ sigma @ psi @ gram
+    rng = np.random.default_rng(3)
+    estimates = [coloured_covariance(psi, ar1(pole, count, rng), 3)[0] for _ in range(20)]
+    ratio = np.diag(np.mean(estimates, axis=0)) / np.diag(exact)
+    np.testing.assert_allclose(ratio, 1.0, atol=0.15)
+    white_formula = np.diag(gram)               # sigma^2 = 1
+    assert np.all(np.diag(exact) > 3.0 * white_formula)
+
+
+@pytest.mark.parametrize('factor', [2, 4, 10])
+def test_interpolated_and_held_outputs_are_recognised(factor):
+    rng = np.random.default_rng(factor)
+    measured = np.cumsum(rng.standard_normal(400))
+    fine = np.arange((measured.size - 1) * factor + 1) / factor
+    assert measured_every(np.interp(fine, np.arange(measured.size), measured)) == factor
+    assert measured_every(np.repeat(measured, factor)) == factor
+
+
+def test_measured_outputs_are_not_mistaken_for_interpolated_ones():
+    rng = np.random.default_rng(5)
+    assert measured_every(rng.standard_normal(2000)) == 1
+    # A quantised, slowly moving signal repeats values and bends irregularly.
+    quantised = np.round(np.cumsum(0.3 * rng.standard_normal(2000)))
+    assert measured_every(quantised) == 1
+    assert measured_every(np.sin(0.01 * np.arange(2000))) == 1
