@@ -18,7 +18,7 @@ def write(tmp_path, text, name='params.yaml'):
 
 @pytest.mark.parametrize('name, checks', [
     ('open_loop_delay', {'input_topic': '/plant/u', 'output_topic': '/plant/y',
-                         'input_field': 'data', 'model': 'K*exp(-tau*s)/(T*s + 1)',
+                         'input_field': 'point.x', 'model': 'K*exp(-tau*s)/(T*s + 1)',
                          'controller': '', 'parameter_names': ('K', 'T', 'tau'),
                          'delay_max': 1.0}),
     ('closed_loop_pi', {'input_topic': '/plant/r', 'output_topic': '/plant/y',
