@@ -28,55 +28,23 @@ from pathlib import Path
 import sys
 from typing import Any, Iterable, Iterator, Optional, Sequence, TextIO, Tuple
 
+from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
 from ctid_ros.errors import BagError, ConfigError
 from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.contract import DEFAULT_NODE_NAME, NANOSECONDS, resolve_topic
+from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
 from ctid_ros.streaming.params_file import load_params_file
 from ctid_ros.streaming.replay import Replay, replay_messages, SkippedTick
 from ctid_ros.streaming.session import buffer_capacity
 from tqdm import tqdm
 
-__all__ = ['DEFAULT_PLOT', 'configure_parser', 'default_plot_path', 'progress', 'run']
+__all__ = ['default_plot_path', 'progress', 'run']
 
 Message = Tuple[str, int, Any]
-# The value of --plot given without a file name (see default_plot_path).
-DEFAULT_PLOT = object()
 _FIGURE_SUFFIXES = ('', '.png', '.pdf', '.svg')
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ctid replay`` arguments to ``parser``."""
-    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage) or a '
-                          'standalone .mcap file with the params file of the live node: one '
-                          'estimate over the selected span, or --sliding as the node would.')
-    parser.add_argument('path', help='rosbag2 directory or .mcap file (never modified)')
-    parser.add_argument('--params-file', required=True,
-                        help='ROS 2 params YAML of the node (e.g. config/open_loop_delay.yaml)')
-    parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
-                        help='node section of the params file, optionally with namespace '
-                        '(/plant1/ctid_node); also names the --output topics')
-    parser.add_argument('--start', type=float, default=None,
-                        help='start of the span, seconds from the first message of the bag')
-    parser.add_argument('--end', type=float, default=None,
-                        help='end of the span, seconds from the first message of the bag')
-    parser.add_argument('--sliding', action='store_true',
-                        help='estimate every update_period on the last window seconds, as the '
-                        'live node does (default: once over the whole span)')
-    parser.add_argument('--output', type=Path, default=None,
-                        help='new .mcap file for the estimates, on the topics of the live node, '
-                        'with the replayed input and output messages')
-    parser.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
-                        metavar='PNG',
-                        help='PNG of measured vs simulated output; also writes <stem>_bode.png '
-                        'and, with --sliding, <stem>_params.png. Without a value: '
-                        '<bag name>_replay.png in the current directory (next to the bag if '
-                        'that is inside the bag). Never inside the input bag.')
-    parser.add_argument('--json', action='store_true',
-                        help='print the ctid fit --json object (a list of them with --sliding)')
 
 
 def default_plot_path(bag: PathLike, directory: Optional[Path] = None) -> Path:
