@@ -18,7 +18,8 @@ from typing import Dict, Optional, Tuple
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 
 __all__ = ['DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_fit',
-           'configure_node', 'configure_replay', 'parse_bounds', 'parse_initial', 'parse_range']
+           'configure_node', 'configure_replay', 'parse_bounds', 'parse_fixed', 'parse_initial',
+           'parse_interval', 'parse_range']
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
@@ -38,12 +39,32 @@ def _assignments(text: str, option: str) -> Dict[str, str]:
     return pairs
 
 
+def _values(text: str, option: str) -> Dict[str, float]:
+    try:
+        return {name: float(value) for name, value in _assignments(text, option).items()}
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f'{option}: {error}') from None
+
+
 def parse_initial(text: str) -> Dict[str, float]:
     """Parse ``K=1,T=2`` into ``{'K': 1.0, 'T': 2.0}``."""
+    return _values(text, '--initial')
+
+
+def parse_fixed(text: str) -> Dict[str, float]:
+    """Parse ``--fix J=0.05,tau=0.03`` into ``{'J': 0.05, 'tau': 0.03}``."""
+    return _values(text, '--fix')
+
+
+def parse_interval(text: str) -> Tuple[float, float]:
+    """Parse ``MIN:MAX`` seconds, e.g. ``0:0.1`` for ``--delay-range``."""
     try:
-        return {name: float(value) for name, value in _assignments(text, '--initial').items()}
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(f'--initial: {error}') from None
+        low, high = (float(part) for part in text.split(':'))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected MIN:MAX in seconds, got {text!r}') from None
+    if not 0 <= low < high < float('inf'):
+        raise argparse.ArgumentTypeError(f'need 0 <= MIN < MAX, got {text!r}')
+    return low, high
 
 
 def parse_bounds(text: str) -> Dict[str, Tuple[Optional[float], Optional[float]]]:
@@ -84,11 +105,22 @@ def configure_fit(fit: argparse.ArgumentParser) -> None:
                      help='initial values NAME=VALUE,...; missing ones are found automatically')
     fit.add_argument('--bounds', type=parse_bounds, default=None,
                      help='bounds NAME=LOW:HIGH,... (either side may be empty)')
-    fit.add_argument('--ts', type=float, default=None, help='sample time if there is no t column')
-    fit.add_argument('--input', action='append', default=None,
-                     help='input column name (default u); repeat (or separate by commas) for '
-                     'the inputs of a model equation, which uses these names')
-    fit.add_argument('--output', default='y', help='output column name (default y)')
+    fit.add_argument('--fix', type=parse_fixed, default=None, metavar='NAME=VALUE,...',
+                     help='hold parameters at known values (not estimated; shown as fixed)')
+    fit.add_argument('--delay-range', type=parse_interval, default=None, metavar='MIN:MAX',
+                     help='search range of the dead time in seconds (default: from its bounds, '
+                     'else automatic)')
+    fit.add_argument('--ts', type=float, default=None,
+                     help='sample time if there is no time column')
+    fit.add_argument('--time', default=None, metavar='COLUMN',
+                     help='time column in seconds (default t, else __time as PlotJuggler '
+                     'exports it)')
+    fit.add_argument('--input', action='append', default=None, metavar='[SIGNAL=]COLUMN',
+                     help='input column (default u), as named in the file, e.g. /cmd/data; '
+                     'repeat (or separate by commas) for the inputs of a model equation, which '
+                     'names its signals after the columns or SIGNAL=')
+    fit.add_argument('--output', default='y', metavar='[SIGNAL=]COLUMN',
+                     help="output column (default y), e.g. '/joint_states/position[0]'")
     fit.add_argument('--estimate-range', type=parse_range, default=None, metavar='FIRST:LAST',
                      help='estimate on these samples only (1-based, inclusive)')
     fit.add_argument('--validate', default=None, metavar='CSV',
@@ -106,6 +138,10 @@ def configure_fit(fit: argparse.ArgumentParser) -> None:
     fit.add_argument('--intersample', choices=INTERSAMPLE, default='zoh')
     fit.add_argument('--max-iterations', type=int, default=100)
     fit.add_argument('--json', action='store_true', help='print a JSON object instead of a table')
+    fit.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
+                     metavar='PNG',
+                     help='PNG of measured vs simulated output; also writes <stem>_bode.png. '
+                     'Without a value: <csv name>_fit.png in the current directory')
 
 
 def configure_replay(parser: argparse.ArgumentParser) -> None:

@@ -11,10 +11,10 @@ way, for further editing or embedding. :func:`write_replay_figures` draws the se
 from dataclasses import dataclass
 import os
 from pathlib import Path
-from typing import Callable, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Callable, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core.model import Model
-from ctid_ros.errors import ModelError
+from ctid_ros.errors import ConfigError, ModelError
 from ctid_ros.estimation.estimate import Estimate
 from ctid_ros.streaming.contract import NANOSECONDS
 from ctid_ros.streaming.session import Update
@@ -22,12 +22,45 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
 
-__all__ = ['BodeData', 'bode', 'bode_data', 'default_omega', 'fit_figure', 'parameters_figure',
-           'replay_figure_paths', 'write_replay_figures']
+__all__ = ['BodeData', 'bode', 'bode_data', 'check_figure_paths', 'default_omega', 'fit_figure',
+           'parameters_figure', 'replay_figure_paths', 'write_replay_figures']
 
 PathLike = Union[str, os.PathLike]
 # A constant truth per parameter, or a function of time (s) returning each parameter's values.
 Truth = Union[Mapping[str, float], Callable[[np.ndarray], Mapping[str, np.ndarray]]]
+
+
+_FIGURE_SUFFIXES = ('', '.png', '.pdf', '.svg')
+
+
+def check_figure_paths(path: Path, figures: Iterable[Path], inputs: Iterable[Path]) -> None:
+    """
+    Check, before anything is estimated, that the figures of ``--plot path`` can be written.
+
+    Raises
+    ------
+    ConfigError
+        If a figure would be written into or over one of the ``inputs`` (a bag directory, the
+        params file, a CSV, an ``--output`` file), into a missing or unwritable directory, over
+        a directory, or in a format other than PNG, PDF or SVG.
+
+    """
+    if path.suffix.lower() not in _FIGURE_SUFFIXES:
+        raise ConfigError(f'--plot {path}: give a .png, .pdf or .svg file')
+    sources = [Path(item).resolve() for item in inputs]
+    for figure in figures:
+        target = figure.resolve()
+        for source in sources:
+            if target == source or source in target.parents:
+                raise ConfigError(f'--plot {path} would write {figure} into or over the input '
+                                  f'{source}; choose a path outside it')
+        if not target.parent.is_dir():
+            raise ConfigError(f'--plot {path}: directory {target.parent} does not exist')
+        if target.is_dir():
+            raise ConfigError(f'--plot {path}: {figure} is a directory')
+        if not os.access(target.parent, os.W_OK) or (
+                target.exists() and not os.access(target, os.W_OK)):
+            raise ConfigError(f'--plot {path}: {figure} cannot be written (permission denied)')
 
 
 def _new_figure(width: float, height: float) -> Figure:

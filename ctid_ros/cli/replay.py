@@ -23,7 +23,6 @@ Examples
 import argparse
 from contextlib import contextmanager
 import json
-import os
 from pathlib import Path
 import sys
 from typing import Any, Iterable, Iterator, Optional, Sequence, TextIO, Tuple
@@ -44,7 +43,6 @@ from tqdm import tqdm
 __all__ = ['default_plot_path', 'progress', 'run']
 
 Message = Tuple[str, int, Any]
-_FIGURE_SUFFIXES = ('', '.png', '.pdf', '.svg')
 
 
 def default_plot_path(bag: PathLike, directory: Optional[Path] = None) -> Path:
@@ -63,40 +61,17 @@ def default_plot_path(bag: PathLike, directory: Optional[Path] = None) -> Path:
 
 
 def _check_figure_paths(arguments: argparse.Namespace) -> Optional[Path]:
-    """
-    Resolve ``--plot`` and check every figure can be written, before anything is estimated.
-
-    Raises
-    ------
-    ConfigError
-        If a figure would be written into the input bag (or over it, the params file or the
-        ``--output`` file), into a missing or unwritable directory, over a directory, or in a
-        format other than PNG, PDF or SVG.
-
-    """
+    """Resolve ``--plot`` and check every figure can be written, before anything is estimated."""
     if arguments.plot is None:
         return None
-    from ctid_ros.cli.plots import replay_figure_paths
+    from ctid_ros.cli.plots import check_figure_paths, replay_figure_paths
 
     path = default_plot_path(arguments.path) if arguments.plot is DEFAULT_PLOT \
         else Path(arguments.plot)
-    if path.suffix.lower() not in _FIGURE_SUFFIXES:
-        raise ConfigError(f'--plot {path}: give a .png, .pdf or .svg file')
     inputs = [Path(arguments.path), Path(arguments.params_file)] + (
         [Path(arguments.output)] if arguments.output is not None else [])
-    for figure in (item for item in replay_figure_paths(path, arguments.sliding) if item):
-        target = figure.resolve()
-        for source in (item.resolve() for item in inputs):
-            if target == source or source in target.parents:
-                raise ConfigError(f'--plot {path} would write {figure} into or over the input '
-                                  f'{source}; choose a path outside it')
-        if not target.parent.is_dir():
-            raise ConfigError(f'--plot {path}: directory {target.parent} does not exist')
-        if target.is_dir():
-            raise ConfigError(f'--plot {path}: {figure} is a directory')
-        if not os.access(target.parent, os.W_OK) or (
-                target.exists() and not os.access(target, os.W_OK)):
-            raise ConfigError(f'--plot {path}: {figure} cannot be written (permission denied)')
+    check_figure_paths(path, [item for item in replay_figure_paths(path, arguments.sliding)
+                              if item], inputs)
     return path
 
 
