@@ -165,6 +165,8 @@ def configure_replay(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--output', type=Path, default=None,
                         help='new .mcap file for the estimates, on the topics of the live node, '
                         'with the replayed input and output messages')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace an existing --output file (never the input bag)')
     parser.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
                         metavar='PNG',
                         help='PNG of measured vs simulated output; also writes <stem>_bode.png '

@@ -81,10 +81,15 @@ def run(arguments: argparse.Namespace) -> int:
     config = load_params_file(arguments.params_file, arguments.node_name)
     topics = (resolve_topic(config.input_topic, arguments.node_name),
               resolve_topic(config.output_topic, arguments.node_name))
+    if arguments.output is not None and arguments.output.exists() and not arguments.overwrite:
+        raise ConfigError(f'--output {arguments.output} already exists; choose another file or '
+                          'pass --overwrite to replace it')
     with open_bag(arguments.path) as bag, \
-            _estimate_output(arguments.output, arguments.path, arguments.node_name) as writer:
+            _estimate_output(arguments.output, arguments.path, arguments.node_name,
+                             arguments.overwrite) as writer:
         for warning in bag.warnings:
             print(f'ctid replay: warning: {warning}', file=sys.stderr)
+        _check_topics(bag, config, arguments.node_name, topics)
         # A bag may store a topic without its leading slash: use the bag's spelling.
         topics = tuple(bag.topic_name(topic) or topic for topic in topics)
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
@@ -165,14 +170,42 @@ def _copied(records: Iterable[BagRecord], writer: Optional[EstimateWriter]
         yield record.topic, record.log_time_ns, record.msg
 
 
+def _check_topics(bag: BagReader, config: IdentificationConfig, node_name: str,
+                  topics: Tuple[str, str]) -> None:
+    """
+    Refuse topics the bag does not have; for relative ones, name the ``--node-name`` they need.
+
+    A relative ``input_topic: u`` follows the node's namespace: ``/u`` for the default
+    ``--node-name ctid_node``, ``/plant1/u`` for ``/plant1/ctid_node``. When the bag has the
+    topic in exactly one other namespace, the error says which ``--node-name`` selects it.
+    """
+    for name, configured, topic in zip(('input_topic', 'output_topic'),
+                                       (config.input_topic, config.output_topic), topics):
+        try:
+            bag.topic_schema(topic)
+        except BagError as error:
+            if configured.startswith('/'):
+                raise
+            base = node_name.rpartition('/')[2]
+            suffix = f'/{base}/{configured[2:]}' if configured.startswith('~/') \
+                else f'/{configured}'
+            namespaces = sorted({full[:-len(suffix)] for full in
+                                 ('/' + candidate.lstrip('/') for candidate in bag.topics())
+                                 if full.endswith(suffix) and len(full) > len(suffix)})
+            hint = (f'; replay with --node-name {namespaces[0]}/{base} to read '
+                    f'{namespaces[0]}{suffix}') if len(namespaces) == 1 else ''
+            raise BagError(f'{error}. {name} {configured!r} is relative: {topic} for the node '
+                           f'{node_name}{hint}') from None
+
+
 @contextmanager
-def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str
+def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwrite: bool
                      ) -> Iterator[Optional[EstimateWriter]]:
     """Create the ``--output`` file before replaying (to fail fast); remove it on failure."""
     if path is None:
         yield None
         return
-    writer = EstimateWriter(path, inputs=[bag], node_name=node_name)
+    writer = EstimateWriter(path, inputs=[bag], node_name=node_name, overwrite=overwrite)
     try:
         yield writer
     except BaseException:
