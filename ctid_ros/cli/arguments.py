@@ -17,8 +17,9 @@ from typing import Dict, Optional, Tuple
 
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 
-__all__ = ['DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_fit',
-           'configure_node', 'configure_replay', 'parse_bounds', 'parse_fixed', 'parse_initial',
+__all__ = ['DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_echo',
+           'configure_fit', 'configure_node', 'configure_record', 'configure_replay',
+           'parse_bounds', 'parse_fixed', 'parse_initial',
            'parse_interval', 'parse_range']
 
 METHODS = ('iv', 'ls', 'gn')
@@ -79,6 +80,16 @@ def parse_bounds(text: str) -> Dict[str, Tuple[Optional[float], Optional[float]]
         except ValueError as error:
             raise argparse.ArgumentTypeError(f'--bounds: {error}') from None
     return bounds
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected seconds, got {text!r}') from None
+    if not 0 < value < float('inf'):
+        raise argparse.ArgumentTypeError(f'expected a positive number of seconds, got {text!r}')
+    return value
 
 
 def parse_range(text: str) -> Tuple[int, int]:
@@ -182,3 +193,39 @@ def configure_node(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('config', nargs='?', default=None,
                         help='params file or name of an example configuration (e.g. '
                         'open_loop_delay); same as --ros-args --params-file FILE')
+
+
+def configure_record(parser: argparse.ArgumentParser) -> None:
+    """Add the ``ctid record`` arguments to ``parser``."""
+    parser.description = ('Record live topics into a standalone MCAP file, as ros2 bag record '
+                          'does: types from the graph, messages as they come off the wire, at '
+                          'their reception time. Stops after --duration or at Ctrl-C; the file '
+                          'is closed with its index either way.')
+    parser.add_argument('output', type=Path, help='the .mcap file to write')
+    parser.add_argument('topics', nargs='+', metavar='TOPIC',
+                        help='topics to record (relative names are in the root namespace)')
+    parser.add_argument('--duration', type=_positive, default=None, metavar='SECONDS',
+                        help='stop after this many seconds (default: at Ctrl-C)')
+    parser.add_argument('--wait', type=_positive, default=10.0, metavar='SECONDS',
+                        help='how long to wait for every topic to have a publisher (default 10)')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace the output file if it exists')
+
+
+def configure_echo(parser: argparse.ArgumentParser) -> None:
+    """Add the ``ctid echo`` arguments to ``parser``."""
+    parser.description = ("Print a running identification node's estimates as a live table: "
+                          'one row per estimate, value ± standard deviation of every parameter, '
+                          'the fit and the status of the node (what ros2 topic echo of its '
+                          'estimate, estimate_std and /diagnostics topics would show).')
+    parser.add_argument('--node', default='/' + DEFAULT_NODE_NAME, metavar='NAME',
+                        help='the node, with its namespace if any (default /ctid_node; e.g. '
+                        '/plant1/ctid_node)')
+    parser.add_argument('--once', action='store_true',
+                        help='print the latest estimate (one row, no status rows) and exit; '
+                        'the node keeps its last estimate for subscribers that start later')
+    parser.add_argument('--json', action='store_true',
+                        help='one JSON object per line instead of the table')
+    parser.add_argument('--timeout', type=_positive, default=None, metavar='SECONDS',
+                        help='give up (exit 2) if no estimate arrives within this time '
+                        '(default: wait)')

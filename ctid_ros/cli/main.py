@@ -62,6 +62,10 @@ COMMANDS: Dict[str, Command] = {
                       command_lines.configure_replay, 'ctid_ros.cli.replay'),
     'node': Command('run the live identification node (same as ctid_node)',
                     command_lines.configure_node, 'ctid_ros.cli.node', ros_arguments=True),
+    'echo': Command("print a running node's estimates as a live table (ros2 topic echo)",
+                    command_lines.configure_echo, 'ctid_ros.cli.echo'),
+    'record': Command('record live topics into an MCAP file (ros2 bag record)',
+                      command_lines.configure_record, 'ctid_ros.cli.record'),
 }
 
 # The pip extra that provides each optional dependency, for the message when it is missing.
