@@ -17,7 +17,8 @@ PYTHON = {
     'rosbags': ('python3-rosbags-pip', 'rosbags'), 'mcap': ('mcap-ros2-support', 'mcap'),
     'mcap_ros2': ('mcap-ros2-support', 'mcap-ros2-support'),
     'threadpoolctl': (None, 'threadpoolctl'),
-    'zstandard': ('python3-zstandard', 'zstandard'), 'lz4': ('python3-lz4', 'lz4'),
+    # No rosdep keys (ros/rosdistro rosdep/python.yaml and base.yaml): pip only.
+    'zstandard': (None, 'zstandard'), 'lz4': (None, 'lz4'),
 }
 # Imported by name at run time, not by an import statement: the node's output messages and
 # the header stamp nested in them.
