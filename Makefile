@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
-EXTRAS := ros,bag,plot,test
+EXTRAS := ros,bag,plot,fleet,test
 ARGS ?=
 # pip's own progress and notices stay off; what it warns about still shows.
 PIP_INSTALL := $(BIN)/python -m pip install --quiet --progress-bar off
@@ -20,7 +20,7 @@ $(STAMP): setup.py setup.cfg package.xml
 	@echo "setup: upgrading pip in $(VENV)"
 	@$(PIP_INSTALL) --upgrade pip
 	@echo "setup: installing ctid_ros (editable) with extras $(EXTRAS): numpy, scipy, sympy," \
-		"the ROS 2 Jazzy wheels, rosbags, mcap, matplotlib, pytest and the linters" \
+		"the ROS 2 Jazzy wheels, rosbags, mcap, matplotlib, dask, pyarrow, pytest and the linters" \
 		"(about a minute)"
 	@$(PIP_INSTALL) -e '.[$(EXTRAS)]'
 	@touch $@

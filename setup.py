@@ -51,6 +51,8 @@ setup(
         'bag': ['rosbags>=0.11', 'mcap>=1.1', 'mcap-ros2-support>=0.5', 'tqdm>=4.60',
                 'zstandard>=0.20', 'lz4>=4'],
         'plot': ['matplotlib>=3.7'],
+        # ctid fleet: bags as tasks on Dask distributed, results as Parquet.
+        'fleet': ['dask>=2024.1', 'distributed>=2024.1', 'pyarrow>=14'],
         'test': ['pytest>=7'] + LINT,
     },
     zip_safe=True,

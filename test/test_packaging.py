@@ -19,6 +19,8 @@ PYTHON = {
     'threadpoolctl': (None, 'threadpoolctl'),
     # No rosdep keys (ros/rosdistro rosdep/python.yaml and base.yaml): pip only.
     'zstandard': (None, 'zstandard'), 'lz4': (None, 'lz4'),
+    # ctid fleet (pip only: no rosdep keys).
+    'distributed': (None, 'distributed'), 'pyarrow': (None, 'pyarrow'),
 }
 # Imported by name at run time, not by an import statement: the node's output messages and
 # the header stamp nested in them.

@@ -66,11 +66,13 @@ COMMANDS: Dict[str, Command] = {
                     command_lines.configure_echo, 'ctid_ros.cli.echo'),
     'record': Command('record live topics into an MCAP file (ros2 bag record)',
                       command_lines.configure_record, 'ctid_ros.cli.record'),
+    'fleet': Command('estimate on every bag of a fleet with Dask; Parquet results and a fleet '
+                     'report', command_lines.configure_fleet, 'ctid_ros.cli.fleet'),
 }
 
 # The pip extra that provides each optional dependency, for the message when it is missing.
 _EXTRAS = {'rclpy': 'ros', 'rosbags': 'bag', 'mcap': 'bag', 'mcap_ros2': 'bag', 'tqdm': 'bag',
-           'matplotlib': 'plot'}
+           'matplotlib': 'plot', 'dask': 'fleet', 'distributed': 'fleet', 'pyarrow': 'fleet'}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -12,19 +12,21 @@ in ``_ns``; ``start`` and ``end`` given to :meth:`BagReader.messages` are second
 message of the bag.
 """
 
+import functools
 import math
 import os
 from pathlib import Path
 import re
-from typing import (Any, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple,
-                    Union)
+from typing import (Any, Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional,
+                    Sequence, Tuple, Union)
 
 from ctid_ros.core.limits import (MAX_COMPRESSION_RATIO, MAX_METADATA_BYTES, MIB, read_limited,
                                   size_text)
 from ctid_ros.errors import BagError
 from ctid_ros.files.mcap_source import (BagMessage, BagRecord, check_chunk_sizes,
                                         is_service_event, MCAP_MAGIC, McapSource, PathLike,
-                                        reading_errors, service_event_error, TopicSchema)
+                                        raw_block, RawBlock, RawStream, reading_errors,
+                                        service_event_error, TopicSchema)
 from ctid_ros.streaming.contract import NANOSECONDS
 from ctid_ros.streaming.params_file import parse_yaml
 from rosbags.highlevel import AnyReader
@@ -40,6 +42,8 @@ _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 _METADATA_NODES = 1_000_000
 # Characters of a third-party error quoted in a warning (rosbags quotes whole definitions).
 _QUOTE_LIMIT = 300
+# Messages per block of a rosbags-read bag handed to a columnar reader.
+_RAW_BLOCK = 1 << 15
 
 
 def _quoted(error: BaseException) -> str:
@@ -135,6 +139,13 @@ class _RosbagsSource:
         self.warnings: List[str] = []
         reader = _open_reader([path], path)
         storage = _storage(reader) if path.is_dir() else None
+        # One uncompressed MCAP storage file: its blocks are read without rosbags' per-message
+        # Python (raw_blocks); rosbags reads the same messages from it.
+        self._mcap_file = storage.files[0] if (
+            storage is not None and len(storage.files) == 1 and
+            storage.files[0].suffix == '.mcap' and not storage.compressed and
+            not getattr(reader.readers[0].storage.metadata, 'compression_mode', None)) else None
+        self._mcap: Optional[McapSource] = None
         if storage is not None:
             reader = self._checked(reader, storage)
         self._reader = reader
@@ -242,6 +253,12 @@ class _RosbagsSource:
 
     def _iterate(self, connections: list, start_ns: Optional[int],
                  end_ns: Optional[int]) -> Iterator[BagRecord]:
+        for conn, log_time_ns, data in self._raw(connections, start_ns, end_ns):
+            msg = self._decode(conn, log_time_ns, data)
+            yield BagRecord(conn.topic, log_time_ns, msg, bytes(data))
+
+    def _raw(self, connections: list, start_ns: Optional[int],
+             end_ns: Optional[int]) -> Iterator[Tuple[Any, int, Any]]:
         what = f'{self.path} is corrupted and cannot be read further'
         with reading_errors(what):
             raw = self._reader.messages(connections, start=start_ns, stop=end_ns)
@@ -250,16 +267,54 @@ class _RosbagsSource:
                 item = next(raw, None)
             if item is None:
                 return
-            conn, log_time_ns, data = item
-            with reading_errors(f'{self.path}: the message on {conn.topic} at {log_time_ns} ns '
-                                f'does not match the definition of {conn.msgtype} the bag '
-                                'stores (a wrong definition, or damaged data)'):
-                msg = self._reader.deserialize(data, conn.msgtype)
-            yield BagRecord(conn.topic, log_time_ns, msg, bytes(data))
+            yield item
+
+    def _decode(self, conn: Any, log_time_ns: int, data: Any) -> Any:
+        with reading_errors(f'{self.path}: the message on {conn.topic} at {log_time_ns} ns '
+                            f'does not match the definition of {conn.msgtype} the bag '
+                            'stores (a wrong definition, or damaged data)'):
+            return self._reader.deserialize(data, conn.msgtype)
+
+    def raw_streams(self, topics: Sequence[str]) -> Dict[int, RawStream]:
+        """Check that the topics can be decoded; return their connections as streams."""
+        self.records(topics, None, None)        # the checks, without reading
+        if self._mcap_file is not None:
+            if self._mcap is None:
+                self._mcap = McapSource(self._mcap_file)
+            return self._mcap.raw_streams(topics)
+        fielddefs = self._reader.typestore.fielddefs
+        return {index: RawStream(conn.topic, conn.msgtype, fielddefs,
+                                 functools.partial(self._decode, conn))
+                for index, conn in enumerate(self._reader.connections) if conn.topic in topics}
+
+    def raw_blocks(self, streams: Mapping[int, Any], start_ns: Optional[int],
+                   end_ns: Optional[int]) -> Iterator[RawBlock]:
+        """Yield the serialised messages of ``streams`` in arrival order, by blocks."""
+        if self._mcap is not None:
+            yield from self._mcap.raw_blocks(streams, start_ns, end_ns)
+            return
+        connections = {id(conn): index for index, conn in enumerate(self._reader.connections)
+                       if index in streams}
+        chosen = [conn for conn in self._reader.connections if id(conn) in connections]
+        pending: List[Tuple[int, int, bytes]] = []
+        try:
+            for conn, log_time_ns, data in self._raw(chosen, start_ns, end_ns):
+                pending.append((connections[id(conn)], log_time_ns, bytes(data)))
+                if len(pending) == _RAW_BLOCK:
+                    yield raw_block(pending)
+                    pending = []
+        except BagError:
+            if pending:     # the messages before the damage, as records() yields them
+                yield raw_block(pending)
+            raise
+        if pending:
+            yield raw_block(pending)
 
     def close(self) -> None:
         """Release the files."""
         self._reader.close()
+        if self._mcap is not None:
+            self._mcap.close()
 
 
 _Source = Union[_RosbagsSource, McapSource]
@@ -530,6 +585,38 @@ class BagReader:
         lo = start_ns if start_ns is not None else lo
         hi = end_ns if end_ns is not None else hi
         return self._source.records(selected, lo, hi)
+
+    def raw_streams(self, topics: Union[str, Iterable[str]]) -> Dict[int, RawStream]:
+        """
+        Return the streams (channels, connections) of ``topics``, for a columnar reader.
+
+        Raises
+        ------
+        BagError
+            As :meth:`records` does: unknown topics, a type that cannot be decoded.
+
+        """
+        return self._source.raw_streams(self._select(topics))
+
+    def raw_blocks(self, streams: Mapping[int, RawStream], start: Optional[float] = None,
+                   end: Optional[float] = None, *, start_ns: Optional[int] = None,
+                   end_ns: Optional[int] = None) -> Iterator[RawBlock]:
+        """
+        Yield the serialised messages of ``streams`` (from :meth:`raw_streams`) by blocks.
+
+        The messages and their order are those of :meth:`records` over the same window; each
+        :class:`~ctid_ros.files.mcap_source.RawBlock` holds a chunk's worth (MCAP) or a fixed
+        number of them, so memory stays bounded on long bags. A bag found damaged while reading
+        raises :class:`~ctid_ros.errors.BagError` once the messages before the damage were
+        yielded.
+        """
+        if start is not None and start_ns is not None or end is not None and end_ns is not None:
+            raise BagError('give the window either in seconds (start/end) or in nanoseconds '
+                           '(start_ns/end_ns), not both')
+        lo, hi = self.time_range_ns(start, end)
+        lo = start_ns if start_ns is not None else lo
+        hi = end_ns if end_ns is not None else hi
+        return self._source.raw_blocks(streams, lo, hi)
 
     def topic_schema(self, topic: str) -> TopicSchema:
         """

@@ -13,6 +13,7 @@ recorder's log time).
 
 from contextlib import contextmanager
 from dataclasses import dataclass
+import functools
 import heapq
 from io import BytesIO
 import math
@@ -20,8 +21,8 @@ import os
 from pathlib import Path
 import re
 import struct
-from typing import (Any, Dict, FrozenSet, Iterator, List, Mapping, NamedTuple, Optional,
-                    Sequence, Union)
+from typing import (Any, Callable, Dict, FrozenSet, Iterator, List, Mapping, NamedTuple,
+                    Optional, Sequence, Tuple, Union)
 import zlib
 
 from ctid_ros.core.limits import MAX_CHUNK_BYTES, MAX_COMPRESSION_RATIO, MIB, size_text
@@ -32,16 +33,21 @@ from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap_ros2.decoder import DecoderFactory
+import numpy as np
+from rosbags.typesys import get_types_from_idl, get_types_from_msg, get_typestore, Stores
 import zstandard
 
-__all__ = ['BagMessage', 'BagRecord', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'TopicSchema',
-           'check_chunk_sizes', 'chunk_records', 'is_service_event', 'reading_errors',
-           'service_event_error']
+__all__ = ['BagMessage', 'BagRecord', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'RawBlock',
+           'RawStream', 'field_definitions',
+           'TopicSchema', 'check_chunk_sizes', 'chunk_records', 'is_service_event', 'raw_block',
+           'reading_errors', 'service_event_error']
 
 PathLike = Union[str, os.PathLike]
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 _RECORD_HEADER = struct.Struct('<BQ')
+# A message record: channel id, sequence, log time and publish time, then the data.
+_MESSAGE_FIELDS = struct.Struct('<HIQQ')
 # A chunk record's fixed fields: message start and end time, uncompressed size and CRC.
 _CHUNK_FIELDS = struct.Struct('<QQQI')
 _LENGTH = struct.Struct('<I')
@@ -66,6 +72,132 @@ class BagRecord(NamedTuple):
     log_time_ns: int
     msg: Any
     data: bytes
+
+
+class RawBlock(NamedTuple):
+    """
+    Serialised messages of the selected topics, in arrival (log-time) order, not decoded.
+
+    Attributes
+    ----------
+    data : ndarray of uint8
+        A buffer holding the messages (a decompressed chunk, or several).
+    starts, lengths : ndarray of int64
+        Where each message (CDR, with its encapsulation header) starts in ``data``, its size.
+    log_time_ns : ndarray of int64
+        The recorder's log time of each message.
+    topic : ndarray of int
+        Index of each message's topic in the topics asked for.
+
+    """
+
+    data: np.ndarray
+    starts: np.ndarray
+    lengths: np.ndarray
+    log_time_ns: np.ndarray
+    topic: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.starts.size)
+
+    def message(self, index: int) -> bytes:
+        """Return the bytes of message ``index``."""
+        start = int(self.starts[index])
+        return self.data[start:start + int(self.lengths[index])].tobytes()
+
+
+def raw_block(messages: Sequence[Tuple[int, int, bytes]]) -> RawBlock:
+    """Pack ``(topic index, log time, bytes)`` triples, in arrival order, into a block."""
+    lengths = np.fromiter((len(item[2]) for item in messages), dtype=np.int64,
+                          count=len(messages))
+    starts = np.concatenate(([0], np.cumsum(lengths)[:-1])).astype(np.int64) if \
+        len(messages) else np.zeros(0, dtype=np.int64)
+    data = np.frombuffer(b''.join(item[2] for item in messages), dtype=np.uint8)
+    return RawBlock(data, starts, lengths,
+                    np.fromiter((item[1] for item in messages), dtype=np.int64,
+                                count=len(messages)),
+                    np.fromiter((item[0] for item in messages), dtype=np.int64,
+                                count=len(messages)))
+
+
+class RawStream(NamedTuple):
+    """
+    One stream of serialised messages of a bag (an MCAP channel, a rosbags connection).
+
+    Attributes
+    ----------
+    topic, msgtype : str
+        Its topic and message type.
+    fielddefs : mapping or None
+        Field definitions of the type and the types it uses (a rosbags typestore's
+        ``fielddefs``), for a columnar CDR decoder; None if the messages are not CDR or the
+        definitions could not be parsed.
+    decode : callable
+        ``decode(log_time_ns, data)``: one message decoded as the streaming reader does it,
+        raising the same :class:`~ctid_ros.errors.BagError` for bytes that do not fit.
+
+    """
+
+    topic: str
+    msgtype: str
+    fielddefs: Optional[Mapping[str, Any]]
+    decode: Callable[[int, bytes], Any]
+
+
+def field_definitions(msgtype: str, encoding: str, definition: bytes
+                      ) -> Optional[Mapping[str, Any]]:
+    """Parse a stored definition (``ros2msg`` or ``ros2idl``) into rosbags field definitions."""
+    try:
+        text = definition.decode()
+        if encoding == 'ros2msg':
+            types = get_types_from_msg(text, msgtype)
+        elif encoding == 'ros2idl':
+            separator = '=' * 80 + '\n'
+            types = {}
+            parts = text.split(separator)[1:] if text.startswith(separator + 'IDL: ') \
+                else [text]
+            for part in parts:
+                types.update(get_types_from_idl(part.split('\n', 1)[1] if part.startswith(
+                    'IDL: ') else part))
+        else:
+            return None
+        store = get_typestore(Stores.EMPTY)
+        store.register(types)
+        return store.fielddefs
+    except Exception:   # an unparsable definition: the per-message decoder reports it
+        return None
+
+
+def _split_pool(pool: List[Tuple[np.ndarray, Tuple[np.ndarray, ...], int]],
+                bound: Tuple[float, int]
+                ) -> Tuple[Optional[RawBlock], List[Tuple[np.ndarray, Tuple[np.ndarray, ...],
+                                                          int]]]:
+    """
+    Take from the pooled chunks every message that precedes ``bound``, in arrival order.
+
+    Messages are ordered by log time, then file offset of their chunk, then position in it;
+    ``bound`` is the (start time, offset) of the next chunk to read.
+    """
+    if not pool:
+        return None, pool
+    data = pool[0][0] if len(pool) == 1 else np.concatenate([item[0] for item in pool])
+    bases = np.cumsum([0] + [item[0].size for item in pool[:-1]])
+    columns = [np.concatenate([item[1][column] for item in pool]) for column in range(5)]
+    index, starts, lengths, times, topics = columns
+    offsets = np.concatenate([np.full(item[1][0].size, item[2]) for item in pool])
+    starts = starts + np.concatenate([np.full(item[1][0].size, base)
+                                      for item, base in zip(pool, bases)])
+    before = (times < bound[0]) | ((times == bound[0]) & (offsets < bound[1]))
+    order = np.lexsort((index, offsets, times))
+    order = order[before[order]]
+    block = RawBlock(data, starts[order], lengths[order], times[order], topics[order])
+    keep = []
+    for item in pool:
+        times = item[1][3]
+        remaining = ~((times < bound[0]) | ((times == bound[0]) & (item[2] < bound[1])))
+        if np.any(remaining):
+            keep.append((item[0], tuple(column[remaining] for column in item[1]), item[2]))
+    return block, keep
 
 
 class TopicSchema(NamedTuple):
@@ -207,6 +339,52 @@ def _decompressed(chunk: Chunk) -> bytes:
     return data
 
 
+def chunk_bytes(chunk: Chunk) -> bytes:
+    """Return the records of a chunk, decompressed within the limits of :func:`chunk_records`."""
+    problem = (_size_problem(chunk.uncompressed_size, len(chunk.data), chunk.compression)
+               or _frame_problem(chunk.uncompressed_size, chunk.compression,
+                                 bytes(chunk.data[:_FRAME_HEADER_BYTES])))
+    if problem:
+        raise _ChunkRefused(f'chunk {problem}')
+    return _decompressed(chunk)
+
+
+def _message_positions(data: bytes, wanted: Mapping[int, int], lo: int, hi: float
+                       ) -> Tuple[np.ndarray, ...]:
+    """
+    Find the message records of the wanted channels in a chunk's records.
+
+    Returns the record index, data start, data length, log time and topic index of each, in
+    record order (one pass over the record headers; the message data are not touched).
+    """
+    found: List[Tuple[int, int, int, int, int]] = []
+    position, index, size = 0, 0, len(data)
+    unpack_header, unpack_message = _RECORD_HEADER.unpack_from, _MESSAGE_FIELDS.unpack_from
+    header, fields = _RECORD_HEADER.size, _MESSAGE_FIELDS.size
+    while position < size:
+        if size - position < header:
+            raise BagError('chunk ends inside a record header: damaged')
+        opcode, length = unpack_header(data, position)
+        start = position + header
+        end = start + length
+        if opcode == 0 or end > size:
+            raise BagError(f'chunk holds an invalid record (opcode {opcode}, {length} bytes) at '
+                           f'byte {position}: damaged')
+        if opcode == Opcode.MESSAGE:
+            if length < fields:
+                raise BagError(f'chunk holds a message record of {length} bytes at byte '
+                               f'{position}: damaged')
+            channel, _, log_time, _ = unpack_message(data, start)
+            topic = wanted.get(channel)
+            if topic is not None and lo <= log_time < hi:
+                found.append((index, start + fields, length - fields, log_time, topic))
+        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+            index += 1
+        position = end
+    columns = np.array(found, dtype=np.int64).reshape(-1, 5)
+    return tuple(columns[:, column] for column in range(5))
+
+
 def chunk_records(chunk: Chunk) -> List[Any]:
     """
     Return the schema, channel and message records of a chunk, decompressed within limits.
@@ -220,12 +398,7 @@ def chunk_records(chunk: Chunk) -> List[Any]:
         does not decompress to its declared size, fails its CRC or holds an invalid record.
 
     """
-    problem = (_size_problem(chunk.uncompressed_size, len(chunk.data), chunk.compression)
-               or _frame_problem(chunk.uncompressed_size, chunk.compression,
-                                 bytes(chunk.data[:_FRAME_HEADER_BYTES])))
-    if problem:
-        raise _ChunkRefused(f'chunk {problem}')
-    data = _decompressed(chunk)
+    data = chunk_bytes(chunk)
     records: List[Any] = []
     position = 0
     while position < len(data):
@@ -472,6 +645,10 @@ class McapSource:
     def records(self, topics: Sequence[str], start_ns: Optional[int],
                 end_ns: Optional[int]) -> Iterator[BagRecord]:
         """Check that the topics can be decoded, then stream them in log-time order."""
+        return self._iterate(self._decoders(topics), start_ns, end_ns)
+
+    def _decoders(self, topics: Sequence[str]) -> Dict[int, Any]:
+        """Return a decoder per channel of the topics, or raise why one cannot be decoded."""
         factory = DecoderFactory()
         decoders = {}
         for channel_id, channel in self._channels.items():
@@ -490,7 +667,77 @@ class McapSource:
                                f'encoding {encoding!r}; only CDR messages with ros2msg '
                                'definitions are supported')
             decoders[channel_id] = decoder
-        return self._iterate(decoders, start_ns, end_ns)
+        return decoders
+
+    def _decode(self, decoder: Any, channel: Channel, log_time_ns: int, data: bytes) -> Any:
+        with reading_errors(f'{self.path}: cannot decode the message on {channel.topic} '
+                            f'at {log_time_ns} ns'):
+            return decoder(data)
+
+    def raw_streams(self, topics: Sequence[str]) -> Dict[int, RawStream]:
+        """
+        Check that the topics can be decoded; return their channels as :class:`RawStream`.
+
+        The stream ids are the channel ids, as :meth:`raw_blocks` gives them.
+        """
+        streams = {}
+        for channel_id, decoder in self._decoders(topics).items():
+            channel = self._channels[channel_id]
+            schema = self._schemas.get(channel.schema_id)
+            streams[channel_id] = RawStream(
+                channel.topic, schema.name, field_definitions(schema.name, schema.encoding,
+                                                              bytes(schema.data))
+                if channel.message_encoding == 'cdr' else None,
+                functools.partial(self._decode, decoder, channel))
+        return streams
+
+    def raw_blocks(self, streams: Mapping[int, Any], start_ns: Optional[int],
+                   end_ns: Optional[int]) -> Iterator[RawBlock]:
+        """
+        Yield the serialised messages of the channels ``streams`` in arrival order, by block.
+
+        The order is that of :meth:`records` (log time, then position in the file): a block
+        holds the messages that no unread chunk can precede; chunks that overlap in time are
+        merged, so at most those are held at once. A chunk that cannot be read raises
+        :class:`~ctid_ros.errors.BagError` after every message before it was yielded.
+        """
+        lo = -1 if start_ns is None else start_ns
+        hi = math.inf if end_ns is None else end_ns
+        wanted = {channel_id: channel_id for channel_id in streams}
+        blocks = sorted((block for block in self._blocks
+                         if block.end_ns >= lo and block.start_ns < hi
+                         and (block.channel_ids is None or block.channel_ids & set(wanted))),
+                        key=lambda block: (block.start_ns, block.offset))
+        pool: List[Tuple[np.ndarray, Tuple[np.ndarray, ...], int]] = []
+        for block in blocks + [None]:
+            bound = (math.inf, 0) if block is None else (block.start_ns, block.offset)
+            ready, pool = _split_pool(pool, bound)
+            if ready is not None and len(ready):
+                yield ready
+            if block is None:
+                break
+            data = self._read_raw(block.offset)
+            positions = _message_positions(data, wanted, lo, hi)
+            if positions[0].size:
+                pool.append((np.frombuffer(data, dtype=np.uint8), positions, block.offset))
+
+    def _read_raw(self, offset: int) -> bytes:
+        """Return the records of the chunk (or the one message record) at ``offset``."""
+        try:
+            with reading_errors(f'{self.path} is corrupted at byte {offset} and cannot be read '
+                                'further'):
+                self._stream.seek(offset)
+                opcode, length = _RECORD_HEADER.unpack(self._stream.read(_RECORD_HEADER.size))
+                if opcode == Opcode.MESSAGE:
+                    return _RECORD_HEADER.pack(opcode, length) + self._stream.read(length)
+                if opcode != Opcode.CHUNK:
+                    raise ValueError(f'the index points at a record of opcode {opcode}, not at '
+                                     'a chunk')
+                return chunk_bytes(Chunk.read(ReadDataStream(BytesIO(
+                    self._stream.read(length)))))
+        except _ChunkRefused as error:
+            raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
+                           ) from None
 
     def _iterate(self, decoders: Mapping[int, Any], start_ns: Optional[int],
                  end_ns: Optional[int]) -> Iterator[BagRecord]:
@@ -513,9 +760,7 @@ class McapSource:
                         heapq.heappush(heap, (record.log_time, offset, index, record))
                 continue
             channel = self._channels[item.channel_id]
-            with reading_errors(f'{self.path}: cannot decode the message on {channel.topic} '
-                                f'at {log_time_ns} ns'):
-                msg = decoders[item.channel_id](item.data)
+            msg = self._decode(decoders[item.channel_id], channel, log_time_ns, item.data)
             yield BagRecord(channel.topic, log_time_ns, msg, item.data)
 
     def _read_block(self, offset: int) -> List[Any]:

@@ -291,6 +291,11 @@ CONFIRMATIONS = 3
 CLOCK_HORIZON_NS = NANOSECONDS
 # Before every stamp: a window from here takes all the data.
 _EARLIEST = -2 ** 62
+# Stamps whose intervals give a stream's clock (see _Stream._jump_ns).
+_RECENT = 33
+# Samples examined at once by _Stream.extend: few after a refusal, doubling while all pass.
+_LOOKAHEAD = 16
+_MAX_LOOKAHEAD = 1 << 16
 
 
 class _Stream:
@@ -382,7 +387,7 @@ class _Stream:
 
     def _jump_ns(self) -> int:
         """Return how far ahead of the newest stamp a new one is still in the stream's clock."""
-        recent = self._stamps[max(self._start, self._stop - 33):self._stop]
+        recent = self._stamps[max(self._start, self._stop - _RECENT):self._stop]
         if recent.size < 3:
             return max(self.horizon_ns, self.max_gap_ns)
         return max(self.horizon_ns, JUMP_STEPS * int(np.median(np.diff(recent))))
@@ -475,6 +480,91 @@ class _Stream:
                 self.out_of_clock += 1
                 self._refuse(_OUT_OF_CLOCK, stamp)
         self._run.clear()
+
+    def extend(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        """
+        Append many samples in arrival order, exactly as :meth:`append` one by one would.
+
+        The samples that :meth:`append` would simply store after the newest one (finite, newer
+        than it and within its clock, with no candidate run pending) are found with array
+        operations and stored as one block; every other sample goes through :meth:`append`
+        itself, so duplicates, late and far stamps, runs and re-anchoring keep their one rule.
+        """
+        count = stamps.size
+        if count == 0:
+            return
+        finite = np.isfinite(values) if values.ndim == 1 else np.all(np.isfinite(values), axis=1)
+        position = 0
+        lookahead = _LOOKAHEAD
+        while position < count:
+            simple = self._simple_prefix(stamps[position:position + lookahead],
+                                         finite[position:position + lookahead])
+            if simple:
+                self._store_block(stamps[position:position + simple],
+                                  values[position:position + simple])
+                position += simple
+                if simple == min(lookahead, count - position + simple):
+                    lookahead = min(2 * lookahead, _MAX_LOOKAHEAD)
+                    continue
+            if position < count:
+                value = values[position]
+                self.append(int(stamps[position]),
+                            float(value) if self.width == 1 else value.copy())
+                position += 1
+            lookahead = _LOOKAHEAD
+
+    def _simple_prefix(self, stamps: np.ndarray, finite: np.ndarray) -> int:
+        """
+        Count the leading samples :meth:`append` would store at the end without question.
+
+        A sample qualifies if it is finite, newer than the newest held stamp and, if further
+        ahead of it than the reorder horizon, within :meth:`_jump_ns` of the stream as it will
+        be once the samples before it are stored. Needs no candidate run and at least as many
+        held samples as :meth:`_jump_ns` looks at, else 0 (the caller appends one by one).
+        """
+        recent = min(_RECENT, self.capacity)
+        if self._run or len(self) < recent:
+            return 0
+        held = self._stamps[self._stop - recent:self._stop]
+        sequence = np.concatenate((held, stamps))
+        steps = np.diff(sequence)[recent - 1:]
+        ahead = steps > self.horizon_ns
+        ok = finite & (steps > 0)
+        if np.any(ahead & ok):
+            if recent < 3:
+                jump = np.full(steps.size, max(self.horizon_ns, self.max_gap_ns))
+            else:
+                intervals = np.lib.stride_tricks.sliding_window_view(
+                    np.diff(sequence)[:-1], recent - 1)
+                which = np.flatnonzero(ahead & ok)
+                jump = np.full(steps.size, self.horizon_ns, dtype=np.int64)
+                medians = np.median(intervals[which], axis=1)
+                jump[which] = np.maximum(self.horizon_ns,
+                                         JUMP_STEPS * np.trunc(medians).astype(np.int64))
+            ok &= ~ahead | (steps <= jump)
+        bad = np.flatnonzero(~ok)
+        return int(bad[0]) if bad.size else stamps.size
+
+    def _store_block(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        """Store samples newer than the newest held one, in order, as :meth:`_store` would."""
+        count = stamps.size
+        self.received += count
+        self.accepted += count
+        total = len(self) + count
+        keep = min(self.capacity, total)
+        self.evicted += total - keep
+        if self._stop + count <= self._stamps.size:
+            self._stamps[self._stop:self._stop + count] = stamps
+            self._values[self._stop:self._stop + count] = values
+            self._stop += count
+            self._start = self._stop - keep
+            return
+        old = keep - min(count, keep)
+        self._stamps[:old] = self._stamps[self._stop - old:self._stop]
+        self._values[:old] = self._values[self._stop - old:self._stop]
+        self._stamps[old:keep] = stamps[count - (keep - old):]
+        self._values[old:keep] = values[count - (keep - old):]
+        self._start, self._stop = 0, keep
 
     def events(self) -> Tuple[np.ndarray, np.ndarray]:
         """Copy the remembered refusals: the stream's clock at each (ns) and its reason code."""
@@ -777,6 +867,34 @@ class SampleBuffer:
         with self._lock:
             return self._input.append(stamp, u), self._output.append(stamp, y)
 
+    def add_inputs(self, stamps_ns, values) -> None:
+        """
+        Append many input samples in arrival order, as :meth:`add_input` one by one would.
+
+        Parameters
+        ----------
+        stamps_ns : array_like of int
+            Stamps in integer nanoseconds (a float array is refused).
+        values : array_like of float
+            One value per stamp, or one row of ``inputs`` values per stamp.
+
+        Notes
+        -----
+        The admission rules are those of :meth:`add_input`: the samples it would simply store
+        after the newest one are stored as blocks, every other sample goes through it
+        (duplicates, late, far and non-finite stamps alike), so both give the same buffer.
+
+        """
+        stamps, values = _batch(stamps_ns, values, self._input.width, self.names[0])
+        with self._lock:
+            self._input.extend(stamps, values)
+
+    def add_outputs(self, stamps_ns, values) -> None:
+        """Append many output samples in arrival order; see :meth:`add_inputs`."""
+        stamps, values = _batch(stamps_ns, values, 1, self.names[1])
+        with self._lock:
+            self._output.extend(stamps, values)
+
     def clear(self) -> None:
         """Forget all samples and reset the counters (e.g. after the configuration changed)."""
         with self._lock:
@@ -967,6 +1085,22 @@ class SampleBuffer:
         return text + ('; ' + '; '.join(reasons) if reasons else '')
 
 
+def _batch(stamps, values, width: int, name: str) -> Tuple[np.ndarray, np.ndarray]:
+    """Check and convert the stamps and values of many samples of one stream."""
+    stamps = np.asarray(stamps)
+    values = np.asarray(values, dtype=float)
+    if stamps.ndim != 1 or stamps.shape != values.shape[:1] or \
+            values.ndim != (1 if width == 1 else 2) and values.size:
+        raise DataError(f'{name} stamps and values must be 1-D of equal length, got shapes '
+                        f'{stamps.shape} and {values.shape}')
+    if stamps.size and not np.issubdtype(stamps.dtype, np.integer):
+        raise DataError(f'{name} stamps must be integer nanoseconds, got {stamps.dtype}')
+    if width > 1 and values.size and values.shape[1] != width:
+        raise DataError(f'an input sample needs {width} values, got shape {values.shape[1:]}')
+    values = values.reshape(-1) if width == 1 else values.reshape(-1, width)
+    return stamps.astype(np.int64, copy=False), values
+
+
 def resample(input_stamps, input_values, output_stamps, output_values, sample_time: float, *,
              length: Optional[float] = None, end_ns: Optional[int] = None, max_gap: float = 0.5,
              reorder_horizon: float = 0.05, min_length: Optional[float] = None,
@@ -1002,25 +1136,14 @@ def resample(input_stamps, input_values, output_stamps, output_values, sample_ti
         The window and the admission counters.
 
     """
-    streams = []
-    for name, stamps, values in ((names[0], input_stamps, input_values),
-                                 (names[1], output_stamps, output_values)):
-        stamps = np.asarray(stamps)
-        values = np.asarray(values, dtype=float)
-        if stamps.ndim != 1 or stamps.shape != values.shape[:1] or \
-                values.ndim > (2 if name == names[0] else 1):
-            raise DataError(f'{name} stamps and values must be 1-D of equal length, got shapes '
-                            f'{stamps.shape} and {values.shape}')
-        if stamps.size and not np.issubdtype(stamps.dtype, np.integer):
-            raise DataError(f'{name} stamps must be integer nanoseconds, got {stamps.dtype}')
-        streams.append((stamps.tolist(), values.tolist()))
-    capacity = max(2, len(streams[0][0]), len(streams[1][0]))
     inputs = np.shape(input_values)[1] if np.ndim(input_values) == 2 else 1
+    streams = (_batch(input_stamps, input_values, inputs, names[0]),
+               _batch(output_stamps, output_values, 1, names[1]))
+    capacity = max(2, streams[0][0].size, streams[1][0].size)
     buffer = SampleBuffer(capacity, max_gap=max_gap, reorder_horizon=reorder_horizon,
                           names=names, inputs=inputs)
-    for add, (stamps, values) in zip((buffer.add_input, buffer.add_output), streams):
-        for stamp, value in zip(stamps, values):
-            add(stamp, value)
+    buffer.add_inputs(*streams[0])
+    buffer.add_outputs(*streams[1])
     first, last = buffer.coverage(settled=False)
     if end_ns is None:
         end_ns = last

@@ -35,7 +35,7 @@ from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
 __all__ = ['FieldPath', 'Step', 'extract', 'extract_values', 'message_fields', 'message_stamp',
-           'parse_field_path', 'sample_stamp']
+           'parse_field_path', 'sample_stamp', 'sample_stamps']
 
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
 _SEGMENT = rf'{_NAME}(?:\[[0-9]+\])*'
@@ -230,6 +230,20 @@ def message_stamp(message) -> Optional[int]:
         return None
     nanoseconds = int(stamp.sec) * NANOSECONDS + int(stamp.nanosec)
     return nanoseconds or None
+
+
+def sample_stamps(header_ns: Optional[np.ndarray], receive_ns: np.ndarray,
+                  stamp_source: str) -> np.ndarray:
+    """
+    Return the stamps (ns) of many messages' samples: :func:`sample_stamp`'s rule on arrays.
+
+    ``header_ns`` holds each message's ``header.stamp`` (0 where it is zero), or is None for a
+    type without one; ``receive_ns`` the receive (log) times.
+    """
+    receive_ns = np.asarray(receive_ns, dtype=np.int64)
+    if stamp_source == 'header' and header_ns is not None:
+        return np.where(header_ns != 0, header_ns, receive_ns)
+    return receive_ns
 
 
 def sample_stamp(msg: Any, receive_ns: int, stamp_source: str) -> int:

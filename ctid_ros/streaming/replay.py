@@ -32,7 +32,7 @@ from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
 
-__all__ = ['Replay', 'SkippedTick', 'replay_messages']
+__all__ = ['Replay', 'SampleColumns', 'SkippedTick', 'replay_columns', 'replay_messages']
 
 
 class SkippedTick(NamedTuple):
@@ -79,6 +79,136 @@ class Replay:
     stats: BufferStats
     messages: int
     skipped: List[SkippedTick]
+
+
+@dataclass(frozen=True)
+class SampleColumns:
+    """
+    The samples of consecutive messages of the input and output topics, as arrays.
+
+    What :class:`~ctid_ros.streaming.sampler.MessageSampler` makes of each message, for a
+    block of messages at once (see :mod:`ctid_ros.files.columns`).
+
+    Attributes
+    ----------
+    log_time_ns : ndarray of int64
+        Log (arrival) time of each message of the block, in arrival order.
+    input_index, output_index : ndarray of int64
+        Index in the block of the message of each input (output) sample, increasing.
+    input_stamps, output_stamps : ndarray of int64
+        The samples' stamps (the sampler's stamp rule).
+    input_values : ndarray
+        Input values: one per sample, or a row per sample for several inputs.
+    output_values : ndarray
+        Output values.
+
+    """
+
+    log_time_ns: np.ndarray
+    input_index: np.ndarray
+    input_stamps: np.ndarray
+    input_values: np.ndarray
+    output_index: np.ndarray
+    output_stamps: np.ndarray
+    output_values: np.ndarray
+
+
+def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig, *,
+                   sliding: bool = False, topics: Optional[Tuple[str, str]] = None,
+                   capacity: Optional[int] = None) -> Replay:
+    """
+    Replay blocks of samples as :func:`replay_messages` replays the messages they came from.
+
+    The samples are admitted to the same buffer (whole arrays at once, by
+    :meth:`~ctid_ros.streaming.buffer.SampleBuffer.add_inputs`, which gives the buffer that
+    appending them one by one gives) and estimated by the same session; the sliding ticks fire
+    between the same messages. Same arguments, results and errors as :func:`replay_messages`.
+    """
+    if topics is None:
+        topics = (resolve_topic(config.input_topic), resolve_topic(config.output_topic))
+    sampler = MessageSampler(config, topics)
+    if sliding:
+        capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
+        return _columns_sliding(blocks, config, sampler, capacity)
+    return _columns_span(blocks, config, sampler)
+
+
+def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
+                  sampler: MessageSampler) -> Replay:
+    parts: List[SampleColumns] = []
+    count = 0
+    for block in blocks:
+        count += block.log_time_ns.size
+        parts.append(block)
+    inputs = len(config.input_fields)
+    u_stamps = np.concatenate([np.zeros(0, np.int64)] + [part.input_stamps for part in parts])
+    y_stamps = np.concatenate([np.zeros(0, np.int64)] + [part.output_stamps for part in parts])
+    empty = np.zeros((0, inputs)) if inputs > 1 else np.zeros(0)
+    u = np.concatenate([empty] + [part.input_values for part in parts])
+    y = np.concatenate([np.zeros(0)] + [part.output_values for part in parts])
+    silent = [name for name, stamps in zip(sampler.names, (u_stamps, y_stamps)) if not stamps.size]
+    if silent:
+        raise DataError(f'no messages of the {" and the ".join(silent)} in the selected span')
+    window, stats = resample(u_stamps, u, y_stamps, y, config.sample_time,
+                             max_gap=config.max_gap, reorder_horizon=config.reorder_horizon,
+                             names=sampler.names)
+    update = IdentificationSession(config).update(window)
+    return Replay([update], stats, count, [])
+
+
+def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConfig,
+                     sampler: MessageSampler, capacity: int) -> Replay:
+    buffer = sampler.buffer(capacity, config)
+    session = IdentificationSession(config)
+    period_ns = round(config.update_period * NANOSECONDS)
+    updates: List[Update] = []
+    skipped: List[SkippedTick] = []
+    tick: Optional[int] = None
+    newest: Optional[int] = None
+    last: Optional[int] = None
+    count = 0
+
+    def fire(time_ns: int) -> None:
+        try:
+            updates.append(session.update(session.take_window(buffer)))
+        except (DataError, EstimationError) as error:
+            skipped.append(SkippedTick(time_ns, *failure_status(error)))
+
+    def add(block: SampleColumns, first: int, stop: int) -> None:
+        """Admit the samples of messages ``first`` to ``stop - 1`` of the block."""
+        low, high = np.searchsorted(block.input_index, (first, stop))
+        buffer.add_inputs(block.input_stamps[low:high], block.input_values[low:high])
+        low, high = np.searchsorted(block.output_index, (first, stop))
+        buffer.add_outputs(block.output_stamps[low:high], block.output_values[low:high])
+
+    for block in blocks:
+        times = block.log_time_ns
+        if not times.size:
+            continue
+        count += times.size
+        if tick is None:
+            tick = int(times[0]) + period_ns
+            newest = int(times[0])
+        # A tick fires before the first message logged after it (replay_messages' rule): the
+        # messages up to there are those whose running newest log time is not after it.
+        reached = np.maximum.accumulate(np.maximum(times, newest))
+        position = 0
+        while tick < reached[-1]:
+            stop = int(np.searchsorted(reached, tick, side='right'))
+            add(block, position, stop)
+            position = stop
+            fire(tick)
+            tick += period_ns
+        add(block, position, times.size)
+        newest, last = int(reached[-1]), int(times[-1])
+    if tick is not None and tick <= last:
+        fire(tick)
+    stats = buffer.stats()
+    if not updates:
+        reason = skipped[-1].reason if skipped else (
+            f'the span is shorter than update_period ({config.update_period:g} s)')
+        raise DataError(f'no estimate in the whole replay: {reason}')
+    return Replay(updates, stats, count, skipped)
 
 
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,

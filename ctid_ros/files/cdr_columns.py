@@ -1,0 +1,359 @@
+"""
+Numeric fields of many CDR-encoded ROS 2 messages decoded at once, with numpy.
+
+A bag stores every message of a topic in the same layout: the type's fields in order, each
+primitive aligned to its size relative to the start of the payload (after the 4-byte
+encapsulation header), strings and sequences prefixed by a ``uint32`` length. Fixed-layout
+types (``std_msgs/Float64``, ``geometry_msgs/PointStamped``) put every field at the same
+offset in every message; variable-length ones (``sensor_msgs/JointState``: a ``frame_id``, then
+sequences of names, positions, velocities and efforts) need each message's offsets, which
+:class:`CdrColumns` computes for all messages together: one array of positions, advanced field
+by field (a sequence of strings or of messages one element index at a time).
+
+It reads the fields of :class:`~ctid_ros.streaming.message_fields.FieldPath` paths and
+``header.stamp`` of messages of any type built from primitives, strings, nested messages,
+fixed arrays and sequences, from the type definitions the bag stores (a rosbags typestore).
+Every message whose bytes do not follow the layout exactly (a length beyond its end, a string
+without its terminator or with non-ASCII bytes, more than 3 trailing bytes, another
+encapsulation than plain CDR) and every message whose path does not lead to a number (a field
+that does not exist, an index beyond a sequence's length) is flagged for the per-message
+decoder instead, which decodes it, or reports it, exactly as the streaming replay does.
+"""
+
+from dataclasses import dataclass
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.message_fields import FieldPath
+import numpy as np
+
+__all__ = ['CdrColumns', 'Decoded', 'PRIMITIVES']
+
+# Primitive types of ROS 2 messages: numpy type code (without byte order) and size in bytes.
+PRIMITIVES: Dict[str, Tuple[str, int]] = {
+    'bool': ('u1', 1), 'byte': ('u1', 1), 'char': ('u1', 1), 'octet': ('u1', 1),
+    'int8': ('i1', 1), 'uint8': ('u1', 1), 'int16': ('i2', 2), 'uint16': ('u2', 2),
+    'int32': ('i4', 4), 'uint32': ('u4', 4), 'int64': ('i8', 8), 'uint64': ('u8', 8),
+    'float32': ('f4', 4), 'float64': ('f8', 8),
+}
+# Node types of rosbags' field definitions (rosbags.interfaces.Nodetype).
+_BASE, _NAME, _ARRAY, _SEQUENCE = 1, 2, 3, 4
+_STAMP = ('header', 'stamp')
+# Bytes a rosbags-deserialised message may carry after its last field (CDR padding).
+_TRAILING = 3
+# Smallest serialised element of a sequence of strings or messages (bounds its count).
+_MIN_STRING = 5
+# Characters of a string checked for ASCII at once; messages with longer ones are decoded one
+# by one.
+_ASCII_SPAN = 64
+
+
+class _Unsupported(Exception):
+    """A field type the columnar decoder does not handle (the topic is decoded per message)."""
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """
+    The columns of a batch of messages.
+
+    Attributes
+    ----------
+    values : ndarray
+        ``(messages, paths)`` float values of the paths.
+    stamp_ns : ndarray or None
+        ``header.stamp`` in nanoseconds (0 where it is zero), None for a type without one.
+    fallback : ndarray
+        True for the messages to decode one by one (bytes off the layout, or a path that does
+        not reach a number in them); their values and stamps here are meaningless.
+
+    """
+
+    values: np.ndarray
+    stamp_ns: Optional[np.ndarray]
+    fallback: np.ndarray
+
+
+class _Cursor:
+    """Positions of a subset of the messages of a batch, advanced field by field."""
+
+    def __init__(self, data: np.ndarray, ids: np.ndarray, pos: np.ndarray, origin: np.ndarray,
+                 limit: np.ndarray, order: str, bad: np.ndarray):
+        self.data, self.ids, self.pos = data, ids, pos
+        self.origin, self.limit, self.order, self.bad = origin, limit, order, bad
+
+    def subset(self, mask: np.ndarray) -> '_Cursor':
+        return _Cursor(self.data, self.ids[mask], self.pos[mask], self.origin[mask],
+                       self.limit[mask], self.order, self.bad)
+
+    def align(self, size: int, where: Optional[np.ndarray] = None) -> None:
+        if size > 1:
+            offset = self.pos - self.origin
+            aligned = self.origin + ((offset + size - 1) & -size)
+            self.pos = aligned if where is None else np.where(where, aligned, self.pos)
+
+    def read(self, code: str, size: int, at: Optional[np.ndarray] = None,
+             where: Optional[np.ndarray] = None) -> np.ndarray:
+        """
+        Read one primitive at every position, checking bounds.
+
+        ``at`` are the positions (default the cursor's) of the messages selected by ``where``
+        (default all).
+        """
+        at = self.pos if at is None else at
+        limit, ids = (self.limit, self.ids) if where is None else \
+            (self.limit[where], self.ids[where])
+        outside = at + size > limit
+        if np.any(outside):
+            self.bad[ids[outside]] = True
+        at = np.clip(at, 0, max(self.data.size - size, 0))
+        if self.data.size < size:
+            return np.zeros(at.size, dtype=self.order + code)
+        raw = self.data[at[:, None] + np.arange(size)]
+        return np.ascontiguousarray(raw).view(self.order + code).ravel()
+
+    def count(self, minimum: int) -> np.ndarray:
+        """Read a sequence's uint32 length, flagging lengths its remaining bytes cannot hold."""
+        self.align(4)
+        count = self.read('u4', 4).astype(np.int64)
+        self.pos = self.pos + 4
+        too_long = self.pos + count * minimum > self.limit
+        if np.any(too_long):
+            self.bad[self.ids[too_long]] = True
+            count = np.where(too_long, 0, count)
+        return count
+
+    def skip_string(self) -> None:
+        """
+        Step over a string, flagging one whose bytes rosbags could refuse.
+
+        A length of zero or beyond the message, a missing terminator and non-ASCII bytes
+        (which may not be UTF-8) are left to the per-message decoder.
+        """
+        self.align(4)
+        length = self.read('u4', 4).astype(np.int64)
+        end = self.pos + 4 + length
+        broken = (length < 1) | (end > self.limit)
+        safe_length = np.where(broken, 1, length)
+        last = np.clip(self.pos + 3 + safe_length, 0, max(self.data.size - 1, 0))
+        flagged = broken | (self.data[last] != 0 if self.data.size else True)
+        longest = int(safe_length.max(initial=1)) - 1
+        if longest:
+            short = safe_length - 1 <= _ASCII_SPAN
+            span = min(longest, _ASCII_SPAN)
+            where = self.pos[:, None] + 4 + np.arange(span)
+            inside = np.arange(span) < (safe_length - 1)[:, None]
+            text = self.data[np.clip(where, 0, self.data.size - 1)]
+            flagged |= np.any((text >= 0x80) & inside, axis=1) | ~short
+        if np.any(flagged):
+            self.bad[self.ids[flagged]] = True
+        self.pos = np.where(broken, self.limit, end)
+
+
+class CdrColumns:
+    """
+    Decode numeric fields and ``header.stamp`` of many messages of one type at once.
+
+    Parameters
+    ----------
+    fielddefs : mapping
+        Field definitions of the type and of every type it uses, as a rosbags typestore's
+        ``fielddefs`` (built from the definitions the bag stores).
+    msgtype : str
+        The message type, e.g. ``'sensor_msgs/msg/JointState'``.
+    paths : sequence of FieldPath
+        The fields to read, one column each.
+    stamp : bool
+        Also read ``header.stamp`` where the type has one (as
+        :func:`~ctid_ros.streaming.message_fields.message_stamp` does).
+
+    Attributes
+    ----------
+    supported : bool
+        False when the type holds a field the decoder does not handle (a ``wstring``, bounded
+        or unknown types): the caller then decodes every message one by one.
+
+    """
+
+    def __init__(self, fielddefs: Mapping[str, Any], msgtype: str, paths: Sequence[FieldPath],
+                 stamp: bool = True):
+        self._fielddefs = fielddefs
+        self.msgtype = msgtype
+        self.paths = tuple(paths)
+        self._wanted: Dict[Any, Any] = {}
+        for column, path in enumerate(self.paths):
+            node = self._wanted
+            for step in path.steps:
+                node = node.setdefault(step, {})
+            node.setdefault(None, []).append(column)
+        self.supported = True
+        try:
+            self._has_stamp = stamp and self._stamp_fields()
+            self._check(msgtype)
+        except _Unsupported:
+            self.supported = False
+            self._has_stamp = False
+        if self._has_stamp:
+            stamp_node = self._wanted.setdefault('header', {}).setdefault('stamp', {})
+            stamp_node.setdefault('sec', {}).setdefault(None, []).append('sec')
+            stamp_node.setdefault('nanosec', {}).setdefault(None, []).append('nanosec')
+
+    def _fields(self, msgtype: str) -> List[Tuple[str, Tuple[int, Any]]]:
+        definition = self._fielddefs.get(msgtype)
+        if definition is None:
+            raise _Unsupported(msgtype)
+        return [(name, (int(kind), detail)) for name, (kind, detail) in definition[1]]
+
+    def _stamp_fields(self) -> bool:
+        """Tell whether the type has ``header.stamp`` with integer ``sec`` and ``nanosec``."""
+        msgtype = self.msgtype
+        for name in _STAMP:
+            fields = dict(self._fields(msgtype))
+            if name not in fields or fields[name][0] != _NAME:
+                return False
+            msgtype = fields[name][1]
+        fields = dict(self._fields(msgtype))
+        if not {'sec', 'nanosec'} <= set(fields):
+            return False
+        if not all(fields[name][0] == _BASE and fields[name][1][0] in PRIMITIVES and
+                   PRIMITIVES[fields[name][1][0]][0][0] in 'iu' for name in ('sec', 'nanosec')):
+            raise _Unsupported('a stamp of other than integers')
+        return True
+
+    def _check(self, msgtype: str, seen: Tuple[str, ...] = ()) -> None:
+        """Refuse types with fields the walk cannot follow (before any message is read)."""
+        if msgtype in seen:
+            raise _Unsupported(msgtype)
+        fields = self._fields(msgtype)
+        if not fields:
+            raise _Unsupported(msgtype)     # an empty message holds a placeholder byte
+        for _, (kind, detail) in fields:
+            element = detail if kind in (_BASE, _NAME) else detail[0]
+            element_kind = kind if kind in (_BASE, _NAME) else int(element[0])
+            element = element if kind in (_BASE, _NAME) else element[1]
+            if kind == _SEQUENCE and detail[1]:
+                raise _Unsupported('bounded sequence')
+            if element_kind == _NAME:
+                self._check(element, seen + (msgtype,))
+            elif element_kind != _BASE or (element[0] not in PRIMITIVES and
+                                           element[0] != 'string') or \
+                    (element[0] == 'string' and element[1]):
+                raise _Unsupported(str(element))
+
+    def decode(self, data: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> Decoded:
+        """
+        Decode the messages ``data[starts[i]:starts[i] + lengths[i]]``.
+
+        Parameters
+        ----------
+        data : ndarray of uint8
+            A buffer holding the messages (e.g. a decompressed MCAP chunk).
+        starts, lengths : ndarray of int
+            Where each serialised message (with its encapsulation header) starts, and its size.
+
+        Returns
+        -------
+        Decoded
+            The values, stamps and the messages left to the per-message decoder.
+
+        """
+        count = starts.size
+        starts = starts.astype(np.int64)
+        limit = starts + lengths.astype(np.int64)
+        values = np.zeros((count, len(self.paths)))
+        bad = np.zeros(count, dtype=bool)
+        raw_sec = np.zeros(count, dtype=np.int64)
+        raw_nanosec = np.zeros(count, dtype=np.int64)
+        short = lengths < 4
+        header = data[np.clip(starts[:, None] + np.arange(2), 0, max(data.size - 1, 0))] \
+            if data.size else np.zeros((count, 2), dtype=np.uint8)
+        little = (header[:, 0] == 0) & (header[:, 1] == 1) & ~short
+        big = (header[:, 0] == 0) & (header[:, 1] == 0) & ~short
+        bad |= ~(little | big)
+        outputs = {'values': values, 'sec': raw_sec, 'nanosec': raw_nanosec}
+        for mask, order in ((little, '<'), (big, '>')):
+            if not np.any(mask):
+                continue
+            ids = np.flatnonzero(mask)
+            cursor = _Cursor(data, ids, starts[ids] + 4, starts[ids] + 4, limit[ids], order,
+                             bad)
+            self._walk(self.msgtype, self._wanted, cursor, outputs)
+            trailing = limit[ids] - cursor.pos > _TRAILING
+            bad[ids[trailing]] = True
+        stamp_ns = raw_sec * NANOSECONDS + raw_nanosec if self._has_stamp else None
+        return Decoded(values, stamp_ns, bad | self._path_errors(count, outputs))
+
+    def _path_errors(self, count: int, outputs: Dict[str, Any]) -> np.ndarray:
+        """Flag the messages in which a path did not reach a number (all, if none could)."""
+        reached = outputs.get('reached')
+        if reached is None:
+            reached = np.zeros((count, len(self.paths)), dtype=bool)
+        return ~np.all(reached, axis=1) if self.paths else np.zeros(count, dtype=bool)
+
+    def _walk(self, msgtype: str, wanted: Mapping[Any, Any], cursor: _Cursor,
+              outputs: Dict[str, Any]) -> None:
+        for name, (kind, detail) in self._fields(msgtype):
+            below = wanted.get(name, {})
+            if kind == _BASE:
+                self._primitive(detail[0], below, cursor, outputs)
+            elif kind == _NAME:
+                self._walk(detail, below, cursor, outputs)
+            else:
+                self._array(kind, detail, below, cursor, outputs)
+
+    def _primitive(self, typename: str, wanted: Mapping[Any, Any], cursor: _Cursor,
+                   outputs: Dict[str, Any]) -> None:
+        if typename == 'string':
+            cursor.skip_string()
+            return
+        code, size = PRIMITIVES[typename]
+        cursor.align(size)
+        if None in wanted:
+            value = cursor.read(code, size)
+            if typename == 'bool':
+                value = value != 0
+            self._store(wanted[None], cursor.ids, value, outputs)
+        cursor.pos = cursor.pos + size
+
+    def _store(self, columns: Sequence[Any], ids: np.ndarray, value: np.ndarray,
+               outputs: Dict[str, Any]) -> None:
+        reached = outputs.setdefault(
+            'reached', np.zeros((outputs['values'].shape[0], len(self.paths)), dtype=bool))
+        for column in columns:
+            if isinstance(column, str):
+                outputs[column][ids] = value.astype(np.int64)
+            else:
+                outputs['values'][ids, column] = value.astype(float)
+                reached[ids, column] = True
+
+    def _array(self, kind: int, detail: Any, wanted: Mapping[Any, Any], cursor: _Cursor,
+               outputs: Dict[str, Any]) -> None:
+        (element_kind, element), fixed = detail
+        element_kind = int(element_kind)
+        primitive = element_kind == _BASE and element[0] != 'string'
+        if kind == _ARRAY:
+            counts = np.full(cursor.pos.size, fixed, dtype=np.int64)
+        else:
+            minimum = (PRIMITIVES[element[0]][1] if primitive else
+                       _MIN_STRING if element_kind == _BASE else 1)
+            counts = cursor.count(minimum)
+        if primitive:
+            code, size = PRIMITIVES[element[0]]
+            cursor.align(size, counts > 0)
+            for index, below in wanted.items():
+                if isinstance(index, int) and None in below:
+                    inside = index < counts
+                    if np.any(inside):
+                        value = cursor.read(code, size, cursor.pos[inside] + index * size, inside)
+                        self._store(below[None], cursor.ids[inside], value, outputs)
+            cursor.pos = cursor.pos + counts * size
+            return
+        for index in range(int(counts.max(initial=0))):
+            active = counts > index
+            part = cursor.subset(active)
+            if element_kind == _BASE:
+                part.skip_string()
+            else:
+                self._walk(element, wanted.get(index, {}), part, outputs)
+            cursor.pos = cursor.pos.copy()
+            cursor.pos[active] = part.pos

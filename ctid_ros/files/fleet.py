@@ -1,0 +1,269 @@
+"""
+The work of ``ctid fleet``: many bags, each one task, results as table rows.
+
+:func:`find_bags` expands paths and globs into bags (rosbag2 directories, ``.mcap`` and ``.db3``
+files) and names each bag's robot from a path pattern (:func:`robot_fields`);
+:func:`analyse_bag` replays one bag through the columnar path
+(:func:`~ctid_ros.files.columns.sample_columns`,
+:func:`~ctid_ros.streaming.replay.replay_columns`) and returns its rows, an error row if
+anything fails (a broken bag never ends a run). It is a plain function of picklable arguments,
+so a Dask worker (``ctid fleet``) or any other executor can run it.
+
+A task is identified by the bag's path, size and modification time and the params file's
+content (:attr:`BagTask.key`): a result with the same key is not computed again.
+"""
+
+from dataclasses import dataclass, field
+import glob
+import hashlib
+import os
+from pathlib import Path
+import re
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from ctid_ros.errors import CtidError
+from ctid_ros.files.bag_reader import open_bag
+from ctid_ros.files.columns import sample_columns
+from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
+from ctid_ros.streaming.params_file import check_record_length, node_parameters, parse_yaml
+from ctid_ros.streaming.replay import replay_columns
+from ctid_ros.streaming.session import Update
+
+__all__ = ['BagResult', 'BagTask', 'analyse_bag', 'bag_row_columns', 'find_bags',
+           'load_params_text', 'make_task', 'robot_fields']
+
+_BAG_SUFFIXES = ('.mcap', '.db3')
+# Characters of an error message kept in a result row.
+_ERROR_LIMIT = 500
+
+
+@dataclass(frozen=True)
+class BagTask:
+    """
+    One bag to analyse, with what identifies its result.
+
+    Attributes
+    ----------
+    path : str
+        The bag (absolute).
+    name : str
+        The bag's path relative to the common root of the run.
+    fields : dict
+        What the robot pattern captured from ``name`` (``robot``, and e.g. ``date``).
+    size, mtime_ns : int
+        Size in bytes (of every file, for a directory) and newest modification time.
+    params : str
+        The params file's content (parsed on the worker).
+    params_sha256 : str
+        Its hash, part of the key.
+    node_name : str
+        Node section of the params file.
+    sliding : bool
+        One row per window as well (``windows.parquet``).
+
+    """
+
+    path: str
+    name: str
+    fields: Dict[str, str]
+    size: int
+    mtime_ns: int
+    params: str
+    params_sha256: str
+    node_name: str = 'ctid_node'
+    sliding: bool = False
+
+    @property
+    def key(self) -> Tuple[str, int, int, str, bool]:
+        """Return what makes a stored result this task's: path, size, mtime, params, mode."""
+        return (self.path, self.size, self.mtime_ns, self.params_sha256, self.sliding)
+
+
+@dataclass
+class BagResult:
+    """The rows of one bag: one in ``bags.parquet``, one per window in ``windows.parquet``."""
+
+    bag: Dict[str, Any]
+    windows: List[Dict[str, Any]] = field(default_factory=list)
+
+
+def _signature(path: Path) -> Tuple[int, int]:
+    """Return the size and newest mtime (ns) of a bag file or of the files of a directory."""
+    files = [path] if path.is_file() else [item for item in path.rglob('*') if item.is_file()]
+    stats = [item.stat() for item in files]
+    return sum(stat.st_size for stat in stats), max((stat.st_mtime_ns for stat in stats),
+                                                    default=0)
+
+
+def _is_bag_dir(path: Path) -> bool:
+    return (path / 'metadata.yaml').is_file()
+
+
+def _bags_in(path: Path) -> List[Path]:
+    """Return the bags at ``path``: itself, or those found below a directory that is none."""
+    if path.is_file() or _is_bag_dir(path):
+        return [path]
+    found: List[Path] = []
+    for root, directories, files in os.walk(path):
+        here = Path(root)
+        if _is_bag_dir(here):
+            found.append(here)
+            directories.clear()
+            continue
+        directories.sort()
+        found.extend(here / name for name in sorted(files) if name.endswith(_BAG_SUFFIXES))
+    return found
+
+
+def find_bags(patterns: Sequence[str]) -> Tuple[Path, List[Path]]:
+    """
+    Expand paths and globs into bags, and return their common root too.
+
+    A directory with ``metadata.yaml`` is one bag; any other directory is searched for bags
+    (rosbag2 directories, ``.mcap`` and ``.db3`` files outside them). Globs may use ``**``.
+
+    Raises
+    ------
+    CtidError
+        If a pattern matches nothing, or no bag is found.
+
+    """
+    bags: List[Path] = []
+    for pattern in patterns:
+        matches = sorted(glob.glob(pattern, recursive=True)) if glob.has_magic(pattern) \
+            else ([pattern] if os.path.exists(pattern) else [])
+        if not matches:
+            raise CtidError(f'{pattern}: no such file or directory')
+        for match in matches:
+            bags.extend(_bags_in(Path(match).resolve()))
+    unique = sorted(dict.fromkeys(bags))
+    if not unique:
+        raise CtidError(f'no bag found in {", ".join(patterns)}')
+    root = Path(os.path.commonpath([str(bag) for bag in unique]))
+    if len(unique) == 1:
+        root = unique[0].parent
+    return root, unique
+
+
+def _pattern_regex(pattern: str) -> 're.Pattern[str]':
+    parts = re.split(r'(\{[A-Za-z_][A-Za-z0-9_]*\}|\*\*/?|\*|\?)', pattern.strip('/'))
+    regex = ''
+    for part in parts:
+        if part.startswith('{'):
+            regex += f'(?P<{part[1:-1]}>[^/]+)'
+        elif part.startswith('**'):
+            regex += '(?:.*/)?' if part.endswith('/') else '.*'
+        elif part == '*':
+            regex += '[^/]*'
+        elif part == '?':
+            regex += '[^/]'
+        else:
+            regex += re.escape(part)
+    return re.compile(regex + r'(?:/.*)?\Z')
+
+
+def robot_fields(name: str, pattern: Optional[str]) -> Dict[str, str]:
+    """
+    Return what ``pattern`` captures from a bag's relative path, ``robot`` at least.
+
+    ``pattern`` is a path pattern relative to the common root, e.g.
+    ``'{robot}/{date}/*.mcap'``: ``{field}`` matches one path component, ``*`` and ``?`` as in
+    globs, ``**`` any number of components. Without a pattern the robot is the first component
+    of a path with several, else the bag's name without its suffix.
+
+    Raises
+    ------
+    CtidError
+        If the pattern does not match, or captures no ``robot``.
+
+    """
+    if pattern is None:
+        parts = Path(name).parts
+        return {'robot': parts[0] if len(parts) > 1 else Path(name).stem}
+    if '{robot}' not in pattern:
+        raise CtidError(f'--robot-from {pattern!r} has no {{robot}} field')
+    match = _pattern_regex(pattern).match(Path(name).as_posix())
+    if match is None:
+        raise CtidError(f'{name} does not match --robot-from {pattern!r}')
+    return dict(match.groupdict())
+
+
+def make_task(path: Path, root: Path, pattern: Optional[str], params: str, node_name: str,
+              sliding: bool) -> BagTask:
+    """Return the task of one bag (see :class:`BagTask`)."""
+    name = path.relative_to(root).as_posix() if path != root else path.name
+    size, mtime_ns = _signature(path)
+    return BagTask(str(path), name, robot_fields(name, pattern), size, mtime_ns, params,
+                   hashlib.sha256(params.encode()).hexdigest(), node_name, sliding)
+
+
+def bag_row_columns(names: Sequence[str]) -> List[str]:
+    """Return the columns of a result row for parameters ``names``, in order."""
+    columns = ['robot', 'bag', 'start', 'end']
+    for name in names:
+        columns += [name, f'{name}_std']
+    return columns + ['fit', 'residual', 'status', 'error']
+
+
+def _update_row(task: BagTask, update: Update) -> Dict[str, Any]:
+    row: Dict[str, Any] = {**task.fields, 'bag': task.name,
+                           'start': update.start_ns, 'end': update.end_ns}
+    for name, value, std in zip(update.names, update.values, update.stds):
+        row[name] = float(value)
+        row[f'{name}_std'] = float(std)
+    row.update(fit=float(update.result.fit),
+               residual=float(update.result.noise_variance) ** 0.5, status='ok', error='',
+               warnings=' | '.join(update.warnings))
+    return row
+
+
+def analyse_bag(task: BagTask) -> BagResult:
+    """
+    Replay one bag through the columnar path and return its rows, never raising.
+
+    The bag row holds the estimate over the whole bag (or, with ``sliding``, the last window's,
+    every window in :attr:`BagResult.windows`); ``start``/``end`` are the first and last grid
+    instants estimated on (ns since the epoch). A bag that cannot be read, misses a topic or
+    cannot be estimated gives a row with ``status`` ``'error'`` and the one-line reason.
+    """
+    identity = {'path': task.path, 'size': task.size, 'mtime_ns': task.mtime_ns,
+                'params_sha256': task.params_sha256, 'sliding': task.sliding}
+    try:
+        config = load_params_text(task.params, task.node_name)
+        topics = (resolve_topic(config.input_topic, task.node_name),
+                  resolve_topic(config.output_topic, task.node_name))
+        with open_bag(task.path) as bag:
+            topics = tuple(bag.topic_name(topic) or topic for topic in topics)
+            replay = replay_columns(sample_columns(bag, config, topics), config,
+                                    sliding=task.sliding, topics=topics)
+            warnings = list(bag.warnings)
+    except CtidError as error:
+        return BagResult(_error_row(task, identity, str(error)))
+    except Exception as error:   # a bug or a library failing on odd bytes: still one row
+        return BagResult(_error_row(task, identity, f'{type(error).__name__}: {error}'))
+    windows = [{**_update_row(task, update), **identity} for update in replay.updates]
+    row = dict(windows[-1])
+    if warnings:
+        row['warnings'] = ' | '.join(warnings + ([row['warnings']] if row['warnings'] else []))
+    row['windows'] = len(windows)
+    row['duration'] = (replay.updates[-1].end_ns - replay.updates[0].start_ns) / NANOSECONDS
+    return BagResult(row, windows if task.sliding else [])
+
+
+def load_params_text(text: str, node_name: str, source: str = 'params file'
+                     ) -> IdentificationConfig:
+    """Parse and check params-file content as :func:`load_params_file` does a file."""
+    document = parse_yaml(text.encode(), source)
+    config = IdentificationConfig.from_dict(node_parameters(document, node_name, source=source))
+    check_record_length(config)
+    return config
+
+
+def _error_row(task: BagTask, identity: Dict[str, Any], error: str) -> Dict[str, Any]:
+    text = ' '.join(error.split())
+    if len(text) > _ERROR_LIMIT:
+        text = text[:_ERROR_LIMIT - 3] + '...'
+    return {**task.fields, 'bag': task.name, 'start': None, 'end': None, 'fit': None,
+            'residual': None, 'status': 'error', 'error': text, 'warnings': '', 'windows': 0,
+            'duration': None, **identity}

@@ -1,0 +1,161 @@
+"""
+The columnar replay gives the streaming replay's numbers on the same bags.
+
+Bags of replay_fixtures (rosbags sqlite3 and mcap directories, mcap_ros2 standalone files) with
+Float64 topics (no header) and JointState (header stamps, a shared input/output topic, two
+inputs from one message), stamped from the header or the receive time, one estimate over the
+span and sliding: every estimate, standard deviation, window and counter is the same.
+"""
+
+from pathlib import Path
+
+from bag_fixtures import MSGDEFS
+from ctid_ros.errors import BagError, ConfigError
+from ctid_ros.files.bag_reader import open_bag
+from ctid_ros.files.columns import sample_columns
+from ctid_ros.streaming.params_file import load_params_file
+from ctid_ros.streaming.replay import replay_columns, replay_messages
+from mcap.writer import Writer as McapWriter
+import numpy as np
+import pytest
+from replay_fixtures import (DELAY, float_records, joint_state_records, OPEN_LOOP, params_file,
+                             simulate, write_bag)
+from rosbags.typesys import get_typestore, Stores
+
+KINDS = ['sqlite3', 'mcap', 'mcap-file']
+
+
+def both(bag_path, params, sliding):
+    """Replay a bag through the streaming and the columnar path; return both results."""
+    config = load_params_file(params, 'ctid_node')
+    with open_bag(bag_path) as bag:
+        topics = tuple(bag.topic_name(topic) or topic
+                       for topic in (config.input_topic, config.output_topic))
+        streaming = replay_messages(bag.messages(sorted(set(topics))), config,
+                                    sliding=sliding, topics=topics)
+    with open_bag(bag_path) as bag:
+        columnar = replay_columns(sample_columns(bag, config, topics), config,
+                                  sliding=sliding, topics=topics)
+    return streaming, columnar
+
+
+def assert_same(streaming, columnar):
+    assert len(columnar.updates) == len(streaming.updates) > 0
+    for ours, theirs in zip(columnar.updates, streaming.updates):
+        np.testing.assert_array_equal(ours.values, theirs.values)
+        np.testing.assert_array_equal(ours.stds, theirs.stds)
+        np.testing.assert_array_equal(ours.window.data.u, theirs.window.data.u)
+        np.testing.assert_array_equal(ours.window.data.y, theirs.window.data.y)
+        assert (ours.start_ns, ours.end_ns, ours.warnings) == (
+            theirs.start_ns, theirs.end_ns, theirs.warnings)
+    assert columnar.stats == streaming.stats
+    assert columnar.messages == streaming.messages
+    assert columnar.skipped == streaming.skipped
+
+
+@pytest.mark.parametrize('kind', KINDS)
+@pytest.mark.parametrize('sliding', [False, True])
+def test_float64_topics_without_header(tmp_path, kind, sliding):
+    u, y = simulate(DELAY, 16.0)
+    path = write_bag(tmp_path, float_records(u, y), kind)
+    params = params_file(tmp_path, DELAY, window=6.0, update_period=3.0)
+    assert_same(*both(path, params, sliding))
+
+
+@pytest.mark.parametrize('kind', KINDS)
+@pytest.mark.parametrize('stamp_source', ['header', 'receive'])
+@pytest.mark.parametrize('sliding', [False, True])
+def test_joint_states_on_one_topic(tmp_path, kind, stamp_source, sliding):
+    u, y = simulate(OPEN_LOOP, 14.0)
+    path = write_bag(tmp_path, joint_state_records(u, y, latency_ns=4_000_000), kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[0]',
+                         output_field='position[0]', stamp_source=stamp_source, window=6.0,
+                         update_period=4.0)
+    assert_same(*both(path, params, sliding))
+
+
+def test_two_inputs_from_one_message(tmp_path):
+    u, y = simulate(OPEN_LOOP, 12.0)
+    records = joint_state_records(u, y, latency_ns=0)
+    w = np.repeat(np.random.default_rng(4).choice([-1.0, 1.0], size=len(records) // 20 + 1), 20)
+    for record, w_k in zip(records, w):
+        record.fields['velocity'] = [float(w_k)]
+    path = write_bag(tmp_path, records, 'mcap')
+    params = params_file(tmp_path, {**OPEN_LOOP, 'model': 'm*s**2*y + d*s*y + k*y = u + c*w',
+                                    'params': {}},
+                         input_topic='/joint_states', output_topic='/joint_states',
+                         input_field='effort[0]', extra_input_fields=['velocity[0]'],
+                         input_names=['u', 'w'], output_field='position[0]')
+    streaming, columnar = both(path, params, False)
+    assert columnar.updates[0].window.data.u.shape[1] == 2
+    assert_same(streaming, columnar)
+
+
+def test_a_wrong_field_path_raises_the_same_error(tmp_path):
+    u, y = simulate(OPEN_LOOP, 3.0)
+    path = write_bag(tmp_path, joint_state_records(u, y, latency_ns=0), 'mcap-file')
+    for field in ('positions[0]', 'position[3]', 'header.frame_id'):
+        params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                             output_topic='/joint_states', input_field='effort[0]',
+                             output_field=field)
+        errors = []
+        for use_columns in (False, True):
+            config = load_params_file(params, 'ctid_node')
+            with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
+                topics = ('/joint_states', '/joint_states')
+                if use_columns:
+                    replay_columns(sample_columns(bag, config, topics), config, topics=topics)
+                else:
+                    replay_messages(bag.messages(['/joint_states']), config, topics=topics)
+            errors.append(str(raised.value))
+        assert errors[0] == errors[1], field
+
+
+def test_a_damaged_message_ends_the_blocks_where_the_streaming_reader_stops(tmp_path):
+    """A message whose bytes do not fit its definition: same messages before, same error."""
+    u, y = simulate(DELAY, 4.0)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    float64 = store.types['std_msgs/msg/Float64']
+    path = tmp_path / 'damaged.mcap'
+    with open(path, 'wb') as stream:
+        writer = McapWriter(stream, chunk_size=2048)
+        writer.start(profile='ros2', library='test')
+        schema = writer.register_schema('std_msgs/msg/Float64', 'ros2msg',
+                                        MSGDEFS['std_msgs/msg/Float64'].encode())
+        channels = [writer.register_channel(topic, 'cdr', schema)
+                    for topic in ('/plant/u', '/plant/y')]
+        for k, (u_k, y_k) in enumerate(zip(u, y)):
+            for channel, value, lag in zip(channels, (u_k, y_k), (0, 1_000_000)):
+                data = bytes(store.serialize_cdr(float64(float(value)), 'std_msgs/msg/Float64'))
+                if k == 250 and lag:
+                    data = data[:7]         # cut inside the float
+                writer.add_message(channel, 10**18 + k * 10_000_000 + lag, data,
+                                   10**18 + k * 10_000_000 + lag)
+        writer.finish()
+    config = load_params_file(params_file(tmp_path, DELAY), 'ctid_node')
+    topics = ('/plant/u', '/plant/y')
+    seen = {False: [], True: []}
+    for use_columns in (False, True):
+        with open_bag(path) as bag, pytest.raises(BagError) as raised:
+            if use_columns:
+                for block in sample_columns(bag, config, topics):
+                    seen[True].extend(block.log_time_ns.tolist())
+            else:
+                for message in bag.messages(list(topics)):
+                    seen[False].append(message.log_time_ns)
+        seen[use_columns].append(str(raised.value))
+    assert seen[True] == seen[False]
+    assert 'at 1000000002501000000 ns' in seen[True][-1]
+    assert len(seen[True]) == 2 * 250 + 1 + 1
+
+
+def test_blocks_of_a_long_bag_stay_small(tmp_path):
+    u, y = simulate(DELAY, 30.0)
+    path = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    config = load_params_file(params_file(tmp_path, DELAY), 'ctid_node')
+    with open_bag(path) as bag:
+        sizes = [block.log_time_ns.size
+                 for block in sample_columns(bag, config, ('/plant/u', '/plant/y'))]
+    assert sum(sizes) == 2 * u.size and max(sizes) < 2000
+    assert Path(path).exists()
