@@ -77,3 +77,21 @@ def test_every_import_is_a_declared_dependency():
     distributions = {PYTHON[name][1] for name in imported if name in PYTHON}
     assert distributions <= setup_requirements(), sorted(distributions - setup_requirements())
     assert {'geometry_msgs', 'sensor_msgs', 'rcl_interfaces'} <= ros
+
+
+def test_ament_python_layout_that_colcon_needs():
+    """What colcon's ament_python build reads (``make colcon-check`` builds and tests for real)."""
+    root = ElementTree.parse(REPOSITORY / 'package.xml').getroot()
+    assert root.get('format') == '3' and root.findtext('name') == 'ctid_ros'
+    assert root.find('export').findtext('build_type') == 'ament_python'
+    marker = REPOSITORY / 'resource' / 'ctid_ros'
+    assert marker.is_file() and marker.read_bytes().strip() == b''
+    config = (REPOSITORY / 'setup.cfg').read_text(encoding='utf-8')
+    assert 'script_dir=$base/lib/ctid_ros' in config
+    assert 'install_scripts=$base/lib/ctid_ros' in config
+    setup = (REPOSITORY / 'setup.py').read_text(encoding='utf-8')
+    for entry in ("('share/ament_index/resource_index/packages', ['resource/' + PACKAGE])",
+                  "('share/' + PACKAGE, ['package.xml'])",
+                  "('share/' + PACKAGE + '/config', glob('config/*.yaml'))"):
+        assert entry in setup, entry
+    assert 'tests_require' not in setup     # setuptools warns about it on every install
