@@ -15,6 +15,9 @@ ROS_WHEELS = [
     'ros-jazzy-diagnostic-msgs',
     'ros-jazzy-sensor-msgs',
     'ros-jazzy-geometry-msgs',
+    # Managed (lifecycle) node: rclpy.lifecycle needs both.
+    'ros-jazzy-rcl-lifecycle',
+    'ros-jazzy-lifecycle-msgs',
 ]
 LINT = [
     'ros-jazzy-ament-flake8',

@@ -19,6 +19,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'stamps': [],
     'hostile_files': [],
     'node_throughput': [],
+    'node_storm': ['--json', 'bench/results-node-storm.json'],
     'fleet': [],
 }
 

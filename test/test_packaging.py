@@ -26,6 +26,8 @@ PYTHON = {
 # the header stamp nested in them.
 DYNAMIC = {msgtype.split('/')[0] for msgtype in (DIAGNOSTIC_ARRAY, FLOAT64, FLOAT64_MULTI_ARRAY)
            } | {'builtin_interfaces'}
+# rclpy.lifecycle (the managed node) needs both; the rclpy wheel does not bring them.
+DYNAMIC |= {'rcl_lifecycle', 'lifecycle_msgs'}
 ROS = re.compile(r'(rclpy|rcl_\w+|builtin_interfaces|\w+_msgs|\w+_srvs|\w+_interfaces)\Z')
 
 

@@ -3,21 +3,28 @@ rclpy message classes by name, and messages built from plain data.
 
 The node's output contract (:mod:`ctid_ros.streaming.contract`) describes its messages as
 nested dicts; :func:`to_message` turns one into the rclpy message, reading the field types from
-the message class itself, so no layout is repeated here.
+the message class itself, so no layout is repeated here. :func:`field_problem` checks a field
+path against a message class before any message arrives, so that the node can choose, among
+the types published on a topic, the one that holds the configured fields.
 """
 
 import importlib
 import re
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional, Union
 
 from ctid_ros.errors import ConfigError
+from ctid_ros.streaming.message_fields import FieldPath, Key, NAME_FIELDS, parse_field_path
 
-__all__ = ['import_message', 'to_message']
+__all__ = ['field_problem', 'import_message', 'to_message']
 
 # rosidl field types as get_fields_and_field_types() spells them.
 _SEQUENCE = re.compile(r'sequence<([^,>]+)(?:, \d+)?>\Z')
 _ARRAY = re.compile(r'(.+)\[\d+\]\Z')
 _BYTES = ('octet', 'byte')
+# Field types that extract() reads as a number.
+_NUMBERS = frozenset(('float', 'double', 'long double', 'boolean', 'int8', 'uint8', 'int16',
+                      'uint16', 'int32', 'uint32', 'int64', 'uint64', 'char'))
+_STRINGS = re.compile(r'w?string(<=\d+)?\Z')
 
 
 def import_message(type_name: str) -> type:
@@ -78,3 +85,47 @@ def to_message(message_class: type, fields: Mapping[str, Any]) -> Any:
         raise ConfigError(f'{message_class.__name__} has no field(s) {", ".join(unknown)}; '
                           f'its fields: {", ".join(types)}')
     return message_class(**{name: _value(types[name], value) for name, value in fields.items()})
+
+
+def _element_type(field_type: str) -> Optional[str]:
+    """Return the element type of a sequence or array type, None for anything else."""
+    match = _SEQUENCE.match(field_type) or _ARRAY.match(field_type)
+    return match.group(1) if match else None
+
+
+def field_problem(message_class: type, path: Union[FieldPath, str]) -> Optional[str]:
+    """
+    Say why messages of ``message_class`` cannot hold the number at ``path``, or None if they can.
+
+    Checked from the field types alone: a missing field, an index on a non-array, a name
+    selector without a ``name`` (or ``joint_names``) list of strings next to the array, or a
+    value that is not a number. Array lengths and joint names can only be checked on messages.
+    """
+    if not isinstance(path, FieldPath):
+        path = parse_field_path(path)
+    current: Optional[type] = message_class
+    field_type = ''
+    siblings: Mapping[str, str] = {}
+    for step in path.steps:
+        if isinstance(step, str):
+            if current is None:
+                return f'{field_type} has no field {step!r}'
+            types = current.get_fields_and_field_types()
+            if step not in types:
+                return (f'{current.__name__} has no field {step!r}; its fields: '
+                        f'{", ".join(types)}')
+            siblings, field_type = types, types[step]
+        else:
+            element = _element_type(field_type)
+            if element is None:
+                return f'{field_type or current.__name__} is not an array, cannot take [{step}]'
+            if isinstance(step, Key) and not any(
+                    _element_type(siblings.get(name, '')) and
+                    _STRINGS.match(_element_type(siblings[name])) for name in NAME_FIELDS):
+                return (f'selecting [{step}] by name needs a list of names '
+                        f'({" or ".join(NAME_FIELDS)}) next to the array')
+            field_type, siblings = element, {}
+        current = import_message(field_type) if '/' in field_type else None
+    if field_type not in _NUMBERS:
+        return f'{path} is a {field_type or message_class.__name__}, not a number'
+    return None

@@ -12,7 +12,9 @@ The simulation itself is :class:`ctid_ros.core.plant.PlantSimulator` (exact, ROS
   value in ``point.x`` and ``header.stamp`` = the simulated sample instant.
 * ``message_type: joint_state``: one ``sensor_msgs/JointState`` on ``joint_state_topic`` with
   ``effort[0]`` = excitation (``u`` or ``r``), ``position[0]`` = ``y``, ``velocity[0]`` = plant
-  input ``u`` and ``header.stamp`` = the simulated sample instant.
+  input ``u`` and ``header.stamp`` = the simulated sample instant. With several
+  ``joint_names`` the simulated joint is the last one (``position[<its name>]``), the others
+  stand still at 0.
 
 A wall timer (the node clock) checks at least every 10 ms how many sample instants
 ``start + k*sample_time`` have passed and publishes those samples, so timer jitter delays a
@@ -30,7 +32,7 @@ from typing import Any, Dict, List, Mapping, Optional
 
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.errors import ConfigError, CtidError
-from ctid_ros.ros.node import parameter_value, run_node
+from ctid_ros.ros.node import parameter_value, run_node, wrap_text
 from ctid_ros.streaming.contract import NANOSECONDS
 from geometry_msgs.msg import PointStamped
 import rclpy
@@ -40,9 +42,40 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
-__all__ = ['MESSAGE_TYPES', 'PlantNode', 'main', 'run_samples']
+__all__ = ['MESSAGE_TYPES', 'PLANT_PARAMETERS', 'PlantNode', 'main', 'plant_usage',
+           'run_samples']
 
 MESSAGE_TYPES = ('float64', 'point_stamped', 'joint_state')
+_DOUBLE_ARRAY = rclpy.Parameter.Type.DOUBLE_ARRAY
+# (name, default, meaning) of every parameter of ctid_plant.
+PLANT_PARAMETERS = (
+    ('model', 'K*exp(-tau*s)/(T*s + 1)', 'Plant transfer function in s.'),
+    ('parameter_names', ['K', 'T', 'tau'], 'Names of the values in parameter_values.'),
+    ('parameter_values', [2.0, 0.5, 0.137], 'True parameter values of the simulation.'),
+    ('controller', '', "Continuous controller closing the loop, e.g. '20 + 10/s'; '' = open "
+     'loop.'),
+    ('pi_gains', _DOUBLE_ARRAY, 'Digital PI [kp, ki] run every sample on the noisy '
+     'measurement (instead of controller).'),
+    ('sample_time', 0.005, 'Sample time (s) of the simulation and of the published samples.'),
+    ('noise_std', 0.01, 'Standard deviation of the white noise added to the output.'),
+    ('seed', 0, 'Seed of the noise.'),
+    ('prbs_bits', 9, 'Bits of the PRBS excitation (period 2**bits - 1 steps).'),
+    ('prbs_clock', 20, 'Samples each PRBS bit is held.'),
+    ('amplitude', 1.0, 'Amplitude of the excitation.'),
+    ('offset', 0.0, 'Offset of the excitation.'),
+    ('message_type', 'float64', f'One of {", ".join(MESSAGE_TYPES)}.'),
+    ('input_topic', 'u', 'Topic of the excitation (u open loop, the reference r closed loop).'),
+    ('output_topic', 'y', 'Topic of the output y.'),
+    ('control_topic', 'u_plant', 'Topic of the plant input u in closed loop.'),
+    ('joint_state_topic', 'joint_states', 'Topic of the JointState (message_type '
+     'joint_state).'),
+    ('joint_names', ['joint'], 'Joint names of the JointState; the simulated joint is the last '
+     'one, the others stand still.'),
+    ('reliable', True, 'Reliable (true) or best-effort publishers.'),
+    ('drift_time', -1.0, 'Seconds after the start at which the parameters jump to '
+     'drift_values; negative = never.'),
+    ('drift_values', _DOUBLE_ARRAY, 'Parameter values after drift_time.'),
+)
 
 
 class PlantNode(Node):
@@ -50,16 +83,7 @@ class PlantNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('ctid_plant', **kwargs)
-        double_array = rclpy.Parameter.Type.DOUBLE_ARRAY
-        self.declare_parameters('', [
-            ('model', 'K*exp(-tau*s)/(T*s + 1)'), ('parameter_names', ['K', 'T', 'tau']),
-            ('parameter_values', [2.0, 0.5, 0.137]), ('controller', ''),
-            ('pi_gains', double_array),
-            ('sample_time', 0.005), ('noise_std', 0.01), ('seed', 0),
-            ('prbs_bits', 9), ('prbs_clock', 20), ('amplitude', 1.0), ('offset', 0.0),
-            ('message_type', 'float64'), ('input_topic', 'u'), ('output_topic', 'y'),
-            ('control_topic', 'u_plant'), ('joint_state_topic', 'joint_states'),
-            ('reliable', True), ('drift_time', -1.0), ('drift_values', double_array)])
+        self.declare_parameters('', [(name, default) for name, default, _ in PLANT_PARAMETERS])
         value = self._value
         self._message_type = value('message_type')
         if self._message_type not in MESSAGE_TYPES:
@@ -139,8 +163,10 @@ class PlantNode(Node):
     def _publish(self, stamp: int, excitation_value: float, u: float, y: float) -> None:
         publishers = self._topic_publishers
         if 'joint_state' in publishers:
-            message = JointState(name=['joint'], position=[y], velocity=[u],
-                                 effort=[excitation_value])
+            names = list(self._value('joint_names')) or ['joint']
+            still = [0.0] * (len(names) - 1)
+            message = JointState(name=names, position=still + [y], velocity=still + [u],
+                                 effort=still + [excitation_value])
             _set_stamp(message, stamp)
             publishers['joint_state'].publish(message)
             return
@@ -213,9 +239,23 @@ def run_samples(params_file: str, overrides: Mapping[str, Any], samples: int,
         rclpy.shutdown()
 
 
+def plant_usage() -> str:
+    """Return the ``ctid_plant --help`` text: how to run it and every parameter."""
+    lines = ['usage: ctid_plant [-h] [--ros-args [--params-file FILE] [-p NAME:=VALUE]...]', '',
+             wrap_text('Simulate a plant exactly (zero-order hold, fractional dead time) under '
+                       'a PRBS, open loop or with a controller, and publish its excitation, '
+                       'input and output at every sample.', ''), '',
+             'example:', '  ctid_plant --ros-args --params-file config/plant_sim.yaml', '',
+             'parameters:']
+    for name, default, meaning in PLANT_PARAMETERS:
+        shown = '[]' if isinstance(default, rclpy.Parameter.Type) else repr(default)
+        lines += [f'  {name} (default {shown})', wrap_text(meaning, '      ')]
+    return '\n'.join(lines)
+
+
 def main(args: Optional[List[str]] = None) -> int:
     """Run the simulated plant until Ctrl-C or SIGTERM."""
-    return run_node(PlantNode, 'ctid_plant', args)
+    return run_node(PlantNode, 'ctid_plant', args, plant_usage)
 
 
 if __name__ == '__main__':

@@ -17,8 +17,15 @@ records so that the node can declare its ROS parameters in a loop::
 
 Values are checked and converted in one place (construction), so a params file, a runtime
 parameter change (:meth:`IdentificationConfig.updated`) and the replay's arguments all get the
-same errors. Integers are accepted for doubles (YAML ``5`` for ``5.0``, which rclpy itself would
-refuse for a double parameter).
+same errors. Integers are accepted for doubles (YAML ``5`` for ``5.0``; the live node declares
+its double parameters with dynamic typing so that rclpy accepts them too).
+
+Resource limits are checked here, before anything is allocated, so a params file, the replay and
+a runtime ``ros2 param set`` are refused alike with a :class:`ConfigError` that names the
+parameter, the value and the limit: at most :data:`MAX_WINDOW_SAMPLES` samples per estimate
+(window plus settling transient), at most :data:`MAX_BUFFER_BYTES` of sample buffer, a sample
+time of at least :data:`MIN_SAMPLE_TIME`, an update period of at least
+:data:`MIN_UPDATE_PERIOD`, and the other ``MAX_*``/``MIN_*`` bounds below.
 """
 
 from dataclasses import dataclass, field, fields, replace
@@ -31,15 +38,42 @@ from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import INTERSAMPLE
 from ctid_ros.errors import ConfigError, ModelError
 from ctid_ros.estimation.estimate import INITIAL_STATES, METHODS
+from ctid_ros.streaming.buffer import capacity_for
 from ctid_ros.streaming.message_fields import parse_field_path
 import numpy as np
 
-__all__ = ['IdentificationConfig', 'MIN_WINDOW_SAMPLES', 'PARAMETER_NAMES', 'PARAMETERS',
-           'ParameterSpec', 'RELIABILITIES', 'STAMP_SOURCES']
+__all__ = ['IdentificationConfig', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
+           'MAX_ITERATIONS', 'MAX_MESSAGE_RATE', 'MAX_QOS_DEPTH', 'MAX_WINDOW_SAMPLES',
+           'MIN_MAX_GAP', 'MIN_SAMPLE_TIME', 'MIN_UPDATE_PERIOD', 'MIN_WINDOW_SAMPLES',
+           'PARAMETER_NAMES', 'PARAMETERS', 'ParameterSpec', 'RELIABILITIES', 'STAMP_SOURCES',
+           'buffer_bytes']
 
 STAMP_SOURCES = ('header', 'receive')
 RELIABILITIES = ('best_effort', 'reliable')
 MIN_WINDOW_SAMPLES = 10
+
+# Resource limits (README, "Limits of the live node"). Stamps are integer nanoseconds, so a
+# grid or a gap below a microsecond means nothing.
+MIN_SAMPLE_TIME = 1e-6
+MIN_MAX_GAP = 1e-6
+# Samples of one estimate: the window plus its settling transient (1e6 samples of a first-order
+# model with a dead time take about 3 s and 0.6 GB to estimate).
+MAX_WINDOW_SAMPLES = 1_000_000
+# Memory of the live node's sample buffer (both streams, stamps and values).
+MAX_BUFFER_BYTES = 256 << 20
+# Highest message rate the buffer may be sized for (per topic).
+MAX_MESSAGE_RATE = 100_000.0
+# Estimates are at least this far apart; the node also keeps half a core free (node.py).
+MIN_UPDATE_PERIOD = 0.1
+# Longest update_period: 11.6 days, far below the int64 nanosecond range of a timer. (Window,
+# transient and max_gap are bounded by the samples and buffer limits.)
+MAX_DURATION = 1e6
+MAX_ITERATIONS = 10_000
+MAX_QOS_DEPTH = 10_000
+# The ring buffer keeps twice its capacity (see buffer._Stream) and capacity_for adds a
+# safety factor of 2 against bursts.
+_STORAGE_FACTOR = 2
+_BURST_MARGIN = 2.0
 
 _TOPIC = re.compile(r'(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
 
@@ -168,16 +202,18 @@ class IdentificationConfig:
         (), 'double_array', 'Upper bounds in parameter_names order (.inf = none); empty = '
         'no bounds.')
     sample_time: float = _param(
-        0.01, 'double', 'Sample time (s, > 0) of the grid the messages are resampled onto, '
-        "normally the actuator update period; the grid follows the input's own instants when "
-        "it is a whole multiple or fraction of the input's period (finer than the data's own "
-        "rate: the data's period, with a warning), else the multiples of sample_time.",
+        0.01, 'double', 'Sample time (s, at least 1e-6) of the grid the messages are resampled '
+        "onto, normally the actuator update period; the grid follows the input's own instants "
+        "when it is a whole multiple or fraction of the input's period (finer than the data's "
+        "own rate: the data's period, with a warning), else the multiples of sample_time.",
         minimum=0.0)
     window: float = _param(
         10.0, 'double', f'Length (s) of the data window used by each estimate; at least '
-        f'{MIN_WINDOW_SAMPLES} sample times.', minimum=0.0)
+        f'{MIN_WINDOW_SAMPLES} sample times, and with its settling transient at most '
+        f'{MAX_WINDOW_SAMPLES} samples.', minimum=0.0)
     update_period: float = _param(
-        1.0, 'double', 'Seconds (> 0) between successive estimates.', minimum=0.0)
+        1.0, 'double', f'Seconds ({MIN_UPDATE_PERIOD:g} to {MAX_DURATION:g}) between successive '
+        'estimates.', minimum=0.0)
     method: str = _param(
         'iv', 'string', "'iv': least squares then instrumental-variable iterations "
         "(consistent under noise); 'ls': least-squares iterations only; 'gn': Gauss-Newton on "
@@ -193,11 +229,16 @@ class IdentificationConfig:
         'best_effort', 'string', 'Subscription reliability; best_effort also matches reliable '
         'publishers.', choices=RELIABILITIES, read_only=True)
     qos_depth: int = _param(
-        500, 'integer', 'Subscription queue depth (keep last); deep, so bursts are not lost.',
-        minimum=1, read_only=True)
+        500, 'integer', f'Subscription queue depth (keep last, at most {MAX_QOS_DEPTH}); deep, so '
+        'bursts are not lost.', minimum=1, read_only=True)
+    max_message_rate: float = _param(
+        1000.0, 'double', 'Highest message rate (Hz) per topic the live sample buffer is sized '
+        'for (1/sample_time if that is higher); faster messages shorten the history it holds. '
+        'With window, transient and max_gap it sets the buffer memory, which is limited.',
+        minimum=0.0)
     max_gap: float = _param(
-        0.5, 'double', 'Seconds (> 0) without a sample after which a stream counts as missing: '
-        'data are never interpolated or held across such a gap.', minimum=0.0)
+        0.5, 'double', 'Seconds (at least 1e-6) without a sample after which a stream counts as '
+        'missing: data are never interpolated or held across such a gap.', minimum=0.0)
     reorder_horizon: float = _param(
         0.05, 'double', 'Seconds a sample may arrive out of order and still be used; older '
         'late samples are dropped and counted.', minimum=0.0)
@@ -208,7 +249,8 @@ class IdentificationConfig:
         0.0, 'double', 'Upper end (s) of the dead-time search range (see delay_min).',
         minimum=0.0)
     max_iterations: int = _param(
-        100, 'integer', 'Largest number of iterations of one estimate.', minimum=1)
+        100, 'integer', f'Largest number of iterations of one estimate (at most '
+        f'{MAX_ITERATIONS}).', minimum=1)
     tolerance: float = _param(
         1e-8, 'double', 'Stop when the largest relative parameter change falls below it (> 0).',
         minimum=0.0)
@@ -226,6 +268,13 @@ class IdentificationConfig:
         True, 'bool', 'Start each estimate from the previous one instead of initial.')
     publish_prediction: bool = _param(
         False, 'bool', 'Publish the model output predicted over the window.')
+    hardware_id: str = _param(
+        '', 'string', "hardware_id of the node's status on /diagnostics, e.g. the drive being "
+        "identified; '' = the node's name.")
+    lifecycle: bool = _param(
+        False, 'bool', 'Live node only: true = a managed (lifecycle) node that starts '
+        'unconfigured and follows configure/activate/deactivate/cleanup/shutdown transitions, '
+        'as nav2 nodes do; false = configure and activate at start-up.', read_only=True)
 
     def __post_init__(self):
         for item in fields(self):
@@ -305,6 +354,42 @@ class IdentificationConfig:
                 if math.isfinite(low) or math.isfinite(high)}
 
     @property
+    def history_span(self) -> float:
+        """
+        Return the longest span (s) of data one estimate asks for.
+
+        It is the fitted window plus the transient before it that only settles the model's
+        state (a window cut from a running plant does not start at rest); an automatic
+        transient is at most one window long.
+        """
+        return self.window + (self.transient if self.transient >= 0 else self.window)
+
+    @property
+    def window_samples(self) -> float:
+        """Return the samples of one estimate at most: :attr:`history_span` / sample_time."""
+        return self.history_span / self.sample_time
+
+    @property
+    def message_rate(self) -> float:
+        """Return the message rate (Hz) the live buffer is sized for."""
+        return max(1.0 / self.sample_time, self.max_message_rate)
+
+    def buffer_capacity(self, rate_hz: Optional[float] = None) -> int:
+        """
+        Return the samples per stream of a buffer for this configuration.
+
+        It holds :attr:`history_span` plus ``max_gap`` and the reorder horizon of messages at
+        ``rate_hz`` (default :attr:`message_rate`), with a margin of 2 against bursts.
+        """
+        span = self.history_span + self.max_gap + self.reorder_horizon
+        return capacity_for(span, self.message_rate if rate_hz is None else rate_hz,
+                            _BURST_MARGIN)
+
+    def buffer_bytes(self, rate_hz: Optional[float] = None) -> int:
+        """Return the memory (bytes) of the buffer of :meth:`buffer_capacity`."""
+        return buffer_bytes(self.buffer_capacity(rate_hz), len(self.input_fields))
+
+    @property
     def input_fields(self) -> Tuple[str, ...]:
         """Return the field paths of all inputs in the input message, in input_names order."""
         return (self.input_field,) + self.extra_input_fields
@@ -348,6 +433,7 @@ class IdentificationConfig:
         self._check_vectors(self.parameter_names or model.parameters)
         self._check_choices()
         self._check_times(model)
+        self._check_resources()
         return model
 
     def _check_names(self, model: Model) -> None:
@@ -401,7 +487,8 @@ class IdentificationConfig:
                                   f'{value!r}')
 
     def _check_times(self, model: Model) -> None:
-        for name in ('sample_time', 'window', 'update_period', 'max_gap', 'tolerance'):
+        for name in ('sample_time', 'window', 'update_period', 'max_gap', 'tolerance',
+                     'max_message_rate'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f'{name} must be positive and finite, got {value}')
@@ -409,9 +496,29 @@ class IdentificationConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f'{name} must be non-negative and finite, got {value}')
-        for name in ('qos_depth', 'max_iterations'):
-            if getattr(self, name) < 1:
-                raise ConfigError(f'{name} must be at least 1, got {getattr(self, name)}')
+        if not math.isfinite(self.transient):
+            raise ConfigError(f'transient must be finite (negative = automatic), got '
+                              f'{self.transient}')
+        for name, limit in (('qos_depth', MAX_QOS_DEPTH), ('max_iterations', MAX_ITERATIONS)):
+            value = getattr(self, name)
+            if value < 1:
+                raise ConfigError(f'{name} must be at least 1, got {value}')
+            if value > limit:
+                raise ConfigError(f'{name} {value} is more than the limit of {limit}')
+        for name, low, reason in (
+                ('sample_time', MIN_SAMPLE_TIME, 'time stamps are integer nanoseconds'),
+                ('max_gap', MIN_MAX_GAP, 'time stamps are integer nanoseconds'),
+                ('update_period', MIN_UPDATE_PERIOD, 'estimates more often only load the CPU '
+                 'and flood /diagnostics')):
+            if getattr(self, name) < low:
+                raise ConfigError(f'{name} {getattr(self, name):g} s is below the limit of '
+                                  f'{low:g} s ({reason})')
+        if self.update_period > MAX_DURATION:
+            raise ConfigError(f'update_period {self.update_period:g} s is more than the limit of '
+                              f'{MAX_DURATION:g} s')
+        if self.max_message_rate > MAX_MESSAGE_RATE:
+            raise ConfigError(f'max_message_rate {self.max_message_rate:g} Hz is more than the '
+                              f'limit of {MAX_MESSAGE_RATE:g} Hz')
         if self.window < MIN_WINDOW_SAMPLES * self.sample_time:
             raise ConfigError(f'window ({self.window} s) must hold at least '
                               f'{MIN_WINDOW_SAMPLES} samples of sample_time '
@@ -431,6 +538,44 @@ class IdentificationConfig:
             if self.delay_max >= self.window:
                 raise ConfigError(f'delay_max ({self.delay_max} s) must be shorter than the '
                                   f'window ({self.window} s)')
+
+    def _check_resources(self) -> None:
+        """Refuse what one estimate or the live buffer could not afford, before allocating."""
+        samples = self.window_samples
+        if samples > MAX_WINDOW_SAMPLES:
+            transient = 'automatic, one window' if self.transient < 0 else f'{self.transient:g} s'
+            raise ConfigError(
+                f'window ({self.window:g} s) plus its settling transient ({transient}) at '
+                f'sample_time {self.sample_time:g} s is {samples:.3g} samples per estimate, '
+                f'more than the limit of {MAX_WINDOW_SAMPLES}; use a shorter window or '
+                'transient, or a longer sample_time')
+        size = self.buffer_bytes()
+        if size > MAX_BUFFER_BYTES:
+            span = self.history_span + self.max_gap + self.reorder_horizon
+            raise ConfigError(
+                f'the sample buffer would take {_size_text(size)}: {span:.6g} s (window, '
+                f'transient, max_gap and reorder_horizon) of messages at up to '
+                f'{self.message_rate:g} Hz (max_message_rate, or 1/sample_time), more than the '
+                f'limit of {_size_text(MAX_BUFFER_BYTES)}; use a shorter window or max_gap, or '
+                'a lower max_message_rate')
+
+
+def buffer_bytes(capacity: int, inputs: int = 1) -> int:
+    """
+    Return the memory of a :class:`~ctid_ros.streaming.buffer.SampleBuffer` in bytes.
+
+    Per stream: ``capacity`` samples, stored twice over (the ring is kept contiguous), each an
+    int64 stamp and float64 values (``inputs`` of them for the input stream, one output).
+    """
+    per_sample = (8 + 8 * inputs) + (8 + 8)
+    return _STORAGE_FACTOR * int(capacity) * per_sample
+
+
+def _size_text(count: float) -> str:
+    for unit, scale in (('TiB', 1 << 40), ('GiB', 1 << 30), ('MiB', 1 << 20), ('KiB', 1 << 10)):
+        if count >= scale:
+            return f'{count / scale:.3g} {unit}'
+    return f'{int(count)} bytes'
 
 
 def _coerce(name: str, kind: str, value: Any) -> Any:

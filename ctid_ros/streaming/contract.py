@@ -9,6 +9,8 @@ each per update:
 * ``~/estimate``, ``~/estimate_std``: ``std_msgs/msg/Float64MultiArray``, the estimates and their
   standard deviations in ``parameter_names`` order, the comma-separated names in
   ``layout.dim[0].label``;
+* ``~/estimate_covariance``: ``std_msgs/msg/Float64MultiArray``, the parameter covariance, row
+  major, two dimensions (rows, columns) each labelled with the names;
 * ``~/params/<name>``: ``std_msgs/msg/Float64``, one topic per parameter;
 * ``~/prediction``: ``std_msgs/msg/Float64MultiArray``, the model output at every grid instant
   of the window, label ``prediction``; its first and last instants are ``window_start`` and
@@ -17,11 +19,18 @@ each per update:
 * ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray`` with one status named
   ``ctid_node: estimate`` (also after an update that gave no estimate).
 
+Publisher QoS (:class:`PublisherQos`, in :attr:`OutputMessage.qos`): the estimates, standard
+deviations, covariance and per-parameter topics are :data:`LATCHED` (reliable, transient local,
+keep last 1), so a tool that starts later still gets the last estimate; the prediction and the
+diagnostics are :data:`STREAM` (reliable, volatile, keep last 10).
+
 The status level follows :func:`update_status` (OK, or WARN with the reason) after an estimate
 and :func:`failure_status` (WARN for missing or unusable data, ERROR for a failed estimate)
 otherwise. Messages are plain data here: nested dicts of field values, as the message
 definitions nest them, which the node turns into rclpy messages and the MCAP writer serialises.
-Times are integer nanoseconds since the epoch (:data:`NANOSECONDS` per second).
+Times are integer nanoseconds since the epoch (:data:`NANOSECONDS` per second) in messages;
+text meant for people (status messages, log lines) counts seconds since the first sample
+(:func:`estimate_line`, :func:`warm_up_text`), and the diagnostics carry both.
 """
 
 from dataclasses import dataclass
@@ -33,10 +42,12 @@ import numpy as np
 
 __all__ = [
     'DEFAULT_NODE_NAME', 'DIAGNOSTIC_ARRAY', 'DIAGNOSTICS_TOPIC', 'ERROR', 'ESTIMATE',
-    'ESTIMATE_STD', 'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'NANOSECONDS', 'NodeTopics', 'OK',
-    'OutputMessage', 'PARAMS', 'PREDICTION', 'PREDICTION_LABEL', 'WARN', 'diagnostics_message',
-    'estimate_messages', 'estimate_summary', 'failure_status', 'format_diagnostic',
-    'multiarray', 'resolve_topic', 'time_fields', 'update_status',
+    'ESTIMATE_COVARIANCE', 'ESTIMATE_STD', 'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'LATCHED',
+    'NANOSECONDS', 'NodeTopics', 'OK', 'OutputMessage', 'PARAMS', 'PREDICTION',
+    'PREDICTION_LABEL', 'PublisherQos', 'STREAM', 'WARN', 'diagnostics_message',
+    'estimate_line', 'estimate_messages', 'estimate_summary', 'failure_status',
+    'format_diagnostic', 'matrix_multiarray', 'multiarray', 'resolve_topic', 'time_fields',
+    'update_status', 'warm_up_text',
 ]
 
 NANOSECONDS = 1_000_000_000
@@ -45,6 +56,7 @@ DEFAULT_NODE_NAME = 'ctid_node'
 # Topic suffixes below the node's name, and the one absolute topic.
 ESTIMATE = 'estimate'
 ESTIMATE_STD = 'estimate_std'
+ESTIMATE_COVARIANCE = 'estimate_covariance'
 PARAMS = 'params'
 PREDICTION = 'prediction'
 DIAGNOSTICS_TOPIC = '/diagnostics'
@@ -58,6 +70,33 @@ DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 OK, WARN, ERROR = 0, 1, 2
 
 _NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
+
+
+@dataclass(frozen=True)
+class PublisherQos:
+    """
+    The QoS of a published topic, as plain data (the node builds the rclpy profile from it).
+
+    Attributes
+    ----------
+    reliability : str
+        ``'reliable'`` or ``'best_effort'``.
+    durability : str
+        ``'transient_local'`` (late subscribers get the last ``depth`` messages) or
+        ``'volatile'``.
+    depth : int
+        History depth (keep last).
+
+    """
+
+    reliability: str
+    durability: str
+    depth: int
+
+
+# The last estimate stays available to subscribers that start later.
+LATCHED = PublisherQos('reliable', 'transient_local', 1)
+STREAM = PublisherQos('reliable', 'volatile', 10)
 
 
 def _check_name(token: str, what: str) -> None:
@@ -123,6 +162,11 @@ class NodeTopics:
         return f'{self.node}/{ESTIMATE_STD}'
 
     @property
+    def estimate_covariance(self) -> str:
+        """Return the topic of the parameter covariance."""
+        return f'{self.node}/{ESTIMATE_COVARIANCE}'
+
+    @property
     def prediction(self) -> str:
         """Return the topic of the predicted output."""
         return f'{self.node}/{PREDICTION}'
@@ -171,12 +215,15 @@ class OutputMessage:
         Message type, e.g. ``'std_msgs/msg/Float64MultiArray'``.
     fields : dict
         Field values, nested as the message definition nests them; arrays as lists.
+    qos : PublisherQos
+        How the live node publishes it.
 
     """
 
     topic: str
     msgtype: str
     fields: Dict[str, Any]
+    qos: PublisherQos = STREAM
 
 
 def time_fields(time_ns: int) -> Dict[str, int]:
@@ -193,6 +240,23 @@ def multiarray(label: str, values: Sequence[float]) -> Dict[str, Any]:
             'data': data}
 
 
+def matrix_multiarray(label: str, matrix: Any) -> Dict[str, Any]:
+    """
+    Return a square matrix as a two-dimensional ``std_msgs/Float64MultiArray``, row major.
+
+    Both dimensions are labelled ``label`` (the parameter names), as ROS lays out a matrix:
+    ``dim[0]`` the rows (stride n*n), ``dim[1]`` the columns (stride n).
+    """
+    matrix = np.asarray(matrix, dtype=float)
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
+        raise DataError(f'a covariance must be a square matrix, got shape {matrix.shape}')
+    size = matrix.shape[0]
+    return {'layout': {'dim': [{'label': label, 'size': size, 'stride': size * size},
+                               {'label': label, 'size': size, 'stride': size}],
+                       'data_offset': 0},
+            'data': [float(value) for value in matrix.ravel()]}
+
+
 def _check_parameters(names: Sequence[str], arrays: Mapping[str, Sequence[float]]) -> None:
     for name in names:
         if not isinstance(name, str) or not _NAME.match(name):
@@ -206,7 +270,8 @@ def _check_parameters(names: Sequence[str], arrays: Mapping[str, Sequence[float]
 
 def estimate_messages(topics: NodeTopics, names: Sequence[str], values: Sequence[float],
                       stds: Optional[Sequence[float]] = None,
-                      prediction: Optional[Sequence[float]] = None) -> List[OutputMessage]:
+                      prediction: Optional[Sequence[float]] = None, *,
+                      covariance: Optional[Any] = None) -> List[OutputMessage]:
     """
     Return the messages of one update in publishing order, diagnostics excepted.
 
@@ -221,6 +286,9 @@ def estimate_messages(topics: NodeTopics, names: Sequence[str], values: Sequence
         to ``estimate_std``.
     prediction : sequence of float, optional
         Model output over the window; without it nothing goes to ``prediction``.
+    covariance : array_like, optional
+        Parameter covariance in ``names`` order (n x n); without it nothing goes to
+        ``estimate_covariance``.
 
     Raises
     ------
@@ -230,13 +298,19 @@ def estimate_messages(topics: NodeTopics, names: Sequence[str], values: Sequence
     """
     names = list(names)
     arrays = {'values': values} if stds is None else {'values': values, 'stds': stds}
+    if covariance is not None:
+        arrays['covariance rows'] = np.asarray(covariance)
     _check_parameters(names, arrays)
     label = ','.join(names)
-    messages = [OutputMessage(topics.estimate, FLOAT64_MULTI_ARRAY, multiarray(label, values))]
+    messages = [OutputMessage(topics.estimate, FLOAT64_MULTI_ARRAY, multiarray(label, values),
+                              LATCHED)]
     if stds is not None:
         messages.append(OutputMessage(topics.estimate_std, FLOAT64_MULTI_ARRAY,
-                                      multiarray(label, stds)))
-    messages.extend(OutputMessage(topics.param(name), FLOAT64, {'data': float(value)})
+                                      multiarray(label, stds), LATCHED))
+    if covariance is not None:
+        messages.append(OutputMessage(topics.estimate_covariance, FLOAT64_MULTI_ARRAY,
+                                      matrix_multiarray(label, covariance), LATCHED))
+    messages.extend(OutputMessage(topics.param(name), FLOAT64, {'data': float(value)}, LATCHED)
                     for name, value in zip(names, values))
     if prediction is not None:
         messages.append(OutputMessage(topics.prediction, FLOAT64_MULTI_ARRAY,
@@ -272,6 +346,46 @@ def estimate_summary(names: Sequence[str], values: Sequence[float],
                      for name, value, std in zip(names, values, stds))
 
 
+def _number(value: float, std: Optional[float] = None) -> str:
+    return f'{value:.6g}' if std is None else f'{value:.6g} +- {std:.2g}'
+
+
+def estimate_line(names: Sequence[str], values: Sequence[float], stds: Sequence[float],
+                  time_s: float, fit: Optional[float] = None,
+                  residuals: Optional[str] = None) -> str:
+    """
+    Return the one-line log of an estimate, for people reading the node's console.
+
+    ``time_s`` is the end of the window in seconds since the first sample. Example::
+
+        t=12.50 s: K = 2.0013 +- 0.0031, T = 0.4998 +- 0.0012; fit 95.3 %; residuals white
+
+    """
+    text = ', '.join(f'{name} = {_number(value, std)}'
+                     for name, value, std in zip(names, values, stds))
+    parts = [f't={time_s:.2f} s: {text}']
+    if fit is not None:
+        parts.append(f'fit {fit:.1f} %')
+    if residuals:
+        parts.append(f'residuals {residuals}')
+    return '; '.join(parts)
+
+
+def warm_up_text(available_s: float, window_s: float,
+                 first_estimate_s: Optional[float] = None) -> str:
+    """
+    Return the status text while the node collects its first window of data.
+
+    E.g. ``'warming up: 6.4 of 10 s of data (first estimate after 5 s)'``: the configured
+    window, not the longer span (with the settling transient) the node asks for. Without
+    ``first_estimate_s`` (estimates already come) the parenthesis is left out.
+    """
+    text = f'warming up: {max(available_s, 0.0):.1f} of {window_s:g} s of data'
+    if first_estimate_s is None:
+        return text
+    return f'{text} (first estimate after {first_estimate_s:g} s)'
+
+
 def update_status(names: Sequence[str], values: Sequence[float],
                   stds: Optional[Sequence[float]], diagnostics: Mapping[str, Any]
                   ) -> Tuple[int, str]:
@@ -300,14 +414,14 @@ def failure_status(error: CtidError) -> Tuple[int, str]:
 
 
 def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: str,
-                        values: Mapping[str, Any]) -> OutputMessage:
+                        values: Mapping[str, Any], hardware_id: str = '') -> OutputMessage:
     """
     Return the ``/diagnostics`` message of one update (or failed update) of the node.
 
     Parameters
     ----------
     topics : NodeTopics
-        The node; names the status and is its ``hardware_id``.
+        The node; names the status, and is its ``hardware_id`` unless one is given.
     stamp_ns : int
         Header stamp.
     level : int
@@ -316,10 +430,12 @@ def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: 
         Status message.
     values : mapping
         Key/value pairs in order, formatted by :func:`format_diagnostic`.
+    hardware_id : str
+        The ``hardware_id`` of the status (the ``hardware_id`` parameter); '' = the node name.
 
     """
     status = {'level': int(level), 'name': topics.status_name, 'message': message,
-              'hardware_id': topics.name,
+              'hardware_id': hardware_id or topics.name,
               'values': [{'key': str(key), 'value': format_diagnostic(value)}
                          for key, value in values.items()]}
     return OutputMessage(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,

@@ -5,13 +5,19 @@ A field path names one number inside a message::
 
     data                    std_msgs/Float64
     effort[0]               sensor_msgs/JointState
+    position[wheel_left]    sensor_msgs/JointState, the joint named wheel_left
     twist.linear.x          geometry_msgs/TwistStamped
     pose.pose.position.z    nav_msgs/Odometry
     points[3].positions[1]  trajectory_msgs/JointTrajectory
 
 The grammar is identifiers (a letter, then letters, digits and underscores) joined by dots, each
-optionally followed by non-negative integer indices in brackets. Nothing else is accepted, in
-particular no name starting with ``_``, so a path can never reach private or dunder attributes.
+optionally followed by selectors in brackets: a non-negative integer index, or a joint name
+(letters, digits and ``_ - . / :``, with at least one letter or underscore). A name selects the
+element at the index of that name in the message's ``name`` list, or ``joint_names`` list, the
+field next to the array (JointState-like messages): ``position[wheel_left]`` is
+``position[i]`` with ``name[i] == 'wheel_left'``, looked up in every message, since publishers
+need not keep the order. Nothing else is accepted, in particular no name starting with ``_``,
+so a path can never reach private or dunder attributes.
 
 The same compiled :class:`FieldPath` reads messages from every source the package meets, all of
 which expose fields as attributes:
@@ -34,18 +40,38 @@ from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-__all__ = ['FieldPath', 'Step', 'extract', 'extract_values', 'message_fields', 'message_stamp',
-           'parse_field_path', 'sample_stamp', 'sample_stamps']
+__all__ = ['FieldPath', 'NAME_FIELDS', 'Step', 'Key', 'extract', 'extract_values',
+           'has_header_stamp', 'message_fields', 'message_stamp', 'parse_field_path',
+           'sample_stamp', 'sample_stamps']
 
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
-_SEGMENT = rf'{_NAME}(?:\[[0-9]+\])*'
+_KEY = r'[A-Za-z0-9_./:-]*[A-Za-z_][A-Za-z0-9_./:-]*'
+_SELECTOR = rf'\[(?:[0-9]+|{_KEY})\]'
+_SEGMENT = rf'{_NAME}(?:{_SELECTOR})*'
 _PATH = re.compile(rf'{_SEGMENT}(?:\.{_SEGMENT})*')
-_TOKEN = re.compile(rf'({_NAME})|\[([0-9]+)\]|\.')
+_TOKEN = re.compile(rf'({_NAME})|\[([0-9]+)\]|\[({_KEY})\]|\.')
 _GRAMMAR = ('a field path is names joined by dots, each optionally followed by non-negative '
-            "integer indices, e.g. 'data', 'effort[0]', 'twist.linear.x'; a name starts with a "
-            'letter and contains only letters, digits and underscores')
+            "integer indices or joint names in brackets, e.g. 'data', 'effort[0]', "
+            "'position[wheel_left]', 'twist.linear.x'; a name starts with a letter and contains "
+            'only letters, digits and underscores')
+# Fields that name the elements of the arrays next to them (sensor_msgs/JointState has name,
+# sensor_msgs/MultiDOFJointState and control_msgs types joint_names).
+NAME_FIELDS = ('name', 'joint_names')
+# Names listed in an error message at most.
+_LISTED_NAMES = 20
 
-Step = Union[str, int]
+
+@dataclass(frozen=True)
+class Key:
+    """A selector by name: the element whose name in the sibling ``name`` list is :attr:`name`."""
+
+    name: str
+
+    def __str__(self) -> str:
+        return self.name
+
+
+Step = Union[str, int, Key]
 
 
 @dataclass(frozen=True)
@@ -89,8 +115,8 @@ def parse_field_path(text: str) -> FieldPath:
     stripped = text.strip()
     if not _PATH.fullmatch(stripped):
         raise ConfigError(f'invalid field path {text!r}: {_GRAMMAR}')
-    steps = tuple(name if name else int(index)
-                  for name, index in _TOKEN.findall(stripped) if name or index)
+    steps = tuple(name if name else int(index) if index else Key(key)
+                  for name, index, key in _TOKEN.findall(stripped) if name or index or key)
     return FieldPath(stripped, steps)
 
 
@@ -158,8 +184,31 @@ def _location(path: FieldPath, depth: int) -> str:
     """Render the part of the path already followed, for error messages."""
     text = ''
     for step in path.steps[:depth]:
-        text += f'[{step}]' if isinstance(step, int) else (f'.{step}' if text else step)
+        text += f'[{step}]' if not isinstance(step, str) else (f'.{step}' if text else step)
     return text or 'the message'
+
+
+def _listed(names: Sequence[str]) -> str:
+    shown = ', '.join(str(name) for name in names[:_LISTED_NAMES])
+    more = len(names) - _LISTED_NAMES
+    return (shown + (f' and {more} more' if more > 0 else '')) if names else 'none (empty)'
+
+
+def _named_index(path: FieldPath, depth: int, parent, key: Key) -> int:
+    """Return the index of ``key`` in the name list next to the array at ``depth``."""
+    where = _location(path, depth)
+    available = message_fields(parent) if parent is not None else ()
+    field = next((name for name in NAME_FIELDS if name in available), None)
+    if field is None:
+        raise ConfigError(f'field {path}: selecting [{key}] by name needs a list of names '
+                          f'({" or ".join(NAME_FIELDS)}) next to {where}; '
+                          f'{_describe(parent)}')
+    names = list(getattr(parent, field))
+    try:
+        return names.index(key.name)
+    except ValueError:
+        raise ConfigError(f'field {path}: no joint {key.name!r} in {field}; names seen: '
+                          f'{_listed(names)}') from None
 
 
 def extract(message, path: Union[FieldPath, str]) -> float:
@@ -190,21 +239,25 @@ def extract(message, path: Union[FieldPath, str]) -> float:
     if not isinstance(path, FieldPath):
         path = parse_field_path(path)
     value = message
+    # The message holding the current field: its name list resolves a Key.
+    parent = None
     for depth, step in enumerate(path.steps):
         where = _location(path, depth)
-        if isinstance(step, int):
-            if not _is_array(value):
-                raise ConfigError(f'field {path}: {where} is not an array, cannot take '
-                                  f'[{step}]; {_describe(value)}')
-            if step >= len(value):
-                raise ConfigError(f'field {path}: index {step} out of range for {where}, '
-                                  f'an array of length {len(value)}')
-            value = value[step]
-        else:
+        if isinstance(step, str):
             if step not in message_fields(value):
                 raise ConfigError(f'field {path}: {where} ({_type_name(value)}) has no field '
                                   f'{step!r}; {_describe(value)}')
-            value = getattr(value, step)
+            parent, value = value, getattr(value, step)
+            continue
+        if not _is_array(value):
+            raise ConfigError(f'field {path}: {where} is not an array, cannot take '
+                              f'[{step}]; {_describe(value)}')
+        index = step if isinstance(step, int) else _named_index(path, depth, parent, step)
+        if index >= len(value):
+            named = '' if isinstance(step, int) else f' (of {str(step)!r})'
+            raise ConfigError(f'field {path}: index {index}{named} out of range for {where}, '
+                              f'an array of length {len(value)}')
+        parent, value = None, value[index]
     if isinstance(value, numbers.Real):
         return float(value)
     hint = f'; {_describe(value)}' if message_fields(value) or _is_array(value) else ''
@@ -244,6 +297,15 @@ def sample_stamps(header_ns: Optional[np.ndarray], receive_ns: np.ndarray,
     if stamp_source == 'header' and header_ns is not None:
         return np.where(header_ns != 0, header_ns, receive_ns)
     return receive_ns
+
+
+def has_header_stamp(message) -> bool:
+    """Return True if the message has a ``header.stamp`` (zero or not)."""
+    if 'header' not in message_fields(message):
+        return False
+    header = message.header
+    return 'stamp' in message_fields(header) and \
+        {'sec', 'nanosec'} <= set(message_fields(header.stamp))
 
 
 def sample_stamp(msg: Any, receive_ns: int, stamp_source: str) -> int:

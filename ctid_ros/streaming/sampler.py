@@ -16,7 +16,8 @@ from typing import Any, Optional, Tuple, Union
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.message_fields import extract_values, parse_field_path, sample_stamp
+from ctid_ros.streaming.message_fields import (extract_values, has_header_stamp, message_stamp,
+                                               parse_field_path, sample_stamp)
 import numpy as np
 
 __all__ = ['MessageSampler', 'ROLES', 'Sample', 'stream_names']
@@ -46,6 +47,9 @@ class Sample:
         Output value; None likewise.
     errors : tuple of (str, ConfigError)
         The role (``input``/``output``) and error of every field that could not be read.
+    zero_stamp : bool
+        True if ``stamp_source`` is ``header`` and the message has a header whose stamp is
+        zero (unset): it was filed under the receive time instead.
 
     """
 
@@ -53,6 +57,7 @@ class Sample:
     u: Optional[Union[float, np.ndarray]]
     y: Optional[float]
     errors: Tuple[Tuple[str, ConfigError], ...] = ()
+    zero_stamp: bool = False
 
     def check(self) -> None:
         """Raise the first field error, if any (the replay stops on a wrong field path)."""
@@ -121,4 +126,7 @@ class MessageSampler:
                 values[index] = extract_values(msg, paths)
             except ConfigError as error:
                 errors.append((role, error))
-        return Sample(sample_stamp(msg, receive_ns, self._stamp_source), *values, tuple(errors))
+        stamp = sample_stamp(msg, receive_ns, self._stamp_source)
+        zero = (self._stamp_source == 'header' and stamp == int(receive_ns)
+                and has_header_stamp(msg) and message_stamp(msg) is None)
+        return Sample(stamp, *values, tuple(errors), zero_stamp=zero)

@@ -16,7 +16,7 @@ from typing import Any, Dict, Optional, Tuple
 
 from ctid_ros.estimation.estimate import Estimate, estimate
 from ctid_ros.estimation.problem import settling_time
-from ctid_ros.streaming.buffer import capacity_for, SampleBuffer, Window
+from ctid_ros.streaming.buffer import SampleBuffer, Window
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
@@ -45,6 +45,8 @@ class Update:
         The window it was computed from.
     compute_time : float
         Wall-clock seconds spent estimating.
+    covariance : ndarray or None
+        Parameter covariance in the order of :attr:`names`.
 
     """
 
@@ -57,6 +59,7 @@ class Update:
     result: Estimate
     window: Window
     compute_time: float
+    covariance: Optional[np.ndarray] = None
 
     @property
     def prediction_times_ns(self) -> np.ndarray:
@@ -74,9 +77,22 @@ class Update:
         """
         return tuple(self.window.warnings) + tuple(self.result.warnings)
 
+    @property
+    def residuals(self) -> Optional[str]:
+        """
+        Return the estimator's verdict on the residuals, e.g. ``'white'``, if it gives one.
+
+        Hook for ``Estimate.residuals`` (being added to the estimator): its ``verdict``, or its
+        text; None while the estimator has no such attribute.
+        """
+        residuals = getattr(self.result, 'residuals', None)
+        if residuals is None:
+            return None
+        return str(getattr(residuals, 'verdict', residuals))
+
     def diagnostics(self) -> Dict[str, Any]:
         """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
-        return {
+        values = {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
             'converged': self.result.converged,
@@ -92,6 +108,9 @@ class Update:
             'compute_time': self.compute_time,
             'warnings': list(self.warnings),
         }
+        if self.residuals is not None:
+            values['residuals'] = self.residuals
+        return values
 
     def to_dict(self) -> Dict[str, Any]:
         """Return the ``ctid fit --json`` object of this window plus its end time (s)."""
@@ -104,20 +123,13 @@ class Update:
 
 
 def history_span(config: IdentificationConfig) -> float:
-    """
-    Return the longest span (s) of data a session asks for.
-
-    It is the fitted window plus the transient before it that only settles the model's state
-    (a window cut from a running plant does not start at rest); an automatic transient is at
-    most one window long.
-
-    """
-    return config.window + (config.transient if config.transient >= 0 else config.window)
+    """Return the longest span (s) of data a session asks for (see the config's property)."""
+    return config.history_span
 
 
 def buffer_capacity(config: IdentificationConfig, rate_hz: float) -> int:
     """Size a buffer for :func:`history_span` plus ``max_gap`` and the reorder horizon."""
-    return capacity_for(history_span(config) + config.max_gap + config.reorder_horizon, rate_hz)
+    return config.buffer_capacity(rate_hz)
 
 
 class IdentificationSession:
@@ -212,6 +224,7 @@ class IdentificationSession:
         self._previous = dict(result.params)
         self._settling = settling_time(result.model.coefficients(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
+        index = np.asarray(config.model_index, dtype=int)
         data = window.data
         return Update(
             end_ns=window.end_ns, start_ns=window.start_ns,
@@ -219,4 +232,5 @@ class IdentificationSession:
             values=np.array([result.params[name] for name in order]),
             stds=np.array([result.std[name] for name in order]),
             prediction=result.simulate(data), result=result, window=window,
-            compute_time=elapsed)
+            compute_time=elapsed,
+            covariance=np.asarray(result.covariance, dtype=float)[np.ix_(index, index)])

@@ -3,7 +3,7 @@
 from ctid_ros.errors import ConfigError
 from ctid_ros.files.bag_reader import BagReader
 from ctid_ros.files.mcap_writer import EstimateWriter
-from ctid_ros.ros.messages import import_message, to_message
+from ctid_ros.ros.messages import field_problem, import_message, to_message
 from ctid_ros.streaming.contract import (diagnostics_message, estimate_messages, NodeTopics,
                                          update_status)
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -55,3 +55,24 @@ def test_import_message_names():
     assert import_message('std_msgs/Header').__name__ == 'Header'
     with pytest.raises(ConfigError, match='not installed'):
         import_message('my_pkg/msg/Missing')
+
+
+def test_field_problem_checks_a_path_against_a_message_type():
+    from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64, String
+
+    for message_class, path in ((Float64, 'data'), (PointStamped, 'point.x'),
+                                (JointState, 'position[0]'), (JointState, 'effort[wheel_left]'),
+                                (PoseWithCovarianceStamped, 'pose.covariance[35]'),
+                                (PointStamped, 'header.stamp.sec')):
+        assert field_problem(message_class, path) is None, (message_class, path)
+    assert field_problem(String, 'data') == 'data is a string, not a number'
+    assert field_problem(Float64, 'point.x') == "Float64 has no field 'point'; its fields: data"
+    assert field_problem(PointStamped, 'point.w') == \
+        "Point has no field 'w'; its fields: x, y, z"
+    assert field_problem(Float64, 'data[0]') == 'double is not an array, cannot take [0]'
+    assert field_problem(JointState, 'position') == 'position is a sequence<double>, not a number'
+    assert field_problem(JointState, 'name[0]') == 'name[0] is a string, not a number'
+    assert 'needs a list of names' in field_problem(Float64MultiArray, 'data[x]')
+    assert field_problem(Float64, 'data.x') == "double has no field 'x'"

@@ -1,16 +1,14 @@
 """
 Launch-free tests of ctid_node against the simulated plant, on real DDS over loopback.
 
-Each test has its own rclpy context, executor and namespace; the nodes run in this process in one
-multi-threaded executor. Tolerances follow from the noise: the plant adds white noise of std
+Each test has its own rclpy context, an executor thread per node and a namespace
+(test/node_harness.py). Tolerances follow from the noise: the plant adds white noise of std
 0.01 to outputs of amplitude ~1, so over windows of thousands of samples the standard
 deviations of the estimates are a few 0.1 % (see the published ``estimate_std``); the bounds
 below are several of those plus, for Float64 topics stamped on reception, the time resolution
 of one sample time on the dead time.
 """
 
-import itertools
-import json
 import math
 import re
 import subprocess
@@ -20,128 +18,18 @@ import time
 
 from ctid_ros import Model
 from ctid_ros.core.excitation import prbs
-from ctid_ros.ros.node import IdentificationNode
-from ctid_ros.ros.plant_node import PlantNode
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PointStamped
+from node_harness import converge, Harness, keys, named, wait_for
 import numpy as np
 import pytest
 import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
 from std_srvs.srv import Trigger
-import yaml
-
-_COUNTER = itertools.count()
-
-
-class _QuotingDumper(yaml.SafeDumper):
-    """Quote every string: rcl's params parser reads a bare y (as in topic y) as a boolean."""
-
-
-_QuotingDumper.add_representer(
-    str, lambda dumper, text: dumper.represent_scalar('tag:yaml.org,2002:str', text, style="'"))
-
-
-class Harness:
-    """
-    Nodes of one test, each spun by its own executor thread, and what the observer received.
-
-    One single-threaded executor per node, as ``ctid_node`` runs in production: in one shared
-    multi-threaded executor the plant's 200 Hz timer was starved for up to 2 s at a time.
-    """
-
-    def __init__(self, tmp_path):
-        self.tmp_path = tmp_path
-        self.namespace = f'/t{next(_COUNTER)}_{int(time.time() * 1000) % 100000}'
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.estimates = []
-        self.predictions = []
-        self.processes = []
-        self.statuses = []
-        self._lock = threading.Lock()
-        self._spinning = []
-        self.observer = self.spin(rclpy.create_node('observer', namespace=self.namespace,
-                                                    context=self.context))
-
-    def spin(self, node):
-        executor = SingleThreadedExecutor(context=self.context)
-        executor.add_node(node)
-        thread = threading.Thread(target=executor.spin, daemon=True)
-        thread.start()
-        self._spinning.append((executor, node, thread))
-        return node
-
-    def plant(self, **parameters) -> PlantNode:
-        overrides = [Parameter(name, value=value) for name, value in parameters.items()]
-        return self.spin(PlantNode(context=self.context, namespace=self.namespace,
-                                   parameter_overrides=overrides))
-
-    def spawn_plant(self, **parameters) -> subprocess.Popen:
-        """
-        Run ctid_plant in its own process, as in a real system.
-
-        Float64 samples are stamped when published: a plant sharing the test's interpreter lock
-        with an estimate being computed would publish late and in bursts.
-        """
-        arguments = [sys.executable, '-m', 'ctid_ros.ros.plant_node', '--ros-args', '-r',
-                     f'__ns:={self.namespace}', '--log-level', 'warn']
-        for name, value in parameters.items():
-            arguments += ['-p', f'{name}:={json.dumps(value)}']
-        process = subprocess.Popen(arguments)
-        self.processes.append(process)
-        return process
-
-    def identifier(self, **parameters) -> IdentificationNode:
-        """Start ctid_node from a params file, as a user would."""
-        path = self.tmp_path / 'params.yaml'
-        key = f'{self.namespace}/ctid_node'
-        path.write_text(yaml.dump({key: {'ros__parameters': parameters}}, Dumper=_QuotingDumper))
-        node = IdentificationNode(context=self.context, namespace=self.namespace,
-                                  cli_args=['--ros-args', '--params-file', str(path)])
-        prefix = f'{self.namespace}/ctid_node'
-        self.observer.create_subscription(
-            Float64MultiArray, f'{prefix}/estimate',
-            lambda message: self._record(self.estimates, message), 10)
-        self.observer.create_subscription(
-            Float64MultiArray, f'{prefix}/prediction',
-            lambda message: self._record(self.predictions, message), 10)
-        self.observer.create_subscription(
-            DiagnosticArray, '/diagnostics', lambda message: self._record(
-                self.statuses, *[status for status in message.status
-                                 if status.name == f'{prefix[1:]}: estimate']), 10)
-        return self.spin(node)
-
-    def _record(self, into, *messages):
-        with self._lock:
-            into.extend(messages)
-
-    def latest(self, into):
-        with self._lock:
-            return into[-1] if into else None
-
-    def call(self, service_type, name, request, timeout=30.0):
-        client = self.observer.create_client(service_type, name)
-        assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
-        future = client.call_async(request)
-        wait_for(future.done, timeout, f'no answer from {name}')
-        return future.result()
-
-    def close(self):
-        for process in self.processes:
-            process.terminate()
-            process.wait(timeout=10)
-        for executor, node, _ in self._spinning:
-            executor.shutdown()
-            node.destroy_node()
-        rclpy.shutdown(context=self.context)
-        for _, _, thread in self._spinning:
-            thread.join(timeout=10)
 
 
 @pytest.fixture
@@ -149,34 +37,6 @@ def ros(tmp_path):
     harness = Harness(tmp_path)
     yield harness
     harness.close()
-
-
-def wait_for(predicate, timeout, what):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, \
-            f'timed out after {timeout} s: {what() if callable(what) else what}'
-        time.sleep(0.05)
-
-
-def named(message: Float64MultiArray):
-    names = message.layout.dim[0].label.split(',')
-    assert message.layout.dim[0].size == message.layout.dim[0].stride == len(names)
-    return dict(zip(names, message.data))
-
-
-def keys(status: DiagnosticStatus):
-    return {pair.key: pair.value for pair in status.values}
-
-
-def converge(ros, truth, tolerance, timeout):
-    """Wait for an estimate within tolerance of the truth; return it (or fail with the last)."""
-    def close_enough():
-        message = ros.latest(ros.estimates)
-        return message is not None and all(
-            abs(named(message)[name] - value) <= tolerance[name] for name, value in truth.items())
-    wait_for(close_enough, timeout, lambda: f'estimates {[named(m) for m in ros.estimates]}')
-    return named(ros.latest(ros.estimates))
 
 
 def first_order(**extra):
@@ -394,4 +254,86 @@ def test_reset_and_estimate_now(ros):
     assert node.buffer.stats().y.received < 50
     response = ros.call(Trigger, estimate_now, Trigger.Request())
     assert not response.success
-    assert 'not enough' in response.message or 'no samples' in response.message
+    # The buffer fills again: the node says how far, against the configured 5 s window.
+    assert re.fullmatch(r'warming up: \d\.\d of 5 s of data \(first estimate after 2.5 s\)',
+                        response.message) or 'no samples' in response.message, response.message
+
+
+def test_late_subscriber_gets_the_last_estimate(ros):
+    ros.plant(model='K/(T*s + 1)', parameter_names=['K', 'T'], parameter_values=[2.0, 0.5],
+              message_type='point_stamped')
+    node = ros.identifier(**first_order(model='K/(T*s + 1)', parameter_names=['K', 'T'],
+                                        initial=[1.0, 1.0], lower=[0.001, 0.01],
+                                        upper=[100.0, 100.0], window=4.0,
+                                        update_period=100.0, input_field='point.x',
+                                        output_field='point.x'))
+    wait_for(lambda: node.buffer.stats().y.span > 4.5, 20.0, 'a window of data')
+    response = ros.call(Trigger, f'{ros.namespace}/ctid_node/estimate_now', Trigger.Request())
+    assert response.success, response.message
+    published = node.last_update
+    # A tool started after the estimate, asking for the last one (transient local).
+    late = rclpy.create_node('late_tool', namespace=ros.namespace, context=ros.context)
+    ros.spin(late)
+    received = {}
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    for topic in ('estimate', 'estimate_std', 'estimate_covariance'):
+        late.create_subscription(
+            Float64MultiArray, f'{ros.namespace}/ctid_node/{topic}',
+            lambda message, topic=topic: received.setdefault(topic, message), latched)
+    late.create_subscription(Float64, f'{ros.namespace}/ctid_node/params/K',
+                             lambda message: received.setdefault('K', message), latched)
+    wait_for(lambda: len(received) == 4, 20.0, lambda: f'latched messages: {sorted(received)}')
+    assert named(received['estimate']) == dict(zip(published.names, published.values))
+    assert named(received['estimate_std']) == dict(zip(published.names, published.stds))
+    assert received['K'].data == published.values[0]
+    covariance = received['estimate_covariance']
+    assert [(dim.label, dim.size, dim.stride) for dim in covariance.layout.dim] == [
+        ('K,T', 2, 4), ('K,T', 2, 2)]
+    matrix = np.reshape(covariance.data, (2, 2))
+    np.testing.assert_allclose(np.sqrt(np.diag(matrix)), published.stds, rtol=1e-12)
+    assert matrix[0, 1] == pytest.approx(matrix[1, 0], rel=1e-9)
+
+
+def test_joint_names_live_integer_doubles_and_hardware_id(ros):
+    truth = {'J': 0.2, 'b': 1.0, 'k': 4.0}
+    ros.plant(model='1/(J*s**2 + b*s + k)', parameter_names=['J', 'b', 'k'],
+              parameter_values=[0.2, 1.0, 4.0], sample_time=0.01, message_type='joint_state',
+              joint_state_topic='joint_states', joint_names=['wheel_right', 'arm', 'wheel_left'])
+    # Integers for doubles (window: 5, sample_time given as 0.01), as a hand-written file has.
+    node = ros.identifier(input_topic='joint_states', input_field='effort[wheel_left]',
+                          output_topic='joint_states', output_field='position[wheel_left]',
+                          model='1/(J*s**2 + b*s + k)', parameter_names=['J', 'b', 'k'],
+                          sample_time=0.01, window=5, update_period=1, max_gap=0.1,
+                          hardware_id='left_wheel_drive')
+    assert (node.config.window, node.config.update_period) == (5.0, 1.0)
+    converge(ros, truth, {'J': 0.004, 'b': 0.02, 'k': 0.04}, timeout=20.0)
+    status = ros.latest(ros.statuses)
+    assert status.hardware_id == 'left_wheel_drive'
+    assert keys(status)['output_field_errors'] == '0'
+    # A joint that is not in the messages: the names seen are on /diagnostics.
+    client = AsyncParameterClient(ros.observer, f'{ros.namespace}/ctid_node')
+    assert client.wait_for_services(timeout_sec=30.0)
+    future = client.set_parameters([Parameter('output_field', value='position[wheel_lft]'),
+                                    Parameter('update_period', value=2)])
+    wait_for(future.done, 30.0, 'set_parameters')
+    assert all(result.successful for result in future.result().results)
+    assert node.config.update_period == 2.0
+    wait_for(lambda: "output: field position[wheel_lft]: no joint 'wheel_lft' in name; names "
+             'seen: wheel_right, arm, wheel_left' in ros.latest(ros.statuses).message, 20.0,
+             lambda: ros.latest(ros.statuses).message)
+    assert ros.latest(ros.statuses).level == DiagnosticStatus.WARN
+    assert int(keys(ros.latest(ros.statuses))['output_field_errors']) > 0
+
+
+def test_help_prints_usage_instead_of_starting():
+    for module, expected in (('ctid_ros.ros.node', 'lifecycle (bool, read-only, default False)'),
+                             ('ctid_ros.ros.plant_node', 'joint_names (default')):
+        done = subprocess.run([sys.executable, '-m', module, '--help'], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.startswith('usage: ctid_') and expected in done.stdout
+    done = subprocess.run([sys.executable, '-m', 'ctid_ros.ros.node', '--params-file', 'x.yaml'],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert 'ROS arguments go after --ros-args' in done.stderr

@@ -11,9 +11,10 @@ CONTRACT = (
     'input_topic', 'input_field', 'output_topic', 'output_field', 'extra_input_fields', 'model',
     'input_names', 'output_name', 'controller', 'parameter_names', 'initial', 'lower', 'upper',
     'sample_time', 'window', 'update_period',
-    'method', 'intersample', 'stamp_source', 'qos_reliability', 'qos_depth', 'max_gap',
-    'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance', 'transient',
-    'initial_state', 'output_offset', 'warm_start', 'publish_prediction')
+    'method', 'intersample', 'stamp_source', 'qos_reliability', 'qos_depth', 'max_message_rate',
+    'max_gap', 'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance',
+    'transient', 'initial_state', 'output_offset', 'warm_start', 'publish_prediction',
+    'hardware_id', 'lifecycle')
 FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
 
 
@@ -28,13 +29,13 @@ def test_parameter_specs_follow_the_contract():
     assert {name for name, kind in kinds.items() if kind == 'integer'} == {
         'qos_depth', 'max_iterations'}
     assert {name for name, kind in kinds.items() if kind == 'bool'} == {
-        'output_offset', 'warm_start', 'publish_prediction'}
+        'output_offset', 'warm_start', 'publish_prediction', 'lifecycle'}
     assert {name for name, kind in kinds.items() if kind == 'double_array'} == {
         'initial', 'lower', 'upper'}
     assert kinds['parameter_names'] == 'string_array'
     assert all(kinds[name] == 'double' for name in (
         'sample_time', 'window', 'update_period', 'max_gap', 'reorder_horizon', 'delay_min',
-        'delay_max', 'tolerance', 'transient'))
+        'delay_max', 'tolerance', 'transient', 'max_message_rate'))
     defaults = IdentificationConfig(model='1/(T*s + 1)')
     for spec in PARAMETERS:
         assert len(spec.description) > 20, spec.name
@@ -49,6 +50,7 @@ def test_parameter_specs_follow_the_contract():
     assert by_name['method'].constraints == 'one of: iv, ls, gn'
     assert by_name['qos_depth'].constraints == 'value >= 1'
     assert by_name['input_topic'].read_only and not by_name['model'].read_only
+    assert by_name['lifecycle'].read_only and by_name['hardware_id'].default == ''
 
 
 def test_parameter_order_and_estimator_options(base):
@@ -114,6 +116,7 @@ def test_runtime_change_leaves_the_current_configuration_intact(base):
     ({'reorder_horizon': -0.1}, 'reorder_horizon must be non-negative'),
     ({'reorder_horizon': 10.0}, r'reorder_horizon \(10.0 s\) must be shorter than the window'),
     ({'qos_depth': 0}, 'qos_depth must be at least 1'),
+    ({'transient': math.inf}, 'transient must be finite'),
     ({'max_iterations': 0}, 'max_iterations must be at least 1'),
     ({'method': 'gradient'}, "method must be one of iv, ls, gn; got 'gradient'"),
     ({'intersample': 'spline'}, 'intersample must be one of zoh, foh'),
@@ -156,3 +159,42 @@ def test_model_equation_with_extra_inputs():
         config.updated({'extra_input_fields': ['effort[']})
     with pytest.raises(ConfigError, match='do not appear'):
         config.updated({'input_names': ['v', 'z']})
+
+
+# The attacks of issue #16 and the limits that stop them before anything is allocated.
+@pytest.mark.parametrize('changes, message', [
+    ({'window': 5e8}, r'window \(5e\+08 s\) plus its settling transient \(automatic, one '
+                      r'window\) at sample_time 0.01 s is 1e\+11 samples per estimate, more than '
+                      r'the limit of 1000000'),
+    ({'sample_time': 3e-10}, r'sample_time 3e-10 s is below the limit of 1e-06 s'),
+    ({'max_gap': 1e-10}, r'max_gap 1e-10 s is below the limit of 1e-06 s'),
+    ({'update_period': 1e-6}, r'update_period 1e-06 s is below the limit of 0.1 s'),
+    ({'update_period': 1e7}, r'update_period 1e\+07 s is more than the limit of 1e\+06 s'),
+    ({'transient': 2e4}, r'transient \(20000 s\) at sample_time 0.01 s is 2e\+06 samples'),
+    ({'window': 4000.0, 'sample_time': 0.1},
+     r'the sample buffer would take 977 MiB: 8000.55 s \(window, transient, max_gap and '
+     r'reorder_horizon\) of messages at up to 1000 Hz .* more than the limit of 256 MiB'),
+    ({'max_gap': 5e5}, r'the sample buffer would take .* GiB'),
+    ({'max_message_rate': 1e6}, r'max_message_rate 1e\+06 Hz is more than the limit of 100000 Hz'),
+    ({'max_message_rate': 0.0}, 'max_message_rate must be positive'),
+    ({'max_iterations': 10 ** 9}, 'max_iterations 1000000000 is more than the limit of 10000'),
+    ({'qos_depth': 10 ** 6}, 'qos_depth 1000000 is more than the limit of 10000'),
+])
+def test_resource_limits(base, changes, message):
+    with pytest.raises(ConfigError, match=message):
+        base.updated(changes)
+
+
+def test_buffer_size_follows_the_message_rate(base):
+    # A slow plant over an hour: refused at the default 1 kHz, fine at its real 10 Hz.
+    slow = {'window': 3600.0, 'sample_time': 0.1}
+    with pytest.raises(ConfigError, match='max_message_rate'):
+        base.updated(slow)
+    config = base.updated({**slow, 'max_message_rate': 10.0})
+    assert config.buffer_capacity() == math.ceil((7200 + 0.55) * 10 * 2)
+    assert config.buffer_bytes() == 2 * config.buffer_capacity() * 32
+    assert config.window_samples == pytest.approx(72000)
+    # At the limits themselves: accepted.
+    edge = base.updated({'window': 5000.0, 'sample_time': 0.01, 'max_message_rate': 100.0})
+    assert edge.window_samples == pytest.approx(1_000_000)
+    assert base.updated({'update_period': 0.1}).update_period == 0.1

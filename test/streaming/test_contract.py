@@ -1,9 +1,11 @@
 """The node's output contract: names, status rule, message layouts."""
 
 from ctid_ros.errors import ConfigError, DataError, EstimationError
-from ctid_ros.streaming.contract import (diagnostics_message, ERROR, estimate_messages,
-                                         failure_status, format_diagnostic, multiarray,
-                                         NodeTopics, OK, resolve_topic, update_status, WARN)
+from ctid_ros.streaming.contract import (diagnostics_message, ERROR, estimate_line,
+                                         estimate_messages, failure_status, format_diagnostic,
+                                         LATCHED, matrix_multiarray, multiarray, NodeTopics, OK,
+                                         PublisherQos, resolve_topic, STREAM, update_status,
+                                         warm_up_text, WARN)
 import numpy as np
 import pytest
 
@@ -77,3 +79,43 @@ def test_messages_of_an_update():
 def test_diagnostic_values_keep_every_digit():
     assert format_diagnostic(1_700_000_000.123456789) == repr(1_700_000_000.123456789)
     assert format_diagnostic(np.int64(3)) == '3' and format_diagnostic(False) == 'false'
+
+
+def test_covariance_and_publisher_qos():
+    node = NodeTopics.of('/lab/ctid_node')
+    covariance = [[4.0, 0.5], [0.5, 1.0]]
+    messages = estimate_messages(node, ['K', 'T'], [2.0, 0.5], [2.0, 1.0],
+                                 covariance=covariance)
+    assert [message.topic for message in messages] == [
+        '/lab/ctid_node/estimate', '/lab/ctid_node/estimate_std',
+        '/lab/ctid_node/estimate_covariance', '/lab/ctid_node/params/K',
+        '/lab/ctid_node/params/T']
+    assert messages[2].fields == matrix_multiarray('K,T', covariance) == {
+        'layout': {'dim': [{'label': 'K,T', 'size': 2, 'stride': 4},
+                           {'label': 'K,T', 'size': 2, 'stride': 2}], 'data_offset': 0},
+        'data': [4.0, 0.5, 0.5, 1.0]}
+    # Every estimate topic is latched (late subscribers get the last one); the rest streams.
+    assert {message.qos for message in messages} == {LATCHED}
+    assert LATCHED == PublisherQos('reliable', 'transient_local', 1)
+    prediction = estimate_messages(node, ['K'], [1.0], prediction=[0.0, 1.0])[-1]
+    assert prediction.qos == STREAM == PublisherQos('reliable', 'volatile', 10)
+    assert diagnostics_message(node, 0, OK, '', {}).qos == STREAM
+    with pytest.raises(DataError, match='2 covariance rows for 3 parameter names'):
+        estimate_messages(node, ['K', 'T', 'tau'], [1.0] * 3, covariance=covariance)
+    with pytest.raises(DataError, match='square'):
+        matrix_multiarray('K', [1.0, 2.0])
+
+
+def test_hardware_id_and_texts_for_people():
+    node = NodeTopics.of()
+    status = diagnostics_message(node, 0, OK, '', {}, hardware_id='left_wheel_drive')
+    assert status.fields['status'][0]['hardware_id'] == 'left_wheel_drive'
+    assert diagnostics_message(node, 0, OK, '', {}).fields['status'][0]['hardware_id'] == \
+        'ctid_node'
+    assert estimate_line(['K', 'T'], [2.00131, 0.49981], [0.0031, 0.00121], 12.5, 95.34,
+                         'white') == ('t=12.50 s: K = 2.00131 +- 0.0031, T = 0.49981 +- '
+                                      '0.0012; fit 95.3 %; residuals white')
+    assert estimate_line(['K'], [2.0], [0.1], 3.0) == 't=3.00 s: K = 2 +- 0.1'
+    assert warm_up_text(6.43, 10.0, 5.0) == \
+        'warming up: 6.4 of 10 s of data (first estimate after 5 s)'
+    assert warm_up_text(6.43, 10.0) == 'warming up: 6.4 of 10 s of data'

@@ -5,13 +5,13 @@ import math
 from typing import ClassVar, List
 
 from ctid_ros.errors import ConfigError
-from ctid_ros.streaming.message_fields import (extract, message_fields, message_stamp,
-                                               parse_field_path)
+from ctid_ros.streaming.message_fields import (extract, extract_values, has_header_stamp, Key,
+                                               message_fields, message_stamp, parse_field_path)
 from geometry_msgs.msg import TwistStamped
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, Float64MultiArray
 
 
 @dataclass
@@ -62,11 +62,16 @@ def test_grammar_compiles_names_and_indices():
     assert str(path) == 'points[3].positions[1]'
     assert parse_field_path('pose.pose.position.z').steps == ('pose', 'pose', 'position', 'z')
     assert parse_field_path('data[0][12]').steps == ('data', 0, 12)
+    # A selector with a letter is a joint name; digits alone an index.
+    assert parse_field_path('position[wheel_left]').steps == ('position', Key('wheel_left'))
+    assert parse_field_path('effort[arm/joint-2.a:b]').steps == ('effort', Key('arm/joint-2.a:b'))
+    assert parse_field_path('position[2nd]').steps == ('position', Key('2nd'))
 
 
 @pytest.mark.parametrize('text', [
     '', ' ', 'a..b', '.a', 'a.', '_data', 'a._b', 'a.__class__', '__class__', 'a[-1]',
-    'a[x]', 'a[0', 'a]', '0a', 'a b', 'a.b()', 'a[0]b', 'a;b', "a['b']", 'a[1.5]', 'a-b',
+    'a[0', 'a]', '0a', 'a b', 'a.b()', 'a[0]b', 'a;b', "a['b']", 'a[1.5]', 'a-b', 'a[]',
+    'a[x y]', 'a[-]', 'a[x]]', 'a[[x]]', 'a[x)]', 'a[é]',
 ])
 def test_invalid_paths_are_refused_with_the_grammar(text):
     with pytest.raises(ConfigError, match='names joined by dots'):
@@ -199,3 +204,55 @@ def test_message_stamp():
     # An all-zero stamp means an unset header: the caller falls back to the receive time.
     assert message_stamp(joint_state([0.0], [0.0])) is None
     assert message_stamp(TwistStamped()) is None
+
+
+def named_joint_state(names, position, effort=()):
+    message = JointState()
+    message.name = list(names)
+    message.position = list(position)
+    message.effort = list(effort)
+    return message
+
+
+def test_joint_names_select_by_name_in_every_message_source():
+    names = ['arm', 'wheel_left', 'wheel_right']
+    rclpy_message = named_joint_state(names, [0.1, 0.2, 0.3], [1.0, 2.0, 3.0])
+    bag_message = BagJointState(Header(), names, np.array([0.1, 0.2, 0.3]), np.zeros(0),
+                                np.array([1.0, 2.0, 3.0]))
+    for message in (rclpy_message, bag_message):
+        assert extract(message, 'position[wheel_left]') == 0.2
+        assert extract(message, 'effort[wheel_right]') == 3.0
+        # An integer still indexes.
+        assert extract(message, 'position[0]') == 0.1
+        assert list(extract_values(message, ['effort[arm]', 'position[wheel_right]'])) == [
+            1.0, 0.3]
+    # The order may change from one message to the next: the name is looked up every time.
+    reordered = named_joint_state(['wheel_right', 'wheel_left', 'arm'], [3.0, 2.0, 1.0])
+    assert extract(reordered, 'position[wheel_left]') == 2.0
+    assert extract(reordered, 'position[arm]') == 1.0
+
+
+def test_joint_name_errors_list_the_names_seen():
+    message = named_joint_state(['arm', 'wheel_right'], [0.1, 0.2], [1.0])
+    with pytest.raises(ConfigError, match=r"field position\[wheel_left\]: no joint 'wheel_left' "
+                                          r'in name; names seen: arm, wheel_right'):
+        extract(message, 'position[wheel_left]')
+    with pytest.raises(ConfigError, match=r"index 1 \(of 'wheel_right'\) out of range for "
+                                          r'effort, an array of length 1'):
+        extract(message, 'effort[wheel_right]')
+    with pytest.raises(ConfigError, match=r'names seen: none \(empty\)'):
+        extract(JointState(), 'position[arm]')
+    many = named_joint_state([f'j{i}' for i in range(30)], [0.0] * 30)
+    with pytest.raises(ConfigError, match=r'names seen: j0, j1, .*, j19 and 10 more'):
+        extract(many, 'position[k]')
+    # No list of names next to the array: said so, with the fields there are.
+    with pytest.raises(ConfigError, match=r'selecting \[x\] by name needs a list of names '
+                                          r'\(name or joint_names\) next to data; available '
+                                          r'fields: layout, data'):
+        extract(Float64MultiArray(data=[1.0]), 'data[x]')
+
+
+def test_has_header_stamp():
+    assert has_header_stamp(joint_state([0.0], [0.0]))
+    assert has_header_stamp(bag_joint_state([0.0], [0.0]))
+    assert not has_header_stamp(Float64(data=1.0))

@@ -5,7 +5,10 @@ Recordings from replay_fixtures (simulated plants, 40 dB SNR); the ``ctid replay
 tested in test/cli/test_replay.py.
 """
 
+import json
+
 from bag_fixtures import build_message
+from ctid_ros.cli.main import main
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.buffer import resample
 from ctid_ros.streaming.config import IdentificationConfig
@@ -16,7 +19,7 @@ from ctid_ros.streaming.session import buffer_capacity, IdentificationSession
 import numpy as np
 import pytest
 from replay_fixtures import (FLOAT64, float_records, JOINT_STATE, joint_state_records, OPEN_LOOP,
-                             simulate, T0_NS, TS)
+                             params_file, simulate, T0_NS, TS, write_bag)
 from rosbags.typesys import get_typestore, Stores
 
 
@@ -118,3 +121,52 @@ def test_ticks_without_an_estimate_are_reported_with_their_status_level():
     for tick in replay.skipped:
         assert tick.level == WARN and tick.reason.startswith('not enough contiguous data')
     assert len(replay.updates) == 2
+
+
+@pytest.mark.parametrize('kind', ['sqlite3', 'mcap-file'])
+def test_joint_names_select_the_joint_in_a_recording(tmp_path, capsys, kind):
+    """Select one of three joints by name in JointStates that list them in a changing order."""
+    u, y = simulate(OPEN_LOOP, 20.0)
+    records = joint_state_records(u, y, latency_ns=2_000_000)
+    orders = (['wheel_right', 'joint', 'arm'], ['joint', 'arm', 'wheel_right'],
+              ['arm', 'wheel_right', 'joint'])
+    decoys = {'wheel_right': 5.0, 'arm': -3.0}
+    for k, record in enumerate(records):
+        names = orders[k % 3]
+        values = {'joint': (record.fields['position'][0], record.fields['effort'][0]), **{
+            name: (value, -value) for name, value in decoys.items()}}
+        record.fields.update(name=names, position=[values[name][0] for name in names],
+                             velocity=[0.0] * 3, effort=[values[name][1] for name in names])
+    bag = write_bag(tmp_path, records, kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]', stamp_source='header')
+    code = main(['replay', str(bag), '--params-file', str(params), '--json'])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert json.loads(out)['params'] == pytest.approx(OPEN_LOOP['truth'], rel=0.03)
+    # A joint that is not there: the names of the first message are listed.
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[wheel_left]', stamp_source='header')
+    code = main(['replay', str(bag), '--params-file', str(params)])
+    assert code != 0
+    assert "no joint 'wheel_left' in name; names seen: wheel_right, joint, arm" in \
+        capsys.readouterr().err
+
+
+def test_update_covariance_is_in_publishing_order():
+    u, y = simulate(OPEN_LOOP, 10.0)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    messages = [(record.topic, record.time_ns, build_message(typestore, FLOAT64, record.fields))
+                for record in float_records(u, y)]
+    config = IdentificationConfig(model=OPEN_LOOP['model'], input_topic='/plant/u',
+                                  output_topic='/plant/y', parameter_names=('k', 'm', 'd'),
+                                  lower=(0.0, 0.001, 0.0), upper=(1000.0, 100.0, 100.0))
+    (update,) = replay_messages(messages, config).updates
+    assert update.names == ('k', 'm', 'd')
+    assert update.covariance.shape == (3, 3)
+    np.testing.assert_allclose(np.sqrt(np.diag(update.covariance)), update.stds, rtol=1e-12)
+    model_order = update.result.model.parameters
+    assert update.covariance[0, 1] == update.result.covariance[model_order.index('k'),
+                                                               model_order.index('m')]

@@ -37,6 +37,7 @@ def test_one_topic_carrying_input_and_output():
     # A missing entry: counted by the node, raised by the replay; the output still comes.
     broken = sampler('/joint_states', T0_NS + 7, joint_state(0, [1.0], [4.0]))
     assert broken.stamp_ns == T0_NS + 7                 # unset header: the receive time
+    assert broken.zero_stamp and not sample.zero_stamp  # ... counted as a zero stamp
     assert broken.u is None and broken.y == 4.0
     assert [role for role, _ in broken.errors] == ['input']
     with pytest.raises(ConfigError, match=r'index 1 out of range'):
