@@ -20,7 +20,7 @@ from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 __all__ = ['DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_echo',
            'configure_fit', 'configure_fleet', 'configure_node', 'configure_record',
            'configure_replay', 'parse_bounds', 'parse_fixed', 'parse_initial', 'parse_interval',
-           'parse_range']
+           'parse_range', 'parse_units']
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
@@ -55,6 +55,11 @@ def parse_initial(text: str) -> Dict[str, float]:
 def parse_fixed(text: str) -> Dict[str, float]:
     """Parse ``--fix J=0.05,tau=0.03`` into ``{'J': 0.05, 'tau': 0.03}``."""
     return _values(text, '--fix')
+
+
+def parse_units(text: str) -> Dict[str, str]:
+    """Parse ``--units 'J=kg m^2,u=N m,y=rad/s'`` into ``{'J': 'kg m^2', ...}``."""
+    return _assignments(text, '--units')
 
 
 def parse_interval(text: str) -> Tuple[float, float]:
@@ -151,8 +156,12 @@ def configure_fit(fit: argparse.ArgumentParser) -> None:
     fit.add_argument('--json', action='store_true', help='print a JSON object instead of a table')
     fit.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
                      metavar='PNG',
-                     help='PNG of measured vs simulated output; also writes <stem>_bode.png. '
-                     'Without a value: <csv name>_fit.png in the current directory')
+                     help='PNG of measured vs simulated output and the residual; also writes '
+                     '<stem>_bode.png (the model over the response seen in the data). Without '
+                     'a value: <csv name>_fit.png in the current directory')
+    fit.add_argument('--units', type=parse_units, default=None, metavar='NAME=UNIT,...',
+                     help="units of parameters and signals on the figures' axes, e.g. "
+                     "'J=kg m^2,b=N m s/rad,u=N m,y=rad/s'")
 
 
 def configure_replay(parser: argparse.ArgumentParser) -> None:

@@ -139,14 +139,18 @@ def _summary(result: Estimate, order: Sequence[str], fixed: Dict[str, float]) ->
     return summary
 
 
-def _write_figures(path: Path, result: Estimate, data: Data) -> List[Path]:
+def _write_figures(path: Path, result: Estimate, data: Data, units: Dict[str, str]
+                   ) -> List[Path]:
     # matplotlib is needed (and loaded) only for figures.
-    from ctid_ros.cli.plots import bode, fit_figure
+    from ctid_ros.cli.plots import bode, fit_figure, measured_response
 
     fit_path, bode_path = fit_figure_paths(path)
-    times = data.t0 + data.ts * np.arange(len(data))
-    fit_figure(times, data.y, result.simulate(data), fit=result.fit, path=fit_path)
-    bode(result, max_omega=np.pi / data.ts, path=bode_path)
+    times = data.ts * np.arange(len(data))      # from the first sample (not epoch seconds)
+    output = result.model.output
+    fit_figure(times, data.y, result.simulate(data), fit=result.fit, ylabel=f'output {output}',
+               unit=units.get(output), path=fit_path)
+    bode(result, max_omega=np.pi / data.ts, measured=measured_response(result, data),
+         units=units, path=bode_path)
     return [fit_path, bode_path]
 
 
@@ -195,7 +199,7 @@ def run(arguments: argparse.Namespace) -> int:
                   f'({len(validation)} samples)')
     if plot is not None:
         try:
-            written = _write_figures(plot, result, estimation)
+            written = _write_figures(plot, result, estimation, arguments.units or {})
         except OSError as error:
             raise ConfigError(f'--plot {plot}: cannot write the figures: '
                               f'{error.strerror or error}') from None

@@ -38,7 +38,7 @@ from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
-from ctid_ros.streaming.params_file import load_params_file
+from ctid_ros.streaming.params_file import load_params_file, load_units
 from ctid_ros.streaming.replay import (Replay, replay_columns, replay_messages, SampleColumns,
                                        SkippedTick)
 from ctid_ros.streaming.session import buffer_capacity
@@ -124,7 +124,10 @@ def run(arguments: argparse.Namespace) -> int:
         from ctid_ros.cli.plots import write_replay_figures
 
         try:
-            written = write_replay_figures(plot, replay.updates, origin_ns, arguments.sliding)
+            written = write_replay_figures(
+                plot, replay.updates, origin_ns, arguments.sliding,
+                units=load_units(arguments.params_file, arguments.node_name),
+                transient=config.transient)
         except OSError as error:
             raise ConfigError(f'--plot {plot}: cannot write the figures: '
                               f'{error.strerror or error}') from None

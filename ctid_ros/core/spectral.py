@@ -7,8 +7,8 @@ windows, half overlapping, means removed) and the H1 estimate ``G = S_yu / S_uu`
 coherence ``|S_yu|² / (S_uu S_yy)`` that says where it can be believed (near 1: the output at
 that frequency is explained by the input; near 0: noise, or no excitation there). Frequencies
 run from the first bin above zero to the last below the Nyquist frequency (both are real bins,
-without a phase). The phase is unwrapped continuously
-from the lowest frequency, so a dead time shows as a steadily falling line.
+without a phase). The phase is unwrapped continuously from the lowest frequency along the
+coherent frequencies, so a dead time shows as a steadily falling line.
 
 Under feedback (the input computed from the noisy output) the H1 estimate is biased where the
 noise dominates the excitation: compare with the model where the coherence is high.
@@ -22,9 +22,11 @@ from scipy import signal
 
 __all__ = ['SpectralResponse', 'spectral_response']
 
-# Fewest samples per segment, and the number of segments aimed at (more: smoother, coarser).
+# Fewest samples per segment, and the record over the segment length (a quarter of the record:
+# seven half-overlapping segments; longer segments resolve lower frequencies, more of them give
+# a smoother estimate).
 MIN_SEGMENT = 64
-SEGMENTS = 8
+SEGMENTS = 4
 
 
 @dataclass(frozen=True)
@@ -55,14 +57,25 @@ class SpectralResponse:
         """Return the magnitude in dB."""
         return 20.0 * np.log10(np.abs(self.response))
 
-    def phase_deg(self, start: Optional[float] = None) -> np.ndarray:
+    def phase_deg(self, start: Optional[float] = None, coherent: float = 0.5) -> np.ndarray:
         """
         Return the phase in degrees, unwrapped from the lowest frequency upwards.
 
-        ``start`` (degrees) chooses the branch: the phase at the lowest frequency is moved by
-        whole turns to lie within half a turn of it (e.g. a model's phase there).
+        The phase is unwrapped along the frequencies whose coherence is at least ``coherent``
+        (noise elsewhere would add or lose whole turns); every other frequency is put within
+        half a turn of the phase interpolated between them. ``start`` (degrees) chooses the
+        branch: the phase at the lowest frequency is moved by whole turns to lie within half a
+        turn of it (e.g. a model's phase there).
         """
-        phase = np.degrees(np.unwrap(np.angle(self.response)))
+        angle = np.angle(self.response)
+        trusted = self.coherence >= coherent
+        if np.count_nonzero(trusted) < 2:
+            trusted = np.ones_like(trusted)
+        phase = np.empty_like(angle)
+        phase[trusted] = np.unwrap(angle[trusted])
+        between = np.interp(self.omega[~trusted], self.omega[trusted], phase[trusted])
+        phase[~trusted] = between + np.angle(np.exp(1j * (angle[~trusted] - between)))
+        phase = np.degrees(phase)
         if start is not None and phase.size:
             phase = phase - 360.0 * np.round((phase[0] - start) / 360.0)
         return phase
@@ -79,7 +92,7 @@ def spectral_response(u, y, ts: float, segment: Optional[int] = None) -> Spectra
     ts : float
         Sample time in seconds.
     segment : int, optional
-        Samples per segment; default about an eighth of the record, a power of two, at least
+        Samples per segment; default about a quarter of the record, a power of two, at least
         64 (and at most the record).
 
     Returns

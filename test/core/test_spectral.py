@@ -22,7 +22,7 @@ def record(noise: float, samples: int = 8192):
 def test_the_estimate_follows_the_plant_where_the_coherence_is_high():
     model, params, u, y = record(0.01)
     estimate = spectral_response(u, y, TS)
-    assert estimate.segment == 512 and estimate.omega[-1] < np.pi / TS
+    assert estimate.segment == 1024 and estimate.omega[-1] < np.pi / TS
     # The exact response of the sampled plant under a held input: the transform of its
     # response to a one-sample pulse.
     pulse = model.simulate(params, np.eye(1, 4096)[0], TS)
@@ -46,7 +46,7 @@ def test_the_phase_of_a_dead_time_falls_steadily_without_wrapping():
     last = estimate.omega[-1]
     expected = -np.degrees(np.arctan(last * params['T']) + last * (params['tau'] + TS / 2))
     assert expected < -800 and phase[-1] == pytest.approx(expected, abs=30.0)
-    assert np.all(np.diff(phase[estimate.coherence > 0.5]) < 20.0)
+    assert np.all(np.diff(phase[estimate.coherence > 0.5]) < 90.0)
 
 
 def test_noise_lowers_the_coherence_and_bad_arguments_are_refused():

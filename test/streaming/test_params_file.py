@@ -44,6 +44,10 @@ def test_example_files_load(name, checks):
     # An empty list cannot be typed by ROS 2: such a parameter is shown commented out.
     empty = [name for name in PARAMETER_NAMES if name not in section]
     assert empty == ['extra_input_fields'] and '    # extra_input_fields: [' in text
+    # The figures' units (wheel_demo) come last: no parameter of the node.
+    units = section.pop('units', None)
+    assert units is None or (tuple(yaml.safe_load(text)['ctid_node']['ros__parameters'])[-1]
+                             == 'units' and load_units(path) == units)
     assert tuple(section) == tuple(name for name in PARAMETER_NAMES if name in section)
     for parameter in PARAMETER_NAMES:
         line = text.index(f'    {parameter}:') if parameter in section else \
