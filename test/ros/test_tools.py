@@ -117,12 +117,14 @@ def test_echo_follows_a_running_node(tmp_path, capsys):
                              f'{space}/ctid_node', '--json'], stdout=subprocess.PIPE, text=True)
     try:
         # JSON lines as the node works: statuses while it warms up, then estimates. The first
-        # windows are short (most of their data settle the model's state): wait for a full one.
+        # windows are short (most of their data settle the model's state): take the first
+        # estimate a whole window (6 s) after the first one.
         rows = []
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             rows.append(json.loads(echo.stdout.readline()))
-            if rows[-1]['params'] and (rows[-1]['fit'] or 0) > 95:
+            first = next((row['time'] for row in rows if row['params'] and row['time']), None)
+            if rows[-1]['params'] and rows[-1]['time'] and rows[-1]['time'] - first >= 6.0:
                 break
         row = rows[-1]
         assert row['node'] == f'{space}/ctid_node' and list(row['params']) == ['K', 'T', 'tau']
