@@ -36,6 +36,9 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'bench']),
+    # The packages sit in the project directory: an editable install then adds it to sys.path
+    # (a .pth line) instead of setuptools' import hook, which warns about shadowing folders.
+    package_dir={'': '.'},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
@@ -60,7 +63,6 @@ setup(
     maintainer_email='ctid-ros@users.noreply.github.com',
     description='Continuous-time grey-box system identification for ROS 2',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'ctid = ctid_ros.cli.main:main',

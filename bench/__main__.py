@@ -13,6 +13,7 @@ from typing import Callable, Dict, List, Optional
 
 # name -> (module, arguments of its main); the JSON results land next to the benchmarks.
 BENCHMARKS: Dict[str, List[str]] = {
+    'cli_startup': [],
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
     'stamps': [],

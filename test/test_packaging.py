@@ -17,7 +17,8 @@ PYTHON = {
     'rosbags': ('python3-rosbags-pip', 'rosbags'), 'mcap': ('mcap-ros2-support', 'mcap'),
     'mcap_ros2': ('mcap-ros2-support', 'mcap-ros2-support'),
     'threadpoolctl': (None, 'threadpoolctl'),
-    'zstandard': ('python3-zstandard', 'zstandard'), 'lz4': ('python3-lz4', 'lz4'),
+    # No rosdep keys (ros/rosdistro rosdep/python.yaml and base.yaml): pip only.
+    'zstandard': (None, 'zstandard'), 'lz4': (None, 'lz4'),
     # ctid fleet (pip only: no rosdep keys).
     'distributed': (None, 'distributed'), 'pyarrow': (None, 'pyarrow'),
 }
@@ -78,3 +79,21 @@ def test_every_import_is_a_declared_dependency():
     distributions = {PYTHON[name][1] for name in imported if name in PYTHON}
     assert distributions <= setup_requirements(), sorted(distributions - setup_requirements())
     assert {'geometry_msgs', 'sensor_msgs', 'rcl_interfaces'} <= ros
+
+
+def test_ament_python_layout_that_colcon_needs():
+    """What colcon's ament_python build reads (``make colcon-check`` builds and tests for real)."""
+    root = ElementTree.parse(REPOSITORY / 'package.xml').getroot()
+    assert root.get('format') == '3' and root.findtext('name') == 'ctid_ros'
+    assert root.find('export').findtext('build_type') == 'ament_python'
+    marker = REPOSITORY / 'resource' / 'ctid_ros'
+    assert marker.is_file() and marker.read_bytes().strip() == b''
+    config = (REPOSITORY / 'setup.cfg').read_text(encoding='utf-8')
+    assert 'script_dir=$base/lib/ctid_ros' in config
+    assert 'install_scripts=$base/lib/ctid_ros' in config
+    setup = (REPOSITORY / 'setup.py').read_text(encoding='utf-8')
+    for entry in ("('share/ament_index/resource_index/packages', ['resource/' + PACKAGE])",
+                  "('share/' + PACKAGE, ['package.xml'])",
+                  "('share/' + PACKAGE + '/config', glob('config/*.yaml'))"):
+        assert entry in setup, entry
+    assert 'tests_require' not in setup     # setuptools warns about it on every install

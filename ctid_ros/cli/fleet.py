@@ -35,42 +35,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-__all__ = ['configure_parser', 'run', 'run_fleet']
+__all__ = ['run', 'run_fleet']
 
 PARTS = 'parts'
 _IDENTITY = ('path', 'size', 'mtime_ns', 'params_sha256', 'sliding')
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ctid fleet`` arguments to ``parser``."""
-    parser.description = ('Estimate on every bag of a fleet (rosbag2 directories, .mcap and '
-                          '.db3 files), each bag a task on Dask distributed; results and a '
-                          'fleet report as Parquet, CSV and PNG in --results.')
-    parser.add_argument('paths', nargs='+', metavar='PATH_OR_GLOB',
-                        help="bags, directories holding bags, or globs ('fleet/**/*.mcap')")
-    parser.add_argument('--params-file', required=True, help='ROS 2 params YAML of the node')
-    parser.add_argument('--results', required=True, type=Path, metavar='DIR',
-                        help='directory for bags.parquet, windows.parquet, robots.parquet, '
-                        'robots.csv and the figures (created; finished bags are skipped)')
-    parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
-                        help='node section of the params file')
-    parser.add_argument('--robot-from', default=None, metavar='PATTERN',
-                        help="robot id (and other fields) from each bag's path relative to the "
-                        "common root, e.g. '{robot}/{date}/*.mcap'; default the first "
-                        'directory')
-    parser.add_argument('--sliding', action='store_true',
-                        help='estimate every update_period as the live node does; one row per '
-                        'window in windows.parquet')
-    parser.add_argument('--workers', type=int, default=None, metavar='N',
-                        help='worker processes of the local Dask cluster (default: the cores)')
-    parser.add_argument('--scheduler', default=None, metavar='ADDRESS',
-                        help='use an existing Dask cluster, e.g. tcp://host:8786')
-    parser.add_argument('--threads', action='store_true',
-                        help='run the local cluster in this process (threads, no worker '
-                        'processes)')
-    parser.add_argument('--rerun', action='store_true',
-                        help='recompute bags whose results are already in --results')
-    parser.add_argument('--no-plots', action='store_true', help='write no figures')
 
 
 def run(arguments: argparse.Namespace) -> int:

@@ -1,44 +1,82 @@
 """
 The ``ctid`` command: one subcommand per module of this package.
 
-Each command module (:mod:`~ctid_ros.cli.fit`, :mod:`~ctid_ros.cli.replay`,
-:mod:`~ctid_ros.cli.node`) offers ``configure_parser(parser)`` and ``run(arguments) -> int`` and
-is imported only when its command runs (the node needs rclpy, replay the bag readers).
+The arguments of every command are in :mod:`~ctid_ros.cli.arguments`, which imports nothing
+heavy, so ``ctid --help`` and ``ctid <command> --help`` start fast. The module that runs the
+chosen command (:mod:`~ctid_ros.cli.fit`, :mod:`~ctid_ros.cli.replay`, ...: ``run(arguments) ->
+int``) is imported only once its command line has been parsed; the libraries it needs come
+with it (sympy and scipy for an estimate, rclpy for the node, the bag readers for a replay).
 
 Exit status and error output: 0 on success; 2 with one line ``ctid <command>: error: ...`` for
 every user error (a :class:`~ctid_ros.errors.CtidError`; a model error adds the model text with
-a caret under the column) and for a wrong command line (argparse); 1 with one line ``ctid
-<command>: internal error: <type>: ...`` for anything else, which is a bug of ctid_ros: its
-traceback is printed only with ``ctid --debug`` or ``CTID_DEBUG=1`` in the environment. 130 on
-Ctrl-C.
+a caret under the column; an optional dependency that is not installed) and for a wrong command
+line (argparse); 1 with one line ``ctid <command>: internal error: <type>: ...`` for anything
+else, which is a bug of ctid_ros: its traceback is printed only with ``ctid --debug`` or
+``CTID_DEBUG=1`` in the environment. 130 on Ctrl-C.
 """
 
 import argparse
 import importlib
 import os
 import sys
-from typing import List, Optional
+from typing import Callable, Dict, List, NamedTuple, Optional
 
+from ctid_ros.cli import arguments as command_lines
 from ctid_ros.errors import CtidError, ModelError
 
-__all__ = ['DEBUG_VARIABLE', 'build_parser', 'error_text', 'main']
+__all__ = ['COMMANDS', 'Command', 'DEBUG_VARIABLE', 'build_parser', 'error_text', 'main']
 
 # Set to 1 (or use ctid --debug) to get the traceback of an internal error.
 DEBUG_VARIABLE = 'CTID_DEBUG'
 # Characters of an error message printed (a message may quote a long value or listing).
 _MESSAGE_LIMIT = 2000
 
-_MODULE_COMMANDS = {
-    'fit': ('ctid_ros.cli.fit', 'estimate a model from a CSV file'),
-    'replay': ('ctid_ros.cli.replay', 'estimate from a rosbag2 directory or an MCAP file'),
-    'node': ('ctid_ros.cli.node', 'run the live identification node (same as ctid_node)'),
-    'fleet': ('ctid_ros.cli.fleet', 'estimate on every bag of a fleet with Dask; Parquet '
-              'results and a fleet report'),
+
+class Command(NamedTuple):
+    """
+    One subcommand of ``ctid``.
+
+    Attributes
+    ----------
+    summary : str
+        One line for ``ctid --help``.
+    configure : callable
+        Adds the command's arguments to its parser (:mod:`~ctid_ros.cli.arguments`).
+    module : str
+        The module whose ``run(arguments) -> int`` runs the command, imported only then.
+    ros_arguments : bool
+        Whether arguments the parser does not know pass through to ROS (``--ros-args ...``).
+
+    """
+
+    summary: str
+    configure: Callable[[argparse.ArgumentParser], None]
+    module: str
+    ros_arguments: bool = False
+
+
+COMMANDS: Dict[str, Command] = {
+    'fit': Command('estimate a model from a CSV file', command_lines.configure_fit,
+                   'ctid_ros.cli.fit'),
+    'replay': Command('estimate from a rosbag2 directory or an MCAP file',
+                      command_lines.configure_replay, 'ctid_ros.cli.replay'),
+    'node': Command('run the live identification node (same as ctid_node)',
+                    command_lines.configure_node, 'ctid_ros.cli.node', ros_arguments=True),
+    'echo': Command("print a running node's estimates as a live table (ros2 topic echo)",
+                    command_lines.configure_echo, 'ctid_ros.cli.echo'),
+    'record': Command('record live topics into an MCAP file (ros2 bag record)',
+                      command_lines.configure_record, 'ctid_ros.cli.record'),
+    'fleet': Command('estimate on every bag of a fleet with Dask; Parquet results and a fleet '
+                     'report', command_lines.configure_fleet, 'ctid_ros.cli.fleet'),
 }
 
+# The pip extra that provides each optional dependency, for the message when it is missing.
+_EXTRAS = {'rclpy': 'ros', 'rosbags': 'bag', 'mcap': 'bag', 'mcap_ros2': 'bag', 'tqdm': 'bag',
+           'matplotlib': 'plot', 'dask': 'fleet', 'distributed': 'fleet', 'pyarrow': 'fleet'}
 
-def build_parser(argv: Optional[List[str]] = None) -> argparse.ArgumentParser:
-    """Return the ``ctid`` argument parser with its subcommands."""
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the ``ctid`` argument parser with the arguments of every subcommand."""
     parser = argparse.ArgumentParser(
         prog='ctid', description='Continuous-time grey-box identification (ctid_ros).',
         epilog=f'Exit status: 0 success, 2 user error (one line), 1 internal error (a bug; its '
@@ -46,14 +84,21 @@ def build_parser(argv: Optional[List[str]] = None) -> argparse.ArgumentParser:
     parser.add_argument('--debug', action='store_true',
                         help='print the traceback of an internal error')
     subparsers = parser.add_subparsers(dest='command', required=True)
-    command = next((item for item in argv or [] if not item.startswith('-')), None)
-    for name, (module_name, summary) in _MODULE_COMMANDS.items():
-        subparser = subparsers.add_parser(name, help=summary, description=summary)
-        if command == name:
-            module = importlib.import_module(module_name)
-            module.configure_parser(subparser)
-            subparser.set_defaults(run=module.run)
+    for name, command in COMMANDS.items():
+        command.configure(subparsers.add_parser(name, help=command.summary,
+                                                description=command.summary))
     return parser
+
+
+def _missing_dependency(error: ImportError) -> str:
+    """Return what to install for an optional dependency that could not be imported."""
+    module = (error.name or '').split('.')[0]
+    extra = _EXTRAS.get(module)
+    if extra is None:
+        return f'cannot import {module or error}: {error}'
+    hint = ' or source a ROS 2 installation' if extra == 'ros' else ''
+    return (f'this command needs {module}, which is not installed: pip install '
+            f"'ctid_ros[{extra}]'{hint}")
 
 
 def error_text(error: BaseException) -> str:
@@ -76,14 +121,20 @@ def error_text(error: BaseException) -> str:
 def main(argv: Optional[List[str]] = None) -> int:
     """Entry point of the ``ctid`` command."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(argv)
+    parser = build_parser()
     arguments, unknown = parser.parse_known_args(argv)
-    if unknown and arguments.command != 'node':
+    command = COMMANDS[arguments.command]
+    if unknown and not command.ros_arguments:
         parser.error(f'unrecognized arguments: {" ".join(unknown)}')
     arguments.ros_arguments = unknown
     prefix = f'ctid {arguments.command}'
     try:
-        return arguments.run(arguments)
+        return importlib.import_module(command.module).run(arguments)
+    except ImportError as error:
+        if (error.name or '').split('.')[0] not in _EXTRAS:
+            return _internal_error(prefix, arguments, error)
+        print(f'{prefix}: error: {_missing_dependency(error)}', file=sys.stderr)
+        return 2
     except CtidError as error:
         print(f'{prefix}: error: {error_text(error)}', file=sys.stderr)
         return 2
@@ -96,13 +147,18 @@ def main(argv: Optional[List[str]] = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 1
     except Exception as error:  # the last resort: a bug, reported on one line
-        if arguments.debug or os.environ.get(DEBUG_VARIABLE, '') not in ('', '0'):
-            raise
-        name = type(error).__name__
-        print(f'{prefix}: internal error: {name}: {error_text(error)} (a bug in ctid_ros; '
-              f'run with ctid --debug or {DEBUG_VARIABLE}=1 for the traceback, and report it)',
-              file=sys.stderr)
-        return 1
+        return _internal_error(prefix, arguments, error)
+
+
+def _internal_error(prefix: str, arguments: argparse.Namespace, error: Exception) -> int:
+    """Report a bug on one line and return 1, or raise it again for ``--debug``."""
+    if arguments.debug or os.environ.get(DEBUG_VARIABLE, '') not in ('', '0'):
+        raise error
+    name = type(error).__name__
+    print(f'{prefix}: internal error: {name}: {error_text(error)} (a bug in ctid_ros; '
+          f'run with ctid --debug or {DEBUG_VARIABLE}=1 for the traceback, and report it)',
+          file=sys.stderr)
+    return 1
 
 
 if __name__ == '__main__':

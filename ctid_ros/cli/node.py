@@ -3,28 +3,20 @@
 
 ``ctid node open_loop_delay`` is ``ctid_node --ros-args --params-file
 <share>/config/open_loop_delay.yaml``; further ROS arguments (``--ros-args -r __ns:=/plant1``)
-pass through. rclpy is imported only when the command runs.
+pass through. This module (and with it rclpy) is imported only when the command runs.
 """
 
 import argparse
 
+from ctid_ros.ros.node import main
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 from ctid_ros.streaming.params_file import find_config
 
-__all__ = ['configure_parser', 'run']
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ctid node`` arguments; ROS arguments (``--ros-args ...``) pass through."""
-    parser.add_argument('config', nargs='?', default=None,
-                        help='params file or name of an example configuration (e.g. '
-                        'open_loop_delay); same as --ros-args --params-file FILE')
+__all__ = ['run']
 
 
 def run(arguments: argparse.Namespace) -> int:
     """Run the node for ``ctid node``."""
-    from ctid_ros.ros.node import main
-
     ros_arguments = list(getattr(arguments, 'ros_arguments', None) or [])
     if arguments.config:
         ros_arguments = ['--ros-args', '--params-file', str(find_config(arguments.config)),

@@ -6,28 +6,72 @@ Every function builds a :class:`matplotlib.figure.Figure` on its own Agg canvas 
 anybody else in the process. Pass ``path`` to also write a PNG; the figure is returned either
 way, for further editing or embedding. :func:`write_replay_figures` draws the set that
 ``ctid replay --plot`` writes.
+
+Every axis says what it shows and in which unit: seconds, rad/s, dB, degrees, and for
+parameters and signals the units of a ``units`` mapping (``{'J': 'kg m^2', 'u': 'N m', 'y':
+'rad/s'}``, from the params file or ``ctid fit --units``); a name without a unit is shown
+without one.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import os
 from pathlib import Path
-from typing import Callable, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Callable, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core.model import Model
-from ctid_ros.errors import ModelError
+from ctid_ros.core.spectral import spectral_response, SpectralResponse
+from ctid_ros.errors import ConfigError, ModelError
 from ctid_ros.estimation.estimate import Estimate
+from ctid_ros.estimation.problem import settling_time
 from ctid_ros.streaming.contract import NANOSECONDS
 from ctid_ros.streaming.session import Update
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
 
-__all__ = ['BodeData', 'bode', 'bode_data', 'default_omega', 'fit_figure', 'parameters_figure',
-           'replay_figure_paths', 'residual_figure', 'write_replay_figures']
+__all__ = ['BodeData', 'COHERENT', 'bode', 'bode_data', 'check_figure_paths', 'default_omega',
+           'fit_figure', 'label', 'measured_response', 'parameters_figure', 'replay_figure_paths',
+           'residual_figure', 'transient_seconds', 'without_hold', 'write_replay_figures']
 
 PathLike = Union[str, os.PathLike]
 # A constant truth per parameter, or a function of time (s) returning each parameter's values.
 Truth = Union[Mapping[str, float], Callable[[np.ndarray], Mapping[str, np.ndarray]]]
+Units = Optional[Mapping[str, str]]
+# Coherence from which the data's frequency response is drawn dark (believable).
+COHERENT = 0.5
+
+
+_FIGURE_SUFFIXES = ('', '.png', '.pdf', '.svg')
+
+
+def check_figure_paths(path: Path, figures: Iterable[Path], inputs: Iterable[Path]) -> None:
+    """
+    Check, before anything is estimated, that the figures of ``--plot path`` can be written.
+
+    Raises
+    ------
+    ConfigError
+        If a figure would be written into or over one of the ``inputs`` (a bag directory, the
+        params file, a CSV, an ``--output`` file), into a missing or unwritable directory, over
+        a directory, or in a format other than PNG, PDF or SVG.
+
+    """
+    if path.suffix.lower() not in _FIGURE_SUFFIXES:
+        raise ConfigError(f'--plot {path}: give a .png, .pdf or .svg file')
+    sources = [Path(item).resolve() for item in inputs]
+    for figure in figures:
+        target = figure.resolve()
+        for source in sources:
+            if target == source or source in target.parents:
+                raise ConfigError(f'--plot {path} would write {figure} into or over the input '
+                                  f'{source}; choose a path outside it')
+        if not target.parent.is_dir():
+            raise ConfigError(f'--plot {path}: directory {target.parent} does not exist')
+        if target.is_dir():
+            raise ConfigError(f'--plot {path}: {figure} is a directory')
+        if not os.access(target.parent, os.W_OK) or (
+                target.exists() and not os.access(target, os.W_OK)):
+            raise ConfigError(f'--plot {path}: {figure} cannot be written (permission denied)')
 
 
 def _new_figure(width: float, height: float) -> Figure:
@@ -42,12 +86,20 @@ def _finish(figure: Figure, path: Optional[PathLike]) -> Figure:
     return figure
 
 
+def label(name: str, units: Units = None, what: str = '') -> str:
+    """Return an axis label, ``'J (kg m^2)'`` or ``'output y (rad/s)'``; without a unit ``'J'``."""
+    text = f'{what} {name}'.strip()
+    unit = (units or {}).get(name)
+    return f'{text} ({unit})' if unit else text
+
+
 def fit_figure(time: Sequence[float], measured: Sequence[float], simulated: Sequence[float], *,
                fit: Optional[float] = None, ylabel: str = 'output y',
-               title: str = 'Measured vs. simulated output',
+               title: str = 'Measured vs. simulated output', transient: float = 0.0,
+               unit: Optional[str] = None, verdict: Optional[str] = None,
                path: Optional[PathLike] = None) -> Figure:
     """
-    Plot the measured output against the identified model's simulated output.
+    Plot the measured output against the identified model's, with the residual below.
 
     Parameters
     ----------
@@ -58,27 +110,77 @@ def fit_figure(time: Sequence[float], measured: Sequence[float], simulated: Sequ
     fit : float, optional
         Normalised fit in percent, shown in the title and legend.
     ylabel, title : str
-        Axis label (with unit if known) and figure title.
+        What the output is, and the figure title.
+    transient : float
+        Seconds at the start that were simulated but not fitted (the settling of a window cut
+        from a running plant): shaded in both panels.
+    unit : str, optional
+        Unit of the output, added to both vertical axes.
+    verdict : str, optional
+        What the residual analysis says of the residual (whiteness, correlation with the
+        input), shown over the residual panel.
     path : str or os.PathLike, optional
         Where to write a PNG.
 
     Returns
     -------
     Figure
-        One axes.
+        Two axes sharing the time axis: the outputs above, measured minus simulated below.
 
     """
-    figure = _new_figure(9.0, 4.0)
-    axes = figure.add_subplot()
-    axes.plot(time, measured, color='0.6', linewidth=2.5, alpha=0.7, label='measured')
-    label = 'simulated' if fit is None else f'simulated (fit {fit:.1f} %)'
-    axes.plot(time, simulated, color='tab:blue', linewidth=1.0, label=label)
-    axes.set_xlabel('time (s)')
-    axes.set_ylabel(ylabel)
-    axes.set_title(title if fit is None else f'{title}: fit {fit:.1f} %')
-    axes.grid(True, alpha=0.3)
-    axes.legend(loc='best')
+    time = np.asarray(time, dtype=float)
+    measured = np.asarray(measured, dtype=float)
+    simulated = np.asarray(simulated, dtype=float)
+    residual = measured - simulated
+    figure = _new_figure(9.0, 5.6)
+    top, bottom = figure.subplots(2, 1, sharex=True, gridspec_kw={'height_ratios': [3, 1.6]})
+    fitted = time >= time[0] + transient - 1e-12 if time.size else time.astype(bool)
+    for axes in (top, bottom):
+        if transient > 0 and time.size:
+            axes.axvspan(time[0], time[0] + transient, color='0.85', alpha=0.6, linewidth=0,
+                         label=f'first {transient:.3g} s simulated, not fitted')
+        axes.grid(True, alpha=0.3)
+    top.plot(time, measured, color='0.6', linewidth=2.5, alpha=0.7, label='measured')
+    label_text = 'simulated' if fit is None else f'simulated (fit {fit:.1f} %)'
+    top.plot(time, simulated, color='tab:blue', linewidth=1.0, label=label_text)
+    top.set_ylabel(f'{ylabel} ({unit})' if unit else ylabel)
+    top.set_title(title if fit is None else f'{title}: fit {fit:.1f} %')
+    top.legend(loc='best', fontsize='small')
+    rms = float(np.sqrt(np.mean(residual[fitted] ** 2))) if np.any(fitted) else float('nan')
+    bottom.plot(time, residual, color='tab:red', linewidth=0.8,
+                label=f'measured - simulated (RMS {rms:.3g} where fitted)')
+    bottom.axhline(0.0, color='0.4', linewidth=0.6)
+    bottom.set_ylabel(f'residual ({unit})' if unit else 'residual')
+    bottom.set_xlabel('time (s)')
+    bottom.legend(loc='upper right', fontsize='small')
+    if verdict:
+        bottom.set_title(_wrapped(f'residual: {verdict}', 110), fontsize=9)
     return _finish(figure, path)
+
+
+def _wrapped(text: str, width: int) -> str:
+    """Return ``text`` broken into lines of at most about ``width`` characters."""
+    lines = ['']
+    for word in text.split():
+        if lines[-1] and len(lines[-1]) + len(word) >= width:
+            lines.append(word)
+        else:
+            lines[-1] = f'{lines[-1]} {word}'.strip()
+    return '\n'.join(lines)
+
+
+def transient_seconds(result: Estimate, samples: int, ts: float, transient: float) -> float:
+    """
+    Return the seconds at the start of a record that ``result`` simulated but did not fit.
+
+    ``transient`` is what the estimate was asked for: seconds, or negative for automatic (five
+    slowest time constants plus the dead time of the estimate, at most half the record).
+    """
+    if transient >= 0:
+        seconds = transient
+    else:
+        seconds = settling_time(result.model.coefficients(result.params))
+    return float(min(np.ceil(seconds / ts - 1e-9), samples // 2) * ts)
 
 
 def _truth_values(truth: Optional[Truth], names: Sequence[str], time: np.ndarray
@@ -92,7 +194,7 @@ def _truth_values(truth: Optional[Truth], names: Sequence[str], time: np.ndarray
 
 
 def parameters_figure(times: Sequence[float], names: Sequence[str], values: np.ndarray,
-                      stds: np.ndarray, *, truth: Optional[Truth] = None,
+                      stds: np.ndarray, *, truth: Optional[Truth] = None, units: Units = None,
                       path: Optional[PathLike] = None) -> Figure:
     """
     Plot each parameter estimate over time with its ±2σ confidence band.
@@ -109,6 +211,8 @@ def parameters_figure(times: Sequence[float], names: Sequence[str], values: np.n
     truth : mapping or callable, optional
         ``{name: value}``, or a function of a time array returning ``{name: values}`` (for a
         parameter that drifts); drawn dashed.
+    units : mapping, optional
+        Unit of each parameter, on its axis.
     path : str or os.PathLike, optional
         Where to write a PNG.
 
@@ -132,7 +236,7 @@ def parameters_figure(times: Sequence[float], names: Sequence[str], values: np.n
                   label='estimate')
         if name in truths:
             axes.plot(dense, truths[name], '--', color='black', linewidth=1.2, label='truth')
-        axes.set_ylabel(name)
+        axes.set_ylabel(label(name, units))
         axes.grid(True, alpha=0.3)
         axes.legend(loc='best', fontsize='small')
     panels[0].set_title('Parameter estimates with ±2σ confidence bands')
@@ -196,8 +300,36 @@ def default_omega(model: Model, params: Mapping[str, float], points: int = 300,
 
 def _response(model: Model, params: Mapping[str, float], omega: np.ndarray
               ) -> Tuple[np.ndarray, np.ndarray]:
-    response = model.frequency_response(params, omega)
-    return 20 * np.log10(np.abs(response)), np.degrees(np.unwrap(np.angle(response)))
+    """
+    Return magnitude (dB) and phase (degrees) of the model at ``omega``.
+
+    The phase of the rational part is unwrapped from the lowest frequency, on the branch of its
+    low-frequency asymptote (0 or -180 degrees for a gain, -90 per integrator, +90 per zero at
+    the origin), and the dead
+    time's phase ``-omega tau`` is added exactly: a steadily falling line however far it goes,
+    never wrapped into saw-teeth.
+    """
+    num, den, delay = model.transfer_function(params)
+    s = 1j * omega
+    rational = np.polyval(num, s) / np.polyval(den, s)
+    phase = np.unwrap(np.angle(rational))
+    if phase.size:
+        phase = phase - 2 * np.pi * np.round((phase[0] - _low_frequency_phase(num, den)) /
+                                             (2 * np.pi))
+    return 20 * np.log10(np.abs(rational)), np.degrees(phase - omega * delay)
+
+
+def _low_frequency_phase(num: np.ndarray, den: np.ndarray) -> float:
+    """Return the phase (rad) of ``num/den`` as omega goes to 0: of ``c s^k`` (zeros - poles)."""
+    def trailing(coefficients: np.ndarray) -> Tuple[int, float]:
+        nonzero = np.flatnonzero(np.asarray(coefficients) != 0)
+        last = nonzero[-1] if nonzero.size else 0
+        return len(coefficients) - 1 - last, float(coefficients[last]) if nonzero.size else 1.0
+
+    zeros, num_low = trailing(num)
+    poles, den_low = trailing(den)
+    # A negative gain lags by half a turn (as a phase margin is read), not leads.
+    return float((-np.pi if num_low / den_low < 0 else 0.0) + (zeros - poles) * np.pi / 2)
 
 
 def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 100,
@@ -261,11 +393,15 @@ def bode_data(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: in
 def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 100,
          seed: int = 0, percentiles: Tuple[float, float] = (5.0, 95.0),
          closed_loop: bool = False, max_omega: Optional[float] = None,
+         measured: Optional[SpectralResponse] = None, units: Units = None,
          path: Optional[PathLike] = None) -> Figure:
     """
     Plot the Bode diagram of an identified model with its uncertainty band.
 
-    The arguments are those of :func:`bode_data`; ``path`` writes a PNG.
+    The arguments are those of :func:`bode_data`; ``measured`` adds the frequency response seen
+    in the data alone (:func:`~ctid_ros.core.spectral.spectral_response`, as MATLAB's ``spa``),
+    dark where its coherence is at least :data:`COHERENT`; ``units`` (of the model's input and
+    output) label the magnitude; ``path`` writes a PNG.
 
     Returns
     -------
@@ -273,6 +409,11 @@ def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 1
         Two axes: magnitude (dB) above phase (degrees), over rad/s.
 
     """
+    if omega is None and measured is not None and measured.omega.size:
+        model = _plotted_model(result, closed_loop)
+        default = default_omega(model, result.params, max_omega=max_omega)
+        omega = np.logspace(np.log10(min(default[0], measured.omega[0])),
+                            np.log10(max(default[-1], measured.omega[-1])), default.size)
     data = bode_data(result, omega, draws=draws, seed=seed, percentiles=percentiles,
                      closed_loop=closed_loop, max_omega=max_omega)
     model = _plotted_model(result, closed_loop)
@@ -291,6 +432,13 @@ def bode(result: Estimate, omega: Optional[np.ndarray] = None, *, draws: int = 1
         axes.semilogx(data.omega, nominal, color='tab:blue', label='estimate')
         axes.set_ylabel(unit)
         axes.grid(True, which='both', alpha=0.3)
+    if measured is not None and measured.omega.size:
+        _measured(top, bottom, measured, data.phase_deg, data.omega)
+    output, source = model.output, model.inputs[0] if not model.controller else 'r'
+    ratio = [(units or {}).get(name) for name in (output, source)]
+    if all(ratio):
+        top.set_ylabel(f'magnitude (dB of {output}/{source} in {ratio[0]} per {ratio[1]})')
+    for axes in (top, bottom):
         axes.legend(loc='best', fontsize='small')
     bottom.set_xlabel('angular frequency (rad/s)')
     which = 'closed loop r → y' if model.controller else 'plant'
@@ -342,6 +490,20 @@ def residual_figure(result: Estimate, path: Optional[PathLike] = None) -> Figure
     return _finish(figure, path)
 
 
+def _measured(top, bottom, measured: SpectralResponse, model_phase: np.ndarray,
+              model_omega: np.ndarray) -> None:
+    """Draw the data's frequency response: dark where coherent, light where not."""
+    start = float(np.interp(measured.omega[0], model_omega, model_phase))
+    phase = measured.phase_deg(start=start)
+    coherent = measured.coherence >= COHERENT
+    for axes, values in ((top, measured.magnitude_db), (bottom, phase)):
+        axes.semilogx(measured.omega[~coherent], values[~coherent], '.', color='0.75',
+                      markersize=3, label=f'data, coherence < {COHERENT:g}')
+        axes.semilogx(measured.omega[coherent], values[coherent], '.', color='0.25',
+                      markersize=3.5,
+                      label=f'data (Welch, {measured.segment}-sample segments, hold removed)')
+
+
 def replay_figure_paths(path: Path, sliding: bool
                         ) -> Tuple[Path, Optional[Path], Path, Path]:
     """Return the fit, parameters (sliding only), Bode and residual figure paths."""
@@ -351,29 +513,71 @@ def replay_figure_paths(path: Path, sliding: bool
     return path, sibling('params') if sliding else None, sibling('bode'), sibling('residual')
 
 
+def measured_response(result: Estimate, data) -> Optional[SpectralResponse]:
+    """
+    Return the frequency response from the data alone, or None where it would mislead.
+
+    Only for a model with one input and no controller: with a controller the data run from the
+    reference while the Bode plot shows the plant; a model equation has several inputs.
+    """
+    model = result.model
+    if model.controller is not None or len(model.inputs) != 1 or model.constant_input:
+        return None
+    try:
+        measured = spectral_response(data.u, data.y, data.ts)
+    except ValueError:
+        return None
+    return without_hold(measured, data.ts, result.intersample)
+
+
+def without_hold(measured: SpectralResponse, ts: float, intersample: str) -> SpectralResponse:
+    """
+    Take the input's hold out of a response measured from samples, to compare with ``G(s)``.
+
+    A held input (``zoh``) reaches the plant through ``sinc(omega ts / 2 pi) exp(-j omega ts /
+    2)``: half a sample of delay and a gain falling to 2/pi at the Nyquist frequency; a linear
+    one (``foh``) through ``sinc^2``. Dividing them out leaves the continuous plant (up to the
+    aliasing of what it passes above the Nyquist frequency).
+    """
+    argument = measured.omega * ts / (2 * np.pi)
+    hold = np.sinc(argument) * np.exp(-0.5j * measured.omega * ts) if intersample == 'zoh' \
+        else np.sinc(argument) ** 2
+    return replace(measured, response=measured.response / hold)
+
+
 def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, sliding: bool,
-                         truth: Optional[Truth] = None) -> List[Path]:
+                         truth: Optional[Truth] = None, units: Units = None,
+                         transient: float = -1.0) -> List[Path]:
     """
     Write the replay's figures as PNG files and return their paths.
 
-    ``path`` gets measured vs. simulated output of the last window; ``<stem>_bode.png`` the Bode
-    plot of the last estimate up to the Nyquist frequency of the data; ``<stem>_residual.png``
-    the residual analysis of the last estimate (:func:`residual_figure`); with ``sliding`` also
+    ``path`` gets measured vs. simulated output of the last window, its residual below (the
+    settling stretch, ``transient`` seconds or automatic when negative, shaded);
+    ``<stem>_bode.png`` the Bode plot of the last estimate up to the Nyquist frequency of the
+    data, over the response seen in the window's data; ``<stem>_residual.png`` the residual
+    analysis of the last estimate (:func:`residual_figure`); with ``sliding`` also
     ``<stem>_params.png``, the estimates over time with their ±2σ bands (against ``truth`` if
-    given).
+    given). ``units`` label the axes.
     """
     fit_path, params_path, bode_path, residual_path = replay_figure_paths(path, sliding)
     last = updates[-1]
+    data = last.window.data
     times = (last.prediction_times_ns - origin_ns) / NANOSECONDS
-    fit_figure(times, last.window.data.y, last.prediction, fit=last.result.fit, path=fit_path)
+    output = last.result.model.output
+    fit_figure(times, data.y, last.prediction, fit=last.result.fit,
+               ylabel=f'output {output}', unit=(units or {}).get(output),
+               transient=transient_seconds(last.result, len(data), data.ts, transient),
+               path=fit_path)
     written = [fit_path]
     if params_path is not None:
         parameters_figure(
             np.array([(update.end_ns - origin_ns) / NANOSECONDS for update in updates]),
             last.names, np.array([update.values for update in updates]),
-            np.array([update.stds for update in updates]), truth=truth, path=params_path)
+            np.array([update.stds for update in updates]), truth=truth, units=units,
+            path=params_path)
         written.append(params_path)
-    bode(last.result, max_omega=np.pi / last.window.data.ts, path=bode_path)
+    bode(last.result, max_omega=np.pi / data.ts, measured=measured_response(last.result, data),
+         units=units, path=bode_path)
     written.append(bode_path)
     if last.result.residuals is not None:
         residual_figure(last.result, path=residual_path)

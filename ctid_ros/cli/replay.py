@@ -25,11 +25,11 @@ import argparse
 from contextlib import contextmanager
 import json
 import operator
-import os
 from pathlib import Path
 import sys
 from typing import Any, Callable, Iterable, Iterator, Optional, Sequence, TextIO, Tuple
 
+from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
 from ctid_ros.errors import BagError, ConfigError
 from ctid_ros.files.bag_reader import BagReader, open_bag
@@ -37,50 +37,16 @@ from ctid_ros.files.columns import sample_columns
 from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.contract import DEFAULT_NODE_NAME, NANOSECONDS, resolve_topic
-from ctid_ros.streaming.params_file import load_params_file
+from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
+from ctid_ros.streaming.params_file import load_params_file, load_units
 from ctid_ros.streaming.replay import (Replay, replay_columns, replay_messages, SampleColumns,
                                        SkippedTick)
 from ctid_ros.streaming.session import buffer_capacity
 from tqdm import tqdm
 
-__all__ = ['DEFAULT_PLOT', 'configure_parser', 'default_plot_path', 'progress', 'run']
+__all__ = ['default_plot_path', 'progress', 'run']
 
 Message = Tuple[str, int, Any]
-# The value of --plot given without a file name (see default_plot_path).
-DEFAULT_PLOT = object()
-_FIGURE_SUFFIXES = ('', '.png', '.pdf', '.svg')
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ctid replay`` arguments to ``parser``."""
-    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage) or a '
-                          'standalone .mcap file with the params file of the live node: one '
-                          'estimate over the selected span, or --sliding as the node would.')
-    parser.add_argument('path', help='rosbag2 directory or .mcap file (never modified)')
-    parser.add_argument('--params-file', required=True,
-                        help='ROS 2 params YAML of the node (e.g. config/open_loop_delay.yaml)')
-    parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
-                        help='node section of the params file, optionally with namespace '
-                        '(/plant1/ctid_node); also names the --output topics')
-    parser.add_argument('--start', type=float, default=None,
-                        help='start of the span, seconds from the first message of the bag')
-    parser.add_argument('--end', type=float, default=None,
-                        help='end of the span, seconds from the first message of the bag')
-    parser.add_argument('--sliding', action='store_true',
-                        help='estimate every update_period on the last window seconds, as the '
-                        'live node does (default: once over the whole span)')
-    parser.add_argument('--output', type=Path, default=None,
-                        help='new .mcap file for the estimates, on the topics of the live node, '
-                        'with the replayed input and output messages')
-    parser.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
-                        metavar='PNG',
-                        help='PNG of measured vs simulated output; also writes <stem>_bode.png '
-                        'and, with --sliding, <stem>_params.png. Without a value: '
-                        '<bag name>_replay.png in the current directory (next to the bag if '
-                        'that is inside the bag). Never inside the input bag.')
-    parser.add_argument('--json', action='store_true',
-                        help='print the ctid fit --json object (a list of them with --sliding)')
 
 
 def default_plot_path(bag: PathLike, directory: Optional[Path] = None) -> Path:
@@ -99,40 +65,17 @@ def default_plot_path(bag: PathLike, directory: Optional[Path] = None) -> Path:
 
 
 def _check_figure_paths(arguments: argparse.Namespace) -> Optional[Path]:
-    """
-    Resolve ``--plot`` and check every figure can be written, before anything is estimated.
-
-    Raises
-    ------
-    ConfigError
-        If a figure would be written into the input bag (or over it, the params file or the
-        ``--output`` file), into a missing or unwritable directory, over a directory, or in a
-        format other than PNG, PDF or SVG.
-
-    """
+    """Resolve ``--plot`` and check every figure can be written, before anything is estimated."""
     if arguments.plot is None:
         return None
-    from ctid_ros.cli.plots import replay_figure_paths
+    from ctid_ros.cli.plots import check_figure_paths, replay_figure_paths
 
     path = default_plot_path(arguments.path) if arguments.plot is DEFAULT_PLOT \
         else Path(arguments.plot)
-    if path.suffix.lower() not in _FIGURE_SUFFIXES:
-        raise ConfigError(f'--plot {path}: give a .png, .pdf or .svg file')
     inputs = [Path(arguments.path), Path(arguments.params_file)] + (
         [Path(arguments.output)] if arguments.output is not None else [])
-    for figure in (item for item in replay_figure_paths(path, arguments.sliding) if item):
-        target = figure.resolve()
-        for source in (item.resolve() for item in inputs):
-            if target == source or source in target.parents:
-                raise ConfigError(f'--plot {path} would write {figure} into or over the input '
-                                  f'{source}; choose a path outside it')
-        if not target.parent.is_dir():
-            raise ConfigError(f'--plot {path}: directory {target.parent} does not exist')
-        if target.is_dir():
-            raise ConfigError(f'--plot {path}: {figure} is a directory')
-        if not os.access(target.parent, os.W_OK) or (
-                target.exists() and not os.access(target, os.W_OK)):
-            raise ConfigError(f'--plot {path}: {figure} cannot be written (permission denied)')
+    check_figure_paths(path, [item for item in replay_figure_paths(path, arguments.sliding)
+                              if item], inputs)
     return path
 
 
@@ -142,10 +85,15 @@ def run(arguments: argparse.Namespace) -> int:
     config = load_params_file(arguments.params_file, arguments.node_name)
     topics = (resolve_topic(config.input_topic, arguments.node_name),
               resolve_topic(config.output_topic, arguments.node_name))
+    if arguments.output is not None and arguments.output.exists() and not arguments.overwrite:
+        raise ConfigError(f'--output {arguments.output} already exists; choose another file or '
+                          'pass --overwrite to replace it')
     with open_bag(arguments.path) as bag, \
-            _estimate_output(arguments.output, arguments.path, arguments.node_name) as writer:
+            _estimate_output(arguments.output, arguments.path, arguments.node_name,
+                             arguments.overwrite) as writer:
         for warning in bag.warnings:
             print(f'ctid replay: warning: {warning}', file=sys.stderr)
+        _check_topics(bag, config, arguments.node_name, topics)
         # A bag may store a topic without its leading slash: use the bag's spelling.
         topics = tuple(bag.topic_name(topic) or topic for topic in topics)
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
@@ -176,7 +124,10 @@ def run(arguments: argparse.Namespace) -> int:
         from ctid_ros.cli.plots import write_replay_figures
 
         try:
-            written = write_replay_figures(plot, replay.updates, origin_ns, arguments.sliding)
+            written = write_replay_figures(
+                plot, replay.updates, origin_ns, arguments.sliding,
+                units=load_units(arguments.params_file, arguments.node_name),
+                transient=config.transient)
         except OSError as error:
             raise ConfigError(f'--plot {plot}: cannot write the figures: '
                               f'{error.strerror or error}') from None
@@ -240,14 +191,42 @@ def _copied(records: Iterable[BagRecord], writer: Optional[EstimateWriter]
         yield record.topic, record.log_time_ns, record.msg
 
 
+def _check_topics(bag: BagReader, config: IdentificationConfig, node_name: str,
+                  topics: Tuple[str, str]) -> None:
+    """
+    Refuse topics the bag does not have; for relative ones, name the ``--node-name`` they need.
+
+    A relative ``input_topic: u`` follows the node's namespace: ``/u`` for the default
+    ``--node-name ctid_node``, ``/plant1/u`` for ``/plant1/ctid_node``. When the bag has the
+    topic in exactly one other namespace, the error says which ``--node-name`` selects it.
+    """
+    for name, configured, topic in zip(('input_topic', 'output_topic'),
+                                       (config.input_topic, config.output_topic), topics):
+        try:
+            bag.topic_schema(topic)
+        except BagError as error:
+            if configured.startswith('/'):
+                raise
+            base = node_name.rpartition('/')[2]
+            suffix = f'/{base}/{configured[2:]}' if configured.startswith('~/') \
+                else f'/{configured}'
+            namespaces = sorted({full[:-len(suffix)] for full in
+                                 ('/' + candidate.lstrip('/') for candidate in bag.topics())
+                                 if full.endswith(suffix) and len(full) > len(suffix)})
+            hint = (f'; replay with --node-name {namespaces[0]}/{base} to read '
+                    f'{namespaces[0]}{suffix}') if len(namespaces) == 1 else ''
+            raise BagError(f'{error}. {name} {configured!r} is relative: {topic} for the node '
+                           f'{node_name}{hint}') from None
+
+
 @contextmanager
-def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str
+def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwrite: bool
                      ) -> Iterator[Optional[EstimateWriter]]:
     """Create the ``--output`` file before replaying (to fail fast); remove it on failure."""
     if path is None:
         yield None
         return
-    writer = EstimateWriter(path, inputs=[bag], node_name=node_name)
+    writer = EstimateWriter(path, inputs=[bag], node_name=node_name, overwrite=overwrite)
     try:
         yield writer
     except BaseException:

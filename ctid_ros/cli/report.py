@@ -1,7 +1,7 @@
 """Text reports of estimates: the tables and JSON of ``ctid fit`` and ``ctid replay``."""
 
 from dataclasses import replace
-from typing import Sequence
+from typing import Mapping, Optional, Sequence
 
 from ctid_ros.estimation.estimate import Estimate
 from ctid_ros.streaming.buffer import BufferStats
@@ -13,9 +13,15 @@ __all__ = ['format_estimate', 'format_series', 'format_stats', 'format_table', '
            'json_default', 'series_header', 'series_row']
 
 
-def format_table(result: Estimate) -> str:
-    """Human-readable table of estimates with standard deviations and 95 % intervals."""
-    width = max(len(name) for name in result.params)
+def format_table(result: Estimate, fixed: Optional[Mapping[str, float]] = None) -> str:
+    """
+    Human-readable table of estimates with standard deviations and 95 % intervals.
+
+    ``fixed`` parameters (held at known values, ``ctid fit --fix``) follow the estimated ones,
+    marked ``fixed`` instead of a standard deviation.
+    """
+    fixed = dict(fixed or {})
+    width = max(len(name) for name in [*result.params, *fixed])
     lines = [f'{"parameter":<{max(width, 9)}}  {"estimate":>13}  {"std":>11}  '
              f'{"95% interval":>27}']
     for name, value in result.params.items():
@@ -26,6 +32,8 @@ def format_table(result: Estimate) -> str:
         else:
             # Held at a bound: the value is the bound's, the data give no interval.
             lines.append(f'{name:<{max(width, 9)}}  {value:>13.6g}  {"at bound":>11}')
+    lines.extend(f'{name:<{max(width, 9)}}  {value:>13.6g}  {"fixed":>11}'
+                 for name, value in fixed.items())
     lines.append('')
     lines.append(f'fit {result.fit:.2f} %   iterations {result.iterations}   '
                  f'converged {"yes" if result.converged else "no"} ({result.stop_reason})')

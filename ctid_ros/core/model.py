@@ -22,7 +22,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core.data import as_inputs
 from ctid_ros.core.expression import (LAPLACE, MAX_DEGREE, MAX_TERMS, MAX_WORK,
-                                      parse_model_text, Parsed, work)
+                                      parse_model_text, Parsed, tokenize, work)
 from ctid_ros.core.simulation import (ContinuousFilter, INTERSAMPLE, skew_delay,
                                       skew_extended)
 from ctid_ros.errors import ModelError
@@ -336,6 +336,42 @@ class Model:
         signals = '' if self.inputs == ('u',) and self.output == 'y' else \
             f', inputs={self.inputs!r}, output={self.output!r}'
         return f'Model({self.expression!r}{controller}{signals})'
+
+    def with_fixed(self, values: Mapping[str, float]) -> 'Model':
+        """
+        Return this model with some parameters held at known values (not estimated).
+
+        Each named parameter is replaced in the text by its value, in parentheses, and the
+        model is built again: the same structure, controller and signals, with the other
+        parameters in their order. ``Model('exp(-tau*s)/(J*s + b)').with_fixed({'J': 0.05})``
+        is ``Model('exp(-tau*s)/((0.05)*s + b)')``; a fixed dead time is a known one.
+
+        Raises
+        ------
+        ModelError
+            If a name is not a parameter of the model, a value is not a finite number, or no
+            parameter would be left to estimate.
+
+        """
+        unknown = [name for name in values if name not in self.parameters]
+        if unknown:
+            raise ModelError(f'{", ".join(map(repr, unknown))} is not a parameter of '
+                             f'{self.expression!r} (parameters: {", ".join(self.parameters)})')
+        numbers = {}
+        for name, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) \
+                    or not np.isfinite(value):
+                raise ModelError(f'the value of {name} must be a finite number, got {value!r}')
+            numbers[name] = f'({float(value)!r})'
+        if set(numbers) >= set(self.parameters):
+            raise ModelError(f'fixing {", ".join(numbers)} leaves no parameter of '
+                             f'{self.expression!r} to estimate')
+        text = self.expression
+        for token in reversed(tokenize(text)):
+            if token.kind == 'name' and token.text in numbers:
+                text = text[:token.column] + numbers[token.text] + \
+                    text[token.column + len(token.text):]
+        return Model(text, self.controller, inputs=self.inputs, output=self.output)
 
     def vector(self, params: ParameterValues) -> np.ndarray:
         """Parameter values as a float vector in :attr:`parameters` order."""

@@ -45,7 +45,7 @@ from ctid_ros.files.bag_reader import BagReader
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
                                          FLOAT64_MULTI_ARRAY, NANOSECONDS, NodeTopics)
-from ctid_ros.streaming.params_file import find_config, load_params_file
+from ctid_ros.streaming.params_file import find_config, load_params_file, load_units
 import numpy as np
 import yaml
 
@@ -446,14 +446,15 @@ def summary(scenario: Scenario, config: IdentificationConfig, replayed: Series,
     return '\n'.join(lines)
 
 
-def write_figures(scenario: Scenario, replayed: Series, output: Path) -> Path:
+def write_figures(scenario: Scenario, replayed: Series, output: Path,
+                  units: Optional[Dict[str, str]] = None) -> Path:
     """Draw the replay's estimates over time with ±2σ bands against the drifting truth."""
     # Imported here: the plant process imports this module too and needs no matplotlib.
     from ctid_ros.cli.plots import parameters_figure
 
     path = output / 'parameters.png'
     parameters_figure(replayed.times, replayed.names, replayed.values, replayed.stds,
-                      truth=scenario.truth, path=path)
+                      truth=scenario.truth, units=units, path=path)
     return path
 
 
@@ -539,7 +540,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'demo: error: {error}', file=sys.stderr)
         return 1
     figures = [output / name for name in DOC_FIGURES if name != 'parameters.png']
-    figures.insert(1, write_figures(scenario, replayed, output))
+    figures.insert(1, write_figures(scenario, replayed, output, load_units(node_file)))
     print(f'replayed {replayed.times.size} windows in {time.monotonic() - live_done:.1f} s\n')
     print(summary(scenario, config, replayed, live.series))
     print('\nfigures: ' + ', '.join(str(path) for path in figures))

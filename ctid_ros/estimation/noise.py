@@ -61,6 +61,8 @@ class NoiseModel:
     @property
     def variance_ratio(self) -> float:
         """Return the low-frequency noise power over that of white noise of equal variance."""
+        if self.variance <= 0.0:
+            return 1.0          # a residual of exact zeros: no noise to colour
         return float(self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
 
 

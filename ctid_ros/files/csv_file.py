@@ -24,7 +24,7 @@ from ctid_ros.streaming.buffer import resample
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-__all__ = ['load_csv', 'read_columns', 'timed_data', 'uniform_sample_time']
+__all__ = ['TIME_COLUMNS', 'load_csv', 'read_columns', 'timed_data', 'uniform_sample_time']
 
 _RELATIVE_JITTER = 1e-3
 # A time column step longer than this many sample times is a gap, not jitter or a lost row.
@@ -112,8 +112,8 @@ def _rows(path: Path, stream: BinaryIO) -> Iterator[Tuple[int, list]]:
         raise DataError(f'cannot read {path}: {error.strerror or error}') from None
 
 
-def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequence[str] = ()
-                 ) -> Dict[str, np.ndarray]:
+def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequence[str] = (),
+                 *, skipped: Optional[List[int]] = None) -> Dict[str, np.ndarray]:
     """
     Read the named columns of a CSV file with a header line as float arrays.
 
@@ -125,6 +125,11 @@ def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequenc
         Columns that must exist; header names are compared without surrounding spaces.
     optional : sequence of str
         Columns read only if the header has them.
+    skipped : list, optional
+        If given, a row whose cells of ``names`` are all empty is skipped and its line number
+        appended here: in a PlotJuggler export, rows at the instants of the other series.
+        A row with some of them empty is an error either way (the columns were sampled at
+        different instants).
 
     Returns
     -------
@@ -154,6 +159,7 @@ def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequenc
                                 f'are {listed}')
         wanted = [name for name in dict.fromkeys([*names, *optional]) if name in header]
         indices = [header.index(name) for name in wanted]
+        required = [header.index(name) for name in names]
         values = [array.array('d') for _ in wanted]
         count = 0
         for line, row in rows:
@@ -161,6 +167,19 @@ def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequenc
             if count > MAX_SAMPLES:
                 raise DataError(f'{path} has more than {MAX_SAMPLES} rows, the record limit of '
                                 'one estimate; decimate it or split it')
+            if skipped is not None:
+                empty = [name for name, index in zip(names, required) if _blank(row, index)]
+                if len(empty) == len(names):
+                    skipped.append(line)
+                    continue
+                if empty:
+                    filled = next(name for name in names if name not in empty)
+                    raise DataError(
+                        f'{path} line {line}: column {empty[0]!r} is empty where {filled!r} '
+                        'has a value: the columns were sampled at different instants (a '
+                        'PlotJuggler export of separate topics?); export them from one message, '
+                        'or replay the recording with ctid replay, which resamples them as the '
+                        'node does')
             for name, index, column in zip(wanted, indices, values):
                 try:
                     column.append(float(row[index]))
@@ -168,10 +187,15 @@ def read_columns(path: Union[str, Path], names: Sequence[str], optional: Sequenc
                     cell = bounded_repr(row[index], 40) if index < len(row) else 'nothing'
                     raise DataError(f'{path} line {line}: column {name!r} has a missing or '
                                     f'non-numeric cell ({cell})') from None
-    if not count:
+    if count == len(skipped or ()):
         raise DataError(f'{path} needs a header line and at least one row of data')
     return {name: np.frombuffer(column, dtype=float).copy()
             for name, column in zip(wanted, values)}
+
+
+def _blank(row: Sequence[str], index: int) -> bool:
+    """Return True if ``row`` has a cell at ``index`` and it is blank (a short row has none)."""
+    return index < len(row) and not row[index].strip()
 
 
 def _column_names(input_column: Union[str, Sequence[str]]) -> Tuple[str, ...]:
@@ -282,9 +306,13 @@ def _resampled(time: np.ndarray, u: np.ndarray, y: np.ndarray, steps: np.ndarray
     return Data(data.u, data.y, data.ts, float(time[0]) + data.t0), notes
 
 
+# Names of a time column, in the order they are looked for: t, and PlotJuggler's __time.
+TIME_COLUMNS = ('t', '__time')
+
+
 def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] = 'u',
-             output_column: str = 'y', time_column: str = 't', ts: Optional[float] = None,
-             notes: Optional[List[str]] = None) -> Data:
+             output_column: str = 'y', time_column: Union[str, Sequence[str]] = TIME_COLUMNS,
+             ts: Optional[float] = None, notes: Optional[List[str]] = None) -> Data:
     """
     Load sampled data from a CSV file whose first line names the columns.
 
@@ -298,8 +326,11 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
         Input column name(s); several make a multi-input ``Data`` (columns in that order).
     output_column : str
         Output column name.
-    time_column : str
-        Column of time stamps in seconds, used if present to infer and check the sample time.
+    time_column : str or sequence of str
+        Column of time stamps in seconds, used if present to infer and check the sample time;
+        of several names the first the file has (default ``t``, else PlotJuggler's
+        ``__time``). With a time column, rows whose input and output cells are all empty
+        (a PlotJuggler export's rows of other series) are skipped.
     ts : float, optional
         Sample time; required if the file has no time column.
     notes : list, optional
@@ -322,16 +353,27 @@ def load_csv(path: Union[str, Path], *, input_column: Union[str, Sequence[str]] 
     if ts is not None and (isinstance(ts, bool) or not isinstance(ts, Real)
                            or not 0 < ts < float('inf')):
         raise DataError(f'the sample time must be a positive number, got {bounded_repr(ts)}')
-    time = time_column
-    columns = read_columns(path, inputs + (output_column,), optional=(time,))
+    times = (time_column,) if isinstance(time_column, str) else tuple(time_column)
+    skipped: List[int] = []
+    columns = read_columns(path, inputs + (output_column,), optional=times, skipped=skipped)
     signals = [columns[name] for name in inputs]
     u = signals[0] if len(signals) == 1 else np.column_stack(signals)
-    if time in columns:
+    time = next((name for name in times if name in columns), None)
+    if time is not None:
         data, found = timed_data(columns[time], u, columns[output_column],
                                  f'{path} column {time!r}', ts)
         if notes is not None:
+            if skipped:
+                notes.append(f'{len(skipped)} rows without a value in '
+                             f'{", ".join(inputs + (output_column,))} skipped (first on line '
+                             f'{skipped[0]}): rows of other series')
             notes.extend(found)
         return data
+    if skipped:
+        raise DataError(f'{path} line {skipped[0]}: no value in '
+                        f'{", ".join(inputs + (output_column,))}; without a time column the '
+                        'samples after it would shift: remove such rows or add the time column')
     if ts is None:
-        raise DataError(f'{path} has no {time!r} column: give the sample time (--ts)')
+        names = ' or '.join(repr(name) for name in times)
+        raise DataError(f'{path} has no {names} column: give the sample time (--ts)')
     return Data(u, columns[output_column], ts, 0.0)

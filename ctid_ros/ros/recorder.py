@@ -16,6 +16,7 @@ from ctid_ros.ros.messages import import_message
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 __all__ = ['TopicRecorder']
@@ -43,6 +44,8 @@ class TopicRecorder:
     ----------
     counts : dict of str to int
         Messages written per topic so far.
+    depth : int
+        The queue depth of its subscriptions.
 
     Notes
     -----
@@ -55,7 +58,8 @@ class TopicRecorder:
     def __init__(self, writer: RecordingWriter, topics: Mapping[str, str], *,
                  node_name: str = 'ctid_recorder', depth: int = 1000) -> None:
         self._writer = writer
-        self.counts: Dict[str, int] = dict.fromkeys(topics, 0)
+        self.depth = depth
+        self.counts: Dict[str, int] = {}
         self._context = Context()
         rclpy.init(context=self._context)
         self._executor: Optional[SingleThreadedExecutor] = None
@@ -65,13 +69,28 @@ class TopicRecorder:
             self._node = rclpy.create_node(node_name, context=self._context)
             self._qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
             for topic, msgtype in topics.items():
-                writer.add_topic(topic, msgtype)
-                self._node.create_subscription(
-                    import_message(msgtype), topic, functools.partial(self._record, topic),
-                    self._qos, raw=True)
+                self.add(topic, msgtype)
         except BaseException:
             self.close()
             raise
+
+    @property
+    def node(self) -> Node:
+        """Return the recording node, e.g. to look at the graph (:mod:`ctid_ros.ros.graph`)."""
+        return self._node
+
+    def add(self, topic: str, msgtype: str, qos: Optional[QoSProfile] = None) -> None:
+        """
+        Record one more topic, also while recording.
+
+        ``qos`` defaults to reliable with the recorder's depth; a best-effort or latched
+        publisher needs a matching one (:func:`~ctid_ros.ros.graph.matching_qos`).
+        """
+        self._writer.add_topic(topic, msgtype)
+        self.counts[topic] = 0
+        self._node.create_subscription(import_message(msgtype), topic,
+                                       functools.partial(self._record, topic),
+                                       qos or self._qos, raw=True)
 
     def __enter__(self: _Recorder) -> _Recorder:
         """Return the recorder; it is closed on leaving the block."""

@@ -22,11 +22,14 @@ from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 from ctid_ros.streaming.session import history_span
 import yaml
 
-__all__ = ['BoundedLoader', 'PACKAGE', 'ROS_STANDARD_PARAMETERS', 'check_record_length',
-           'config_directories', 'find_config', 'load_params_file', 'node_parameters',
-           'parse_yaml']
+__all__ = ['BoundedLoader', 'PACKAGE', 'ROS_STANDARD_PARAMETERS', 'UNITS_PREFIX',
+           'check_record_length', 'config_directories', 'find_config', 'load_params_file',
+           'load_units', 'node_parameters', 'parse_yaml']
 
 PACKAGE = 'ctid_ros'
+# ``units: {J: kg m^2, u: N m, y: rad/s}`` in a params file, which ROS flattens to ``units.J``:
+# the units of parameters and signals on the axes of figures (not a parameter of the node).
+UNITS_PREFIX = 'units.'
 # Every ROS 2 node has these; a params file may set them for ctid_node, so they are not errors.
 ROS_STANDARD_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 _ROS_STANDARD_PREFIXES = ('qos_overrides.',)
@@ -175,29 +178,8 @@ def _key_pattern(key: str) -> 're.Pattern[str]':
     return re.compile(escaped)
 
 
-def node_parameters(document: Any, node_name: str = DEFAULT_NODE_NAME,
-                    source: str = 'params file') -> Dict[str, Any]:
-    """
-    Select the parameters of one node from a parsed ROS 2 params file.
-
-    Sections whose key matches the node are merged: wildcard keys (``/**``, ``/**/ctid_node``,
-    ``/ns/*``) first, in file order, then exact keys, which therefore take precedence. A plain
-    ``node_name`` matches the node in any namespace; pass a fully qualified one
-    (``/plant1/ctid_node``) when the file configures several namespaces.
-
-    Returns
-    -------
-    dict
-        ``{name: value}`` with nested mappings flattened to dotted names and the standard ROS
-        parameters (``use_sim_time``, ``qos_overrides.*``, ...) left out.
-
-    Raises
-    ------
-    ConfigError
-        If no section matches, several namespaces match a plain name, a section is malformed,
-        or a value is an empty list (which rcl would not accept either).
-
-    """
+def _merged(document: Any, node_name: str, source: str) -> Dict[str, Any]:
+    """Merge the sections of ``document`` that match the node (see :func:`node_parameters`)."""
     if not isinstance(document, Mapping):
         raise ConfigError(f'{source}: expected a mapping of node names to sections, got '
                           f'{type(document).__name__}')
@@ -232,12 +214,41 @@ def node_parameters(document: Any, node_name: str = DEFAULT_NODE_NAME,
             raise ConfigError(f'{source}: {key}.ros__parameters must be a mapping of names to '
                               f'values')
         merged.update(_flatten(parameters))
+    return merged
+
+
+def node_parameters(document: Any, node_name: str = DEFAULT_NODE_NAME,
+                    source: str = 'params file') -> Dict[str, Any]:
+    """
+    Select the parameters of one node from a parsed ROS 2 params file.
+
+    Sections whose key matches the node are merged: wildcard keys (``/**``, ``/**/ctid_node``,
+    ``/ns/*``) first, in file order, then exact keys, which therefore take precedence. A plain
+    ``node_name`` matches the node in any namespace; pass a fully qualified one
+    (``/plant1/ctid_node``) when the file configures several namespaces.
+
+    Returns
+    -------
+    dict
+        ``{name: value}`` with nested mappings flattened to dotted names and the standard ROS
+        parameters (``use_sim_time``, ``qos_overrides.*``, ...) and the ``units`` of the
+        figures (:func:`load_units`) left out.
+
+    Raises
+    ------
+    ConfigError
+        If no section matches, several namespaces match a plain name, a section is malformed,
+        or a value is an empty list (which rcl would not accept either).
+
+    """
+    merged = _merged(document, node_name, source)
     for name, value in merged.items():
         if isinstance(value, list) and not value:
             raise ConfigError(f'{source}: {name} is an empty list, which ROS 2 cannot type (rcl '
                               f'reads [] as "not set"): leave {name} out to keep its default')
     return {name: value for name, value in merged.items()
-            if name not in ROS_STANDARD_PARAMETERS and not name.startswith(_ROS_STANDARD_PREFIXES)}
+            if name not in ROS_STANDARD_PARAMETERS and not name.startswith(_ROS_STANDARD_PREFIXES)
+            and not name.startswith(UNITS_PREFIX)}
 
 
 def load_params_file(path, node_name: str = DEFAULT_NODE_NAME) -> IdentificationConfig:
@@ -274,6 +285,32 @@ def load_params_file(path, node_name: str = DEFAULT_NODE_NAME) -> Identification
     except ConfigError as error:
         raise ConfigError(f'{path}: {_clipped(str(error))}') from None
     return config
+
+
+def load_units(path, node_name: str = DEFAULT_NODE_NAME) -> Dict[str, str]:
+    """
+    Read the ``units`` mapping of a params file: the units of parameters and signals.
+
+    ``units: {J: kg m^2, b: N m s/rad, tau: s, u: N m, y: rad/s}`` under ``ros__parameters``
+    (ROS reads it as the parameters ``units.J``, ... which the node ignores) labels the axes of
+    the figures; names without a unit are shown without one. No mapping: ``{}``.
+
+    Raises
+    ------
+    ConfigError
+        If the file cannot be read (as :func:`load_params_file`), or a unit is not a string.
+
+    """
+    content = read_limited(Path(path), MAX_PARAMS_BYTES, 'params file', ConfigError)
+    document = parse_yaml(content, f'params file {path}')
+    units: Dict[str, str] = {}
+    for name, unit in _merged(document, node_name, str(path)).items():
+        if name.startswith(UNITS_PREFIX):
+            if not isinstance(unit, str):
+                raise ConfigError(f'{path}: {name} must be a unit as text (e.g. "N m"), got '
+                                  f'{unit!r}')
+            units[name[len(UNITS_PREFIX):]] = unit
+    return units
 
 
 def config_directories() -> List[Path]:

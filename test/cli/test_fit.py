@@ -110,3 +110,91 @@ def test_a_jittered_time_column_is_resampled_as_the_node_does(record, tmp_path, 
     uniform = json.loads(out)
     assert result['params'] == pytest.approx(uniform['params'], rel=1e-4)
     assert result['std'] == pytest.approx(uniform['std'], rel=1e-3)
+
+
+def plotjuggler_export(record, path):
+    """
+    Rewrite ``record`` as PlotJuggler's CSV exporter writes it.
+
+    ``__time`` in seconds since the epoch, the columns named by topic and field (sorted), and
+    after every tenth sample a row of another series only, empty in u and y.
+    """
+    rows = [row.split(',') for row in record.read_text().splitlines()[1:]]
+    lines = ['__time,/cmd/data,/joint_states/position[0],/rosout/level']
+    for index, (t, u, y) in enumerate(rows):
+        lines.append(f'{1.7e9 + float(t):.6f},{u},{y},')
+        if index % 10 == 0:
+            lines.append(f'{1.7e9 + float(t) + 0.003:.6f},,,20')
+    path.write_text('\n'.join(lines) + '\n')
+    return path
+
+
+def test_plotjuggler_column_names_and_time(record, tmp_path, capsys):
+    export = plotjuggler_export(record, tmp_path / 'export.csv')
+    code, out, err = fit(capsys, export, '--model', MODEL, '--input', '/cmd/data', '--output',
+                         '/joint_states/position[0]', '--json')
+    assert code == 0, err
+    result = json.loads(out)
+    assert result['params'] == pytest.approx(TRUTH, rel=0.03)
+    assert result['warnings'][0] == ('200 rows without a value in /cmd/data, '
+                                     '/joint_states/position[0] skipped (first on line 3): rows '
+                                     'of other series')
+    # An equation names its signals: SIGNAL=COLUMN where the column is no identifier.
+    code, out, err = fit(capsys, export, '--model', 'T*s*y + y = K*u', '--input', '/cmd/data',
+                         '--output', '/joint_states/position[0]')
+    assert code == 2 and 'give this one a name: --input u=/cmd/data' in err
+    code, out, err = fit(capsys, export, '--model', 'T*s*q + q = K*v', '--input', 'v=/cmd/data',
+                         '--output', 'q=/joint_states/position[0]', '--json')
+    assert code == 0, err
+    assert set(json.loads(out)['params']) == {'T', 'K'}     # no dead time in an equation
+
+
+def test_columns_sampled_at_different_instants_are_refused(record, tmp_path, capsys):
+    lines = record.read_text().splitlines()
+    t, u, y = lines[5].split(',')
+    lines[5] = f'{t},{u},'
+    path = tmp_path / 'gap.csv'
+    path.write_text('\n'.join(lines) + '\n')
+    code, out, err = fit(capsys, path, '--model', MODEL)
+    assert code == 2 and f"{path} line 6: column 'y' is empty where 'u' has a value" in err
+    # Without a time column, a skipped row would shift the samples after it.
+    lines = ['u,y'] + [row.split(',', 1)[1] for row in record.read_text().splitlines()[1:]]
+    lines[3] = ','
+    path.write_text('\n'.join(lines) + '\n')
+    code, out, err = fit(capsys, path, '--model', MODEL, '--ts', TS)
+    assert code == 2 and 'line 4: no value in u, y; without a time column' in err
+
+
+def test_fixed_parameter_and_delay_range(record, tmp_path, capsys):
+    code, out, err = fit(capsys, record, '--model', MODEL, '--fix', 'K=2', '--delay-range',
+                         '0.1:0.4', '--json')
+    assert code == 0, err
+    result = json.loads(out)
+    assert list(result['params']) == ['K', 'tau', 'T'] and result['fixed'] == {'K': 2.0}
+    assert result['params'] == pytest.approx(TRUTH, rel=0.01)
+    assert result['std']['K'] == 0.0 and 0 < result['std']['T'] < 0.01
+    code, out, err = fit(capsys, record, '--model', MODEL, '--fix', 'K=2')
+    assert code == 0, err
+    row = next(line for line in out.splitlines() if line.startswith('K '))
+    assert row.split() == ['K', '2', 'fixed']
+    for arguments, message in ((['--fix', 'K=2', '--initial', 'K=1'],
+                                'K fixed by --fix cannot also be given in --initial'),
+                               (['--fix', 'Q=2'], "'Q' is not a parameter"),
+                               (['--fix', 'K=2,T=1,tau=0.2'], 'leaves no parameter')):
+        code, out, err = fit(capsys, record, '--model', MODEL, *arguments)
+        assert code == 2 and message in err, err
+    with pytest.raises(SystemExit) as exit_:
+        fit(capsys, record, '--model', MODEL, '--delay-range', '0.3:0.1')
+    assert exit_.value.code == 2 and 'need 0 <= MIN < MAX' in capsys.readouterr().err
+
+
+def test_plot_writes_the_fit_bode_and_residual_figures(record, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = fit(capsys, record, '--model', MODEL, '--plot')
+    assert code == 0, err
+    written = [tmp_path / 'record_fit.png', tmp_path / 'record_fit_bode.png',
+               tmp_path / 'record_fit_residual.png']
+    assert all(path.stat().st_size > 10_000 for path in written)
+    assert err.splitlines() == [f'ctid fit: wrote {path}' for path in written]
+    code, out, err = fit(capsys, record, '--model', MODEL, '--plot', tmp_path / 'no' / 'x.png')
+    assert code == 2 and out == '' and 'does not exist' in err

@@ -3,7 +3,8 @@
 from dataclasses import replace
 
 from ctid_ros import Data, estimate, Model
-from ctid_ros.cli.plots import bode, bode_data, fit_figure, parameters_figure, residual_figure
+from ctid_ros.cli.plots import (bode, bode_data, fit_figure, measured_response,
+                                parameters_figure, residual_figure, transient_seconds)
 from ctid_ros.core.excitation import prbs
 import matplotlib
 import numpy as np
@@ -28,18 +29,32 @@ def written(path):
     return data[:8] == PNG and len(data) > 10_000
 
 
-def test_fit_figure(tmp_path, result):
+def test_fit_figure_with_the_residual_below(tmp_path, result):
     backend = matplotlib.get_backend()
     data = Data(prbs(9, 20)[:2000], np.zeros(2000), 0.01)
     figure = fit_figure(data.time, result.simulate(data) + 0.01, result.simulate(data),
-                        fit=93.456, path=tmp_path / 'fit.png')
+                        fit=93.456, transient=1.5, unit='rad/s', verdict='white',
+                        path=tmp_path / 'fit.png')
     assert written(tmp_path / 'fit.png')
-    (axes,) = figure.axes
-    assert axes.get_xlabel() == 'time (s)' and axes.get_ylabel() == 'output y'
-    assert '93.5 %' in axes.get_title()
-    assert [text.get_text() for text in axes.get_legend().get_texts()] == [
-        'measured', 'simulated (fit 93.5 %)']
+    top, bottom = figure.axes
+    assert top.get_ylabel() == 'output y (rad/s)' and bottom.get_ylabel() == 'residual (rad/s)'
+    assert bottom.get_xlabel() == 'time (s)' and bottom.get_title() == 'residual: white'
+    assert '93.5 %' in top.get_title()
+    assert [text.get_text() for text in top.get_legend().get_texts()] == [
+        'first 1.5 s simulated, not fitted', 'measured', 'simulated (fit 93.5 %)']
+    # The residual (measured - simulated, 0.01 throughout) and its RMS where fitted.
+    (residual,) = bottom.get_lines()[:1]
+    np.testing.assert_allclose(residual.get_ydata(), 0.01)
+    assert 'RMS 0.01 where fitted' in bottom.get_legend().get_texts()[-1].get_text()
     assert matplotlib.get_backend() == backend     # no global backend switch
+
+
+def test_transient_seconds_of_an_estimate(result):
+    assert transient_seconds(result, 2000, 0.01, 0.5) == pytest.approx(0.5)
+    # Automatic: five time constants plus the dead time, in whole samples, at most half.
+    assert transient_seconds(result, 2000, 0.01, -1.0) == pytest.approx(
+        np.ceil((5 * result.params['T'] + result.params['tau']) / 0.01) * 0.01)
+    assert transient_seconds(result, 600, 0.01, -1.0) == pytest.approx(3.0)
 
 
 def test_parameters_figure_against_a_drifting_truth(tmp_path):
@@ -53,9 +68,9 @@ def test_parameters_figure_against_a_drifting_truth(tmp_path):
         return {'K': 2.0, 'T': np.where(time < 30.0, 1.5, 2.5)}
 
     figure = parameters_figure(times, ['K', 'T', 'tau'], values, stds, truth=truth,
-                               path=tmp_path / 'params.png')
+                               units={'T': 's', 'tau': 's'}, path=tmp_path / 'params.png')
     assert written(tmp_path / 'params.png')
-    assert [axes.get_ylabel() for axes in figure.axes] == ['K', 'T', 'tau']
+    assert [axes.get_ylabel() for axes in figure.axes] == ['K', 'T (s)', 'tau (s)']
     assert figure.axes[-1].get_xlabel().startswith('time (s)')
     labels = [[text.get_text() for text in axes.get_legend().get_texts()]
               for axes in figure.axes]
@@ -121,3 +136,43 @@ def test_residual_figure(tmp_path, result):
     assert figure.texts[0].get_text().startswith('Residual: white')
     with pytest.raises(ValueError, match='no residual analysis'):
         residual_figure(replace(result, residuals=None))
+
+
+def test_bode_over_the_response_seen_in_the_data(tmp_path, result):
+    u = prbs(11, 2)[:4000]      # power up to the Nyquist frequency
+    y = result.model.simulate(TRUTH, u, 0.01)
+    measured = measured_response(result, Data(u, y, 0.01))
+    # The hold taken out, the data's response is the plant's where the input has power: the
+    # hold's half sample alone would be 29 degrees at 100 rad/s.
+    exact = result.model.frequency_response(TRUTH, measured.omega)
+    coherent = (measured.coherence > 0.9) & (measured.omega < 150)
+    ratio = measured.response[coherent] / exact[coherent]
+    assert np.count_nonzero(coherent) > 20
+    assert np.median(np.abs(np.abs(ratio) - 1)) < 0.05
+    assert np.median(np.abs(np.degrees(np.angle(ratio)))) < 3.0
+    figure = bode(result, measured=measured, max_omega=np.pi / 0.01,
+                  units={'u': 'V', 'y': 'm'}, path=tmp_path / 'bode.png')
+    top, bottom = figure.axes
+    assert top.get_ylabel() == 'magnitude (dB of y/u in m per V)'
+    assert any('data (Welch' in text.get_text() for text in top.get_legend().get_texts())
+    # The data's phase is drawn on the model's branch and falls with the dead time.
+    dots = [line for line in bottom.get_lines() if line.get_marker() == '.']
+    phases = np.concatenate([line.get_ydata() for line in dots])
+    assert phases.min() < -360 and phases.max() < 10
+
+
+@pytest.mark.parametrize('text, params, low', [
+    ('K/(s*(T*s + 1))', {'K': 1.0, 'T': 0.5}, -90.0),               # an integrator
+    ('K/(s**3 + a*s**2 + b*s)', {'K': 1.0, 'a': 3.0, 'b': 2.0}, -90.0),
+    ('K/(T*s + 1)', {'K': -2.0, 'T': 0.5}, -180.0),                 # a negative gain
+    ('K*exp(-tau*s)/(T*s + 1)', {'K': 1.0, 'T': 0.5, 'tau': 2.0}, 0.0),
+])
+def test_phase_starts_on_its_low_frequency_branch_and_never_wraps(text, params, low):
+    model = Model(text)
+    u = prbs(8, 5)[:1000]
+    fitted = estimate(model, Data(u, model.simulate(params, u, 0.05), 0.05), params,
+                      max_iterations=1)
+    data = bode_data(fitted, np.logspace(-3, 2, 60), draws=0)
+    assert data.phase_deg[0] == pytest.approx(low, abs=1.0)
+    # A long dead time (2 s) over a coarse grid: a steadily falling phase, no jump back up.
+    assert np.all(np.diff(data.phase_deg) < 1.0)

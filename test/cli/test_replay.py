@@ -377,3 +377,37 @@ def test_dead_time_from_stamps_at_a_phase_of_the_sample(tmp_path, capsys, phase)
     for result in json.loads(out):
         error = result['params']['tau'] - STAMPS['truth']['tau']
         assert abs(error) <= 0.03 * TS and abs(error) <= 3 * result['std']['tau']
+
+
+def test_a_relative_topic_names_the_node_name_it_needs(tmp_path, capsys):
+    u, y = simulate(DELAY, 5.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    # The configuration of a node in the namespace /plant: relative topics u and y.
+    params = params_file(tmp_path, DELAY, node='/plant/ctid_node', input_topic='u',
+                         output_topic='y')
+    code, out, err = replay(capsys, bag, '--params-file', params)
+    assert code == 2 and out == ''
+    assert err.startswith('ctid replay: error: topic(s) /u not in')
+    assert err.rstrip().endswith("input_topic 'u' is relative: /u for the node ctid_node; replay "
+                                 'with --node-name /plant/ctid_node to read /plant/u')
+    code, out, err = replay(capsys, bag, '--params-file', params, '--node-name',
+                            '/plant/ctid_node')
+    assert code == 0, err
+
+
+def test_output_is_replaced_only_with_overwrite(tmp_path, capsys):
+    u, y = simulate(DELAY, 5.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    output = tmp_path / 'estimates.mcap'
+    output.write_bytes(b'old')
+    code, out, err = replay(capsys, bag, '--params-file', params, '--output', output)
+    assert code == 2 and out == '' and output.read_bytes() == b'old'
+    assert err == (f'ctid replay: error: --output {output} already exists; choose another file '
+                   'or pass --overwrite to replace it\n')
+    code, out, err = replay(capsys, bag, '--params-file', params, '--output', output,
+                            '--overwrite')
+    assert code == 0, err
+    assert output.read_bytes()[:5] == b'\x89MCAP'
+    code, out, err = replay(capsys, bag, '--params-file', params, '--output', bag, '--overwrite')
+    assert code == 2 and 'refusing' in err

@@ -386,3 +386,25 @@ def test_size_limits_name_the_limit_and_the_value():
     assert (black_box.den_degree, len(black_box.parameters)) == (20, 40)
     lags = Model('K/(' + '*'.join(f'(T{i}*s + 1)' for i in range(6)) + ')')
     assert lags.den_degree == 6
+
+
+def test_fixed_parameters_become_numbers_in_the_same_structure():
+    model = Model('exp(-tau*s)/(J*s + b)')
+    held = model.with_fixed({'J': 0.05})
+    assert held.parameters == ('tau', 'b') and held.expression == 'exp(-tau*s)/((0.05)*s + b)'
+    params = {'tau': 0.0373, 'b': 0.2}
+    u = np.sin(np.arange(200) * 0.1)
+    np.testing.assert_allclose(held.simulate(params, u, 0.01),
+                               model.simulate({**params, 'J': 0.05}, u, 0.01), rtol=1e-12)
+    known_delay = model.with_fixed({'tau': 0.0373})
+    assert known_delay.has_delay and not known_delay.delay_is_estimated
+    loop = Model(MSD, controller='20 + 10/s').with_fixed({'k': 2.0})
+    assert (loop.parameters, loop.controller) == (('m', 'd'), '20 + 10/s')
+    equation = Model('M*s**2*q + Fv*s*q = 35.15065*u - Fc*w - off', inputs=('u', 'w'),
+                     output='q').with_fixed({'off': -3.1})
+    assert equation.parameters == ('M', 'Fv', 'Fc') and equation.inputs == ('u', 'w')
+    for values, message in (({'q': 1.0}, "'q' is not a parameter"),
+                            ({'J': float('nan')}, 'must be a finite number'),
+                            ({'J': 1.0, 'b': 2.0, 'tau': 0.1}, 'leaves no parameter')):
+        with pytest.raises(ModelError, match=message):
+            model.with_fixed(values)

@@ -46,7 +46,8 @@ def test_named_columns_several_inputs_and_no_time_column(tmp_path):
 
 @pytest.mark.parametrize('header, rows, kwargs, message', [
     (['t', 'u'], [(0, 1), (1, 2)], {}, r"no column 'y'; its columns are t, u"),
-    (['u', 'y'], [(0, 1), (1, 2)], {}, r"no 't' column: give the sample time \(--ts\)"),
+    (['u', 'y'], [(0, 1), (1, 2)], {},
+     r"no 't' or '__time' column: give the sample time \(--ts\)"),
     (['t', 'u', 'y'], [(0, 1, 'x'), (1, 2, 3)], {}, "column 'y' has a missing or non-numeric"),
     (['t', 'u', 'y'], [(0, 1, 2), (1, 2)], {}, "column 'y' has a missing or non-numeric"),
     (['t', 'u', 'y'], [(0, 1, 2)], {}, 'a single sample'),

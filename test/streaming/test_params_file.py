@@ -5,7 +5,7 @@ import textwrap
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.config import PARAMETER_NAMES, PARAMETERS
 from ctid_ros.streaming.params_file import (config_directories, find_config, load_params_file,
-                                            node_parameters)
+                                            load_units, node_parameters)
 import pytest
 import yaml
 
@@ -44,6 +44,10 @@ def test_example_files_load(name, checks):
     # An empty list cannot be typed by ROS 2: such a parameter is shown commented out.
     empty = [name for name in PARAMETER_NAMES if name not in section]
     assert empty == ['extra_input_fields'] and '    # extra_input_fields: [' in text
+    # The figures' units (wheel_demo) come last: no parameter of the node.
+    units = section.pop('units', None)
+    assert units is None or (tuple(yaml.safe_load(text)['ctid_node']['ros__parameters'])[-1]
+                             == 'units' and load_units(path) == units)
     assert tuple(section) == tuple(name for name in PARAMETER_NAMES if name in section)
     for parameter in PARAMETER_NAMES:
         line = text.index(f'    {parameter}:') if parameter in section else \
@@ -180,6 +184,34 @@ def test_ros_standard_parameters_are_not_errors(tmp_path):
                   reliability: reliable
         """)
     assert load_params_file(path).model == 'K/(T*s + 1)'
+
+
+def test_units_label_figures_and_are_no_parameter(tmp_path):
+    path = write(tmp_path, """
+        /**:
+          ros__parameters:
+            units: {u: N m}
+        ctid_node:
+          ros__parameters:
+            model: exp(-tau*s)/(J*s + b)
+            units:
+              J: kg m^2
+              tau: s
+              y: rad/s
+        """)
+    assert load_params_file(path).model == 'exp(-tau*s)/(J*s + b)'
+    assert load_units(path) == {'u': 'N m', 'J': 'kg m^2', 'tau': 's', 'y': 'rad/s'}
+    # As ROS flattens it (a params file written by a tool), and no mapping at all.
+    path = write(tmp_path, """
+        ctid_node:
+          ros__parameters:
+            model: K/(T*s + 1)
+            units.K: V/V
+        """)
+    assert load_units(path) == {'K': 'V/V'}
+    assert load_units(write(tmp_path, 'ctid_node: {ros__parameters: {model: K/s}}')) == {}
+    with pytest.raises(ConfigError, match='units.T must be a unit as text'):
+        load_units(write(tmp_path, 'ctid_node: {ros__parameters: {model: K/s, units: {T: 1}}}'))
 
 
 @pytest.mark.parametrize('document, message', [

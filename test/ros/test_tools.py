@@ -1,0 +1,193 @@
+"""
+``ctid record`` and ``ctid echo`` on real DDS over loopback, without launch.
+
+The simulated plant (``ctid_plant``: K=2, T=0.5, tau=0.137 s at 200 Hz, output noise 0.01,
+PointStamped messages stamped at the sample instants) and the identification node run in
+processes of their own, each test in a namespace of its own. The standard deviations over 6 s
+of data are below 0.1 %, so 3 % on K and T and 3 ms on tau are many of them.
+"""
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from ctid_ros.cli.main import main
+from ctid_ros.ros.messages import import_message, to_message
+from ctid_ros.streaming.contract import (diagnostics_message, estimate_messages, NodeTopics,
+                                         OK)
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+TRUTH = {'K': 2.0, 'T': 0.5, 'tau': 0.137}
+_COUNTER = itertools.count()
+
+
+def namespace() -> str:
+    return f'/tools{next(_COUNTER)}_{os.getpid() % 1000}_{int(time.time() * 1000) % 100000}'
+
+
+def spawn_plant(space: str) -> subprocess.Popen:
+    """
+    Run ctid_plant publishing ``<space>/u`` and ``<space>/y`` (PointStamped, 200 Hz).
+
+    Stamped at the sample instants, so the estimates do not depend on when the messages
+    arrive: on a machine loaded by other test suites, Float64 samples stamped on reception
+    moved K by 15 %.
+    """
+    return subprocess.Popen([sys.executable, '-m', 'ctid_ros.ros.plant_node', '--ros-args',
+                             '-r', f'__ns:={space}', '-p', 'message_type:=point_stamped',
+                             '--log-level', 'warn'])
+
+
+def node_params(tmp_path, space: str, **overrides) -> str:
+    """Write a params file for ctid_node in ``space`` estimating the plant's model."""
+    values = {'input_topic': 'u', 'output_topic': 'y', 'input_field': 'point.x',
+              'output_field': 'point.x', 'model': 'K*exp(-tau*s)/(T*s + 1)',
+              'parameter_names': ['K', 'T', 'tau'],
+              'lower': [0.001, 0.01, 0.0], 'upper': [1000.0, 100.0, 1.0],
+              'sample_time': 0.005, 'window': 6.0, 'update_period': 1.0, **overrides}
+    path = tmp_path / 'node.yaml'
+    # JSON is YAML with every string quoted: rcl would read a bare y as a boolean.
+    path.write_text(json.dumps({f'{space}/ctid_node': {'ros__parameters': values}}))
+    return str(path)
+
+
+def stop(*processes: subprocess.Popen) -> None:
+    for process in processes:
+        if process.poll() is None:
+            process.terminate()
+    for process in processes:
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+@pytest.mark.ros
+def test_record_until_ctrl_c_then_replay_recovers_the_plant(tmp_path, capsys):
+    space = namespace()
+    bag = tmp_path / 'run.mcap'
+    plant = spawn_plant(space)
+    record = subprocess.Popen([sys.executable, '-m', 'ctid_ros.cli.main', 'record', str(bag),
+                               f'{space}/u', f'{space}/y', '--wait', '60'],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        line = record.stderr.readline()
+        assert line.startswith(f'ctid record: waiting for publishers of {space}/u'), line
+        line = record.stderr.readline()
+        assert line.startswith(f'ctid record: recording {space}/u (geometry_msgs/msg/'
+                               f'PointStamped), {space}/y (geometry_msgs/msg/PointStamped) into '
+                               f'{bag}'), line
+        time.sleep(12.0)        # 12 s of data at 200 Hz
+        record.send_signal(signal.SIGINT)   # Ctrl-C: the file is closed with its index
+        rest = record.communicate(timeout=30)[1]
+    finally:
+        stop(plant, record)
+    assert record.returncode == 0, rest
+    assert rest.startswith('ctid record: wrote ') and f'{space}/y: ' in rest
+    code = main(['replay', str(bag), '--params-file', node_params(tmp_path, space),
+                 '--node-name', f'{space}/ctid_node', '--json'])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    result = json.loads(captured.out)
+    assert result['params']['K'] == pytest.approx(TRUTH['K'], rel=0.03)
+    assert result['params']['T'] == pytest.approx(TRUTH['T'], rel=0.03)
+    assert result['params']['tau'] == pytest.approx(TRUTH['tau'], abs=0.003)
+    # Without --overwrite the recording is never replaced.
+    assert main(['record', str(bag), f'{space}/u']) == 2
+    assert 'already exists' in capsys.readouterr().err
+
+
+@pytest.mark.ros
+def test_record_of_a_topic_without_publisher_leaves_no_file(tmp_path, capsys):
+    bag = tmp_path / 'none.mcap'
+    assert main(['record', str(bag), f'{namespace()}/nobody', '--wait', '1']) == 2
+    err = capsys.readouterr().err
+    assert 'error: no publisher of' in err and 'after 1 s' in err
+    assert not bag.exists()
+
+
+@pytest.mark.ros
+def test_echo_follows_a_running_node(tmp_path, capsys):
+    space = namespace()
+    plant = spawn_plant(space)
+    node = subprocess.Popen([sys.executable, '-m', 'ctid_ros.ros.node', '--ros-args', '-r',
+                             f'__ns:={space}', '--params-file', node_params(tmp_path, space),
+                             '--log-level', 'warn'])
+    echo = subprocess.Popen([sys.executable, '-m', 'ctid_ros.cli.main', 'echo', '--node',
+                             f'{space}/ctid_node', '--json'], stdout=subprocess.PIPE, text=True)
+    try:
+        # JSON lines as the node works: statuses while it warms up, then estimates. The first
+        # windows are short (most of their data settle the model's state): take the first
+        # estimate a whole window (6 s) after the first one.
+        rows = []
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            rows.append(json.loads(echo.stdout.readline()))
+            first = next((row['time'] for row in rows if row['params'] and row['time']), None)
+            if rows[-1]['params'] and rows[-1]['time'] and rows[-1]['time'] - first >= 6.0:
+                break
+        row = rows[-1]
+        assert row['node'] == f'{space}/ctid_node' and list(row['params']) == ['K', 'T', 'tau']
+        assert row['params']['K'] == pytest.approx(TRUTH['K'], rel=0.03)
+        assert row['params']['T'] == pytest.approx(TRUTH['T'], rel=0.03)
+        assert row['params']['tau'] == pytest.approx(TRUTH['tau'], abs=0.003)
+        assert all(0 < value < 0.01 for value in row['std'].values())
+        echo.send_signal(signal.SIGINT)
+        assert echo.wait(timeout=20) == 130
+        # The table, once: the header names the parameters, the row shows value ± std.
+        code = main(['echo', '--node', f'{space}/ctid_node', '--once', '--timeout', '90'])
+        out = capsys.readouterr().out.splitlines()
+        assert code == 0 and out[0].split()[:5] == ['window', 'end', 'K', 'T', 'tau']
+        assert len(out) == 2 and out[1].count('±') == 3
+    finally:
+        stop(echo, node, plant)
+
+
+@pytest.mark.ros
+def test_echo_started_late_gets_the_latched_estimate(capsys):
+    """A node that latches its estimates (transient local): echo started later gets them."""
+    topics = NodeTopics.of(f'{namespace()}/ctid_node')
+    context = Context()
+    rclpy.init(context=context)
+    publisher = rclpy.create_node('latched_estimates', context=context)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    try:
+        messages = estimate_messages(topics, ['K', 'T'], [2.0, 0.5], [0.01, 0.002])
+        messages.append(diagnostics_message(topics, 1_700_000_012_500_000_000, OK, 'fine',
+                                            {'fit_percent': 95.5}))
+        publishers = {}
+        for message in messages:
+            kind = import_message(message.msgtype)
+            publishers[message.topic] = publisher.create_publisher(kind, message.topic, latched)
+            publishers[message.topic].publish(to_message(kind, message.fields))
+        # Published before anybody listened: only the history can deliver them.
+        code = main(['echo', '--node', topics.node, '--once', '--json', '--timeout', '30'])
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        row = json.loads(captured.out)
+        assert row['params'] == {'K': 2.0, 'T': 0.5} and row['std'] == {'K': 0.01, 'T': 0.002}
+        # /diagnostics, shared by every node, is read without history: the latched estimate
+        # comes alone, released after STATUS_WAIT without fit or status.
+        assert (row['time'], row['fit'], row['level'], row['status']) == (None,) * 4
+    finally:
+        publisher.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+@pytest.mark.ros
+def test_echo_gives_up_after_its_timeout(capsys):
+    node = f'{namespace()}/ctid_node'
+    assert main(['echo', '--node', node, '--once', '--timeout', '1']) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith(f'ctid echo: estimates of {node} ') and len(err) == 2
+    assert err[1].startswith(f'ctid echo: error: no estimate from {node} within 1 s (no '
+                             f'publisher of {node}/estimate, {node}/estimate_std')
