@@ -18,7 +18,7 @@ from ctid_ros import Model
 from ctid_ros.cli.main import main
 from ctid_ros.cli.replay import progress
 from ctid_ros.core.excitation import prbs
-from ctid_ros.streaming.contract import WARN
+from ctid_ros.streaming.contract import LEVELS, WARN
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
@@ -146,9 +146,13 @@ def test_sliding_gives_one_estimate_per_update_period(tmp_path, capsys):
     code, out, _ = replay(capsys, bag, '--params-file', params, '--sliding', '--end', '16')
     assert code == 0
     header, *rows = out.split('\n\n')[0].splitlines()
-    assert header.split() == ['time', 's', 'K', 'T', 'tau', 'fit', '%']
+    assert header.split() == ['time', 's', 'K', 'T', 'tau', 'fit', '%', 'alarm']
     # Window ends: the tick less the reorder horizon (settled data), on the sample grid.
     assert [row.split()[0] for row in rows] == ['9.94', '14.94']
+    # No baseline in the params file: only the model check runs, and the model fits.
+    assert [row.split()[-1] for row in rows] == ['OK', 'OK']
+    assert all(result['alarm'] == {'level': 'OK', 'parameters': [], 'since': None}
+               for result in results)
 
 
 def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, capsys):
@@ -177,12 +181,14 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
                      '/lab/ctid_node/estimate': array, '/lab/ctid_node/estimate_std': array,
                      '/lab/ctid_node/prediction': array,
                      '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+                     '/lab/ctid_node/alarm': 'diagnostic_msgs/msg/DiagnosticStatus',
                      **{f'/lab/ctid_node/params/{name}': scalar for name in 'mdk'}}
     # Ticks at 5 s (too little data: a WARN status only), 10 s and 15 s; as the live node, one
     # message per update on each topic, the prediction included.
     assert counts == {'/plant/u': 2000, '/plant/y': 2000, '/lab/ctid_node/estimate': 2,
                       '/lab/ctid_node/estimate_std': 2, '/lab/ctid_node/prediction': 2,
-                      '/diagnostics': 3, **{f'/lab/ctid_node/params/{name}': 2 for name in 'mdk'}}
+                      '/diagnostics': 3, '/lab/ctid_node/alarm': 2,
+                      **{f'/lab/ctid_node/params/{name}': 2 for name in 'mdk'}}
     copied = [(topic, time_ns, msg.data) for topic, time_ns, msg in messages
               if topic in ('/plant/u', '/plant/y')]
     assert copied == [(record.topic, record.time_ns, record.fields['data'])
@@ -197,6 +203,18 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
     predictions = [msg for topic, _, msg in messages if topic == '/lab/ctid_node/prediction']
     assert [len(msg.data) for msg in predictions] == [int(pairs['samples']) for pairs in values]
     assert all(float(pairs['fit_percent']) > 95.0 for pairs in values)
+    # The change alarm, as the node publishes it, also merged into the status. No baseline, so
+    # only the model check runs: these Float64 outputs are logged 1 ms after their input but
+    # were simulated at its instant, a model error the residual check sees at 40 dB SNR (WARN
+    # after two such windows).
+    alarms = [msg for topic, _, msg in messages if topic == '/lab/ctid_node/alarm']
+    assert [alarm.name for alarm in alarms] == ['lab/ctid_node: alarm'] * 2
+    assert [alarm.level for alarm in alarms] == [LEVELS[pairs['alarm']] for pairs in values]
+    assert [alarm.message for alarm in alarms] == [pairs['alarm_message'] for pairs in values]
+    assert statuses[-1].level == max(WARN, alarms[-1].level)
+    if alarms[-1].level == WARN:
+        assert 'model no longer explains the data' in alarms[-1].message
+        assert statuses[-1].message.startswith('alarm: model no longer explains the data')
     code, _, err = replay(capsys, bag, '--params-file', params, '--node-name',
                           '/lab/ctid_node', '--output', bag / 'inside.mcap')
     assert code == 2 and 'refusing' in err
