@@ -40,10 +40,11 @@ the :class:`AlarmStatus` it returns. The method (docs/algorithm.md, section 17):
   factor is corrected once :data:`SCALE_MIN_WINDOWS` differences are in; a bias is not (it is
   what the dead zone and a captured baseline are for).
 * **Model check.** A window whose residual is correlated with the input (a model that misses
-  dynamics: a new resonance, a wrong dead time) does not feed the sums; after
-  :data:`MODEL_FAILURES` such windows in a row the status is WARN ``model no longer explains
-  the data`` (:func:`model_check`; the estimator's ``Estimate.residuals`` verdict when it gives
-  one).
+  dynamics: a new resonance, a wrong dead time) does not feed the sums (:func:`model_check`;
+  the estimator's ``Estimate.residuals`` verdict when it gives one). The windows that hold data
+  from both sides of a parameter step fail it too, ``window/update_period`` of them at most;
+  after one more such window in a row (:attr:`ChangeDetector.failures_to_warn`) the status is
+  WARN ``model no longer explains the data``.
 
 An alarm stays raised (ERROR) until its sum falls back to zero (the recent windows are inside
 the dead zone again), or until a new baseline is set (``~/capture_baseline``); ``reset``
@@ -84,13 +85,16 @@ CEILING = 2.0
 # are needed before it is used.
 SCALE_HISTORY = 500
 SCALE_MIN_WINDOWS = 30
-# Windows in a row whose model fails the residual check before the status says so.
-MODEL_FAILURES = 2
+# Windows in a row whose model fails the residual check before the status says so, beyond
+# those a single change can straddle (window/update_period of them: a step of a parameter
+# also fails the check in the windows holding data from both sides of it).
+MODEL_FAILURES = 1
 # Lags of the fallback residual check (without the estimator's verdict).
 _CHECK_LAGS = 100
 _MAD_TO_STD = 1.4826
-# E min(Z^2, 9) of a standard normal Z: the variance left after winsorising at 3 sigma.
-_WINSORISED_VARIANCE = 0.99501
+# Differences beyond this many robust standard deviations are left out of the scale (a normal
+# one is that far once in 16 000).
+_REJECT = 4.0
 _Z95 = 1.959964
 # Overshoot of the discrete sum over the barriers (in long-run standard deviations) against
 # window length / update period: Siegmund's 1.166 for independent windows, Monte Carlo
@@ -176,11 +180,12 @@ def robust_scale(differences: Sequence[float]) -> float:
     Return how much wider than reported the estimates scatter: at least 1.
 
     ``differences`` are the standardised differences of non-overlapping windows (standard
-    normal for a calibrated covariance). Their spread is estimated robustly (winsorised at
-    three median absolute deviations from the median, so that the few differences across a
-    change do not count), then raised by one standard error (``1/sqrt(n/2)``: neighbouring
-    differences share windows) so that a spread estimated too small does not raise the
-    false-alarm rate. 1 until :data:`SCALE_MIN_WINDOWS` differences are in.
+    normal for a calibrated covariance). Their spread is estimated robustly: differences
+    further than four median absolute deviations (in standard deviations) from the median are
+    left out (the few that straddle a change), the rest give a root mean square, which is then
+    raised by its standard error (a relative ``1/sqrt(2 n_eff)`` with ``n_eff = n/2``:
+    neighbouring differences share windows) so that a spread estimated too small does not raise
+    the false-alarm rate. 1 until :data:`SCALE_MIN_WINDOWS` differences are in.
     """
     count = len(differences)
     if count < SCALE_MIN_WINDOWS:
@@ -190,9 +195,9 @@ def robust_scale(differences: Sequence[float]) -> float:
     spread = _MAD_TO_STD * float(np.median(np.abs(data - centre)))
     if spread <= 0.0:
         return 1.0
-    clipped = np.clip(data - centre, -3.0 * spread, 3.0 * spread)
-    spread = math.sqrt(float(np.mean(clipped ** 2)) / _WINSORISED_VARIANCE)
-    return max(1.0, spread * (1.0 + 1.0 / math.sqrt(count / 2.0)))
+    kept = data[np.abs(data - centre) <= _REJECT * spread] - centre
+    spread = math.sqrt(float(np.mean(kept ** 2)))
+    return max(1.0, spread * (1.0 + 1.0 / math.sqrt(kept.size)))
 
 
 def model_check(update: Update, window: float, transient: float = -1.0) -> Tuple[bool, str]:
@@ -552,9 +557,19 @@ class ChangeDetector:
         return self._threshold
 
     @property
+    def failures_to_warn(self) -> int:
+        """Return how many failing windows in a row make the status WARN."""
+        settings = self._settings
+        return int(math.ceil(settings.window / settings.update_period)) + MODEL_FAILURES
+
+    @property
     def windows(self) -> int:
         """Return how many usable windows a capture could average now."""
         return len(self._recent)
+
+    def recent_ends(self) -> List[int]:
+        """Return the ends (ns) of the usable windows kept for a capture, oldest first."""
+        return [item[0] for item in self._recent]
 
     def set_baseline(self, baseline: Optional[Baseline]) -> None:
         """Compare with ``baseline`` from now on (None: none); the sums start afresh."""
@@ -762,7 +777,7 @@ class ChangeDetector:
             level, since = ERROR, (min(starts) if starts else None)
             parts.append('changed: ' + ', '.join(shown[name].describe() for name in raised
                                                  if name in shown))
-        if self._failures >= MODEL_FAILURES:
+        if self._failures >= self.failures_to_warn:
             level = max(level, WARN)
             parts.append(f'model no longer explains the data ({self._failures} windows in a '
                          f'row): {verdict}')
