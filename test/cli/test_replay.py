@@ -18,6 +18,7 @@ from ctid_ros import Model
 from ctid_ros.cli.main import main
 from ctid_ros.cli.replay import progress
 from ctid_ros.core.excitation import prbs
+from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.streaming.contract import LEVELS, WARN
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
@@ -394,3 +395,53 @@ def test_dead_time_from_stamps_at_a_phase_of_the_sample(tmp_path, capsys, phase)
     for result in json.loads(out):
         error = result['params']['tau'] - STAMPS['truth']['tau']
         assert abs(error) <= 0.03 * TS and abs(error) <= 3 * result['std']['tau']
+
+
+def wheel_drive(seconds, step_time, inertia_after, seed=3):
+    """Return command u and measured speed y of the demo's wheel drive; J steps at step_time."""
+    plant = PlantSimulator('exp(-tau*s)/(J*s + b)', {'J': 0.05, 'b': 0.2, 'tau': 0.0373}, TS,
+                           pi_gains=(1.0, 4.0), noise_std=0.05, seed=seed)
+    reference = excitation(9, 30, 1.0, 2.0)
+    u, y = np.empty(round(seconds / TS)), np.empty(round(seconds / TS))
+    for k in range(u.size):
+        if k == round(step_time / TS):
+            plant.retune({'J': inertia_after, 'b': 0.2, 'tau': 0.0373})
+        u[k], y[k] = plant.step(next(reference))
+    return u, y
+
+
+def test_sliding_replay_audits_a_recorded_shift(tmp_path, capsys):
+    # The demo's wheel drive picks up a payload at 40 s (J 0.05 -> 0.06); the params file
+    # carries the data-sheet baseline as a mapping.
+    u, y = wheel_drive(60.0, 40.0, 0.06)
+    bag = write_bag(tmp_path, joint_state_records(u, y, 2_000_000), 'mcap-file')
+    case = {'model': 'exp(-tau*s)/(J*s + b)', 'params': {
+        'parameter_names': ['J', 'b', 'tau'], 'lower': [0.001, 0.0, 0.0],
+        'upper': [10.0, 10.0, 0.5], 'delay_max': 0.2}}
+    params = params_file(tmp_path, case, input_topic='/joint_states', input_field='effort[0]',
+                         output_topic='/joint_states', output_field='position[0]', window=4.0,
+                         update_period=2.0, baseline={'J': 0.05, 'b': 0.2, 'tau': 0.0373})
+    code, out, err = replay(capsys, bag, '--params-file', params, '--sliding', '--plot',
+                            tmp_path / 'audit.png')
+    assert code == 0, err
+    assert 'change alarm against the baseline from the params file: J = 0.05, b = 0.2, ' \
+        'tau = 0.0373 (0.1 false alarms per hour)' in err
+    header, *rows = out.split('\n\n')[0].splitlines()
+    assert header.split()[-1] == 'alarm'
+    table = [(float(row.split()[0]), row.split('  ')[-1].strip()) for row in rows
+             if row[:9].strip().replace('.', '').isdigit()]
+    assert all(alarm == 'OK' for time_s, alarm in table if time_s < 40.0)
+    first = next(time_s for time_s, alarm in table if alarm == 'ERROR J')
+    assert 40.0 < first <= 46.0
+    assert all(alarm == 'ERROR J' for time_s, alarm in table if time_s >= first)
+    line = next(text for text in out.splitlines() if text.startswith('alarm at t='))
+    assert line.startswith(f'alarm at t={first:.2f} s: changed: J +2')
+    assert (tmp_path / 'audit_params.png').stat().st_size > 0
+    code, out, _ = replay(capsys, bag, '--params-file', params, '--sliding', '--json')
+    results = json.loads(out)
+    alarms = [(result['time'] - T0_NS / 1e9, result['alarm']) for result in results]
+    assert all(alarm == {'level': 'OK', 'parameters': [], 'since': None}
+               for time_s, alarm in alarms if time_s < 40.0)
+    raised = next(alarm for time_s, alarm in alarms if alarm['level'] == 'ERROR')
+    assert raised['parameters'] == ['J'] and set(raised) == {'level', 'parameters', 'since'}
+    assert 37.5 < raised['since'] - T0_NS / 1e9 <= 40.5
