@@ -168,7 +168,8 @@ def read_baseline_file(path: str, names: Sequence[str],
     names : sequence of str
         The model's parameters; the file may cover some of them.
     node_name : str
-        Section of the file to read (as in a params file).
+        Section of the file to read (as in a params file); a fully qualified name falls back
+        to its base name (a file keyed ``ctid_node:``).
 
     Raises
     ------
@@ -182,7 +183,15 @@ def read_baseline_file(path: str, names: Sequence[str],
         return None
     source = f'baseline_file {path}'
     content = read_limited(file, MAX_PARAMS_BYTES, 'baseline_file', ConfigError)
-    values = node_parameters(parse_yaml(content, source), node_name, source=source)
+    document = parse_yaml(content, source)
+    try:
+        values = node_parameters(document, node_name, source=source)
+    except ConfigError:
+        # A hand-written file keyed by the plain node name serves the node in any namespace.
+        base = node_name.rpartition('/')[2]
+        if base == node_name:
+            raise
+        values = node_parameters(document, base, source=source)
     allowed = {per_parameter_name(prefix, name) for prefix in BASELINE_PREFIXES for name in names}
     other = sorted(set(values) - allowed)
     if other:

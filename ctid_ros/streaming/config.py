@@ -47,7 +47,7 @@ __all__ = ['IdentificationConfig', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', '
            'MAX_RELATIVE_CHANGE', 'MAX_WINDOW_SAMPLES', 'MIN_FALSE_ALARM_PER_HOUR',
            'MIN_MAX_GAP', 'MIN_SAMPLE_TIME', 'MIN_UPDATE_PERIOD', 'MIN_WINDOW_SAMPLES',
            'PARAMETER_NAMES', 'PARAMETERS', 'PER_PARAMETER', 'ParameterSpec', 'RELIABILITIES',
-           'STAMP_SOURCES', 'buffer_bytes', 'per_parameter_name']
+           'STAMP_SOURCES', 'buffer_bytes', 'per_parameter_name', 'split_per_parameter']
 
 STAMP_SOURCES = ('header', 'receive')
 RELIABILITIES = ('best_effort', 'reliable')
@@ -78,6 +78,8 @@ MIN_FALSE_ALARM_PER_HOUR = 1e-6
 MAX_FALSE_ALARM_PER_HOUR = 100.0
 MAX_RELATIVE_CHANGE = 10.0
 MAX_BASELINE_WINDOWS = 1000
+# Parameters that change the model's parameter names.
+_MODEL_PARAMETERS = ('model', 'controller', 'input_names', 'output_name', 'parameter_names')
 # Parameters set per model parameter, as ROS flattens a nested mapping of a params file
 # (``baseline: {J: 0.05}`` arrives as ``baseline.J``): the prefix and what it means.
 PER_PARAMETER = {
@@ -344,12 +346,17 @@ class IdentificationConfig:
         Return a new configuration with ``changes`` applied; ``self`` is left unchanged.
 
         For a runtime parameter change: on :class:`ConfigError` reject the change and keep the
-        current configuration.
+        current configuration. A change of the model drops the per-parameter values
+        (``baseline.<name>``...) of parameters the new model does not have.
         """
         plain, per_parameter = _split(changes)
-        if per_parameter:
-            plain['per_parameter'] = tuple({**dict(self.per_parameter), **per_parameter}.items())
-        return replace(self, **plain)
+        merged = {**dict(self.per_parameter), **per_parameter}
+        if set(plain) & set(_MODEL_PARAMETERS) and self.per_parameter:
+            # Another model: the values of parameters it does not have are dropped.
+            names = replace(self, **plain, per_parameter=()).names
+            merged = {key: value for key, value in merged.items()
+                      if key in per_parameter or split_per_parameter(key)[1] in names}
+        return replace(self, **plain, per_parameter=tuple(merged.items()))
 
     def to_dict(self) -> Dict[str, Any]:
         """Return ``{name: value}`` with arrays as lists, as in a params file (flattened)."""
@@ -721,6 +728,12 @@ _PER_PARAMETER_NAME = re.compile(r'(%s)\.([A-Za-z_][A-Za-z0-9_]*)\Z' % '|'.join(
 def per_parameter_name(prefix: str, name: str) -> str:
     """Return the ROS name of a per-parameter value, e.g. ``baseline.J``."""
     return f'{prefix}.{name}'
+
+
+def split_per_parameter(name: str) -> Optional[Tuple[str, str]]:
+    """Return ``(prefix, parameter)`` of a per-parameter name (``baseline.J``), else None."""
+    match = _PER_PARAMETER_NAME.match(name) if isinstance(name, str) else None
+    return (match.group(1), match.group(2)) if match else None
 
 
 def _per_parameter_values(items: Any) -> Tuple[Tuple[str, float], ...]:

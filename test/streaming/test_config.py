@@ -155,6 +155,11 @@ def test_per_parameter_values_as_ros_flattens_a_mapping(base):
     assert changed.per_parameter_values('baseline') == {'K': 2.0, 'tau': 0.1}
     assert config.per_parameter_values('baseline') == {'T': 0.5, 'K': 2.0}
     assert base.per_parameter == () and base.relative_changes() == dict.fromkeys(base.names, 0.02)
+    # Another model keeps the values of the parameters it shares, drops the others.
+    other = config.updated({'model': 'K/(T*s + 1)', 'parameter_names': ['K', 'T']})
+    assert other.per_parameter_values('baseline') == {'K': 2.0, 'T': 0.5}
+    assert config.updated({'model': 'K/(T2*s + 1)', 'parameter_names': []}).per_parameter == (
+        ('baseline.K', 2.0), ('baseline_std.K', 0.01))
     assert IdentificationConfig.from_dict({'model': FOPDT, 'baseline.K': math.nan}).per_parameter \
         == ()
 
