@@ -23,6 +23,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'node_throughput': [],
     'node_storm': ['--json', 'bench/results-node-storm.json'],
     'fleet': [],
+    'alarm': ['--json', 'bench/results-alarm.json'],
 }
 
 

@@ -4,8 +4,9 @@ Figures of an identification: output fit, estimates over time, Bode plot, residu
 Every function builds a :class:`matplotlib.figure.Figure` on its own Agg canvas (never through
 ``pyplot``), so it works without a display and does not change the backend or the figures of
 anybody else in the process. Pass ``path`` to also write a PNG; the figure is returned either
-way, for further editing or embedding. :func:`write_replay_figures` draws the set that
-``ctid replay --plot`` writes.
+way, for further editing or embedding (:func:`mark_alarms` adds the change alarms to a
+parameters figure). :func:`write_replay_figures` draws the set that ``ctid replay --plot``
+writes.
 
 Every axis says what it shows and in which unit: seconds, rad/s, dB, degrees, and for
 parameters and signals the units of a ``units`` mapping (``{'J': 'kg m^2', 'u': 'N m', 'y':
@@ -23,15 +24,17 @@ from ctid_ros.core.spectral import spectral_response, SpectralResponse
 from ctid_ros.errors import ConfigError, ModelError
 from ctid_ros.estimation.estimate import Estimate
 from ctid_ros.estimation.problem import settling_time
-from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.alarm import AlarmStatus
+from ctid_ros.streaming.contract import ERROR, NANOSECONDS, WARN
 from ctid_ros.streaming.session import Update
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
 
 __all__ = ['BodeData', 'COHERENT', 'bode', 'bode_data', 'check_figure_paths', 'default_omega',
-           'fit_figure', 'label', 'measured_response', 'parameters_figure', 'replay_figure_paths',
-           'residual_figure', 'transient_seconds', 'without_hold', 'write_replay_figures']
+           'fit_figure', 'label', 'mark_alarms', 'measured_response', 'parameters_figure',
+           'replay_figure_paths', 'residual_figure', 'transient_seconds', 'without_hold',
+           'write_replay_figures']
 
 PathLike = Union[str, os.PathLike]
 # A constant truth per parameter, or a function of time (s) returning each parameter's values.
@@ -241,6 +244,58 @@ def parameters_figure(times: Sequence[float], names: Sequence[str], values: np.n
         axes.legend(loc='best', fontsize='small')
     panels[0].set_title('Parameter estimates with ±2σ confidence bands')
     panels[-1].set_xlabel('time (s), end of each window')
+    return _finish(figure, path)
+
+
+def mark_alarms(figure: Figure, times: Sequence[float], names: Sequence[str],
+                alarms: Sequence[AlarmStatus], path: Optional[PathLike] = None) -> Figure:
+    """
+    Mark the change alarms on a :func:`parameters_figure` (one panel per name, in order).
+
+    A window whose alarm is raised for a parameter is shaded red on that parameter's panel
+    from the previous window's end to its own, and the first one of each alarm gets a red
+    line at its estimated start (``since``); windows whose model no longer explains the data
+    (WARN) are shaded orange on every panel.
+
+    Parameters
+    ----------
+    figure : Figure
+        The parameters figure.
+    times : sequence of float
+        End of each window (s), as plotted.
+    names : sequence of str
+        The panels' parameters.
+    alarms : sequence of AlarmStatus
+        The alarm after each window.
+    path : str or os.PathLike, optional
+        Where to write a PNG.
+
+    """
+    times = np.asarray(times, dtype=float)
+    if times.size == 0 or not alarms:
+        return _finish(figure, path)
+    # The plotted time base: seconds from some origin, recovered from the first window's end.
+    offset = times[0] - (alarms[0].time_ns or 0) / NANOSECONDS
+    starts = np.concatenate([[times[0] - (times[1] - times[0] if times.size > 1 else 0.0)],
+                             times[:-1]])
+    panels = figure.axes[:len(names)]
+    for axes, name in zip(panels, names):
+        labelled = set()
+        for index, status in enumerate(alarms):
+            raised = status.level == ERROR and name in status.parameters
+            failing = status.level == WARN and not status.parameters
+            if not (raised or failing):
+                continue
+            colour, label = ('tab:red', 'alarm') if raised else ('tab:orange', 'model fails')
+            axes.axvspan(starts[index], times[index], color=colour, alpha=0.15, linewidth=0,
+                         label=None if label in labelled else label)
+            labelled.add(label)
+            begins = index == 0 or name not in alarms[index - 1].parameters
+            if raised and begins and status.since_ns is not None:
+                axes.axvline(status.since_ns / NANOSECONDS + offset, color='tab:red',
+                             linewidth=1.0, linestyle=':')
+        if labelled:
+            axes.legend(loc='best', fontsize='small')
     return _finish(figure, path)
 
 
@@ -547,7 +602,8 @@ def without_hold(measured: SpectralResponse, ts: float, intersample: str) -> Spe
 
 def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, sliding: bool,
                          truth: Optional[Truth] = None, units: Units = None,
-                         transient: float = -1.0) -> List[Path]:
+                         transient: float = -1.0,
+                         alarms: Optional[Sequence[AlarmStatus]] = None) -> List[Path]:
     """
     Write the replay's figures as PNG files and return their paths.
 
@@ -557,7 +613,8 @@ def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, 
     data, over the response seen in the window's data; ``<stem>_residual.png`` the residual
     analysis of the last estimate (:func:`residual_figure`); with ``sliding`` also
     ``<stem>_params.png``, the estimates over time with their ±2σ bands (against ``truth`` if
-    given). ``units`` label the axes.
+    given) and the change ``alarms`` of the windows marked (:func:`mark_alarms`). ``units``
+    label the axes.
     """
     fit_path, params_path, bode_path, residual_path = replay_figure_paths(path, sliding)
     last = updates[-1]
@@ -570,11 +627,12 @@ def write_replay_figures(path: Path, updates: Sequence[Update], origin_ns: int, 
                path=fit_path)
     written = [fit_path]
     if params_path is not None:
-        parameters_figure(
-            np.array([(update.end_ns - origin_ns) / NANOSECONDS for update in updates]),
-            last.names, np.array([update.values for update in updates]),
-            np.array([update.stds for update in updates]), truth=truth, units=units,
-            path=params_path)
+        times = np.array([(update.end_ns - origin_ns) / NANOSECONDS for update in updates])
+        figure = parameters_figure(times, last.names,
+                                   np.array([update.values for update in updates]),
+                                   np.array([update.stds for update in updates]), truth=truth,
+                                   units=units)
+        mark_alarms(figure, times, last.names, alarms or (), path=params_path)
         written.append(params_path)
     bode(last.result, max_omega=np.pi / data.ts, measured=measured_response(last.result, data),
          units=units, path=bode_path)

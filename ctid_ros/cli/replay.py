@@ -10,6 +10,12 @@ into a new MCAP file together with the replayed input and output messages, copie
 ``--plot`` draws the fit, the estimates over time and a Bode plot. Without ``--output`` the
 messages are read as columns (:mod:`ctid_ros.files.columns`, the same numbers, faster).
 
+With ``--sliding`` every window also goes through the node's change alarm against the baseline
+of the params file (``baseline: {J: 0.05, ...}``, or its ``baseline_file``): the table gets an
+``alarm`` column, ``--json`` an ``"alarm"`` object per window, the parameters figure red marks,
+``--output`` the ``~/alarm`` topic, and the alarms raised are listed at the end. That is the
+way to audit a recorded shift.
+
 Examples
 --------
 ::
@@ -36,8 +42,10 @@ from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.files.mcap_writer import EstimateWriter
+from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
+from ctid_ros.streaming.baseline import configured_baseline
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
+from ctid_ros.streaming.contract import ERROR, NANOSECONDS, resolve_topic
 from ctid_ros.streaming.params_file import load_params_file, load_units
 from ctid_ros.streaming.replay import (Replay, replay_columns, replay_messages, SampleColumns,
                                        SkippedTick)
@@ -88,6 +96,11 @@ def run(arguments: argparse.Namespace) -> int:
     if arguments.output is not None and arguments.output.exists() and not arguments.overwrite:
         raise ConfigError(f'--output {arguments.output} already exists; choose another file or '
                           'pass --overwrite to replace it')
+    baseline, note = configured_baseline(config, arguments.node_name)
+    detector = ChangeDetector.from_config(config, baseline)
+    if arguments.sliding and baseline is not None:
+        print(f'ctid replay: change alarm against the baseline {note}: {baseline.describe()} '
+              f'({config.false_alarm_per_hour:g} false alarms per hour)', file=sys.stderr)
     with open_bag(arguments.path) as bag, \
             _estimate_output(arguments.output, arguments.path, arguments.node_name,
                              arguments.overwrite) as writer:
@@ -104,7 +117,8 @@ def run(arguments: argparse.Namespace) -> int:
                                         sys.stderr), start_ns or bag.start_time_ns,
                               end_ns or bag.end_time_ns, sys.stderr, _last_time)
             replay = replay_columns(blocks, config, sliding=arguments.sliding, topics=topics,
-                                    capacity=_capacity(bag, config, selected))
+                                    capacity=_capacity(bag, config, selected),
+                                    detector=detector)
         else:
             records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns),
                                 sys.stderr)
@@ -114,10 +128,11 @@ def run(arguments: argparse.Namespace) -> int:
             messages = progress(_copied(records, writer), start_ns or bag.start_time_ns,
                                 end_ns or bag.end_time_ns, sys.stderr)
             replay = replay_messages(messages, config, sliding=arguments.sliding,
-                                     topics=topics, capacity=_capacity(bag, config, selected))
-        if writer is not None:
-            _write_estimates(writer, replay)
+                                     topics=topics, capacity=_capacity(bag, config, selected),
+                                     detector=detector)
         origin_ns = bag.start_time_ns
+        if writer is not None:
+            _write_estimates(writer, replay, origin_ns)
     _report(arguments, replay, topics, origin_ns)
     if plot is not None:
         # matplotlib is needed (and loaded) only for figures.
@@ -127,7 +142,7 @@ def run(arguments: argparse.Namespace) -> int:
             written = write_replay_figures(
                 plot, replay.updates, origin_ns, arguments.sliding,
                 units=load_units(arguments.params_file, arguments.node_name),
-                transient=config.transient)
+                transient=config.transient, alarms=replay.alarms)
         except OSError as error:
             raise ConfigError(f'--plot {plot}: cannot write the figures: '
                               f'{error.strerror or error}') from None
@@ -236,16 +251,29 @@ def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwr
     writer.close()
 
 
-def _write_estimates(writer: EstimateWriter, replay: Replay) -> None:
-    """Write every update as the live node publishes it, and the status of every skipped tick."""
-    events = [(update.end_ns, update) for update in replay.updates] + [
-        (skipped.time_ns, skipped) for skipped in replay.skipped]
+def _write_estimates(writer: EstimateWriter, replay: Replay, origin_ns: int) -> None:
+    """
+    Write every update as the live node publishes it, and the status of every skipped tick.
+
+    With the sliding replay's alarms, each update's diagnostics carry its alarm (as the node's
+    do) and the alarm goes to ``~/alarm`` too; times in them count from ``origin_ns``.
+    """
+    alarms = replay.alarms or [None] * len(replay.updates)
+    events = [(update.end_ns, (update, alarm)) for update, alarm in zip(replay.updates, alarms)]
+    events += [(skipped.time_ns, skipped) for skipped in replay.skipped]
     for time_ns, event in sorted(events, key=lambda pair: pair[0]):
         if isinstance(event, SkippedTick):
             writer.write_status(time_ns, event.level, event.reason)
-        else:
-            writer.write_estimate(time_ns, event.names, event.values, event.stds,
-                                  event.diagnostics(), prediction=event.prediction)
+            continue
+        update, alarm = event
+        diagnostics = update.diagnostics()
+        if alarm is not None:
+            diagnostics.update(alarm.diagnostics(origin_ns))
+        writer.write_estimate(time_ns, update.names, update.values, update.stds, diagnostics,
+                              prediction=update.prediction)
+        if alarm is not None:
+            writer.write_alarm(time_ns, alarm.level, alarm.text(origin_ns),
+                               alarm.values(origin_ns))
 
 
 def _capacity(bag: BagReader, config: IdentificationConfig, topics: Sequence[str]
@@ -265,11 +293,27 @@ def _report(arguments: argparse.Namespace, replay: Replay, topics: Tuple[str, st
               f's: {skipped.reason}', file=sys.stderr)
     if arguments.json:
         objects = [update.to_dict() for update in replay.updates]
+        for item, alarm in zip(objects, replay.alarms):
+            item['alarm'] = alarm.to_dict()
         print(json.dumps(objects if arguments.sliding else objects[0], indent=2,
                          default=json_default))
         return
     if arguments.sliding:
-        print(format_series(replay.updates, origin_ns))
+        print(format_series(replay.updates, origin_ns, replay.alarms or None))
+        for line in _alarm_lines(replay.alarms, origin_ns):
+            print(line)
         print(f'\nlast window ({replay.updates[-1].window.data.y.size} samples):')
     print(format_update(replay.updates[-1]))
     print(format_stats(replay.stats, topics, replay.messages))
+
+
+def _alarm_lines(alarms: Sequence[AlarmStatus], origin_ns: int) -> Iterator[str]:
+    """Yield one line per alarm raised (ERROR or WARN), when it was raised and what it said."""
+    previous = None
+    for alarm in alarms:
+        key = (alarm.level, alarm.parameters)
+        if alarm.level and key != previous:
+            kind = 'alarm' if alarm.level == ERROR else 'warning'
+            raised = ((alarm.time_ns or 0) - origin_ns) / NANOSECONDS
+            yield f'{kind} at t={raised:.2f} s: {alarm.text(origin_ns)}'
+        previous = key if alarm.level else None

@@ -4,13 +4,14 @@ from dataclasses import replace
 from typing import Mapping, Optional, Sequence
 
 from ctid_ros.estimation.estimate import Estimate
+from ctid_ros.streaming.alarm import AlarmStatus
 from ctid_ros.streaming.buffer import BufferStats
-from ctid_ros.streaming.contract import NANOSECONDS
+from ctid_ros.streaming.contract import NANOSECONDS, WARN
 from ctid_ros.streaming.session import Update
 import numpy as np
 
-__all__ = ['format_estimate', 'format_series', 'format_stats', 'format_table', 'format_update',
-           'json_default', 'series_header', 'series_row']
+__all__ = ['alarm_cell', 'format_estimate', 'format_series', 'format_stats', 'format_table',
+           'format_update', 'json_default', 'series_header', 'series_row']
 
 
 def format_table(result: Estimate, fixed: Optional[Mapping[str, float]] = None) -> str:
@@ -59,7 +60,8 @@ def format_update(update: Update) -> str:
     return format_table(ordered)
 
 
-def format_series(updates: Sequence[Update], origin_ns: int) -> str:
+def format_series(updates: Sequence[Update], origin_ns: int,
+                  alarms: Optional[Sequence[AlarmStatus]] = None) -> str:
     """
     Return one line per update: window end (s from ``origin_ns``), estimates +- std, fit.
 
@@ -69,6 +71,8 @@ def format_series(updates: Sequence[Update], origin_ns: int) -> str:
         Sliding-window estimates, all with the same names.
     origin_ns : int
         Time shown as 0 (the bag start).
+    alarms : sequence of AlarmStatus, optional
+        The change alarm after each update: adds an ``alarm`` column (:func:`alarm_cell`).
 
     """
     names = updates[0].names
@@ -76,11 +80,19 @@ def format_series(updates: Sequence[Update], origin_ns: int) -> str:
              for update in updates]
     widths = [max(len(name), *(len(row[index]) for row in cells))
               for index, name in enumerate(names)]
-    lines = [series_header(names, widths)]
-    for update, row in zip(updates, cells):
+    lines = [series_header(names, widths, alarms is not None)]
+    for index, (update, row) in enumerate(zip(updates, cells)):
         lines.append(series_row((update.end_ns - origin_ns) / NANOSECONDS, row,
-                                update.result.fit, widths))
+                                update.result.fit, widths,
+                                None if alarms is None else alarm_cell(alarms[index])))
     return '\n'.join(lines)
+
+
+def alarm_cell(status: AlarmStatus) -> str:
+    """Return the alarm column of a series row: ``OK``, ``ERROR J,b``, ``WARN model``."""
+    if status.parameters:
+        return f'{status.level_name} {",".join(status.parameters)}'
+    return 'WARN model' if status.level == WARN else status.level_name
 
 
 def format_estimate(value: float, std: float) -> str:
@@ -88,18 +100,19 @@ def format_estimate(value: float, std: float) -> str:
     return f'{value:.5g} ± {std:.2g}'
 
 
-def series_header(names: Sequence[str], widths: Sequence[int]) -> str:
-    """Return the header of a series table with columns of the given widths."""
+def series_header(names: Sequence[str], widths: Sequence[int], alarm: bool = False) -> str:
+    """Return the header of a series table with columns of the given widths (and alarm)."""
     return '  '.join([f'{"time s":>9}'] + [f'{name:>{width}}'
                                            for name, width in zip(names, widths)]
-                     + [f'{"fit %":>7}'])
+                     + [f'{"fit %":>7}'] + (['alarm'] if alarm else []))
 
 
-def series_row(time_s: float, cells: Sequence[str], fit: float, widths: Sequence[int]) -> str:
-    """Return one row of a series table: time (s), one cell per parameter, fit (%)."""
+def series_row(time_s: float, cells: Sequence[str], fit: float, widths: Sequence[int],
+               alarm: Optional[str] = None) -> str:
+    """Return one row of a series table: time (s), one cell per parameter, fit (%), alarm."""
     return '  '.join([f'{time_s:>9.2f}'] + [f'{cell:>{width}}'
                                             for cell, width in zip(cells, widths)]
-                     + [f'{fit:>7.2f}'])
+                     + [f'{fit:>7.2f}'] + ([alarm] if alarm is not None else []))
 
 
 def format_stats(stats: BufferStats, names: Sequence[str], messages: int) -> str:

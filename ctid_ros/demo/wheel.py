@@ -20,6 +20,11 @@ robot picks up a payload: ``J`` jumps from 0.05 to 0.08 kg m².
    code path; the demo adds the estimates over time against the truth and a summary of the
    estimates before and after the payload.
 
+The node's params file carries the drive's data-sheet baseline (``baseline: {J: 0.05, ...}``),
+so its change alarm (``~/alarm``, merged into ``/diagnostics``) watches the run: the live
+table's last column, and a line per alarm raised, live and replayed. The payload raises it
+within a few windows, the stationary part none.
+
 Everything goes to ``demo_output/``; ``--docs`` also copies the figures into ``docs/images/``,
 where the README shows them. The ROS side (plant process, recorder) is in :mod:`ctid_ros.ros`,
 imported only once the DDS environment is set.
@@ -28,6 +33,7 @@ imported only once the DDS environment is set.
 import argparse
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass, replace
+import math
 import multiprocessing
 import os
 from pathlib import Path
@@ -42,15 +48,17 @@ from ctid_ros.cli import main as cli
 from ctid_ros.cli.report import format_estimate, series_header, series_row
 from ctid_ros.errors import CtidError
 from ctid_ros.files.bag_reader import BagReader
+from ctid_ros.streaming.alarm import AlarmStatus
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, DIAGNOSTIC_ARRAY,
-                                         FLOAT64_MULTI_ARRAY, NANOSECONDS, NodeTopics)
+                                         DIAGNOSTIC_STATUS, ERROR, FLOAT64_MULTI_ARRAY, LEVELS,
+                                         NANOSECONDS, NodeTopics)
 from ctid_ros.streaming.params_file import find_config, load_params_file, load_units
 import numpy as np
 import yaml
 
-__all__ = ['LiveRun', 'LiveTable', 'Scenario', 'Series', 'copy_to_docs', 'main', 'read_estimates',
-           'run_live', 'run_replay', 'summary', 'write_figures']
+__all__ = ['LiveRun', 'LiveTable', 'Scenario', 'Series', 'alarm_summary', 'copy_to_docs', 'main',
+           'read_estimates', 'run_live', 'run_replay', 'summary', 'write_figures']
 
 PLANT_CONFIG = 'wheel_demo_plant'
 NODE_CONFIG = 'wheel_demo'
@@ -146,6 +154,8 @@ class Series:
         Fit (%) of each window.
     names : tuple of str
         Parameter names.
+    alarms : list of AlarmStatus
+        The change alarm after each window (level, parameters, since, window end).
 
     """
 
@@ -154,6 +164,7 @@ class Series:
     stds: np.ndarray
     fits: np.ndarray
     names: Tuple[str, ...]
+    alarms: Tuple[AlarmStatus, ...] = ()
 
     def last(self, earliest: float = -np.inf, latest: float = np.inf) -> Optional[int]:
         """Return the index of the last window ending in ``[earliest, latest]``, if any."""
@@ -195,14 +206,15 @@ class LiveTable:
         self._names = tuple(names)
         self._stream = stream
         self._pending: Dict[str, Any] = {}
-        self._rows: List[Tuple[float, List[float], List[float], float]] = []
+        self._rows: List[Tuple[float, List[float], List[float], float, AlarmStatus]] = []
         self._drift_shown = False
         self.start_ns: Optional[int] = None
         self._widths = [max(len(name), CELL_WIDTH) for name in self._names]
 
     def header(self) -> None:
         """Print the column titles."""
-        print(series_header(self._names, self._widths), file=self._stream, flush=True)
+        print(series_header(self._names, self._widths, alarm=True), file=self._stream,
+              flush=True)
 
     def on_estimate(self, message) -> None:
         """Take the estimates of an update."""
@@ -213,35 +225,49 @@ class LiveTable:
         self._add('stds', list(message.data))
 
     def on_diagnostics(self, message) -> None:
-        """Take the fit and window end of an update from the node's status."""
+        """Take the fit, window end and change alarm of an update from the node's status."""
         for status in message.status:
             values = {pair.key: pair.value for pair in status.values}
             if status.name == NODE.status_name and 'fit_percent' in values:
-                self._add('status', (float(values['window_end']), float(values['fit_percent'])))
+                self._add('status', (float(values['window_end']), float(values['fit_percent']),
+                                     _alarm_of(values, self.start_ns or 0)))
 
     def _add(self, key: str, value: Any) -> None:
         self._pending[key] = value
         if len(self._pending) < 3 or self.start_ns is None:
             return
-        (end, fit), values, stds = (self._pending.pop(name)
-                                    for name in ('status', 'values', 'stds'))
+        (end, fit, alarm), values, stds = (self._pending.pop(name)
+                                           for name in ('status', 'values', 'stds'))
         time_s = end - self.start_ns / NANOSECONDS
         if time_s >= self._scenario.drift_time and not self._drift_shown:
             self._drift_shown = True
             print(f'{self._scenario.drift_time:>9.2f}  payload picked up: '
                   f'{self._scenario.drift_text()}', file=self._stream, flush=True)
-        self._rows.append((time_s, values, stds, fit))
+        self._rows.append((time_s, values, stds, fit, alarm))
+        cell = alarm.level_name + (f' {",".join(alarm.parameters)}' if alarm.parameters else '')
         print(series_row(time_s, [format_estimate(*pair) for pair in zip(values, stds)], fit,
-                         self._widths), file=self._stream, flush=True)
+                         self._widths, cell), file=self._stream, flush=True)
 
     def series(self) -> Series:
         """Return the rows received so far."""
         count = len(self._names)
-        columns = list(zip(*self._rows)) or [(), (), (), ()]
+        columns = list(zip(*self._rows)) or [(), (), (), (), ()]
         return Series(np.array(columns[0], dtype=float),
                       np.array(columns[1], dtype=float).reshape(-1, count),
                       np.array(columns[2], dtype=float).reshape(-1, count),
-                      np.array(columns[3], dtype=float), self._names)
+                      np.array(columns[3], dtype=float), self._names, tuple(columns[4]))
+
+
+def _alarm_of(values: Dict[str, str], origin_ns: int) -> AlarmStatus:
+    """Return the change alarm carried by a status's values (times after ``origin_ns``)."""
+    since = values.get('alarm_since')
+    end = values.get('window_end')
+    return AlarmStatus(
+        LEVELS.get(values.get('alarm', 'OK'), 0),
+        tuple(name for name in values.get('alarm_parameters', '').split('; ') if name),
+        None if since is None else origin_ns + round(float(since) * NANOSECONDS),
+        None if end is None else round(float(end) * NANOSECONDS),
+        values.get('alarm_message', '').rsplit(' since t=', 1)[0])
 
 
 def _isolate_dds() -> None:
@@ -341,7 +367,8 @@ def _record(bag: Path, scenario: Scenario, table: LiveTable, events: Any,
 
     recorded = {scenario.topics['r']: POINT, scenario.topics['u']: POINT,
                 scenario.topics['y']: POINT, NODE.estimate: FLOAT64_MULTI_ARRAY,
-                NODE.estimate_std: FLOAT64_MULTI_ARRAY, NODE.diagnostics: DIAGNOSTIC_ARRAY}
+                NODE.estimate_std: FLOAT64_MULTI_ARRAY, NODE.diagnostics: DIAGNOSTIC_ARRAY,
+                NODE.alarm: DIAGNOSTIC_STATUS}
     with RecordingWriter(bag, overwrite=True) as writer, \
             TopicRecorder(writer, recorded, node_name='ctid_demo_recorder') as recorder:
         for topic, msgtype, callback in (
@@ -394,7 +421,7 @@ def read_estimates(path: Path, names: Sequence[str], start_ns: int) -> Series:
     """Read the estimates, standard deviations and fits of an MCAP written by ``--output``."""
     rows: Dict[str, List[Any]] = {NODE.estimate: [], NODE.estimate_std: [],
                                   NODE.diagnostics: []}
-    times = []
+    times, alarms = [], []
     with BagReader(path) as bag:
         for topic, log_time_ns, msg in bag.messages(list(rows)):
             if topic == NODE.estimate:
@@ -407,11 +434,13 @@ def read_estimates(path: Path, names: Sequence[str], start_ns: int) -> Series:
                 # A tick that gave no estimate has a status but no fit.
                 if 'fit_percent' in values:
                     rows[topic].append(float(values['fit_percent']))
+                    # The replay counts the alarm's times from the start of the bag.
+                    alarms.append(_alarm_of(values, bag.start_time_ns))
             else:
                 rows[topic].append(list(msg.data))
     return Series(np.array(times), np.array(rows[NODE.estimate]).reshape(-1, len(names)),
                   np.array(rows[NODE.estimate_std]).reshape(-1, len(names)),
-                  np.array(rows[NODE.diagnostics]), tuple(names))
+                  np.array(rows[NODE.diagnostics]), tuple(names), tuple(alarms))
 
 
 def summary(scenario: Scenario, config: IdentificationConfig, replayed: Series,
@@ -446,15 +475,42 @@ def summary(scenario: Scenario, config: IdentificationConfig, replayed: Series,
     return '\n'.join(lines)
 
 
+def alarm_summary(scenario: Scenario, live: Series, replayed: Series, start_ns: int) -> str:
+    """
+    Say what the change alarm did, live and replayed.
+
+    For each: the alarms raised before the payload, and the first one after it with its delay in
+    update periods.
+    """
+    lines = ['change alarm (against the data-sheet baseline of the params file):']
+    for label, series in (('live node', live), ('ctid replay', replayed)):
+        raised = [(time_s, alarm) for time_s, alarm in zip(series.times, series.alarms)
+                  if alarm.level == ERROR]
+        before = [time_s for time_s, _ in raised if time_s < scenario.drift_time]
+        after = [(time_s, alarm) for time_s, alarm in raised if time_s >= scenario.drift_time]
+        period = np.median(np.diff(series.times)) if series.times.size > 1 else math.nan
+        text = f'  {label}: {len(before)} alarm(s) before the payload'
+        if after:
+            time_s, alarm = after[0]
+            delay = (time_s - scenario.drift_time) / period
+            text += (f'; raised at t={time_s:.2f} s, {delay:.1f} update periods after it: '
+                     f'{alarm.summary}')
+        else:
+            text += '; none after it'
+        lines.append(text)
+    return '\n'.join(lines)
+
+
 def write_figures(scenario: Scenario, replayed: Series, output: Path,
                   units: Optional[Dict[str, str]] = None) -> Path:
-    """Draw the replay's estimates over time with ±2σ bands against the drifting truth."""
+    """Draw the replay's estimates with ±2σ bands against the drifting truth, and its alarms."""
     # Imported here: the plant process imports this module too and needs no matplotlib.
-    from ctid_ros.cli.plots import parameters_figure
+    from ctid_ros.cli.plots import mark_alarms, parameters_figure
 
     path = output / 'parameters.png'
-    parameters_figure(replayed.times, replayed.names, replayed.values, replayed.stds,
-                      truth=scenario.truth, units=units, path=path)
+    figure = parameters_figure(replayed.times, replayed.names, replayed.values, replayed.stds,
+                               truth=scenario.truth, units=units)
+    mark_alarms(figure, replayed.times, replayed.names, replayed.alarms, path=path)
     return path
 
 
@@ -543,6 +599,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     figures.insert(1, write_figures(scenario, replayed, output, load_units(node_file)))
     print(f'replayed {replayed.times.size} windows in {time.monotonic() - live_done:.1f} s\n')
     print(summary(scenario, config, replayed, live.series))
+    print(alarm_summary(scenario, live.series, replayed, live.start_ns))
     print('\nfigures: ' + ', '.join(str(path) for path in figures))
     if arguments.docs:
         print('copied to ' + ', '.join(_shown(path) for path in copy_to_docs(output)))

@@ -16,9 +16,9 @@ from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, TypeVar
 
 from ctid_ros.errors import BagError, DataError
 from ctid_ros.files.mcap_source import PathLike, TopicSchema
-from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message,
-                                         estimate_messages, NodeTopics, OutputMessage,
-                                         update_status)
+from ctid_ros.streaming.contract import (alarm_message, DEFAULT_NODE_NAME,
+                                         diagnostics_message, estimate_messages, NodeTopics,
+                                         OutputMessage, update_status)
 from mcap.writer import Writer as McapWriter
 import numpy as np
 from rosbags.typesys import get_typestore, Stores, TypesysError
@@ -318,3 +318,14 @@ class EstimateWriter(RecordingWriter):
         time_ns = _time_ns(time_ns)
         self.write_message(diagnostics_message(self.node, time_ns, level, message,
                                                values or {}), time_ns)
+
+    def write_alarm(self, time_ns: int, level: int, message: str,
+                    values: Optional[Mapping[str, Any]] = None) -> None:
+        """
+        Write the change alarm on ``~/alarm`` (a ``DiagnosticStatus``), as the node does.
+
+        Parameters are those of :meth:`write_status`; ``values`` those of
+        :meth:`ctid_ros.streaming.alarm.AlarmStatus.values`.
+        """
+        self.write_message(alarm_message(self.node, level, message, values or {}),
+                           _time_ns(time_ns))

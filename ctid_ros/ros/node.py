@@ -39,11 +39,22 @@ and activates itself at start-up and has no lifecycle services.
 
 Outputs: the topics, types, layouts, QoS and status levels of
 :mod:`ctid_ros.streaming.contract` (``~/estimate``, ``~/estimate_std``,
-``~/estimate_covariance`` and ``~/params/<name>`` transient-local, ``~/prediction`` if
-``publish_prediction``, ``/diagnostics`` with the per-stream counters added), built there as
-plain data and converted here to rclpy messages; ``ctid replay --output`` writes the same.
-Services ``~/reset`` and ``~/estimate_now`` (``std_srvs/Trigger``). One INFO line per
-estimate, at most one a second.
+``~/estimate_covariance``, ``~/params/<name>`` and ``~/alarm`` transient-local,
+``~/prediction`` if ``publish_prediction``, ``/diagnostics`` with the per-stream counters and
+the alarm added), built there as plain data and converted here to rclpy messages;
+``ctid replay --output`` writes the same. Services ``~/reset``, ``~/estimate_now`` and
+``~/capture_baseline`` (``std_srvs/Trigger``). One INFO line per estimate, at most one a
+second.
+
+Change alarm: every estimate also goes to a :class:`~ctid_ros.streaming.alarm.ChangeDetector`
+(the one ``ctid replay --sliding`` uses) against the baseline of
+:func:`~ctid_ros.streaming.baseline.configured_baseline` (``baseline_file`` if it exists, else
+``baseline.<name>``); the per-parameter parameters (``baseline.<name>``,
+``baseline_std.<name>``, ``min_relative_change.<name>``) are declared once the model is known,
+so a params file's ``baseline: {J: 0.05}`` reaches them. ``~/capture_baseline`` averages the
+last ``baseline_windows`` windows into the baseline and writes ``baseline_file``; ``~/reset``
+clears the alarm's sums and keeps its baseline; a runtime change keeps both unless it changes
+the parameters' names (a new model) or the baseline.
 """
 
 import functools
@@ -57,13 +68,16 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.ros.messages import field_problem, import_message, to_message
+from ctid_ros.streaming.alarm import AlarmSettings, AlarmStatus, ChangeDetector
+from ctid_ros.streaming.baseline import Baseline, configured_baseline, write_baseline_file
 from ctid_ros.streaming.buffer import Gap, INPUT, OUTPUT, SampleBuffer, StreamStats
-from ctid_ros.streaming.config import IdentificationConfig, PARAMETER_NAMES, PARAMETERS
-from ctid_ros.streaming.contract import (DEFAULT_NODE_NAME, diagnostics_message, ERROR,
-                                         estimate_line, estimate_messages, estimate_summary,
-                                         failure_status, NANOSECONDS, NodeTopics, OK,
-                                         OutputMessage, PublisherQos, update_status,
-                                         warm_up_text, WARN)
+from ctid_ros.streaming.config import (IdentificationConfig, PARAMETER_NAMES, PARAMETERS,
+                                       PER_PARAMETER, per_parameter_name, split_per_parameter)
+from ctid_ros.streaming.contract import (alarm_message, DEFAULT_NODE_NAME, diagnostics_message,
+                                         ERROR, estimate_line, estimate_messages,
+                                         estimate_summary, failure_status, NANOSECONDS,
+                                         NodeTopics, OK, OutputMessage, PublisherQos,
+                                         update_status, warm_up_text, WARN)
 from ctid_ros.streaming.message_fields import parse_field_path
 from ctid_ros.streaming.sampler import MessageSampler, ROLES
 from ctid_ros.streaming.session import IdentificationSession, Update
@@ -95,6 +109,9 @@ INFO_PERIOD = 1.0
 # differentiated); beyond it the update is refused and the executor goes on.
 VALIDATION_TIMEOUT = 5.0
 _INT64_MAX = 2 ** 63 - 1
+# A capture whose windows scatter more than this (in variance, against their covariance) is
+# reported with a warning: the plant was probably changing.
+_SCATTER_LIMIT = 9.0
 # Changing one of these rebuilds the sample buffer (its gap rules or size depend on them).
 _BUFFER_PARAMETERS = ('window', 'sample_time', 'max_gap', 'reorder_horizon', 'transient',
                       'max_message_rate')
@@ -129,6 +146,13 @@ def _initial_value(spec) -> Any:
     if spec.kind in _ARRAY_TYPES:
         return _ARRAY_TYPES[spec.kind]
     return list(spec.default) if isinstance(spec.default, tuple) else spec.default
+
+
+def _per_parameter_descriptor(name: str) -> ParameterDescriptor:
+    prefix, parameter = split_per_parameter(name)
+    return ParameterDescriptor(
+        name=name, type=ParameterType.PARAMETER_DOUBLE, dynamic_typing=True,
+        description=f'Change alarm: {PER_PARAMETER[prefix]} {parameter} (NaN: not set).')
 
 
 def parameter_value(node: Node, name: str, default: Any = None) -> Any:
@@ -215,6 +239,9 @@ class IdentificationNode(LifecycleNode):
         self._validating: List[threading.Thread] = []
         self._config: Optional[IdentificationConfig] = None
         self._session: Optional[IdentificationSession] = None
+        self._detector: Optional[ChangeDetector] = None
+        # A baseline set by a runtime parameter change, for the next estimate to take up.
+        self._pending_baseline: Optional[Tuple[Optional[Baseline], str]] = None
         self._sampler: Optional[MessageSampler] = None
         self._buffer: Optional[SampleBuffer] = None
         self._counters = _Counters()
@@ -266,6 +293,11 @@ class IdentificationNode(LifecycleNode):
         return self._config
 
     @property
+    def detector(self) -> Optional[ChangeDetector]:
+        """Return the change alarm's detector with its baseline and status; None unconfigured."""
+        return self._detector
+
+    @property
     def buffer(self) -> Optional[SampleBuffer]:
         """Return the sample buffer, None while unconfigured."""
         return self._buffer
@@ -280,8 +312,23 @@ class IdentificationNode(LifecycleNode):
     def _read_config(self) -> IdentificationConfig:
         values = {spec.name: parameter_value(self, spec.name, spec.default)
                   for spec in PARAMETERS}
-        return _bounded(lambda: IdentificationConfig.from_dict(values), VALIDATION_TIMEOUT,
-                        self._validating)
+        config = _bounded(lambda: IdentificationConfig.from_dict(values), VALIDATION_TIMEOUT,
+                          self._validating)
+        # The model's parameters are known now: baseline.J and the like can be declared (a
+        # params file's values for them become theirs) and read.
+        self._declare_per_parameter(config.names)
+        values.update({name: parameter_value(self, name, math.nan)
+                       for name in self._per_parameter_names(config.names)})
+        return IdentificationConfig.from_dict(values)
+
+    @staticmethod
+    def _per_parameter_names(names: Tuple[str, ...]) -> List[str]:
+        return [per_parameter_name(prefix, name) for prefix in PER_PARAMETER for name in names]
+
+    def _declare_per_parameter(self, names: Tuple[str, ...]) -> None:
+        for name in self._per_parameter_names(names):
+            if not self.has_parameter(name):
+                self.declare_parameter(name, math.nan, _per_parameter_descriptor(name))
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Validate the parameters; build the buffer, session, publishers and services."""
@@ -289,7 +336,8 @@ class IdentificationNode(LifecycleNode):
             config = self._read_config()
             sampler = self._new_sampler(config)
             buffer = self._new_buffer(config, sampler)
-        except (ConfigError, DataError, MemoryError) as error:
+            baseline, note = configured_baseline(config, self.get_fully_qualified_name())
+        except (ConfigError, DataError, MemoryError, ParameterException) as error:
             return self._transition_failed('configure', error)
         except Exception as error:  # noqa: B902 - a bug must not escape a transition
             self._internal_error('configure', error)
@@ -297,6 +345,8 @@ class IdentificationNode(LifecycleNode):
         with self._lock:
             self._config, self._sampler, self._buffer = config, sampler, buffer
             self._session = IdentificationSession(config)
+            self._detector = ChangeDetector.from_config(config, baseline)
+            self._pending_baseline = None
             self._restart_counters()
         try:
             # The fixed topics exist from configure on, so subscribers can match early.
@@ -307,7 +357,10 @@ class IdentificationNode(LifecycleNode):
                 self.create_service(Trigger, '~/reset', self._reset,
                                     callback_group=self._estimation_group),
                 self.create_service(Trigger, '~/estimate_now', self._estimate_now,
+                                    callback_group=self._estimation_group),
+                self.create_service(Trigger, '~/capture_baseline', self._capture_baseline,
                                     callback_group=self._estimation_group)]
+            self._publisher(alarm_message(self._node_topics, OK, '', {}))
         except Exception as error:  # noqa: B902 - a bug must not escape a transition
             self._internal_error('configure', error)
             self._teardown()
@@ -315,7 +368,15 @@ class IdentificationNode(LifecycleNode):
         self.get_logger().info(f'configured: model {config.model!r}, window {config.window:g} s '
                                f'on a {config.sample_time:g} s grid, an estimate every '
                                f'{config.update_period:g} s')
+        self.get_logger().info(self._baseline_line(baseline, note))
         return _SUCCESS
+
+    def _baseline_line(self, baseline: Optional[Baseline], note: str) -> str:
+        if baseline is None:
+            return f'change alarm: {note}; set baseline.<name> or call ~/capture_baseline'
+        config = self._config
+        return (f'change alarm: baseline {note}: {baseline.describe()}; '
+                f'{config.false_alarm_per_hour:g} false alarms per hour')
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Enable the publishers, subscribe and start the timers."""
@@ -330,6 +391,7 @@ class IdentificationNode(LifecycleNode):
             self._stop_activity()
             return self._transition_failed('activate', error)
         self._publish_status(OK, 'active: waiting for data', {})
+        self._publish_alarm(self._detector.status)
         return _SUCCESS
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -380,6 +442,7 @@ class IdentificationNode(LifecycleNode):
             publishers = [publisher for publisher, _ in self._topic_publishers.values()]
             self._topic_publishers = {}
             self._config = self._session = self._sampler = self._buffer = None
+            self._detector = self._pending_baseline = None
             self.last_update = None
         for publisher in publishers:
             self.destroy_lifecycle_publisher(publisher)
@@ -633,10 +696,13 @@ class IdentificationNode(LifecycleNode):
         with self._estimation_lock:
             with self._lock:
                 config, buffer, session = self._config, self._buffer, self._session
+                detector, pending = self._detector, self._pending_baseline
+                self._pending_baseline = None
             if config is None:
                 return None, 'not configured'
             if session.config is not config:
                 session.reconfigure(config)
+            self._follow_configuration(detector, config, pending)
             try:
                 self._check_silence(config, buffer)
             except DataError as error:
@@ -651,6 +717,8 @@ class IdentificationNode(LifecycleNode):
                 return None, self._failed(error)
             finally:
                 self._busy_until = time.perf_counter() + (time.perf_counter() - started)
+            previous = detector.status
+            alarm = detector.update(update)
         self.last_update = update
         self._estimated_since_start = True
         self._publish(update, config)
@@ -659,6 +727,9 @@ class IdentificationNode(LifecycleNode):
         origin = self._origin_ns if self._origin_ns is not None else update.start_ns
         values['time'] = (update.end_ns - origin) / NANOSECONDS
         values['window'] = config.window
+        values.update(alarm.diagnostics(origin))
+        self._publish_alarm(alarm)
+        self._log_alarm(previous, alarm)
         level, text = update_status(update.names, update.values, update.stds, values)
         available = self._available(buffer)
         if available is not None and available < config.window:
@@ -671,6 +742,41 @@ class IdentificationNode(LifecycleNode):
         self._publish_status(level, text, values)
         self._log_estimate(update, values['time'])
         return update, estimate_summary(update.names, update.values, update.stds)
+
+    def _follow_configuration(self, detector: ChangeDetector, config: IdentificationConfig,
+                              pending: Optional[Tuple[Optional[Baseline], str]]) -> None:
+        """Bring the detector to ``config`` and a baseline set at runtime (estimation lock)."""
+        settings = AlarmSettings.from_config(config)
+        if settings != detector.settings:
+            detector.reconfigure(settings, None if pending is None else pending[0])
+        elif pending is not None:
+            detector.set_baseline(pending[0])
+        if pending is not None:
+            self.get_logger().info(self._baseline_line(*pending))
+
+    def _origin(self) -> int:
+        return self._origin_ns if self._origin_ns is not None else 0
+
+    def _publish_alarm(self, alarm: AlarmStatus) -> None:
+        """Publish the change alarm on ``~/alarm`` (latched)."""
+        config = self._config
+        if config is None:
+            return
+        origin = self._origin()
+        self._send(alarm_message(self._node_topics, alarm.level, alarm.text(origin),
+                                 alarm.values(origin), hardware_id=config.hardware_id))
+
+    def _log_alarm(self, previous: AlarmStatus, alarm: AlarmStatus) -> None:
+        """Log when the alarm is raised, changes or clears."""
+        if (alarm.level, alarm.parameters) == (previous.level, previous.parameters):
+            return
+        text = alarm.text(self._origin())
+        if alarm.level == OK:
+            self.get_logger().info(f'change alarm cleared: {text}')
+        elif alarm.level == WARN:
+            self.get_logger().warning(f'change alarm: {text}')
+        else:
+            self.get_logger().error(f'change alarm: {text}')
 
     def _log_estimate(self, update: Update, time_s: float) -> None:
         now = time.monotonic()
@@ -828,12 +934,71 @@ class IdentificationNode(LifecycleNode):
     # Services and parameters ---------------------------------------------------------------
 
     def reset(self) -> None:
-        """Forget all samples, counters and the warm start."""
+        """Forget all samples, counters, the warm start and the alarm's sums (not its baseline)."""
         with self._estimation_lock, self._lock:
             if self._buffer is not None:
                 self._buffer.clear()
                 self._session.reset()
+                self._detector.reset()
             self._restart_counters()
+        if self._detector is not None:
+            self._publish_alarm(self._detector.status)
+
+    def capture_baseline(self) -> Tuple[bool, str]:
+        """
+        Average the last ``baseline_windows`` windows into the baseline; save it if configured.
+
+        Returns
+        -------
+        (bool, str)
+            Whether a baseline was captured, and what happened (the values, where they were
+            written, or why not).
+
+        """
+        with self._estimation_lock:
+            with self._lock:
+                detector, config = self._detector, self._config
+            if detector is None:
+                return False, 'not configured'
+            origin = self._origin()
+            windows = list(detector.recent_ends())
+            try:
+                baseline = detector.capture()
+            except DataError as error:
+                return False, str(error)
+            spread = detector.spread()
+        first, last = ((windows[-config.baseline_windows] - origin) / NANOSECONDS,
+                       (windows[-1] - origin) / NANOSECONDS)
+        note = (f'captured by {self.get_fully_qualified_name()} from {config.baseline_windows} '
+                f'windows ending t={first:.2f} to {last:.2f} s (stamps '
+                f'{windows[-config.baseline_windows] / NANOSECONDS!r} to '
+                f'{windows[-1] / NANOSECONDS!r})')
+        text = f'baseline {baseline.describe()}, {note}'
+        if spread > _SCATTER_LIMIT:
+            text += (f'; warning: the windows scatter {math.sqrt(spread):.3g} times more than '
+                     'their covariance says: was the plant changing?')
+        if config.baseline_file:
+            try:
+                path = write_baseline_file(config.baseline_file, baseline,
+                                           self.get_fully_qualified_name(), note)
+                text += f'; saved to {path}'
+            except ConfigError as error:
+                text += f'; NOT saved: {error}'
+                self.get_logger().error(f'~/capture_baseline: {error}')
+        else:
+            text += '; not saved (no baseline_file): a restart forgets it'
+        self.get_logger().info(f'change alarm: {text}')
+        self._publish_alarm(detector.status)
+        return True, text
+
+    def _capture_baseline(self, request: Trigger.Request,
+                          response: Trigger.Response) -> Trigger.Response:
+        try:
+            response.success, response.message = self.capture_baseline()
+        except Exception as error:  # noqa: B902 - a service must answer
+            self._internal_error('capture_baseline', error)
+            response.success, response.message = False, f'internal error: {error!r}'
+        return response
 
     def _reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
@@ -860,17 +1025,22 @@ class IdentificationNode(LifecycleNode):
     def _on_set_parameters(self, parameters: List[Parameter]) -> SetParametersResult:
         try:
             changes = {parameter.name: parameter.value for parameter in parameters
-                       if parameter.name in PARAMETER_NAMES}
+                       if parameter.name in PARAMETER_NAMES
+                       or split_per_parameter(parameter.name)}
             if not changes or self._config is None:
                 # Unconfigured: the parameters are validated on configure, as nav2 does.
                 return SetParametersResult(successful=True)
             defaults = {spec.name: spec.default for spec in PARAMETERS}
-            changes = {name: defaults[name] if value is None else value
+            changes = {name: defaults.get(name, math.nan) if value is None else value
                        for name, value in changes.items()}
             current = self._config
             config = _bounded(lambda: current.updated(changes), VALIDATION_TIMEOUT,
                               self._validating)
+            baseline = self._changed_baseline(current, config, changes)
             self._apply(config)
+            if baseline is not None:
+                with self._lock:
+                    self._pending_baseline = baseline
         except ConfigError as error:
             self._rejected_parameters += 1
             self._last_rejected_parameter = str(error)[:500]
@@ -880,6 +1050,28 @@ class IdentificationNode(LifecycleNode):
             self._internal_error('parameter update', error)
             return SetParametersResult(successful=False, reason=f'internal error: {error!r}')
         return SetParametersResult(successful=True)
+
+    def _changed_baseline(self, old: IdentificationConfig, new: IdentificationConfig,
+                          changes: Mapping[str, Any]) -> Optional[Tuple[Optional[Baseline], str]]:
+        """
+        Return the baseline a runtime change sets, or None if it leaves the baseline alone.
+
+        Setting any ``baseline.<name>``/``baseline_std.<name>`` uses the parameters' baseline
+        (even over a captured one); a changed ``baseline_file`` (or model) gives
+        :func:`configured_baseline`.
+
+        Raises
+        ------
+        ConfigError
+            If the new ``baseline_file`` exists and cannot be used.
+
+        """
+        if new.baseline_file != old.baseline_file or new.names != old.names:
+            return configured_baseline(new, self.get_fully_qualified_name())
+        if any((split_per_parameter(name) or ('',))[0] in ('baseline', 'baseline_std')
+               for name in changes):
+            return Baseline.from_config(new), 'from the parameters'
+        return None
 
     def _apply(self, config: IdentificationConfig) -> None:
         """Switch to a validated configuration; the session follows at the next estimate."""
@@ -905,12 +1097,18 @@ class IdentificationNode(LifecycleNode):
             self._own_timers[0] = self._create_update_timer()
         if self._active:
             self._connect()
-        changed = ', '.join(sorted(_changed(old, config)))
+        if config.names != old.names:
+            # A new model: its parameters get their baseline.<name> and the like.
+            self._declare_per_parameter(config.names)
+        changed = ', '.join(sorted(_changed(old, config))) or 'the same values'
         self.get_logger().info(f'configuration updated: {changed}')
 
 
 def _changed(old: IdentificationConfig, new: IdentificationConfig) -> List[str]:
-    return [name for name in PARAMETER_NAMES if getattr(old, name) != getattr(new, name)]
+    plain = [name for name in PARAMETER_NAMES if getattr(old, name) != getattr(new, name)]
+    before, after = dict(old.per_parameter), dict(new.per_parameter)
+    return plain + [name for name in set(before) | set(after)
+                    if before.get(name) != after.get(name)]
 
 
 def wrap_text(text: str, indent: str) -> str:
@@ -943,6 +1141,11 @@ def node_usage() -> str:
         flags = ', read-only' if spec.read_only else ''
         lines.append(f'  {spec.name} ({spec.kind}{flags}, default {default!r})')
         lines.append(wrap_text(spec.description, '      '))
+    lines.append('per model parameter <name> (a mapping in a params file, e.g. baseline: {J: '
+                 '0.05, b: 0.2}):')
+    for prefix, meaning in PER_PARAMETER.items():
+        lines.append(f'  {prefix}.<name> (double, default unset)')
+        lines.append(wrap_text(f"The change alarm's {meaning}.", '      '))
     return '\n'.join(lines)
 
 

@@ -42,11 +42,12 @@ from ctid_ros.streaming.buffer import capacity_for
 from ctid_ros.streaming.message_fields import parse_field_path
 import numpy as np
 
-__all__ = ['IdentificationConfig', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
-           'MAX_ITERATIONS', 'MAX_MESSAGE_RATE', 'MAX_QOS_DEPTH', 'MAX_WINDOW_SAMPLES',
+__all__ = ['IdentificationConfig', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
+           'MAX_FALSE_ALARM_PER_HOUR', 'MAX_ITERATIONS', 'MAX_MESSAGE_RATE', 'MAX_QOS_DEPTH',
+           'MAX_RELATIVE_CHANGE', 'MAX_WINDOW_SAMPLES', 'MIN_FALSE_ALARM_PER_HOUR',
            'MIN_MAX_GAP', 'MIN_SAMPLE_TIME', 'MIN_UPDATE_PERIOD', 'MIN_WINDOW_SAMPLES',
-           'PARAMETER_NAMES', 'PARAMETERS', 'ParameterSpec', 'RELIABILITIES', 'STAMP_SOURCES',
-           'buffer_bytes']
+           'PARAMETER_NAMES', 'PARAMETERS', 'PER_PARAMETER', 'ParameterSpec', 'RELIABILITIES',
+           'STAMP_SOURCES', 'buffer_bytes', 'per_parameter_name', 'split_per_parameter']
 
 STAMP_SOURCES = ('header', 'receive')
 RELIABILITIES = ('best_effort', 'reliable')
@@ -70,6 +71,23 @@ MIN_UPDATE_PERIOD = 0.1
 MAX_DURATION = 1e6
 MAX_ITERATIONS = 10_000
 MAX_QOS_DEPTH = 10_000
+# Change alarms (streaming/alarm.py): a false-alarm rate between one in 114 years and one every
+# 36 s; a practical threshold of at most 1000 % of the baseline; at most 1000 windows averaged
+# into a captured baseline.
+MIN_FALSE_ALARM_PER_HOUR = 1e-6
+MAX_FALSE_ALARM_PER_HOUR = 100.0
+MAX_RELATIVE_CHANGE = 10.0
+MAX_BASELINE_WINDOWS = 1000
+# Parameters that change the model's parameter names.
+_MODEL_PARAMETERS = ('model', 'controller', 'input_names', 'output_name', 'parameter_names')
+# Parameters set per model parameter, as ROS flattens a nested mapping of a params file
+# (``baseline: {J: 0.05}`` arrives as ``baseline.J``): the prefix and what it means.
+PER_PARAMETER = {
+    'baseline': 'baseline value of the parameter, against which changes are alarmed',
+    'baseline_std': 'standard deviation of that baseline value (0 or unset: exact)',
+    'min_relative_change': 'smallest relative change of the parameter that is an alarm '
+                           '(unset: min_relative_change)',
+}
 # The ring buffer keeps twice its capacity (see buffer._Stream) and capacity_for adds a
 # safety factor of 2 against bursts.
 _STORAGE_FACTOR = 2
@@ -275,18 +293,43 @@ class IdentificationConfig:
         False, 'bool', 'Live node only: true = a managed (lifecycle) node that starts '
         'unconfigured and follows configure/activate/deactivate/cleanup/shutdown transitions, '
         'as nav2 nodes do; false = configure and activate at start-up.', read_only=True)
+    baseline_file: str = _param(
+        '', 'string', 'YAML file of the baseline the change alarm compares with: written by '
+        'the ~/capture_baseline service, read at configure (so a restart keeps it) and when '
+        'this parameter changes; when it exists it takes precedence over baseline.<name> '
+        "parameters. '' = none.")
+    baseline_windows: int = _param(
+        5, 'integer', f'Windows averaged by ~/capture_baseline into a baseline (1 to '
+        f'{MAX_BASELINE_WINDOWS}).', minimum=1)
+    false_alarm_per_hour: float = _param(
+        0.1, 'double', f'Change alarms a stationary plant raises per hour, on average '
+        f'({MIN_FALSE_ALARM_PER_HOUR:g} to {MAX_FALSE_ALARM_PER_HOUR:g}); sets the threshold of '
+        'the sequential test on the windows (with update_period and the overlap of the '
+        'windows).', minimum=0.0)
+    min_relative_change: float = _param(
+        0.02, 'double', f'Smallest change of a parameter, relative to its baseline, that is an '
+        f'alarm (0 to {MAX_RELATIVE_CHANGE:g}): a real but smaller change is not; per parameter '
+        'as min_relative_change.<name> (a mapping in a params file).', minimum=0.0)
+    # Values per model parameter (PER_PARAMETER: baseline.J, baseline_std.J,
+    # min_relative_change.J), in name order; not a ROS parameter of its own (the node declares
+    # one per name once the model is known).
+    per_parameter: Tuple[Tuple[str, float], ...] = ()
 
     def __post_init__(self):
-        for item in fields(self):
+        for item in _spec_fields():
             object.__setattr__(self, item.name,
                                _coerce(item.name, item.metadata['spec']['kind'],
                                        getattr(self, item.name)))
+        object.__setattr__(self, 'per_parameter', _per_parameter_values(self.per_parameter))
         object.__setattr__(self, '_model', self._validate())
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> 'IdentificationConfig':
         """
         Build a configuration from ``{parameter name: value}`` (unset names take defaults).
+
+        Names of :data:`PER_PARAMETER` form (``baseline.J``, as ROS flattens ``baseline: {J:
+        0.05}``) go into :attr:`per_parameter`; NaN leaves one unset.
 
         Raises
         ------
@@ -295,23 +338,48 @@ class IdentificationConfig:
             value.
 
         """
-        _check_names(values)
-        return cls(**values)
+        plain, per_parameter = _split(values)
+        return cls(**plain, per_parameter=tuple(per_parameter.items()))
 
     def updated(self, changes: Mapping[str, Any]) -> 'IdentificationConfig':
         """
         Return a new configuration with ``changes`` applied; ``self`` is left unchanged.
 
         For a runtime parameter change: on :class:`ConfigError` reject the change and keep the
-        current configuration.
+        current configuration. A change of the model drops the per-parameter values
+        (``baseline.<name>``...) of parameters the new model does not have.
         """
-        _check_names(changes)
-        return replace(self, **changes)
+        plain, per_parameter = _split(changes)
+        merged = {**dict(self.per_parameter), **per_parameter}
+        if set(plain) & set(_MODEL_PARAMETERS) and self.per_parameter:
+            # Another model: the values of parameters it does not have are dropped.
+            names = replace(self, **plain, per_parameter=()).names
+            merged = {key: value for key, value in merged.items()
+                      if key in per_parameter or split_per_parameter(key)[1] in names}
+        return replace(self, **plain, per_parameter=tuple(merged.items()))
 
     def to_dict(self) -> Dict[str, Any]:
-        """Return ``{name: value}`` with arrays as lists, as in a params file."""
-        return {item.name: list(value) if isinstance(value, tuple) else value
-                for item in fields(self) for value in [getattr(self, item.name)]}
+        """Return ``{name: value}`` with arrays as lists, as in a params file (flattened)."""
+        values = {item.name: list(value) if isinstance(value, tuple) else value
+                  for item in _spec_fields() for value in [getattr(self, item.name)]}
+        values.update(self.per_parameter)
+        return values
+
+    def per_parameter_values(self, prefix: str) -> Dict[str, float]:
+        """
+        Return the values set for ``prefix`` (a key of :data:`PER_PARAMETER`) by name.
+
+        E.g. ``config.per_parameter_values('baseline')`` is ``{'J': 0.05, 'b': 0.2}`` for a
+        params file with ``baseline: {J: 0.05, b: 0.2}``; in :attr:`names` order.
+        """
+        values = dict(self.per_parameter)
+        return {name: values[per_parameter_name(prefix, name)] for name in self.names
+                if per_parameter_name(prefix, name) in values}
+
+    def relative_changes(self) -> Dict[str, float]:
+        """Return the practical threshold of every parameter: its own, else the common one."""
+        own = self.per_parameter_values('min_relative_change')
+        return {name: own.get(name, self.min_relative_change) for name in self.names}
 
     @property
     def compiled_model(self) -> Model:
@@ -434,7 +502,37 @@ class IdentificationConfig:
         self._check_choices()
         self._check_times(model)
         self._check_resources()
+        self._check_alarm(self.parameter_names or model.parameters)
         return model
+
+    def _check_alarm(self, names: Tuple[str, ...]) -> None:
+        far = self.false_alarm_per_hour
+        if not (math.isfinite(far)
+                and MIN_FALSE_ALARM_PER_HOUR <= far <= MAX_FALSE_ALARM_PER_HOUR):
+            raise ConfigError(f'false_alarm_per_hour must be between {MIN_FALSE_ALARM_PER_HOUR:g} '
+                              f'and {MAX_FALSE_ALARM_PER_HOUR:g}, got {far:g}')
+        if not 1 <= self.baseline_windows <= MAX_BASELINE_WINDOWS:
+            raise ConfigError(f'baseline_windows must be between 1 and {MAX_BASELINE_WINDOWS}, '
+                              f'got {self.baseline_windows}')
+        for key, value in (('min_relative_change', self.min_relative_change),
+                           *self.per_parameter):
+            prefix, _, name = key.partition('.')
+            if name and name not in names:
+                raise ConfigError(f'{key}: the model has no parameter {name!r} (its parameters: '
+                                  f'{", ".join(names)})')
+            if not math.isfinite(value):
+                raise ConfigError(f'{key} must be finite, got {value}')
+            if prefix == 'min_relative_change' and not 0.0 <= value <= MAX_RELATIVE_CHANGE:
+                raise ConfigError(f'{key} must be between 0 and {MAX_RELATIVE_CHANGE:g} (a '
+                                  f'fraction of the baseline: 0.02 is 2 %), got {value:g}')
+            if prefix == 'baseline_std' and value < 0.0:
+                raise ConfigError(f'{key} must be >= 0, got {value:g}')
+        given = dict(self.per_parameter)
+        for key in given:
+            prefix, _, name = key.partition('.')
+            if prefix == 'baseline_std' and per_parameter_name('baseline', name) not in given:
+                raise ConfigError(f'{key} is set but baseline.{name} is not: a standard deviation '
+                                  'needs its baseline value')
 
     def _check_names(self, model: Model) -> None:
         if not self.parameter_names:
@@ -479,7 +577,7 @@ class IdentificationConfig:
                               f'its bounds [{lower[index]}, {upper[index]}]')
 
     def _check_choices(self) -> None:
-        for item in fields(self):
+        for item in _spec_fields():
             choices = item.metadata['spec']['choices']
             value = getattr(self, item.name)
             if choices and value not in choices:
@@ -615,14 +713,55 @@ def _is_number(value: Any) -> bool:
             and not isinstance(value, (bool, np.bool_)))
 
 
+def _spec_fields():
+    """Return the fields of :class:`IdentificationConfig` that are ROS parameters."""
+    return [item for item in fields(IdentificationConfig) if 'spec' in item.metadata]
+
+
 PARAMETERS: Tuple[ParameterSpec, ...] = tuple(
     ParameterSpec(name=item.name, default=item.default, **item.metadata['spec'])
-    for item in fields(IdentificationConfig))
+    for item in _spec_fields())
 PARAMETER_NAMES: Tuple[str, ...] = tuple(spec.name for spec in PARAMETERS)
+_PER_PARAMETER_NAME = re.compile(r'(%s)\.([A-Za-z_][A-Za-z0-9_]*)\Z' % '|'.join(PER_PARAMETER))
 
 
-def _check_names(values: Mapping[str, Any]) -> None:
-    unknown = sorted(set(values) - set(PARAMETER_NAMES))
+def per_parameter_name(prefix: str, name: str) -> str:
+    """Return the ROS name of a per-parameter value, e.g. ``baseline.J``."""
+    return f'{prefix}.{name}'
+
+
+def split_per_parameter(name: str) -> Optional[Tuple[str, str]]:
+    """Return ``(prefix, parameter)`` of a per-parameter name (``baseline.J``), else None."""
+    match = _PER_PARAMETER_NAME.match(name) if isinstance(name, str) else None
+    return (match.group(1), match.group(2)) if match else None
+
+
+def _per_parameter_values(items: Any) -> Tuple[Tuple[str, float], ...]:
+    """Check and sort ``(dotted name, number)`` pairs; NaN values are left out (unset)."""
+    if isinstance(items, Mapping):
+        items = items.items()
+    try:
+        pairs = [(key, value) for key, value in items]
+    except (TypeError, ValueError):
+        raise ConfigError(f'per_parameter must be (name, value) pairs, got {items!r}') from None
+    values = {}
+    for key, value in pairs:
+        if not isinstance(key, str) or not _PER_PARAMETER_NAME.match(key):
+            raise ConfigError(f'{key!r} is not a per-parameter name such as baseline.J; '
+                              f'prefixes: {", ".join(PER_PARAMETER)}')
+        value = _coerce(key, 'double', value)
+        if not math.isnan(value):
+            values[key] = value
+    return tuple(sorted(values.items()))
+
+
+def _split(values: Mapping[str, Any]) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+    """Separate plain parameters from per-parameter ones (``baseline.J``); refuse the rest."""
+    plain = {name: value for name, value in values.items()
+             if not (isinstance(name, str) and _PER_PARAMETER_NAME.match(name))}
+    unknown = sorted(str(name) for name in set(plain) - set(PARAMETER_NAMES))
     if unknown:
         raise ConfigError(f'unknown parameter(s) {", ".join(unknown)}; valid names: '
-                          f'{", ".join(PARAMETER_NAMES)}')
+                          f'{", ".join(PARAMETER_NAMES)}, and per model parameter '
+                          f'{", ".join(prefix + ".<name>" for prefix in PER_PARAMETER)}')
+    return plain, {name: value for name, value in values.items() if name not in plain}

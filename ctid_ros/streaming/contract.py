@@ -17,20 +17,26 @@ each per update:
   ``window_end`` of the diagnostics sent with it (plus their ``output_skew``: the output is
   predicted where it was measured);
 * ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray`` with one status named
-  ``ctid_node: estimate`` (also after an update that gave no estimate).
+  ``ctid_node: estimate`` (also after an update that gave no estimate);
+* ``~/alarm``: ``diagnostic_msgs/msg/DiagnosticStatus`` named ``ctid_node: alarm``, the change
+  alarm after each update (:mod:`ctid_ros.streaming.alarm`): OK, WARN (the model no longer
+  explains the data) or ERROR (a parameter changed), which parameters, how much and since
+  when in its values (:func:`alarm_message`).
 
 Publisher QoS (:class:`PublisherQos`, in :attr:`OutputMessage.qos`): the estimates, standard
-deviations, covariance and per-parameter topics are :data:`LATCHED` (reliable, transient local,
-keep last 1), so a tool that starts later still gets the last estimate; the prediction and the
-diagnostics are :data:`STREAM` (reliable, volatile, keep last 10).
+deviations, covariance, per-parameter topics and the alarm are :data:`LATCHED` (reliable,
+transient local, keep last 1), so a tool that starts later still gets the last estimate and the
+current alarm; the prediction and the diagnostics are :data:`STREAM` (reliable, volatile, keep
+last 10).
 
-The status level follows :func:`update_status` (OK, or WARN with the reason) after an estimate
-and :func:`failure_status` (WARN for missing or unusable data, ERROR for a failed estimate)
-otherwise. Messages are plain data here: nested dicts of field values, as the message
-definitions nest them, which the node turns into rclpy messages and the MCAP writer serialises.
-Times are integer nanoseconds since the epoch (:data:`NANOSECONDS` per second) in messages;
-text meant for people (status messages, log lines) counts seconds since the first sample
-(:func:`estimate_line`, :func:`warm_up_text`), and the diagnostics carry both.
+The status level follows :func:`update_status` (OK, or WARN with the reason, raised to the
+alarm's level when the diagnostics carry one) after an estimate and :func:`failure_status`
+(WARN for missing or unusable data, ERROR for a failed estimate) otherwise. Messages are plain
+data here: nested dicts of field values, as the message definitions nest them, which the node
+turns into rclpy messages and the MCAP writer serialises. Times are integer nanoseconds since
+the epoch (:data:`NANOSECONDS` per second) in messages; text meant for people (status
+messages, log lines) counts seconds since the first sample (:func:`estimate_line`,
+:func:`warm_up_text`), and the diagnostics carry both.
 """
 
 from dataclasses import dataclass
@@ -41,7 +47,8 @@ from ctid_ros.errors import ConfigError, CtidError, DataError
 import numpy as np
 
 __all__ = [
-    'DEFAULT_NODE_NAME', 'DIAGNOSTIC_ARRAY', 'DIAGNOSTICS_TOPIC', 'ERROR', 'ESTIMATE',
+    'ALARM', 'DEFAULT_NODE_NAME', 'DIAGNOSTIC_ARRAY', 'DIAGNOSTIC_STATUS', 'DIAGNOSTICS_TOPIC',
+    'ERROR', 'ESTIMATE', 'LEVELS', 'alarm_message',
     'ESTIMATE_COVARIANCE', 'ESTIMATE_STD', 'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'LATCHED',
     'NANOSECONDS', 'NodeTopics', 'OK', 'OutputMessage', 'PARAMS', 'PREDICTION',
     'PREDICTION_LABEL', 'PublisherQos', 'STREAM', 'WARN', 'diagnostics_message',
@@ -59,15 +66,18 @@ ESTIMATE_STD = 'estimate_std'
 ESTIMATE_COVARIANCE = 'estimate_covariance'
 PARAMS = 'params'
 PREDICTION = 'prediction'
+ALARM = 'alarm'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 PREDICTION_LABEL = 'prediction'
 
 FLOAT64 = 'std_msgs/msg/Float64'
 FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+DIAGNOSTIC_STATUS = 'diagnostic_msgs/msg/DiagnosticStatus'
 
-# diagnostic_msgs/DiagnosticStatus levels.
+# diagnostic_msgs/DiagnosticStatus levels, and their names (the alarm's level in --json).
 OK, WARN, ERROR = 0, 1, 2
+LEVELS = {'OK': OK, 'WARN': WARN, 'ERROR': ERROR}
 
 _NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
 
@@ -172,9 +182,19 @@ class NodeTopics:
         return f'{self.node}/{PREDICTION}'
 
     @property
+    def alarm(self) -> str:
+        """Return the topic of the change alarm."""
+        return f'{self.node}/{ALARM}'
+
+    @property
     def diagnostics(self) -> str:
         """Return the diagnostics topic (absolute: shared by all nodes)."""
         return DIAGNOSTICS_TOPIC
+
+    @property
+    def alarm_name(self) -> str:
+        """Return the name of the alarm status, e.g. ``'ctid_node: alarm'``."""
+        return f'{self.node[1:]}: {ALARM}'
 
     @property
     def status_name(self) -> str:
@@ -393,14 +413,23 @@ def update_status(names: Sequence[str], values: Sequence[float],
     Return the level and message of the status of an update.
 
     WARN with the warnings when the estimate has any (gaps, active bounds, ...), WARN ``not
-    converged`` when it did not converge, else OK with :func:`estimate_summary`.
+    converged`` when it did not converge, else OK with :func:`estimate_summary`. When the
+    diagnostics carry the change alarm (``alarm``: ``'OK'``, ``'WARN'`` or ``'ERROR'``, and
+    ``alarm_message``; :meth:`ctid_ros.streaming.alarm.AlarmStatus.diagnostics`), a WARN or
+    ERROR alarm raises the level to its own and its message comes first.
     """
     warnings = list(diagnostics.get('warnings') or [])
     if warnings:
-        return WARN, '; '.join(str(warning) for warning in warnings)
-    if diagnostics.get('converged') is False:
-        return WARN, 'not converged'
-    return OK, estimate_summary(names, values, stds)
+        level, text = WARN, '; '.join(str(warning) for warning in warnings)
+    elif diagnostics.get('converged') is False:
+        level, text = WARN, 'not converged'
+    else:
+        level, text = OK, estimate_summary(names, values, stds)
+    alarm = LEVELS.get(str(diagnostics.get('alarm', 'OK')), OK)
+    if alarm > OK:
+        level = max(level, alarm)
+        text = f'alarm: {diagnostics.get("alarm_message", "")}; {text}'
+    return level, text
 
 
 def failure_status(error: CtidError) -> Tuple[int, str]:
@@ -411,6 +440,27 @@ def failure_status(error: CtidError) -> Tuple[int, str]:
     node waits for better data), ERROR when the estimation itself failed.
     """
     return (WARN if isinstance(error, DataError) else ERROR), str(error)
+
+
+def _status(name: str, level: int, message: str, values: Mapping[str, Any],
+            hardware_id: str) -> Dict[str, Any]:
+    return {'level': int(level), 'name': name, 'message': message, 'hardware_id': hardware_id,
+            'values': [{'key': str(key), 'value': format_diagnostic(value)}
+                       for key, value in values.items()]}
+
+
+def alarm_message(topics: NodeTopics, level: int, message: str, values: Mapping[str, Any],
+                  hardware_id: str = '') -> OutputMessage:
+    """
+    Return the ``~/alarm`` message: a ``diagnostic_msgs/DiagnosticStatus``, latched.
+
+    Named :attr:`NodeTopics.alarm_name`; ``level`` OK/WARN/ERROR, ``message`` what changed and
+    since when, ``values`` the details (:meth:`ctid_ros.streaming.alarm.AlarmStatus.values`:
+    ``parameters``, ``since``, per parameter its change, 95 % interval and evidence).
+    """
+    return OutputMessage(topics.alarm, DIAGNOSTIC_STATUS,
+                         _status(topics.alarm_name, level, message, values,
+                                 hardware_id or topics.name), LATCHED)
 
 
 def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: str,
@@ -434,10 +484,7 @@ def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: 
         The ``hardware_id`` of the status (the ``hardware_id`` parameter); '' = the node name.
 
     """
-    status = {'level': int(level), 'name': topics.status_name, 'message': message,
-              'hardware_id': hardware_id or topics.name,
-              'values': [{'key': str(key), 'value': format_diagnostic(value)}
-                         for key, value in values.items()]}
+    status = _status(topics.status_name, level, message, values, hardware_id or topics.name)
     return OutputMessage(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
                          {'header': {'stamp': time_fields(stamp_ns), 'frame_id': ''},
                           'status': [status]})

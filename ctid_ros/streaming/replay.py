@@ -13,7 +13,9 @@ node's :class:`~ctid_ros.streaming.session.IdentificationSession`. Two modes:
 * ``sliding``: what the live node would have published. A timer fires every ``update_period``
   of log time, starting one period after the first message; each tick estimates on the last
   ``window`` seconds (warm-started from the previous tick). The buffer holds only that much
-  history, so long recordings replay in bounded memory.
+  history, so long recordings replay in bounded memory. Every estimate also goes through the
+  node's change alarm (:class:`~ctid_ros.streaming.alarm.ChangeDetector`, against the
+  configured baseline), so a recorded shift can be audited offline.
 
 The messages are any iterable of ``(topic, log_time_ns, msg)``, so the same code path can be
 checked against the live node fed the same messages. Reading bags, the ``ctid replay`` command,
@@ -21,10 +23,12 @@ its reports and figures are :mod:`ctid_ros.cli.replay`.
 """
 
 from array import array
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
 from ctid_ros.errors import DataError, EstimationError
+from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
+from ctid_ros.streaming.baseline import configured_baseline
 from ctid_ros.streaming.buffer import BufferStats, resample
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import failure_status, NANOSECONDS, resolve_topic
@@ -72,6 +76,9 @@ class Replay:
     skipped : list of SkippedTick
         Ticks (sliding mode) that gave no estimate and why: too little contiguous data yet, or
         an estimation failure. The live node reports those on ``/diagnostics``.
+    alarms : list of AlarmStatus
+        Sliding mode: the change alarm after each update (same length as ``updates``);
+        empty in the default mode.
 
     """
 
@@ -79,6 +86,7 @@ class Replay:
     stats: BufferStats
     messages: int
     skipped: List[SkippedTick]
+    alarms: List[AlarmStatus] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -115,7 +123,8 @@ class SampleColumns:
 
 def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig, *,
                    sliding: bool = False, topics: Optional[Tuple[str, str]] = None,
-                   capacity: Optional[int] = None) -> Replay:
+                   capacity: Optional[int] = None,
+                   detector: Optional[ChangeDetector] = None) -> Replay:
     """
     Replay blocks of samples as :func:`replay_messages` replays the messages they came from.
 
@@ -129,8 +138,14 @@ def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig
     sampler = MessageSampler(config, topics)
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
-        return _columns_sliding(blocks, config, sampler, capacity)
+        return _columns_sliding(blocks, config, sampler, capacity,
+                                detector or _detector(config))
     return _columns_span(blocks, config, sampler)
+
+
+def _detector(config: IdentificationConfig) -> ChangeDetector:
+    """Return the node's change detector with its configured baseline."""
+    return ChangeDetector.from_config(config, configured_baseline(config)[0])
 
 
 def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
@@ -157,11 +172,12 @@ def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
 
 
 def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConfig,
-                     sampler: MessageSampler, capacity: int) -> Replay:
+                     sampler: MessageSampler, capacity: int, detector: ChangeDetector) -> Replay:
     buffer = sampler.buffer(capacity, config)
     session = IdentificationSession(config)
     period_ns = round(config.update_period * NANOSECONDS)
     updates: List[Update] = []
+    alarms: List[AlarmStatus] = []
     skipped: List[SkippedTick] = []
     tick: Optional[int] = None
     newest: Optional[int] = None
@@ -173,6 +189,8 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
             updates.append(session.update(session.take_window(buffer)))
         except (DataError, EstimationError) as error:
             skipped.append(SkippedTick(time_ns, *failure_status(error)))
+            return
+        alarms.append(detector.update(updates[-1]))
 
     def add(block: SampleColumns, first: int, stop: int) -> None:
         """Admit the samples of messages ``first`` to ``stop - 1`` of the block."""
@@ -203,17 +221,22 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
         newest, last = int(reached[-1]), int(times[-1])
     if tick is not None and tick <= last:
         fire(tick)
-    stats = buffer.stats()
+    return _sliding_result(config, buffer, updates, count, skipped, alarms)
+
+
+def _sliding_result(config: IdentificationConfig, buffer: Any, updates: List[Update], count: int,
+                    skipped: List[SkippedTick], alarms: List[AlarmStatus]) -> Replay:
     if not updates:
         reason = skipped[-1].reason if skipped else (
             f'the span is shorter than update_period ({config.update_period:g} s)')
         raise DataError(f'no estimate in the whole replay: {reason}')
-    return Replay(updates, stats, count, skipped)
+    return Replay(updates, buffer.stats(), count, skipped, alarms)
 
 
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,
                     sliding: bool = False, topics: Optional[Tuple[str, str]] = None,
-                    capacity: Optional[int] = None) -> Replay:
+                    capacity: Optional[int] = None,
+                    detector: Optional[ChangeDetector] = None) -> Replay:
     """
     Feed recorded messages through the live node's buffer and estimation session.
 
@@ -237,6 +260,10 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         Sliding mode: samples kept per stream; default
         :func:`~ctid_ros.streaming.session.buffer_capacity` at one message per ``sample_time``.
         Ignored in the default mode, which keeps the whole span.
+    detector : ChangeDetector, optional
+        Sliding mode: the change alarm fed every update (:attr:`Replay.alarms`); default one
+        for ``config`` with its configured baseline
+        (:func:`~ctid_ros.streaming.baseline.configured_baseline`).
 
     Returns
     -------
@@ -246,7 +273,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     Raises
     ------
     ConfigError
-        On the first message whose field path does not exist (the message lists its fields).
+        On the first message whose field path does not exist (the message lists its fields),
+        or a ``baseline_file`` that exists but cannot be read.
     DataError
         If a stream has no sample, or no window could be estimated.
     EstimationError
@@ -258,7 +286,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     sampler = MessageSampler(config, topics)
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
-        return _replay_sliding(messages, config, sampler, capacity)
+        return _replay_sliding(messages, config, sampler, capacity,
+                               detector or _detector(config))
     return _replay_span(messages, config, sampler)
 
 
@@ -301,11 +330,12 @@ def _require_samples(streams: Sequence[Tuple[array, array]], names: Sequence[str
 
 
 def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig,
-                    sampler: MessageSampler, capacity: int) -> Replay:
+                    sampler: MessageSampler, capacity: int, detector: ChangeDetector) -> Replay:
     buffer = sampler.buffer(capacity, config)
     session = IdentificationSession(config)
     period_ns = round(config.update_period * NANOSECONDS)
     updates: List[Update] = []
+    alarms: List[AlarmStatus] = []
     skipped: List[SkippedTick] = []
     tick: Optional[int] = None
     count = 0
@@ -315,6 +345,8 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
             updates.append(session.update(session.take_window(buffer)))
         except (DataError, EstimationError) as error:
             skipped.append(SkippedTick(time_ns, *failure_status(error)))
+            return
+        alarms.append(detector.update(updates[-1]))
 
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         if tick is None:
@@ -328,9 +360,4 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         sample.add_to(buffer)
     if tick is not None and tick <= log_time_ns:
         fire(tick)
-    stats = buffer.stats()
-    if not updates:
-        reason = skipped[-1].reason if skipped else (
-            f'the span is shorter than update_period ({config.update_period:g} s)')
-        raise DataError(f'no estimate in the whole replay: {reason}')
-    return Replay(updates, stats, count, skipped)
+    return _sliding_result(config, buffer, updates, count, skipped, alarms)

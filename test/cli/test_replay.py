@@ -18,7 +18,8 @@ from ctid_ros import Model
 from ctid_ros.cli.main import main
 from ctid_ros.cli.replay import progress
 from ctid_ros.core.excitation import prbs
-from ctid_ros.streaming.contract import WARN
+from ctid_ros.core.plant import excitation, PlantSimulator
+from ctid_ros.streaming.contract import LEVELS, WARN
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
@@ -146,9 +147,13 @@ def test_sliding_gives_one_estimate_per_update_period(tmp_path, capsys):
     code, out, _ = replay(capsys, bag, '--params-file', params, '--sliding', '--end', '16')
     assert code == 0
     header, *rows = out.split('\n\n')[0].splitlines()
-    assert header.split() == ['time', 's', 'K', 'T', 'tau', 'fit', '%']
+    assert header.split() == ['time', 's', 'K', 'T', 'tau', 'fit', '%', 'alarm']
     # Window ends: the tick less the reorder horizon (settled data), on the sample grid.
     assert [row.split()[0] for row in rows] == ['9.94', '14.94']
+    # No baseline in the params file: only the model check runs, and the model fits.
+    assert [row.split()[-1] for row in rows] == ['OK', 'OK']
+    assert all(result['alarm'] == {'level': 'OK', 'parameters': [], 'since': None}
+               for result in results)
 
 
 def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, capsys):
@@ -177,12 +182,14 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
                      '/lab/ctid_node/estimate': array, '/lab/ctid_node/estimate_std': array,
                      '/lab/ctid_node/prediction': array,
                      '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+                     '/lab/ctid_node/alarm': 'diagnostic_msgs/msg/DiagnosticStatus',
                      **{f'/lab/ctid_node/params/{name}': scalar for name in 'mdk'}}
     # Ticks at 5 s (too little data: a WARN status only), 10 s and 15 s; as the live node, one
     # message per update on each topic, the prediction included.
     assert counts == {'/plant/u': 2000, '/plant/y': 2000, '/lab/ctid_node/estimate': 2,
                       '/lab/ctid_node/estimate_std': 2, '/lab/ctid_node/prediction': 2,
-                      '/diagnostics': 3, **{f'/lab/ctid_node/params/{name}': 2 for name in 'mdk'}}
+                      '/diagnostics': 3, '/lab/ctid_node/alarm': 2,
+                      **{f'/lab/ctid_node/params/{name}': 2 for name in 'mdk'}}
     copied = [(topic, time_ns, msg.data) for topic, time_ns, msg in messages
               if topic in ('/plant/u', '/plant/y')]
     assert copied == [(record.topic, record.time_ns, record.fields['data'])
@@ -197,6 +204,18 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
     predictions = [msg for topic, _, msg in messages if topic == '/lab/ctid_node/prediction']
     assert [len(msg.data) for msg in predictions] == [int(pairs['samples']) for pairs in values]
     assert all(float(pairs['fit_percent']) > 95.0 for pairs in values)
+    # The change alarm, as the node publishes it, also merged into the status. No baseline, so
+    # only the model check runs: these Float64 outputs are logged 1 ms after their input but
+    # were simulated at its instant, a model error the residual check sees at 40 dB SNR (WARN
+    # after two such windows).
+    alarms = [msg for topic, _, msg in messages if topic == '/lab/ctid_node/alarm']
+    assert [alarm.name for alarm in alarms] == ['lab/ctid_node: alarm'] * 2
+    assert [alarm.level for alarm in alarms] == [LEVELS[pairs['alarm']] for pairs in values]
+    assert [alarm.message for alarm in alarms] == [pairs['alarm_message'] for pairs in values]
+    assert statuses[-1].level == max(WARN, alarms[-1].level)
+    if alarms[-1].level == WARN:
+        assert 'model no longer explains the data' in alarms[-1].message
+        assert statuses[-1].message.startswith('alarm: model no longer explains the data')
     code, _, err = replay(capsys, bag, '--params-file', params, '--node-name',
                           '/lab/ctid_node', '--output', bag / 'inside.mcap')
     assert code == 2 and 'refusing' in err
@@ -411,3 +430,53 @@ def test_output_is_replaced_only_with_overwrite(tmp_path, capsys):
     assert output.read_bytes()[:5] == b'\x89MCAP'
     code, out, err = replay(capsys, bag, '--params-file', params, '--output', bag, '--overwrite')
     assert code == 2 and 'refusing' in err
+
+
+def wheel_drive(seconds, step_time, inertia_after, seed=3):
+    """Return command u and measured speed y of the demo's wheel drive; J steps at step_time."""
+    plant = PlantSimulator('exp(-tau*s)/(J*s + b)', {'J': 0.05, 'b': 0.2, 'tau': 0.0373}, TS,
+                           pi_gains=(1.0, 4.0), noise_std=0.05, seed=seed)
+    reference = excitation(9, 30, 1.0, 2.0)
+    u, y = np.empty(round(seconds / TS)), np.empty(round(seconds / TS))
+    for k in range(u.size):
+        if k == round(step_time / TS):
+            plant.retune({'J': inertia_after, 'b': 0.2, 'tau': 0.0373})
+        u[k], y[k] = plant.step(next(reference))
+    return u, y
+
+
+def test_sliding_replay_audits_a_recorded_shift(tmp_path, capsys):
+    # The demo's wheel drive picks up a payload at 40 s (J 0.05 -> 0.06); the params file
+    # carries the data-sheet baseline as a mapping.
+    u, y = wheel_drive(60.0, 40.0, 0.06)
+    bag = write_bag(tmp_path, joint_state_records(u, y, 2_000_000), 'mcap-file')
+    case = {'model': 'exp(-tau*s)/(J*s + b)', 'params': {
+        'parameter_names': ['J', 'b', 'tau'], 'lower': [0.001, 0.0, 0.0],
+        'upper': [10.0, 10.0, 0.5], 'delay_max': 0.2}}
+    params = params_file(tmp_path, case, input_topic='/joint_states', input_field='effort[0]',
+                         output_topic='/joint_states', output_field='position[0]', window=4.0,
+                         update_period=2.0, baseline={'J': 0.05, 'b': 0.2, 'tau': 0.0373})
+    code, out, err = replay(capsys, bag, '--params-file', params, '--sliding', '--plot',
+                            tmp_path / 'audit.png')
+    assert code == 0, err
+    assert 'change alarm against the baseline from the params file: J = 0.05, b = 0.2, ' \
+        'tau = 0.0373 (0.1 false alarms per hour)' in err
+    header, *rows = out.split('\n\n')[0].splitlines()
+    assert header.split()[-1] == 'alarm'
+    table = [(float(row.split()[0]), row.split('  ')[-1].strip()) for row in rows
+             if row[:9].strip().replace('.', '').isdigit()]
+    assert all(alarm == 'OK' for time_s, alarm in table if time_s < 40.0)
+    first = next(time_s for time_s, alarm in table if alarm == 'ERROR J')
+    assert 40.0 < first <= 46.0
+    assert all(alarm == 'ERROR J' for time_s, alarm in table if time_s >= first)
+    line = next(text for text in out.splitlines() if text.startswith('alarm at t='))
+    assert line.startswith(f'alarm at t={first:.2f} s: changed: J +2')
+    assert (tmp_path / 'audit_params.png').stat().st_size > 0
+    code, out, _ = replay(capsys, bag, '--params-file', params, '--sliding', '--json')
+    results = json.loads(out)
+    alarms = [(result['time'] - T0_NS / 1e9, result['alarm']) for result in results]
+    assert all(alarm == {'level': 'OK', 'parameters': [], 'since': None}
+               for time_s, alarm in alarms if time_s < 40.0)
+    raised = next(alarm for time_s, alarm in alarms if alarm['level'] == 'ERROR')
+    assert raised['parameters'] == ['J'] and set(raised) == {'level', 'parameters', 'since'}
+    assert 37.5 < raised['since'] - T0_NS / 1e9 <= 40.5

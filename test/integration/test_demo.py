@@ -49,13 +49,18 @@ def test_shortened_demo_records_replays_and_recovers_the_drift(tmp_path, capsys)
     table = printed[printed.index('live estimates'):printed.index('recorded 800 samples')]
     assert re.search(r'^ +\d+\.\d\d +0\.0\d+ ± ', table, re.MULTILINE), table
     assert 'before the payload' in printed and 'after the payload' in printed
+    # The change alarm against the data-sheet baseline: nothing before the payload (this short
+    # run may end before two whole windows after it have confirmed it).
+    assert '  live node: 0 alarm(s) before the payload' in printed
+    assert '  ctid replay: 0 alarm(s) before the payload' in printed
 
     # The recording: every sample of the loop, exactly as simulated without ROS.
     scenario = Scenario.load(find_config(PLANT_CONFIG))
     scenario = replace(scenario, drift_time=4.0)
     with BagReader(output / 'wheel.mcap') as bag:
         assert set(bag.topics()) == {'/wheel/r', '/wheel/u', '/wheel/y', '/ctid_node/estimate',
-                                     '/ctid_node/estimate_std', '/diagnostics'}
+                                     '/ctid_node/estimate_std', '/diagnostics',
+                                     '/ctid_node/alarm'}
         assert {topic: bag.message_count(topic) for topic in scenario.topics.values()} == \
             dict.fromkeys(scenario.topics.values(), 800)
         signals = {}

@@ -14,7 +14,8 @@ CONTRACT = (
     'method', 'intersample', 'stamp_source', 'qos_reliability', 'qos_depth', 'max_message_rate',
     'max_gap', 'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance',
     'transient', 'initial_state', 'output_offset', 'warm_start', 'publish_prediction',
-    'hardware_id', 'lifecycle')
+    'hardware_id', 'lifecycle', 'baseline_file', 'baseline_windows', 'false_alarm_per_hour',
+    'min_relative_change')
 FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
 
 
@@ -27,7 +28,7 @@ def test_parameter_specs_follow_the_contract():
     assert PARAMETER_NAMES == CONTRACT
     kinds = {spec.name: spec.kind for spec in PARAMETERS}
     assert {name for name, kind in kinds.items() if kind == 'integer'} == {
-        'qos_depth', 'max_iterations'}
+        'qos_depth', 'max_iterations', 'baseline_windows'}
     assert {name for name, kind in kinds.items() if kind == 'bool'} == {
         'output_offset', 'warm_start', 'publish_prediction', 'lifecycle'}
     assert {name for name, kind in kinds.items() if kind == 'double_array'} == {
@@ -35,7 +36,8 @@ def test_parameter_specs_follow_the_contract():
     assert kinds['parameter_names'] == 'string_array'
     assert all(kinds[name] == 'double' for name in (
         'sample_time', 'window', 'update_period', 'max_gap', 'reorder_horizon', 'delay_min',
-        'delay_max', 'tolerance', 'transient', 'max_message_rate'))
+        'delay_max', 'tolerance', 'transient', 'max_message_rate', 'false_alarm_per_hour',
+        'min_relative_change'))
     defaults = IdentificationConfig(model='1/(T*s + 1)')
     for spec in PARAMETERS:
         assert len(spec.description) > 20, spec.name
@@ -134,6 +136,51 @@ def test_runtime_change_leaves_the_current_configuration_intact(base):
     ({'output_topic': '/plant/u'}, 'input and output are the same field of the same topic'),
 ])
 def test_each_validation_error(base, changes, message):
+    with pytest.raises(ConfigError, match=message):
+        base.updated(changes)
+
+
+def test_per_parameter_values_as_ros_flattens_a_mapping(base):
+    # baseline: {K: 2.0, T: 0.5} in a params file arrives as baseline.K and baseline.T.
+    config = IdentificationConfig.from_dict({
+        'model': FOPDT, 'parameter_names': ['T', 'K', 'tau'], 'baseline.K': 2, 'baseline.T': 0.5,
+        'baseline_std.K': 0.01, 'min_relative_change': 0.05, 'min_relative_change.tau': 0.2})
+    assert config.per_parameter_values('baseline') == {'T': 0.5, 'K': 2.0}
+    assert list(config.per_parameter_values('baseline')) == ['T', 'K']   # parameter order
+    assert config.per_parameter_values('baseline_std') == {'K': 0.01}
+    assert config.relative_changes() == {'T': 0.05, 'K': 0.05, 'tau': 0.2}
+    assert config.to_dict()['baseline.K'] == 2.0
+    # A runtime change merges; NaN unsets (the node declares them with NaN: not set).
+    changed = config.updated({'baseline.tau': 0.1, 'baseline.T': math.nan})
+    assert changed.per_parameter_values('baseline') == {'K': 2.0, 'tau': 0.1}
+    assert config.per_parameter_values('baseline') == {'T': 0.5, 'K': 2.0}
+    assert base.per_parameter == () and base.relative_changes() == dict.fromkeys(base.names, 0.02)
+    # Another model keeps the values of the parameters it shares, drops the others.
+    other = config.updated({'model': 'K/(T*s + 1)', 'parameter_names': ['K', 'T']})
+    assert other.per_parameter_values('baseline') == {'K': 2.0, 'T': 0.5}
+    assert config.updated({'model': 'K/(T2*s + 1)', 'parameter_names': []}).per_parameter == (
+        ('baseline.K', 2.0), ('baseline_std.K', 0.01))
+    assert IdentificationConfig.from_dict({'model': FOPDT, 'baseline.K': math.nan}).per_parameter \
+        == ()
+
+
+@pytest.mark.parametrize('changes, message', [
+    ({'baseline.J': 1.0}, r"baseline.J: the model has no parameter 'J' \(its parameters: K, tau, "
+                          r'T\)'),
+    ({'baseline_std.K': 0.1}, 'baseline_std.K is set but baseline.K is not'),
+    ({'baseline.K': 1.0, 'baseline_std.K': -0.1}, 'baseline_std.K must be >= 0'),
+    ({'baseline.K': math.inf}, 'baseline.K must be finite'),
+    ({'baseline.K': 'two'}, "baseline.K must be a number, got 'two'"),
+    ({'min_relative_change.T': -0.1}, 'min_relative_change.T must be between 0 and 10'),
+    ({'min_relative_change': 20.0}, 'min_relative_change must be between 0 and 10'),
+    ({'false_alarm_per_hour': 0.0}, 'false_alarm_per_hour must be between 1e-06 and 100'),
+    ({'false_alarm_per_hour': 1e3}, 'false_alarm_per_hour must be between 1e-06 and 100'),
+    ({'baseline_windows': 0}, 'baseline_windows must be between 1 and 1000'),
+    ({'baseline_windows': 5.0}, 'baseline_windows must be an integer'),
+    ({'baselines.K': 1.0}, r'unknown parameter\(s\) baselines.K; .*per model parameter '
+                           r'baseline.<name>'),
+])
+def test_alarm_parameter_errors(base, changes, message):
     with pytest.raises(ConfigError, match=message):
         base.updated(changes)
 

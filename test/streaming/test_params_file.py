@@ -3,7 +3,7 @@
 import textwrap
 
 from ctid_ros.errors import ConfigError
-from ctid_ros.streaming.config import PARAMETER_NAMES, PARAMETERS
+from ctid_ros.streaming.config import PARAMETER_NAMES, PARAMETERS, PER_PARAMETER
 from ctid_ros.streaming.params_file import (config_directories, find_config, load_params_file,
                                             load_units, node_parameters)
 import pytest
@@ -29,7 +29,9 @@ def write(tmp_path, text, name='params.yaml'):
                       'model': '1/(J*s**2 + b*s + k)', 'parameter_names': ('J', 'b', 'k')}),
     ('wheel_demo', {'input_topic': '/wheel/u', 'output_topic': '/wheel/y',
                     'input_field': 'point.x', 'model': 'exp(-tau*s)/(J*s + b)',
-                    'controller': '', 'parameter_names': ('J', 'b', 'tau'), 'delay_max': 0.2}),
+                    'controller': '', 'parameter_names': ('J', 'b', 'tau'), 'delay_max': 0.2,
+                    'per_parameter': (('baseline.J', 0.05), ('baseline.b', 0.2),
+                                      ('baseline.tau', 0.0373))}),
 ])
 def test_example_files_load(name, checks):
     path = find_config(name)
@@ -48,7 +50,11 @@ def test_example_files_load(name, checks):
     units = section.pop('units', None)
     assert units is None or (tuple(yaml.safe_load(text)['ctid_node']['ros__parameters'])[-1]
                              == 'units' and load_units(path) == units)
-    assert tuple(section) == tuple(name for name in PARAMETER_NAMES if name in section)
+    # Per-parameter mappings (baseline: {J: 0.05}) follow the parameters.
+    plain = tuple(name for name, value in section.items()
+                  if not (name in PER_PARAMETER and isinstance(value, dict)))
+    assert plain == tuple(name for name in PARAMETER_NAMES if name in section)
+    assert list(section)[:len(plain)] == list(plain)
     for parameter in PARAMETER_NAMES:
         line = text.index(f'    {parameter}:') if parameter in section else \
             text.index(f'    # {parameter}:')
