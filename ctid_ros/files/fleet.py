@@ -26,7 +26,7 @@ from ctid_ros.files.bag_reader import open_bag
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
-from ctid_ros.streaming.params_file import check_record_length, node_parameters, parse_yaml
+from ctid_ros.streaming.params_file import node_parameters, parse_yaml
 from ctid_ros.streaming.replay import replay_columns
 from ctid_ros.streaming.session import Update
 
@@ -255,9 +255,7 @@ def load_params_text(text: str, node_name: str, source: str = 'params file'
                      ) -> IdentificationConfig:
     """Parse and check params-file content as :func:`load_params_file` does a file."""
     document = parse_yaml(text.encode(), source)
-    config = IdentificationConfig.from_dict(node_parameters(document, node_name, source=source))
-    check_record_length(config)
-    return config
+    return IdentificationConfig.from_dict(node_parameters(document, node_name, source=source))
 
 
 def _error_row(task: BagTask, identity: Dict[str, Any], error: str) -> Dict[str, Any]:

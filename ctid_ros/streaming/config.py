@@ -22,9 +22,10 @@ its double parameters with dynamic typing so that rclpy accepts them too).
 
 Resource limits are checked here, before anything is allocated, so a params file, the replay and
 a runtime ``ros2 param set`` are refused alike with a :class:`ConfigError` that names the
-parameter, the value and the limit: at most :data:`MAX_WINDOW_SAMPLES` samples per estimate
-(window plus settling transient), at most :data:`MAX_BUFFER_BYTES` of sample buffer, a sample
-time of at least :data:`MIN_SAMPLE_TIME`, an update period of at least
+parameter, the value and the limit: at most :data:`~ctid_ros.core.limits.MAX_SAMPLES` samples
+per estimate (window plus settling transient), at most :data:`MAX_BUFFER_BYTES` of sample
+buffer, a sample time of at least :data:`~ctid_ros.core.limits.MIN_SAMPLE_TIME`, an update
+period of at least
 :data:`MIN_UPDATE_PERIOD`, and the other ``MAX_*``/``MIN_*`` bounds below.
 """
 
@@ -34,9 +35,10 @@ import math
 import re
 from typing import Any, Dict, Mapping, Optional, Tuple
 
+from ctid_ros.core.limits import MAX_SAMPLES, MIN_SAMPLE_TIME
 from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import INTERSAMPLE
-from ctid_ros.errors import ConfigError, ModelError
+from ctid_ros.errors import bounded_repr, ConfigError, ModelError
 from ctid_ros.estimation.estimate import INITIAL_STATES, METHODS
 from ctid_ros.streaming.buffer import capacity_for
 from ctid_ros.streaming.message_fields import parse_field_path
@@ -44,8 +46,8 @@ import numpy as np
 
 __all__ = ['IdentificationConfig', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
            'MAX_FALSE_ALARM_PER_HOUR', 'MAX_ITERATIONS', 'MAX_MESSAGE_RATE', 'MAX_QOS_DEPTH',
-           'MAX_RELATIVE_CHANGE', 'MAX_WINDOW_SAMPLES', 'MIN_FALSE_ALARM_PER_HOUR',
-           'MIN_MAX_GAP', 'MIN_SAMPLE_TIME', 'MIN_UPDATE_PERIOD', 'MIN_WINDOW_SAMPLES',
+           'MAX_RELATIVE_CHANGE', 'MIN_FALSE_ALARM_PER_HOUR',
+           'MIN_MAX_GAP', 'MIN_UPDATE_PERIOD', 'MIN_WINDOW_SAMPLES',
            'PARAMETER_NAMES', 'PARAMETERS', 'PER_PARAMETER', 'ParameterSpec', 'RELIABILITIES',
            'STAMP_SOURCES', 'buffer_bytes', 'per_parameter_name', 'split_per_parameter']
 
@@ -55,11 +57,7 @@ MIN_WINDOW_SAMPLES = 10
 
 # Resource limits (README, "Limits of the live node"). Stamps are integer nanoseconds, so a
 # grid or a gap below a microsecond means nothing.
-MIN_SAMPLE_TIME = 1e-6
 MIN_MAX_GAP = 1e-6
-# Samples of one estimate: the window plus its settling transient (1e6 samples of a first-order
-# model with a dead time take about 3 s and 0.6 GB to estimate).
-MAX_WINDOW_SAMPLES = 1_000_000
 # Memory of the live node's sample buffer (both streams, stamps and values).
 MAX_BUFFER_BYTES = 256 << 20
 # Highest message rate the buffer may be sized for (per topic).
@@ -159,13 +157,13 @@ def _compile_model(expression: str, controller: str, inputs: Tuple[str, ...],
     try:
         plant = Model(expression, inputs=inputs, output=output)
     except ModelError as error:
-        raise ConfigError(f'model {expression!r} is invalid: {error}') from None
+        raise ConfigError(f'model {bounded_repr(expression)} is invalid: {error}') from None
     if not controller:
         return plant
     try:
         return Model(expression, controller, inputs=inputs, output=output)
     except ModelError as error:
-        raise ConfigError(f'controller {controller!r} is invalid: {error}') from None
+        raise ConfigError(f'controller {bounded_repr(controller)} is invalid: {error}') from None
 
 
 @dataclass(frozen=True)
@@ -228,7 +226,7 @@ class IdentificationConfig:
     window: float = _param(
         10.0, 'double', f'Length (s) of the data window used by each estimate; at least '
         f'{MIN_WINDOW_SAMPLES} sample times, and with its settling transient at most '
-        f'{MAX_WINDOW_SAMPLES} samples.', minimum=0.0)
+        f'{MAX_SAMPLES} samples.', minimum=0.0)
     update_period: float = _param(
         1.0, 'double', f'Seconds ({MIN_UPDATE_PERIOD:g} to {MAX_DURATION:g}) between successive '
         'estimates.', minimum=0.0)
@@ -476,9 +474,9 @@ class IdentificationConfig:
             topic = getattr(self, name)
             if not _TOPIC.fullmatch(topic):
                 raise ConfigError(
-                    f'{name} {topic!r} is not a valid topic name: tokens of letters, digits '
-                    "and underscores (not starting with a digit) separated by '/', optionally "
-                    "starting with '/' or '~/'")
+                    f'{name} {bounded_repr(topic)} is not a valid topic name: tokens of letters, '
+                    "digits and underscores (not starting with a digit) separated by '/', "
+                    "optionally starting with '/' or '~/'")
         for name, path in [('input_field', self.input_field),
                            ('output_field', self.output_field)] + [
                 ('extra_input_fields', path) for path in self.extra_input_fields]:
@@ -518,8 +516,8 @@ class IdentificationConfig:
                            *self.per_parameter):
             prefix, _, name = key.partition('.')
             if name and name not in names:
-                raise ConfigError(f'{key}: the model has no parameter {name!r} (its parameters: '
-                                  f'{", ".join(names)})')
+                raise ConfigError(f'{key}: the model has no parameter {bounded_repr(name)} '
+                                  f'(its parameters: {", ".join(names)})')
             if not math.isfinite(value):
                 raise ConfigError(f'{key} must be finite, got {value}')
             if prefix == 'min_relative_change' and not 0.0 <= value <= MAX_RELATIVE_CHANGE:
@@ -582,7 +580,7 @@ class IdentificationConfig:
             value = getattr(self, item.name)
             if choices and value not in choices:
                 raise ConfigError(f'{item.name} must be one of {", ".join(choices)}; got '
-                                  f'{value!r}')
+                                  f'{bounded_repr(value)}')
 
     def _check_times(self, model: Model) -> None:
         for name in ('sample_time', 'window', 'update_period', 'max_gap', 'tolerance',
@@ -628,7 +626,7 @@ class IdentificationConfig:
         if self.delay_range is not None:
             if not model.delay_is_estimated:
                 raise ConfigError('delay_min/delay_max set a dead-time search range but the '
-                                  f'model {self.model!r} has no estimated dead time '
+                                  f'model {bounded_repr(self.model)} has no estimated dead time '
                                   'exp(-tau*s); set both to 0.0')
             if not self.delay_min < self.delay_max:
                 raise ConfigError(f'delay_min ({self.delay_min} s) must be < delay_max '
@@ -640,12 +638,12 @@ class IdentificationConfig:
     def _check_resources(self) -> None:
         """Refuse what one estimate or the live buffer could not afford, before allocating."""
         samples = self.window_samples
-        if samples > MAX_WINDOW_SAMPLES:
+        if samples > MAX_SAMPLES:
             transient = 'automatic, one window' if self.transient < 0 else f'{self.transient:g} s'
             raise ConfigError(
                 f'window ({self.window:g} s) plus its settling transient ({transient}) at '
                 f'sample_time {self.sample_time:g} s is {samples:.3g} samples per estimate, '
-                f'more than the limit of {MAX_WINDOW_SAMPLES}; use a shorter window or '
+                f'more than the limit of {MAX_SAMPLES}; use a shorter window or '
                 'transient, or a longer sample_time')
         size = self.buffer_bytes()
         if size > MAX_BUFFER_BYTES:
@@ -679,7 +677,7 @@ def _size_text(count: float) -> str:
 def _coerce(name: str, kind: str, value: Any) -> Any:
     """Convert a value to the parameter's kind, refusing anything ROS would not mean by it."""
     def wrong(expected: str) -> ConfigError:
-        return ConfigError(f'{name} must be {expected}, got {value!r} '
+        return ConfigError(f'{name} must be {expected}, got {bounded_repr(value)} '
                            f'({type(value).__name__})')
 
     if kind == 'string':
@@ -743,12 +741,13 @@ def _per_parameter_values(items: Any) -> Tuple[Tuple[str, float], ...]:
     try:
         pairs = [(key, value) for key, value in items]
     except (TypeError, ValueError):
-        raise ConfigError(f'per_parameter must be (name, value) pairs, got {items!r}') from None
+        raise ConfigError('per_parameter must be (name, value) pairs, got '
+                          f'{bounded_repr(items)}') from None
     values = {}
     for key, value in pairs:
         if not isinstance(key, str) or not _PER_PARAMETER_NAME.match(key):
-            raise ConfigError(f'{key!r} is not a per-parameter name such as baseline.J; '
-                              f'prefixes: {", ".join(PER_PARAMETER)}')
+            raise ConfigError(f'{bounded_repr(key)} is not a per-parameter name such as '
+                              f'baseline.J; prefixes: {", ".join(PER_PARAMETER)}')
         value = _coerce(key, 'double', value)
         if not math.isnan(value):
             values[key] = value

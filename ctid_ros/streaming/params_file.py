@@ -14,16 +14,14 @@ import re
 import sys
 from typing import Any, Dict, List, Mapping, Type
 
-from ctid_ros.core.limits import (MAX_PARAMS_BYTES, MAX_SAMPLES, MAX_YAML_DEPTH, MAX_YAML_NODES,
-                                  MIN_SAMPLE_TIME, read_limited)
+from ctid_ros.core.limits import MAX_PARAMS_BYTES, MAX_YAML_DEPTH, MAX_YAML_NODES, read_limited
 from ctid_ros.errors import ConfigError, CtidError
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
-from ctid_ros.streaming.session import history_span
 import yaml
 
 __all__ = ['BoundedLoader', 'PACKAGE', 'ROS_STANDARD_PARAMETERS', 'UNITS_PREFIX',
-           'check_record_length', 'config_directories', 'find_config', 'load_params_file',
+           'config_directories', 'find_config', 'load_params_file',
            'load_units', 'node_parameters', 'parse_yaml']
 
 PACKAGE = 'ctid_ros'
@@ -136,28 +134,6 @@ def _clipped(text: str) -> str:
     """Return a message on one line, cut to a readable length."""
     text = ' '.join(text.split())
     return text if len(text) <= _MESSAGE_LIMIT else text[:_MESSAGE_LIMIT - 3] + '...'
-
-
-def check_record_length(config: IdentificationConfig) -> None:
-    """
-    Check that one estimate of ``config`` stays within the record limit of the estimator.
-
-    Raises
-    ------
-    ConfigError
-        If ``sample_time`` is below :data:`~ctid_ros.core.limits.MIN_SAMPLE_TIME`, or a window
-        with its settling transient holds more than :data:`~ctid_ros.core.limits.MAX_SAMPLES`.
-
-    """
-    if config.sample_time < MIN_SAMPLE_TIME:
-        raise ConfigError(f'sample_time {config.sample_time:g} s is below the limit of '
-                          f'{MIN_SAMPLE_TIME:g} s (time stamps are integer nanoseconds)')
-    samples = history_span(config) / config.sample_time
-    if samples > MAX_SAMPLES:
-        raise ConfigError(f'window ({config.window:g} s) plus its settling transient at '
-                          f'sample_time {config.sample_time:g} s is {samples:.3g} samples per '
-                          f'estimate, more than the limit of {MAX_SAMPLES}; use a shorter window '
-                          'or a longer sample_time')
 
 
 def _flatten(values: Mapping[str, Any], prefix: str = '') -> Dict[str, Any]:
@@ -273,7 +249,7 @@ def load_params_file(path, node_name: str = DEFAULT_NODE_NAME) -> Identification
         If the file cannot be read or parsed, has no section for the node, names an unknown
         parameter (the message lists the valid ones), or has a wrong type or invalid value; if
         it is larger than :data:`~ctid_ros.core.limits.MAX_PARAMS_BYTES`, not a regular file,
-        binary, or beyond the limits of :class:`BoundedLoader` and :func:`check_record_length`.
+        binary, or beyond the limits of :class:`BoundedLoader` or of one estimate.
 
     """
     content = read_limited(Path(path), MAX_PARAMS_BYTES, 'params file', ConfigError)
@@ -281,7 +257,6 @@ def load_params_file(path, node_name: str = DEFAULT_NODE_NAME) -> Identification
     values = node_parameters(document, node_name, source=str(path))
     try:
         config = IdentificationConfig.from_dict(values)
-        check_record_length(config)
     except ConfigError as error:
         raise ConfigError(f'{path}: {_clipped(str(error))}') from None
     return config

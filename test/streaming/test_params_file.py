@@ -265,7 +265,8 @@ def billion_laughs(levels=10):
     (b'ctid_node:\n  ros__parameters:\n    model: "K/(T*s+1)"\n    sample_time: 1.0e-6\n'
      b'    window: 10.0\n', r'2e\+07 samples per estimate, more than the limit of 1000000'),
     (b'ctid_node:\n  ros__parameters:\n    model: "K/(T*s+1)"\n    initial: ['
-     + b', '.join([b'abc'] * 15000) + b']\n', r'initial must be .*\.\.\.$'),
+     + b', '.join([b'abc'] * 15000) + b']\n',
+     r"initial must be a list of numbers, got \['abc', .*, \.\.\.\] \(list\)$"),
 ])
 def test_hostile_files_are_refused_with_a_config_error(tmp_path, content, message):
     path = tmp_path / 'params.yaml'
