@@ -270,7 +270,7 @@ def _write_estimates(writer: EstimateWriter, replay: Replay, origin_ns: int) -> 
         if alarm is not None:
             diagnostics.update(alarm.diagnostics(origin_ns))
         writer.write_estimate(time_ns, update.names, update.values, update.stds, diagnostics,
-                              prediction=update.prediction)
+                              prediction=update.prediction, covariance=update.covariance)
         if alarm is not None:
             writer.write_alarm(time_ns, alarm.level, alarm.text(origin_ns),
                                alarm.values(origin_ns))

@@ -264,7 +264,8 @@ class EstimateWriter(RecordingWriter):
     def write_estimate(self, time_ns: int, names: Sequence[str], values: Sequence[float],
                        stds: Optional[Sequence[float]] = None,
                        diagnostics: Optional[Mapping[str, Any]] = None,
-                       prediction: Optional[Sequence[float]] = None) -> None:
+                       prediction: Optional[Sequence[float]] = None,
+                       covariance: Optional[Any] = None) -> None:
         """
         Write one update, as the live node publishes it after a window is identified.
 
@@ -283,6 +284,8 @@ class EstimateWriter(RecordingWriter):
             :func:`~ctid_ros.streaming.contract.update_status`.
         prediction : sequence of float, optional
             The model output over the window, one value per grid instant.
+        covariance : array_like, optional
+            Parameter covariance in ``names`` order (n x n), for ``estimate_covariance``.
 
         Raises
         ------
@@ -292,7 +295,8 @@ class EstimateWriter(RecordingWriter):
 
         """
         time_ns = _time_ns(time_ns)
-        for message in estimate_messages(self.node, names, values, stds, prediction):
+        for message in estimate_messages(self.node, names, values, stds, prediction,
+                                         covariance=covariance):
             self.write_message(message, time_ns)
         if diagnostics is not None:
             level, text = update_status(names, values, stds, diagnostics)

@@ -181,6 +181,7 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
     assert types == {'/plant/u': scalar, '/plant/y': scalar,
                      '/lab/ctid_node/estimate': array, '/lab/ctid_node/estimate_std': array,
                      '/lab/ctid_node/prediction': array,
+                     '/lab/ctid_node/estimate_covariance': array,
                      '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
                      '/lab/ctid_node/alarm': 'diagnostic_msgs/msg/DiagnosticStatus',
                      **{f'/lab/ctid_node/params/{name}': scalar for name in 'mdk'}}
@@ -188,7 +189,7 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
     # message per update on each topic, the prediction included.
     assert counts == {'/plant/u': 2000, '/plant/y': 2000, '/lab/ctid_node/estimate': 2,
                       '/lab/ctid_node/estimate_std': 2, '/lab/ctid_node/prediction': 2,
-                      '/diagnostics': 3, '/lab/ctid_node/alarm': 2,
+                      '/lab/ctid_node/estimate_covariance': 2, '/diagnostics': 3, '/lab/ctid_node/alarm': 2,
                       **{f'/lab/ctid_node/params/{name}': 2 for name in 'mdk'}}
     copied = [(topic, time_ns, msg.data) for topic, time_ns, msg in messages
               if topic in ('/plant/u', '/plant/y')]
@@ -197,6 +198,14 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
     estimates = [msg for topic, _, msg in messages if topic == '/lab/ctid_node/estimate']
     assert estimates[0].layout.dim[0].label == 'm,d,k'
     assert estimates[-1].data == pytest.approx([0.5, 1.0, 50.0], rel=0.03)
+    # The covariance as the node publishes it: 3 x 3 row-major, its diagonal the std squared.
+    covariance = [msg for topic, _, msg in messages
+                  if topic == '/lab/ctid_node/estimate_covariance'][-1]
+    stds = [msg for topic, _, msg in messages if topic == '/lab/ctid_node/estimate_std'][-1]
+    matrix = np.reshape(covariance.data, (3, 3))
+    assert [dim.size for dim in covariance.layout.dim] == [3, 3]
+    assert np.diag(matrix) == pytest.approx(np.square(stds.data), rel=1e-9)
+    assert matrix == pytest.approx(matrix.T)
     statuses = [msg.status[0] for topic, _, msg in messages if topic == '/diagnostics']
     assert statuses[0].level == WARN and list(statuses[0].values) == []
     assert statuses[0].message.startswith('not enough contiguous data')
