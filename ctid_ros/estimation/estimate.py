@@ -38,7 +38,7 @@ from ctid_ros.errors import DataError, EstimationError, ModelError
 from ctid_ros.estimation.delay_search import across_the_sample, delay_search
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
-                                           IterationResult, StopReason)
+                                           IterationResult, on_bounds, StopReason)
 from ctid_ros.estimation.noise import coloured_covariance, measured_every, NoiseModel
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
@@ -52,7 +52,8 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 __all__ = [
-    'Estimate', 'ILL_CONDITIONED', 'INITIAL_STATES', 'METHODS', 'Uncertainty', 'build_problem',
+    'Estimate', 'ILL_CONDITIONED', 'INITIAL_STATES', 'LOW_FIT', 'METHODS', 'Uncertainty',
+    'build_problem',
     'covariance', 'estimate', 'fit_percent',
 ]
 
@@ -61,6 +62,8 @@ INITIAL_STATES = ('zero', 'estimate')
 _IDENTIFIABILITY_LIMIT = 1e10
 # Above this condition number of the scaled sensitivities a combination is reported as weak.
 ILL_CONDITIONED = 1e3
+# Below this fit (%) the estimate carries a warning that the model explains almost nothing.
+LOW_FIT = 10.0
 _MAX_RESIDUAL_LAGS = 200
 _SYMMETRY_RESTARTS = 3
 # Random perturbations tried at a point where symmetric parameters coincide.
@@ -251,6 +254,15 @@ def _blind_combination(problem: Problem, state: State) -> Optional[str]:
     norms = np.linalg.norm(psi, axis=0)
     if np.any(norms == 0.0):
         dead = ', '.join(names[i] for i in np.flatnonzero(norms == 0.0))
+        delay_index = delay_parameter(problem.model)
+        record = problem.data.ts * len(problem.data)
+        if np.all(norms == 0.0) and delay_index is not None and \
+                state.theta[delay_index] >= 0.5 * record:
+            return (f'the output does not depend on {dead} on these data: the dead time went '
+                    f'to {state.theta[delay_index]:.4g} s, where the model output is zero over '
+                    f'the {record:.4g} s record (the fit never found the input in the output). '
+                    'A dead time beyond half the record is not searched: record longer, check '
+                    'that input and output are the right signals, or bound the dead time')
         return f'the output does not depend on {dead} on these data: the input does not excite it'
     singular, vectors = np.linalg.svd(psi / norms, full_matrices=False)[1:]
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
@@ -764,13 +776,11 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
     state = result.state
     names = problem.model.parameters
     notes = []
-    span = np.maximum(np.abs(state.theta), 1.0)
+    at_lower, at_upper = on_bounds(state.theta, problem, tolerance=1e-6)
     for index, name in enumerate(names):
         held = '' if uncertainty.free[index] else \
             ' (the fit would go beyond it, so it has no standard deviation)'
-        side = 'lower' if state.theta[index] - problem.lower[index] <= 1e-6 * span[index] \
-            else 'upper' if problem.upper[index] - state.theta[index] <= 1e-6 * span[index] \
-            else None
+        side = 'lower' if at_lower[index] else 'upper' if at_upper[index] else None
         if side is None:
             continue
         bound = problem.lower[index] if side == 'lower' else problem.upper[index]
@@ -785,6 +795,10 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
     if fit < 0.0:
         notes.append(f'fit {fit:.1f} %: the model does not explain these data (its output is '
                      'further from the measurements than their mean is)')
+    elif fit < LOW_FIT:
+        notes.append(f'fit {fit:.1f} %: the model explains almost none of the output; check '
+                     'that input and output are the right signals (not swapped), the dead time '
+                     'and the structure, or that the input excites the output above its noise')
     if uncertainty.condition > ILL_CONDITIONED:
         notes.append(f'the data barely determine {_combination(uncertainty.weakest, names)} '
                      f'(condition number {uncertainty.condition:.1e}): these parameters trade '

@@ -19,7 +19,7 @@ import numpy as np
 
 __all__ = [
     'Iteration', 'IterationResult', 'NEGLIGIBLE_STEP', 'OPTIMALITY_LIMIT', 'StopReason',
-    'column_scales', 'free_parameters', 'iterate', 'optimality',
+    'column_scales', 'free_parameters', 'iterate', 'on_bounds', 'optimality',
 ]
 
 _HALVINGS = 14
@@ -257,10 +257,21 @@ def _one_sided_gradients(lin: Linearization, error: np.ndarray
     return rising, falling
 
 
-def _on_bounds(theta: np.ndarray, problem: Problem) -> Tuple[np.ndarray, np.ndarray]:
-    """Parameters on their lower and on their upper bound (within 1e-9 relative)."""
-    span = np.maximum(np.abs(theta), 1.0)
-    return theta - problem.lower <= 1e-9 * span, problem.upper - theta <= 1e-9 * span
+def on_bounds(theta: np.ndarray, problem: Problem, tolerance: float = 1e-9
+              ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Parameters on their lower and on their upper bound, within ``tolerance`` relative.
+
+    Relative to the larger of the value and the bound, never to an absolute unit: a time
+    constant of 5e-10 s identified at a sample time of 1e-12 s is not on its bound at 0 (the
+    iteration clips to a bound exactly, so a parameter held there equals it).
+    """
+    lower, upper = problem.lower, problem.upper
+    near_lower = np.isfinite(lower) & (theta - lower <= tolerance * np.maximum(np.abs(theta),
+                                                                               np.abs(lower)))
+    near_upper = np.isfinite(upper) & (upper - theta <= tolerance * np.maximum(np.abs(theta),
+                                                                               np.abs(upper)))
+    return near_lower, near_upper
 
 
 def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
@@ -272,7 +283,7 @@ def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
     box), and a dead time on the sample lattice is held where the cost rises on both sides.
     """
     rising, falling = _one_sided_gradients(lin, error)
-    at_lower, at_upper = _on_bounds(theta, problem)
+    at_lower, at_upper = on_bounds(theta, problem)
     kink = (rising < 0) & (falling < 0)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
 
@@ -288,7 +299,7 @@ def free_parameters(problem: Problem, state: State, frozen: np.ndarray) -> np.nd
     lin = problem.linearize(state.coefficients, regressors=False)
     error = problem.measured - lin.output
     rising, falling = _one_sided_gradients(lin, error)
-    at_lower, at_upper = _on_bounds(state.theta, problem)
+    at_lower, at_upper = on_bounds(state.theta, problem)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)))
 
 
@@ -309,7 +320,7 @@ def optimality(problem: Problem, state: State, frozen: np.ndarray) -> float:
     # Combinations the data barely determine (their sensitivities nearly dependent, as where
     # two time constants coincide) have no first-order information: the measure leaves them
     # out rather than reading rounding as a gradient.
-    step = _bounded_direction('gn', lin, error, free, *_on_bounds(state.theta, problem),
+    step = _bounded_direction('gn', lin, error, free, *on_bounds(state.theta, problem),
                               rcond=_OPTIMALITY_RCOND)
     if step is None:
         return np.inf
@@ -455,7 +466,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
         free = _free_mask(state.theta, lin, error, problem, frozen)
-        bounded = _on_bounds(state.theta, problem)
+        bounded = on_bounds(state.theta, problem)
         if not np.any(free):
             return stop(StopReason.ALL_AT_BOUNDS)
         primary = 'gn' if method == 'gn' else ('ls' if method == 'ls' or (

@@ -189,7 +189,8 @@ def test_output_mcap_has_the_node_topics_and_the_replayed_messages(tmp_path, cap
     # message per update on each topic, the prediction included.
     assert counts == {'/plant/u': 2000, '/plant/y': 2000, '/lab/ctid_node/estimate': 2,
                       '/lab/ctid_node/estimate_std': 2, '/lab/ctid_node/prediction': 2,
-                      '/lab/ctid_node/estimate_covariance': 2, '/diagnostics': 3, '/lab/ctid_node/alarm': 2,
+                      '/lab/ctid_node/estimate_covariance': 2, '/diagnostics': 3,
+                      '/lab/ctid_node/alarm': 2,
                       **{f'/lab/ctid_node/params/{name}': 2 for name in 'mdk'}}
     copied = [(topic, time_ns, msg.data) for topic, time_ns, msg in messages
               if topic in ('/plant/u', '/plant/y')]

@@ -365,3 +365,47 @@ def test_a_parameter_held_at_its_bound_has_no_standard_deviation():
     assert result.to_dict()['std']['T'] is None
     assert any(note.startswith('T is at its lower bound 6 (the fit would go beyond it')
                for note in result.warnings)
+
+
+FOPDT = Model('K*exp(-tau*s)/(T*s + 1)')
+
+
+def fopdt_record(tau, seed=1):
+    """Return a PRBS through K = 1, T = 0.5 s and the dead time ``tau`` (100 Hz, 10 s, noisy)."""
+    u = prbs(10, 20)[:1000]
+    y = FOPDT.simulate({'K': 1.0, 'T': 0.5, 'tau': tau}, u, 0.01)
+    return u, y + 0.01 * np.random.default_rng(seed).standard_normal(u.size)
+
+
+@pytest.mark.parametrize('ts', [1e-6, 1e-12])
+def test_the_time_unit_does_not_matter(ts):
+    # The same samples on a grid 1e4 to 1e10 times finer: the time constants scale with it, K
+    # and the fit stay, and no bound is reported for parameters far from theirs (a tolerance
+    # in absolute units once held tau at 0 with no standard deviation).
+    u, y = fopdt_record(0.1)
+    reference = estimate(FOPDT, Data(u, y, 0.01), 'auto')
+    scaled = estimate(FOPDT, Data(u, y, ts), 'auto')
+    assert scaled.warnings == reference.warnings == []
+    assert scaled.fit == pytest.approx(reference.fit, rel=1e-6)
+    for name in ('tau', 'T'):
+        assert scaled.params[name] / ts == pytest.approx(reference.params[name] / 0.01, rel=1e-5)
+        assert scaled.std[name] / ts == pytest.approx(reference.std[name] / 0.01, rel=1e-3)
+    assert scaled.params['K'] == pytest.approx(reference.params['K'], rel=1e-6)
+
+
+def test_swapped_input_and_output_are_said_to_explain_nothing():
+    u, y = fopdt_record(0.1)
+    result = estimate(FOPDT, Data(y, u, 0.01), 'auto')
+    assert result.fit < 10.0
+    assert any(warning.startswith(f'fit {result.fit:.1f} %: the model explains almost none of '
+                                  'the output; check that input and output are the right '
+                                  'signals (not swapped)') for warning in result.warnings)
+
+
+def test_a_dead_time_beyond_half_the_record_is_an_error_that_says_so():
+    # 9 s of dead time in a 10 s record: the search stops at half the record.
+    u, y = fopdt_record(9.0)
+    with pytest.raises(EstimationError, match=r'the dead time went to .* s, where the model '
+                       r'output is zero over the 10 s record .* A dead time beyond half the '
+                       r'record is not searched'):
+        estimate(FOPDT, Data(u, y, 0.01), {'K': 1.0, 'T': 1.0, 'tau': 0.0})
