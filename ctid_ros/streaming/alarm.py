@@ -670,13 +670,19 @@ class ChangeDetector:
         observed = np.sum((values - values.mean(axis=0)) ** 2, axis=0)
         return float(np.max(observed / np.where(expected > 0.0, expected, np.inf)))
 
-    def update(self, update: Update) -> AlarmStatus:
-        """Take one window; return the alarm status after it."""
+    def update(self, update: Update, check: Optional[Tuple[bool, str]] = None) -> AlarmStatus:
+        """
+        Take one window; return the alarm status after it.
+
+        ``check``: the result of :func:`model_check` on this window when it was done before
+        (a benchmark that keeps hours of windows without their samples); else it is done here.
+        """
         settings = self._settings
         if tuple(update.names) != settings.names:
             raise DataError(f'an update of {", ".join(update.names)} for a detector of '
                             f'{", ".join(settings.names)}')
-        model_ok, verdict = model_check(update, settings.window, settings.transient)
+        model_ok, verdict = check if check is not None else \
+            model_check(update, settings.window, settings.transient)
         values = np.asarray(update.values, dtype=float)
         covariance = np.diag(np.asarray(update.stds, dtype=float) ** 2) \
             if update.covariance is None else np.asarray(update.covariance, dtype=float)
