@@ -7,7 +7,7 @@ three, see ``bench/cli_startup.py``). :mod:`ctid_ros.cli.main` imports the modul
 chosen command only once the command line has been parsed, and that module imports the heavy
 libraries it needs. So the choices offered here are written out, not imported from the
 estimator: they are the
-same tuples as ``ctid_ros.estimation.estimate.METHODS``, ``INITIAL_STATES`` and
+same tuples as ``ctid_ros.estimation.options.METHODS``, ``INITIAL_STATES`` and
 ``ctid_ros.core.simulation.INTERSAMPLE``, which ``test/cli/test_arguments.py`` checks.
 """
 

@@ -52,13 +52,10 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 __all__ = [
-    'Estimate', 'ILL_CONDITIONED', 'INITIAL_STATES', 'LOW_FIT', 'METHODS', 'Uncertainty',
-    'build_problem',
+    'Estimate', 'ILL_CONDITIONED', 'LOW_FIT', 'Uncertainty', 'build_problem',
     'covariance', 'estimate', 'fit_percent',
 ]
 
-METHODS = ('iv', 'ls', 'gn')
-INITIAL_STATES = ('zero', 'estimate')
 _IDENTIFIABILITY_LIMIT = 1e10
 # Above this condition number of the scaled sensitivities a combination is reported as weak.
 ILL_CONDITIONED = 1e3

@@ -23,7 +23,7 @@ import numpy as np
 
 __all__ = ['EstimateOptions', 'INITIAL_STATES', 'METHODS', 'check_options']
 
-# The same tuples as ctid_ros.estimation.estimate.METHODS and INITIAL_STATES (a test checks).
+# The choices of estimate(); ctid_ros.cli.arguments writes them out for a fast --help.
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
 

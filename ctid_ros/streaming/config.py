@@ -39,7 +39,7 @@ from ctid_ros.core.limits import MAX_SAMPLES, MIN_SAMPLE_TIME
 from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import INTERSAMPLE
 from ctid_ros.errors import bounded_repr, ConfigError, ModelError
-from ctid_ros.estimation.estimate import INITIAL_STATES, METHODS
+from ctid_ros.estimation.options import INITIAL_STATES, METHODS
 from ctid_ros.streaming.buffer import capacity_for
 from ctid_ros.streaming.message_fields import parse_field_path
 import numpy as np

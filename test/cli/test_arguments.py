@@ -7,7 +7,7 @@ import sys
 from ctid_ros.cli import arguments
 from ctid_ros.cli.main import build_parser, COMMANDS
 from ctid_ros.core.simulation import INTERSAMPLE
-from ctid_ros.estimation.estimate import INITIAL_STATES, METHODS
+from ctid_ros.estimation.options import INITIAL_STATES, METHODS
 import pytest
 
 HEAVY = ('sympy', 'scipy', 'matplotlib', 'rclpy', 'rosbags', 'mcap', 'tqdm', 'yaml')

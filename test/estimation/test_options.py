@@ -2,8 +2,7 @@
 
 from ctid_ros import ConfigError, Data, DataError, estimate, Model, ModelError
 from ctid_ros.core.limits import MAX_SAMPLES
-from ctid_ros.estimation import estimate as estimate_module
-from ctid_ros.estimation.options import check_options, INITIAL_STATES, METHODS
+from ctid_ros.estimation.options import check_options
 import numpy as np
 import pytest
 
@@ -101,8 +100,3 @@ def test_options_are_normalised_to_plain_python():
     assert check_options(MODEL, DATA, None).initial == 'auto'
     assert check_options(MODEL, DATA, transient='auto').transient == 'auto'
     assert check_options(MODEL, DATA).bounds is None
-
-
-def test_choices_are_those_of_the_estimate_module():
-    assert METHODS == estimate_module.METHODS
-    assert INITIAL_STATES == estimate_module.INITIAL_STATES
