@@ -348,13 +348,19 @@ class Model:
                 raise ModelError(f'unknown parameter(s) {", ".join(unknown)}; the model has '
                                  f'{", ".join(self.parameters)}')
             values = [params[name] for name in self.parameters]
+        elif isinstance(params, np.ndarray) and params.ndim == 1 and params.dtype == float:
+            # The estimator's own vectors: one copy, not a round trip through Python floats.
+            values = params
+            if values.size != len(self.parameters):
+                raise ModelError(f'expected {len(self.parameters)} parameter values '
+                                 f'({", ".join(self.parameters)}), got {values.size}')
         else:
             values = list(np.ravel(np.asarray(params, dtype=float)))
             if len(values) != len(self.parameters):
                 raise ModelError(f'expected {len(self.parameters)} parameter values '
                                  f'({", ".join(self.parameters)}), got {len(values)}')
-        vector = np.asarray(values, dtype=float)
-        if not np.all(np.isfinite(vector)):
+        vector = np.array(values, dtype=float)
+        if not np.isfinite(vector).all():
             raise ModelError(f'parameter values must be finite, got {vector}')
         return vector
 
@@ -372,7 +378,7 @@ class Model:
         n_nums = channels * n_num
         values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
         jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
-        if not np.all(np.isfinite(flat)):
+        if not np.isfinite(flat).all():
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')
         return Coefficients(

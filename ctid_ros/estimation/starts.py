@@ -461,18 +461,21 @@ class _EquationError:
         residual = self.residual(values, start)
         cost = residual @ residual
         damping = 1e-3
+        tiny = np.finfo(float).tiny
         for _ in range(_START_ITERATIONS):
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            scaling = np.maximum(np.diag(gram), np.finfo(float).tiny)
+            # Each damping is tried on the same matrices: the diagonal is built once.
+            scaling = np.diag(np.maximum(np.diag(gram), tiny))
             while True:
                 try:
-                    step = -np.linalg.solve(gram + damping * np.diag(scaling), gradient)
+                    step = -np.linalg.solve(gram + damping * scaling, gradient)
                 except np.linalg.LinAlgError:
                     step = None
-                if step is not None and np.all(np.isfinite(step)):
-                    trial = np.clip(values + step, lower, upper)
+                if step is not None and np.isfinite(step).all():
+                    # np.clip, without its dispatch overhead (the step is finite).
+                    trial = np.minimum(np.maximum(values + step, lower), upper)
                     try:
                         trial_residual = self.residual(trial, start)
                     except ModelError:
