@@ -257,10 +257,17 @@ class DiscreteFilter:
 
     def _mapped(self, values: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
-        if self.continuous.order == 0:
-            return np.zeros((rows.shape[0], values.shape[0]))
-        signals = np.array([_sampled(values, sample) for sample in self.drive])
-        return _propagate(self.transition, signals, np.array(list(self.drive.values())), rows)
+        return self.response(values).mapped(rows)
+
+    def response(self, values: np.ndarray) -> 'StateResponse':
+        """
+        Return the state trajectory of ``values``, from which any output map is read.
+
+        One simulation serves every numerator asked for later (:meth:`StateResponse.outputs`):
+        a caller that wants the output now and its sensitivities at the same parameters later
+        keeps the response instead of simulating twice.
+        """
+        return StateResponse(self, values)
 
     def free_responses(self, count: int) -> np.ndarray:
         """
@@ -319,22 +326,70 @@ class DiscreteFilter:
 
     def outputs(self, values: np.ndarray, numerators: Iterable) -> np.ndarray:
         """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
-        rows, feeds = zip(*(self.continuous.output_map(num) for num in numerators))
-        held = self.delayed_input(values)
-        return self._mapped(values, np.asarray(rows)) + np.outer(feeds, held)
+        return self.response(values).outputs(numerators)
+
+
+class StateResponse:
+    """
+    The state trajectory of one signal through a :class:`DiscreteFilter`, in modal form.
+
+    :meth:`outputs` gives ``N_q(s)/D(s)`` of the signal for any numerators without simulating
+    again; the values are those :meth:`DiscreteFilter.outputs` returns.
+    """
+
+    def __init__(self, discrete: DiscreteFilter, values: np.ndarray):
+        self._continuous = discrete.continuous
+        self._count = values.shape[0]
+        self._held = discrete.delayed_input(values)
+        self._modes = None
+        if self._continuous.order:
+            signals = np.array([_sampled(values, sample) for sample in discrete.drive])
+            self._modes = _Modes(discrete.transition, signals,
+                                 np.array(list(discrete.drive.values())))
+
+    def mapped(self, rows: np.ndarray) -> np.ndarray:
+        """``rows @ x[k]`` for every k, shape (q, N)."""
+        if self._modes is None:
+            return np.zeros((rows.shape[0], self._count))
+        return self._modes.mapped(rows)
+
+    def outputs(self, numerators: Iterable) -> np.ndarray:
+        """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
+        rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
+        return self.mapped(np.asarray(rows)) + np.outer(feeds, self._held)
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
                rows: np.ndarray) -> np.ndarray:
+    """Return ``rows @ x[k]``, ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``."""
+    return _Modes(transition, signals, drives).mapped(rows)
+
+
+class _Modes:
     """
-    Return ``rows @ x[k]`` where ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
+    The modal trajectories of ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
 
     Each mode is a first-order recursion run by :func:`scipy.signal.lfilter`. When the
     eigenvectors of ``A`` form a well-conditioned basis the modes are uncoupled and, the signals
     being real, only one mode of each conjugate pair is run; otherwise (repeated poles, as in
-    ``D^2``) the modes are the coupled ones of the complex Schur form.
+    ``D^2``) the modes are the coupled ones of the complex Schur form. :meth:`mapped` reads
+    ``rows @ x[k]`` off them.
 
     """
+
+    def __init__(self, transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
+        self._basis, self._keep, self._weights, self._modal = _modes(transition, signals, drives)
+
+    def mapped(self, rows: np.ndarray) -> np.ndarray:
+        """Return ``rows @ x[k]`` for every k, shape (q, N)."""
+        out_map = rows @ self._basis
+        if self._keep is not None:
+            out_map = out_map[:, self._keep] * self._weights
+        return (out_map @ self._modal).real
+
+
+def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
+    """Return the basis, the modes kept and their weights, and the modal trajectories."""
     count = signals.shape[1]
     eigenvalues, vectors = np.linalg.eig(transition)
     if np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
@@ -343,7 +398,7 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
         coupling = None
         modal_drives = np.linalg.solve(vectors, drives.T)[keep]
         # A conjugate partner contributes the conjugate: twice the real part in total.
-        out_map = (rows @ vectors)[:, keep] * np.where(poles.imag > 0.0, 2.0, 1.0)
+        basis, weights = vectors, np.where(poles.imag > 0.0, 2.0, 1.0)
     else:
         upper, unitary = linalg.schur(transition, output='real')
         if np.any(np.diag(upper, -1)):
@@ -352,7 +407,7 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
         poles = np.diag(upper)
         coupling = upper
         modal_drives = unitary.conj().T @ drives.T
-        out_map = rows @ unitary
+        basis, keep, weights = unitary, None, None
     driving = modal_drives @ signals
     modal = np.zeros(driving.shape, dtype=driving.dtype)
     for i in range(poles.size - 1, -1, -1):
@@ -365,7 +420,7 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
                                           driving[i, :count - 1].real)
         else:
             modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i]], driving[i, :count - 1])
-    return (out_map @ modal).real
+    return basis, keep, weights, modal
 
 
 def skew_delay(ts: float, output_skew: float) -> float:
