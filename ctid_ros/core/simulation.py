@@ -24,6 +24,7 @@ Python loop runs per sample.
 """
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
@@ -53,11 +54,28 @@ def _check_intersample(intersample: str) -> None:
         raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
 
 
+def polynomial_roots(coefficients: np.ndarray) -> np.ndarray:
+    """
+    Return ``np.roots(coefficients)`` (read-only) for float coefficients, highest power first.
+
+    The few latest polynomials are remembered: the estimator asks for the roots of one
+    denominator to check its stability, to scale its realisation and for its settling time.
+    """
+    return _roots(np.asarray(coefficients, dtype=float).tobytes())
+
+
+@lru_cache(maxsize=16)
+def _roots(key: bytes) -> np.ndarray:
+    roots = np.roots(np.frombuffer(key))
+    roots.setflags(write=False)
+    return roots
+
+
 def _time_scale(den: np.ndarray) -> float:
     """Geometric mean of the nonzero root magnitudes: makes the scaled coefficients O(1)."""
     if den.size < 2:
         return 1.0
-    magnitudes = np.abs(np.roots(den))
+    magnitudes = np.abs(polynomial_roots(den))
     magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
@@ -94,6 +112,8 @@ class ContinuousFilter:
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
+        with np.errstate(over='ignore'):
+            self._powers = self.scale ** np.arange(n + 1, dtype=float)
         a = np.zeros((n, n))
         if n:
             a[:-1, 1:] = np.eye(n - 1)
@@ -129,6 +149,37 @@ class ContinuousFilter:
         feedthrough = ascending[n]
         row = ascending[:n] - feedthrough * self._monic_ascending[:n]
         return row * self._balance, float(feedthrough)
+
+    def output_maps(self, numerators: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Rows ``c_q`` and feedthroughs ``d_q`` of :meth:`output_map` for the rows of an array.
+
+        ``numerators`` is ``(q, L)``, highest power first, every row padded to the same length
+        ``L``; one pass over all of them, with the arithmetic of :meth:`output_map` per row.
+
+        Raises
+        ------
+        ModelError
+            If a coefficient is not finite or a numerator exceeds the degree of ``D``.
+
+        """
+        numerators = np.asarray(numerators, dtype=float)
+        if not np.isfinite(numerators).all():
+            raise ModelError(f'numerator has non-finite coefficients: {numerators}')
+        n = self.order
+        extra = numerators.shape[1] - (n + 1)
+        if extra > 0:
+            if np.any(numerators[:, :extra] != 0.0):
+                raise ModelError(f'improper transfer function: numerator degree exceeds '
+                                 f'denominator degree {n}')
+            numerators = numerators[:, extra:]
+        size = numerators.shape[1]
+        ascending = np.zeros((numerators.shape[0], n + 1))
+        # N(scale * z) scaled the same way as the monic denominator.
+        ascending[:, :size] = numerators[:, ::-1] * self._powers[:size] * self._gain
+        feedthroughs = ascending[:, n]
+        rows = ascending[:, :n] - feedthroughs[:, None] * self._monic_ascending[:n]
+        return rows * self._balance, feedthroughs
 
     def discretize(self, ts: float, delay: float = 0.0,
                    intersample: str = 'zoh') -> 'DiscreteFilter':
@@ -354,9 +405,23 @@ class StateResponse:
         return self._modes.mapped(rows)
 
     def outputs(self, numerators: Iterable) -> np.ndarray:
-        """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
-        rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
-        return self.mapped(np.asarray(rows)) + np.outer(feeds, self._held)
+        """
+        ``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N).
+
+        ``numerators``: 1-D coefficient arrays, or the rows of a 2-D array; numerators of one
+        length are mapped in one pass (:meth:`ContinuousFilter.output_maps`).
+        """
+        if isinstance(numerators, np.ndarray) and numerators.ndim == 2:
+            rows, feeds = self._continuous.output_maps(numerators)
+        else:
+            numerators = list(numerators)
+            if numerators and all(isinstance(num, np.ndarray) and num.ndim == 1 and
+                                  num.size == numerators[0].size for num in numerators):
+                rows, feeds = self._continuous.output_maps(np.array(numerators))
+            else:
+                rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
+                rows = np.asarray(rows)
+        return self.mapped(rows) + np.outer(feeds, self._held)
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import (ContinuousFilter, DiscreteFilter, skew_delay,
-                                      skew_extended, StateResponse)
+from ctid_ros.core.simulation import (ContinuousFilter, DiscreteFilter, polynomial_roots,
+                                      skew_delay, skew_extended, StateResponse)
 from ctid_ros.errors import EstimationError
 import numpy as np
 
@@ -58,7 +58,7 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
         return den.size == 1 and den[0] != 0.0
     if den[0] == 0.0 or not np.all(np.isfinite(den)):
         return False
-    roots = np.roots(den)
+    roots = polynomial_roots(den)
     scale = max(np.max(np.abs(roots)), np.finfo(float).tiny)
     return bool(np.max(roots.real) < -margin * scale)
 
