@@ -19,6 +19,7 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Coefficients
@@ -33,8 +34,8 @@ from scipy import optimize
 
 __all__ = [
     'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
-    'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths', 'initial_estimate',
-    'local_fit', 'random_starts', 'stabilized',
+    'default_filters', 'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths',
+    'initial_estimate', 'local_fit', 'random_starts', 'stabilized',
 ]
 
 # Initial values by parameter name, or 'auto'/None for none.
@@ -92,7 +93,7 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     pinned = dict({} if len(given) == len(model.parameters) else given, **pin)
     given = dict(given, **pin)
     delay_index = delay_parameter(model)
-    filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
+    filters = default_filters(problem)
     free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
@@ -382,6 +383,21 @@ class StateVariableFilters:
         discrete = realization.discretize(problem.data.ts, delay, problem.bank.intersample)
         return np.vstack([discrete.outputs(channel, self._u_powers)
                           for channel in problem.bank.driving.T]).T
+
+
+# The filtered signals of each problem's default filters: the automatic start, the dead-time
+# search and every nested structure filter the same data with the same filters.
+_DEFAULT_FILTERS: 'weakref.WeakKeyDictionary[Problem, StateVariableFilters]' = \
+    weakref.WeakKeyDictionary()
+
+
+def default_filters(problem: Problem) -> StateVariableFilters:
+    """Return the :data:`FILTER_COUNT` filters of :func:`filter_bandwidths`, once per problem."""
+    filters = _DEFAULT_FILTERS.get(problem)
+    if filters is None:
+        filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
+        _DEFAULT_FILTERS[problem] = filters
+    return filters
 
 
 def filter_bandwidths(data: Data, count: int) -> np.ndarray:
