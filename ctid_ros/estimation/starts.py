@@ -31,6 +31,7 @@ from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedMode
                                          settling_time, State)
 import numpy as np
 from scipy import optimize
+from scipy.linalg import lapack
 
 __all__ = [
     'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
@@ -485,10 +486,10 @@ class _EquationError:
             # Each damping is tried on the same matrices: the diagonal is built once.
             scaling = np.diag(np.maximum(np.diag(gram), tiny))
             while True:
-                try:
-                    step = -np.linalg.solve(gram + damping * scaling, gradient)
-                except np.linalg.LinAlgError:
-                    step = None
+                # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
+                # (the same solution to the bit; info > 0: singular).
+                solution, info = lapack.dgesv(gram + damping * scaling, gradient)[2:]
+                step = -solution if info == 0 else None
                 if step is not None and np.isfinite(step).all():
                     # np.clip, without its dispatch overhead (the step is finite).
                     trial = np.minimum(np.maximum(values + step, lower), upper)
@@ -496,15 +497,17 @@ class _EquationError:
                         trial_residual = self.residual(trial, start)
                     except ModelError:
                         trial_residual = None
-                    if trial_residual is not None and trial_residual @ trial_residual < cost:
-                        break
+                    if trial_residual is not None:
+                        trial_cost = trial_residual @ trial_residual
+                        if trial_cost < cost:
+                            break
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = np.max(np.abs(trial - values) / np.maximum(np.abs(values), 1e-12))
-            decrease = 1.0 - trial_residual @ trial_residual / cost
+            change = (np.abs(trial - values) / np.maximum(np.abs(values), 1e-12)).max()
+            decrease = 1.0 - trial_cost / cost
             values, residual = trial, trial_residual
-            cost = residual @ residual
+            cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
             if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
                 break
