@@ -370,7 +370,12 @@ class Model:
 
     def coefficients(self, params: ParameterValues) -> Coefficients:
         """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
-        theta = self.vector(params)
+        if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
+                params.size == len(self.parameters) and np.isfinite(params).all():
+            # The estimator's own vectors (thousands per fit): read, never kept, not copied.
+            theta = params
+        else:
+            theta = self.vector(params)
         with np.errstate(all='ignore'):
             flat = np.asarray(self._evaluate(*theta), dtype=float)
         channels, n_num = self._channels, self.num_degree + 1
