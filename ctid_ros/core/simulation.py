@@ -30,6 +30,7 @@ from typing import Dict, Iterable, List, Optional, Tuple
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
 from scipy import linalg, signal
+from scipy.linalg import lapack
 
 INTERSAMPLE = ('zoh', 'foh')
 # Above this condition number of the eigenvector basis the propagation uses the Schur form.
@@ -118,8 +119,10 @@ class ContinuousFilter:
         if n:
             a[:-1, 1:] = np.eye(n - 1)
             a[-1, :] = -self._monic_ascending[:-1]
-            # Diagonal balancing keeps the companion matrix well conditioned.
-            _, (sc, _) = linalg.matrix_balance(a, permute=False, separate=True)
+            # Diagonal balancing keeps the companion matrix well conditioned: LAPACK's gebal
+            # as linalg.matrix_balance(a, permute=False, separate=True) calls it, without its
+            # per-call validation (a is finite).
+            sc = lapack.dgebal(a, permute=0, scale=1)[3]
         else:
             sc = np.ones(0)
         self._balance = sc
