@@ -30,6 +30,11 @@ __all__ = ['Linearization', 'SignalBank', 'is_stable']
 # An iteration evaluates the cost at a candidate, then linearises there if it is accepted, and
 # the final estimate is simulated again for its fit: a few recent results serve all of these.
 _REMEMBERED = 4
+# State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
+# of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
+# of the others the latest linearisation's (linearised again at once for the regressors after
+# an optimality check).
+_REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
 
 
@@ -64,11 +69,11 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
 
 
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
-                compute: Callable[[], Value]) -> Value:
-    """Return ``cache[key]``, computing it if absent; only the latest few keys are kept."""
+                compute: Callable[[], Value], size: int = _REMEMBERED) -> Value:
+    """Return ``cache[key]``, computing it if absent; only the latest ``size`` keys are kept."""
     value = cache.pop(key) if key in cache else compute()
     cache[key] = value
-    if len(cache) > _REMEMBERED:
+    if len(cache) > size:
         del cache[next(iter(cache))]
     return value
 
@@ -118,13 +123,13 @@ class SignalBank:
                            discretized)
 
     def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
-                           delay: float) -> List[StateResponse]:
+                           delay: float, size: int) -> List[StateResponse]:
         """State trajectories of every input channel through ``1/den`` with ``delay`` (cached)."""
         def simulate() -> List[StateResponse]:
             discrete = self._discrete(den, delay, self.intersample)
             return [discrete.response(self.driving[:, j]) for j in range(self.driving.shape[1])]
 
-        return _remembered(cache, (den.tobytes(), float(delay)), simulate)
+        return _remembered(cache, (den.tobytes(), float(delay)), simulate, size)
 
     def realized(self, den: np.ndarray, delay: float) -> DiscreteFilter:
         """
@@ -143,7 +148,8 @@ class SignalBank:
         """Model output ``sum_j N_j/D u_j`` at given coefficients (no sensitivities), read-only."""
         def simulate() -> np.ndarray:
             responses = self._channel_responses(self._responses, coefficients.den,
-                                                coefficients.delay + self.extra_delay)
+                                                coefficients.delay + self.extra_delay,
+                                                _REMEMBERED_RESPONSES)
             output = sum(responses[j].outputs([num])[0][self.trim:]
                          for j, num in enumerate(coefficients.num))
             output.setflags(write=False)
@@ -164,10 +170,11 @@ class SignalBank:
         delay_used = np.any(coefficients.delay_gradient != 0.0)
         delay = coefficients.delay + self.extra_delay
         bank_u = self._discrete(den, delay, self.intersample)
-        u_responses = self._channel_responses(self._responses, den, delay)
+        u_responses = self._channel_responses(self._responses, den, delay,
+                                              _REMEMBERED_RESPONSES)
         # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
         sensitivity_responses = self._channel_responses(self._sensitivities,
-                                                        np.convolve(den, den), delay)
+                                                        np.convolve(den, den), delay, 1)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         jump = np.zeros(self.y.size)
@@ -214,7 +221,7 @@ class SignalBank:
         phi = None
         if regressors:
             bank_y = _remembered(self._output_filtered, den.tobytes(),
-                                 lambda: self._discrete(den, 0.0, 'foh').response(self.y))
+                                 lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
             y_parts = bank_y.outputs(list(coefficients.den_jacobian))
             phi = (u_regressors - y_parts + delay_term).T
         output.setflags(write=False)
