@@ -10,9 +10,6 @@ The same correlation of the data themselves, after prewhitening the input, gives
 dead-time guess (:func:`prewhitened_delay`, section 12).
 """
 
-from functools import lru_cache
-from typing import Tuple
-
 from ctid_ros.core.data import Data
 import numpy as np
 
@@ -53,22 +50,12 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     first = used[0]
     error = np.zeros_like(residual)
     error[first:] = residual[first:] - np.mean(residual[first:])
-    size = 1 << int(np.ceil(np.log2(2 * residual.size)))
-    conjugate, energies = _input_spectra(np.ascontiguousarray(inputs).tobytes(), inputs.shape,
-                                         size)
-    spectrum = np.fft.rfft(error, size)[:, None] * conjugate
-    correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
-    scale = np.sqrt(np.sum(error ** 2) * energies)
-    return correlation / np.where(scale > 0.0, scale, 1.0)
-
-
-@lru_cache(maxsize=4)
-def _input_spectra(values: bytes, shape: Tuple[int, ...], size: int
-                   ) -> Tuple[np.ndarray, np.ndarray]:
-    """Conjugate spectra and energies of the centred inputs (remembered: one record's inputs)."""
-    inputs = np.frombuffer(values).reshape(shape)
     centred = inputs - np.mean(inputs, axis=0)
-    return np.conj(np.fft.rfft(centred, size, axis=0)), np.sum(centred ** 2, axis=0)
+    size = 1 << int(np.ceil(np.log2(2 * residual.size)))
+    spectrum = np.fft.rfft(error, size)[:, None] * np.conj(np.fft.rfft(centred, size, axis=0))
+    correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
+    scale = np.sqrt(np.sum(error ** 2) * np.sum(centred ** 2, axis=0))
+    return correlation / np.where(scale > 0.0, scale, 1.0)
 
 
 def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,

@@ -18,7 +18,6 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 """
 
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -63,13 +62,6 @@ class _Spectrum:
             else full[:1]
         scale = np.sqrt(self.energy * other.energy)
         return values / scale if scale > 0.0 else np.zeros(2 * lags + 1)
-
-
-@lru_cache(maxsize=4)
-def _input_spectrum(values: bytes, span: int) -> Tuple[_Spectrum, np.ndarray]:
-    """Return an input's :class:`_Spectrum` and its autocorrelation to ``span`` (remembered)."""
-    signal = _Spectrum(np.frombuffer(values), span)
-    return signal, signal.correlation(signal, span)
 
 
 @dataclass
@@ -198,8 +190,9 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     cross = np.zeros((2 * lags + 1, inputs.shape[1]))
     spreads = np.zeros(inputs.shape[1])
     for j in range(inputs.shape[1]):
-        signal, rho_u = _input_spectrum(np.ascontiguousarray(inputs[:, j]).tobytes(), span)
+        signal = _Spectrum(inputs[:, j], span)
         cross[:, j] = error.correlation(signal, lags)
+        rho_u = signal.correlation(signal, span)
         spreads[j] = np.sqrt(max(float(rho_e @ rho_u), 1.0) / count)
     cross_bounds = z_lag * spreads
     z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
