@@ -370,6 +370,32 @@ class Model:
 
     def coefficients(self, params: ParameterValues) -> Coefficients:
         """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
+        flat = self.coefficient_array(params)
+        channels, n_num = self._channels, self.num_degree + 1
+        n_den, n_par = self.den_degree + 1, len(self.parameters)
+        n_nums = channels * n_num
+        values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
+        jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
+        return Coefficients(
+            num=values[:n_nums].reshape(channels, n_num), den=values[n_nums:n_nums + n_den],
+            delay=float(values[-1]),
+            num_jacobian=jacobian[:, :n_nums].reshape(n_par, channels, n_num),
+            den_jacobian=jacobian[:, n_nums:n_nums + n_den], delay_gradient=jacobian[:, -1])
+
+    def coefficient_array(self, params: ParameterValues) -> np.ndarray:
+        """
+        Return the numbers behind :meth:`coefficients` as one flat array.
+
+        First the coefficients: ``N`` channel by channel, then ``D`` (highest power first), then
+        the dead time; then for each of them in that order its derivatives by the parameters.
+        For callers that evaluate thousands of parameter vectors and need a few of them.
+
+        Raises
+        ------
+        ModelError
+            If a parameter value is not finite or a coefficient is undefined (division by zero).
+
+        """
         if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
                 params.size == len(self.parameters) and np.isfinite(params).all():
             # The estimator's own vectors (thousands per fit): read, never kept, not copied.
@@ -378,19 +404,10 @@ class Model:
             theta = self.vector(params)
         with np.errstate(all='ignore'):
             flat = np.asarray(self._evaluate(*theta), dtype=float)
-        channels, n_num = self._channels, self.num_degree + 1
-        n_den, n_par = self.den_degree + 1, theta.size
-        n_nums = channels * n_num
-        values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
-        jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
         if not np.isfinite(flat).all():
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')
-        return Coefficients(
-            num=values[:n_nums].reshape(channels, n_num), den=values[n_nums:n_nums + n_den],
-            delay=float(values[-1]),
-            num_jacobian=jacobian[:, :n_nums].reshape(n_par, channels, n_num),
-            den_jacobian=jacobian[:, n_nums:n_nums + n_den], delay_gradient=jacobian[:, -1])
+        return flat
 
     def channel(self, input_name: Optional[str] = None) -> int:
         """Row of :attr:`Coefficients.num` that belongs to ``input_name`` (default: the only)."""

@@ -22,7 +22,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
 from ctid_ros.core.data import Data
-from ctid_ros.core.model import Coefficients
+from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import ContinuousFilter, shifted
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
@@ -443,24 +443,41 @@ class _EquationError:
         self._factor = factor
         self._free = free
         self._latest = None
+        # A Model's flat coefficient array is read directly (thousands of evaluations per fit);
+        # [den; num] are these of its entries. A StabilizedModel changes D: it goes through
+        # its coefficients.
+        self._order = None
+        if isinstance(model, Model):
+            nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
+            self._order = np.r_[nums:nums + model.den_degree + 1, 0:nums]
+            self._rows = nums + model.den_degree + 2          # ... and the dead time
 
-    def _coefficients(self, values: np.ndarray, start: np.ndarray) -> Coefficients:
+    def _evaluated(self, values: np.ndarray, start: np.ndarray):
         # least_squares asks for the Jacobian where it has just evaluated the residual.
         key = values.tobytes() + start.tobytes()
         if self._latest is None or self._latest[0] != key:
             theta = start.copy()
             theta[self._free] = values
-            self._latest = (key, self._model.coefficients(theta))
+            model = self._model
+            self._latest = (key, model.coefficients(theta) if self._order is None
+                            else model.coefficient_array(theta))
         return self._latest[1]
 
     def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        coefficients = self._coefficients(values, start)
-        return self._factor @ np.concatenate([coefficients.den, coefficients.num.ravel()])
+        evaluated = self._evaluated(values, start)
+        if self._order is not None:
+            return self._factor @ evaluated[self._order]
+        return self._factor @ np.concatenate([evaluated.den, evaluated.num.ravel()])
 
     def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        coefficients = self._coefficients(values, start)
-        gradient = np.hstack([coefficients.den_jacobian,
-                              coefficients.num_jacobian.reshape(start.size, -1)])[self._free]
+        evaluated = self._evaluated(values, start)
+        if self._order is not None:
+            # Rows of the flat Jacobian: one per coefficient, its derivatives by the parameters.
+            derivatives = evaluated[self._rows:].reshape(self._rows, start.size)
+            gradient = np.ascontiguousarray(derivatives[self._order].T)[self._free]
+        else:
+            gradient = np.hstack([evaluated.den_jacobian,
+                                  evaluated.num_jacobian.reshape(start.size, -1)])[self._free]
         return self._factor @ gradient.T
 
     def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
