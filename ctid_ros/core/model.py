@@ -384,13 +384,19 @@ class Model:
                 raise ModelError(f'unknown parameter(s) {", ".join(unknown)}; the model has '
                                  f'{", ".join(self.parameters)}')
             values = [params[name] for name in self.parameters]
+        elif isinstance(params, np.ndarray) and params.ndim == 1 and params.dtype == float:
+            # The estimator's own vectors: one copy, not a round trip through Python floats.
+            values = params
+            if values.size != len(self.parameters):
+                raise ModelError(f'expected {len(self.parameters)} parameter values '
+                                 f'({", ".join(self.parameters)}), got {values.size}')
         else:
             values = list(np.ravel(np.asarray(params, dtype=float)))
             if len(values) != len(self.parameters):
                 raise ModelError(f'expected {len(self.parameters)} parameter values '
                                  f'({", ".join(self.parameters)}), got {len(values)}')
-        vector = np.asarray(values, dtype=float)
-        if not np.all(np.isfinite(vector)):
+        vector = np.array(values, dtype=float)
+        if not np.isfinite(vector).all():
             raise ModelError(f'parameter values must be finite, got {vector}')
         return vector
 
@@ -400,22 +406,44 @@ class Model:
 
     def coefficients(self, params: ParameterValues) -> Coefficients:
         """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
-        theta = self.vector(params)
-        with np.errstate(all='ignore'):
-            flat = np.asarray(self._evaluate(*theta), dtype=float)
+        flat = self.coefficient_array(params)
         channels, n_num = self._channels, self.num_degree + 1
-        n_den, n_par = self.den_degree + 1, theta.size
+        n_den, n_par = self.den_degree + 1, len(self.parameters)
         n_nums = channels * n_num
         values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
         jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
-        if not np.all(np.isfinite(flat)):
-            raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
-                             '(division by zero in a coefficient)')
         return Coefficients(
             num=values[:n_nums].reshape(channels, n_num), den=values[n_nums:n_nums + n_den],
             delay=float(values[-1]),
             num_jacobian=jacobian[:, :n_nums].reshape(n_par, channels, n_num),
             den_jacobian=jacobian[:, n_nums:n_nums + n_den], delay_gradient=jacobian[:, -1])
+
+    def coefficient_array(self, params: ParameterValues) -> np.ndarray:
+        """
+        Return the numbers behind :meth:`coefficients` as one flat array.
+
+        First the coefficients: ``N`` channel by channel, then ``D`` (highest power first), then
+        the dead time; then for each of them in that order its derivatives by the parameters.
+        For callers that evaluate thousands of parameter vectors and need a few of them.
+
+        Raises
+        ------
+        ModelError
+            If a parameter value is not finite or a coefficient is undefined (division by zero).
+
+        """
+        if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
+                params.size == len(self.parameters) and np.isfinite(params).all():
+            # The estimator's own vectors (thousands per fit): read, never kept, not copied.
+            theta = params
+        else:
+            theta = self.vector(params)
+        with np.errstate(all='ignore'):
+            flat = np.asarray(self._evaluate(*theta), dtype=float)
+        if not np.isfinite(flat).all():
+            raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
+                             '(division by zero in a coefficient)')
+        return flat
 
     def channel(self, input_name: Optional[str] = None) -> int:
         """Row of :attr:`Coefficients.num` that belongs to ``input_name`` (default: the only)."""

@@ -7,7 +7,7 @@ and the demo all draw on them.
 """
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional, Sequence, Tuple
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.excitation import prbs
@@ -27,6 +27,8 @@ class ReferenceSystem:
     snr_db: float = 10.0
     bounds: Optional[Dict[str, Tuple[Optional[float], Optional[float]]]] = None
     crlb_std: Dict[str, float] = field(default_factory=dict)
+    # Pairs of parameters the model does not tell apart (swapping them changes nothing).
+    interchangeable: Sequence[Tuple[str, str]] = ()
 
     def noise_free(self) -> np.ndarray:
         """Return the exact output at the true parameters."""
@@ -38,6 +40,21 @@ class ReferenceSystem:
         sigma = np.std(clean) / 10.0 ** (self.snr_db / 20.0)
         noise = np.random.default_rng(seed).standard_normal(clean.size)
         return Data(self.u, clean + sigma * noise, self.ts)
+
+    def labelled_like_truth(self, theta: np.ndarray) -> np.ndarray:
+        """
+        Return ``theta`` (``model.parameters`` order), interchangeable pairs ordered as the truth.
+
+        ``T1`` and ``T2`` of ``(T1 s + 1)(T2 s + 1)`` are one model either way round: an estimate
+        is compared with the truth after putting the larger value where the truth has it.
+        """
+        theta = np.array(theta, dtype=float)
+        names = list(self.model.parameters)
+        for first, second in self.interchangeable:
+            i, j = names.index(first), names.index(second)
+            if (theta[i] > theta[j]) != (self.truth[first] > self.truth[second]):
+                theta[[i, j]] = theta[[j, i]]
+        return theta
 
 
 def rao_garnier() -> ReferenceSystem:
@@ -95,5 +112,15 @@ def second_order_nonaffine() -> ReferenceSystem:
         crlb_std={'K': 0.0136, 'w': 0.0053, 'z': 0.0026})
 
 
+def two_lags_dead_time() -> ReferenceSystem:
+    """Two real lags plus a dead time (the hair dryer's structure): not affine, symmetric."""
+    return ReferenceSystem(
+        'two lags plus dead time', Model('K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))'),
+        {'K': 2.0, 'T1': 1.5, 'T2': 0.4, 'tau': 0.7}, prbs(8, 10), 0.1,
+        bounds={'T1': (1e-3, None), 'T2': (1e-3, None), 'tau': (0.0, 10.0)},
+        crlb_std={'K': 0.0176, 'T1': 0.0438, 'T2': 0.0331, 'tau': 0.0171},
+        interchangeable=(('T1', 'T2'),))
+
+
 ALL = (rao_garnier, mass_spring_damper, closed_loop_pid, first_order_dead_time,
-       second_order_dead_time, second_order_nonaffine)
+       second_order_dead_time, second_order_nonaffine, two_lags_dead_time)

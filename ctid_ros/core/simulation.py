@@ -24,11 +24,13 @@ Python loop runs per sample.
 """
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
 from scipy import linalg, signal
+from scipy.linalg import lapack
 
 INTERSAMPLE = ('zoh', 'foh')
 # Above this condition number of the eigenvector basis the propagation uses the Schur form.
@@ -53,11 +55,28 @@ def _check_intersample(intersample: str) -> None:
         raise ModelError(f'intersample must be one of {INTERSAMPLE}, got {intersample!r}')
 
 
+def polynomial_roots(coefficients: np.ndarray) -> np.ndarray:
+    """
+    Return ``np.roots(coefficients)`` (read-only) for float coefficients, highest power first.
+
+    The few latest polynomials are remembered: the estimator asks for the roots of one
+    denominator to check its stability, to scale its realisation and for its settling time.
+    """
+    return _roots(np.asarray(coefficients, dtype=float).tobytes())
+
+
+@lru_cache(maxsize=16)
+def _roots(key: bytes) -> np.ndarray:
+    roots = np.roots(np.frombuffer(key))
+    roots.setflags(write=False)
+    return roots
+
+
 def _time_scale(den: np.ndarray) -> float:
     """Geometric mean of the nonzero root magnitudes: makes the scaled coefficients O(1)."""
     if den.size < 2:
         return 1.0
-    magnitudes = np.abs(np.roots(den))
+    magnitudes = np.abs(polynomial_roots(den))
     magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
@@ -94,12 +113,16 @@ class ContinuousFilter:
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
+        with np.errstate(over='ignore'):
+            self._powers = self.scale ** np.arange(n + 1, dtype=float)
         a = np.zeros((n, n))
         if n:
             a[:-1, 1:] = np.eye(n - 1)
             a[-1, :] = -self._monic_ascending[:-1]
-            # Diagonal balancing keeps the companion matrix well conditioned.
-            _, (sc, _) = linalg.matrix_balance(a, permute=False, separate=True)
+            # Diagonal balancing keeps the companion matrix well conditioned: LAPACK's gebal
+            # as linalg.matrix_balance(a, permute=False, separate=True) calls it, without its
+            # per-call validation (a is finite).
+            sc = lapack.dgebal(a, permute=0, scale=1)[3]
         else:
             sc = np.ones(0)
         self._balance = sc
@@ -129,6 +152,37 @@ class ContinuousFilter:
         feedthrough = ascending[n]
         row = ascending[:n] - feedthrough * self._monic_ascending[:n]
         return row * self._balance, float(feedthrough)
+
+    def output_maps(self, numerators: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Rows ``c_q`` and feedthroughs ``d_q`` of :meth:`output_map` for the rows of an array.
+
+        ``numerators`` is ``(q, L)``, highest power first, every row padded to the same length
+        ``L``; one pass over all of them, with the arithmetic of :meth:`output_map` per row.
+
+        Raises
+        ------
+        ModelError
+            If a coefficient is not finite or a numerator exceeds the degree of ``D``.
+
+        """
+        numerators = np.asarray(numerators, dtype=float)
+        if not np.isfinite(numerators).all():
+            raise ModelError(f'numerator has non-finite coefficients: {numerators}')
+        n = self.order
+        extra = numerators.shape[1] - (n + 1)
+        if extra > 0:
+            if np.any(numerators[:, :extra] != 0.0):
+                raise ModelError(f'improper transfer function: numerator degree exceeds '
+                                 f'denominator degree {n}')
+            numerators = numerators[:, extra:]
+        size = numerators.shape[1]
+        ascending = np.zeros((numerators.shape[0], n + 1))
+        # N(scale * z) scaled the same way as the monic denominator.
+        ascending[:, :size] = numerators[:, ::-1] * self._powers[:size] * self._gain
+        feedthroughs = ascending[:, n]
+        rows = ascending[:, :n] - feedthroughs[:, None] * self._monic_ascending[:n]
+        return rows * self._balance, feedthroughs
 
     def discretize(self, ts: float, delay: float = 0.0,
                    intersample: str = 'zoh') -> 'DiscreteFilter':
@@ -257,10 +311,17 @@ class DiscreteFilter:
 
     def _mapped(self, values: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
-        if self.continuous.order == 0:
-            return np.zeros((rows.shape[0], values.shape[0]))
-        signals = np.array([_sampled(values, sample) for sample in self.drive])
-        return _propagate(self.transition, signals, np.array(list(self.drive.values())), rows)
+        return self.response(values).mapped(rows)
+
+    def response(self, values: np.ndarray) -> 'StateResponse':
+        """
+        Return the state trajectory of ``values``, from which any output map is read.
+
+        One simulation serves every numerator asked for later (:meth:`StateResponse.outputs`):
+        a caller that wants the output now and its sensitivities at the same parameters later
+        keeps the response instead of simulating twice.
+        """
+        return StateResponse(self, values)
 
     def free_responses(self, count: int) -> np.ndarray:
         """
@@ -319,22 +380,84 @@ class DiscreteFilter:
 
     def outputs(self, values: np.ndarray, numerators: Iterable) -> np.ndarray:
         """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
-        rows, feeds = zip(*(self.continuous.output_map(num) for num in numerators))
-        held = self.delayed_input(values)
-        return self._mapped(values, np.asarray(rows)) + np.outer(feeds, held)
+        return self.response(values).outputs(numerators)
+
+
+class StateResponse:
+    """
+    The state trajectory of one signal through a :class:`DiscreteFilter`, in modal form.
+
+    :meth:`outputs` gives ``N_q(s)/D(s)`` of the signal for any numerators without simulating
+    again; the values are those :meth:`DiscreteFilter.outputs` returns.
+    """
+
+    def __init__(self, discrete: DiscreteFilter, values: np.ndarray):
+        self._continuous = discrete.continuous
+        self._count = values.shape[0]
+        self._held = discrete.delayed_input(values)
+        self._modes = None
+        if self._continuous.order:
+            signals = np.array([_sampled(values, sample) for sample in discrete.drive])
+            self._modes = _Modes(discrete.transition, signals,
+                                 np.array(list(discrete.drive.values())))
+
+    def mapped(self, rows: np.ndarray) -> np.ndarray:
+        """``rows @ x[k]`` for every k, shape (q, N)."""
+        if self._modes is None:
+            return np.zeros((rows.shape[0], self._count))
+        return self._modes.mapped(rows)
+
+    def outputs(self, numerators: Iterable) -> np.ndarray:
+        """
+        ``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N).
+
+        ``numerators``: 1-D coefficient arrays, or the rows of a 2-D array; numerators of one
+        length are mapped in one pass (:meth:`ContinuousFilter.output_maps`).
+        """
+        if isinstance(numerators, np.ndarray) and numerators.ndim == 2:
+            rows, feeds = self._continuous.output_maps(numerators)
+        else:
+            numerators = list(numerators)
+            if numerators and all(isinstance(num, np.ndarray) and num.ndim == 1 and
+                                  num.size == numerators[0].size for num in numerators):
+                rows, feeds = self._continuous.output_maps(np.array(numerators))
+            else:
+                rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
+                rows = np.asarray(rows)
+        return self.mapped(rows) + np.outer(feeds, self._held)
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
                rows: np.ndarray) -> np.ndarray:
+    """Return ``rows @ x[k]``, ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``."""
+    return _Modes(transition, signals, drives).mapped(rows)
+
+
+class _Modes:
     """
-    Return ``rows @ x[k]`` where ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
+    The modal trajectories of ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
 
     Each mode is a first-order recursion run by :func:`scipy.signal.lfilter`. When the
     eigenvectors of ``A`` form a well-conditioned basis the modes are uncoupled and, the signals
     being real, only one mode of each conjugate pair is run; otherwise (repeated poles, as in
-    ``D^2``) the modes are the coupled ones of the complex Schur form.
+    ``D^2``) the modes are the coupled ones of the complex Schur form. :meth:`mapped` reads
+    ``rows @ x[k]`` off them.
 
     """
+
+    def __init__(self, transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
+        self._basis, self._keep, self._weights, self._modal = _modes(transition, signals, drives)
+
+    def mapped(self, rows: np.ndarray) -> np.ndarray:
+        """Return ``rows @ x[k]`` for every k, shape (q, N)."""
+        out_map = rows @ self._basis
+        if self._keep is not None:
+            out_map = out_map[:, self._keep] * self._weights
+        return (out_map @ self._modal).real
+
+
+def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
+    """Return the basis, the modes kept and their weights, and the modal trajectories."""
     count = signals.shape[1]
     eigenvalues, vectors = np.linalg.eig(transition)
     if np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
@@ -343,7 +466,7 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
         coupling = None
         modal_drives = np.linalg.solve(vectors, drives.T)[keep]
         # A conjugate partner contributes the conjugate: twice the real part in total.
-        out_map = (rows @ vectors)[:, keep] * np.where(poles.imag > 0.0, 2.0, 1.0)
+        basis, weights = vectors, np.where(poles.imag > 0.0, 2.0, 1.0)
     else:
         upper, unitary = linalg.schur(transition, output='real')
         if np.any(np.diag(upper, -1)):
@@ -352,7 +475,7 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
         poles = np.diag(upper)
         coupling = upper
         modal_drives = unitary.conj().T @ drives.T
-        out_map = rows @ unitary
+        basis, keep, weights = unitary, None, None
     driving = modal_drives @ signals
     modal = np.zeros(driving.shape, dtype=driving.dtype)
     for i in range(poles.size - 1, -1, -1):
@@ -365,7 +488,7 @@ def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
                                           driving[i, :count - 1].real)
         else:
             modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i]], driving[i, :count - 1])
-    return (out_map @ modal).real
+    return basis, keep, weights, modal
 
 
 def skew_delay(ts: float, output_skew: float) -> float:

@@ -14,9 +14,9 @@ from typing import List, Optional, Tuple
 
 from ctid_ros.estimation.iteration import iterate, Iteration, IterationResult
 from ctid_ros.estimation.problem import DelayRange, Problem, State
-from ctid_ros.estimation.starts import (best_candidate, distinct, equation_error_fits,
-                                        explains_data, filter_bandwidths, FILTER_COUNT,
-                                        local_fit, StateVariableFilters)
+from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
+                                        equation_error_fits, explains_data, local_fit,
+                                        StateVariableFilters)
 import numpy as np
 
 __all__ = ['DelaySearch', 'across_the_sample', 'delay_search']
@@ -113,7 +113,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     delay_mask = np.zeros(start.theta.size, dtype=bool)
     delay_mask[delay_index] = True
     frozen = fixed | delay_mask
-    filters = StateVariableFilters(problem, filter_bandwidths(data, FILTER_COUNT))
+    filters = default_filters(problem)
     coarse = np.zeros(grid.size, dtype=bool)
     coarse[::_COARSE_STRIDE] = True
 

@@ -14,7 +14,7 @@ from typing import Dict, Mapping, Optional, Tuple, Union
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, polynomial_roots
 from ctid_ros.errors import ModelError
 from ctid_ros.estimation.correlation import prewhitened_delay
 from ctid_ros.estimation.integrating import StabilizedModel
@@ -83,7 +83,7 @@ def with_fitted_nuisance(measured: np.ndarray, output: np.ndarray,
 
 def settling_time(coefficients: Coefficients) -> float:
     """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
-    roots = np.roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
+    roots = polynomial_roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
     slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
     return 5.0 * slowest + max(coefficients.delay, 0.0)
 

@@ -17,11 +17,11 @@ instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and
 """
 
 from dataclasses import dataclass
-from typing import Callable, Dict, Hashable, Optional, TypeVar
+from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import (ContinuousFilter, DiscreteFilter, skew_delay,
-                                      skew_extended)
+from ctid_ros.core.simulation import (ContinuousFilter, DiscreteFilter, polynomial_roots,
+                                      skew_delay, skew_extended, StateResponse)
 from ctid_ros.errors import EstimationError
 import numpy as np
 
@@ -30,6 +30,11 @@ __all__ = ['Linearization', 'SignalBank', 'is_stable']
 # An iteration evaluates the cost at a candidate, then linearises there if it is accepted, and
 # the final estimate is simulated again for its fit: a few recent results serve all of these.
 _REMEMBERED = 4
+# State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
+# of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
+# of the others the latest linearisation's (linearised again at once for the regressors after
+# an optimality check).
+_REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
 
 
@@ -58,17 +63,17 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
         return den.size == 1 and den[0] != 0.0
     if den[0] == 0.0 or not np.all(np.isfinite(den)):
         return False
-    roots = np.roots(den)
+    roots = polynomial_roots(den)
     scale = max(np.max(np.abs(roots)), np.finfo(float).tiny)
     return bool(np.max(roots.real) < -margin * scale)
 
 
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
-                compute: Callable[[], Value]) -> Value:
-    """Return ``cache[key]``, computing it if absent; only the latest few keys are kept."""
+                compute: Callable[[], Value], size: int = _REMEMBERED) -> Value:
+    """Return ``cache[key]``, computing it if absent; only the latest ``size`` keys are kept."""
     value = cache.pop(key) if key in cache else compute()
     cache[key] = value
-    if len(cache) > _REMEMBERED:
+    if len(cache) > size:
         del cache[next(iter(cache))]
     return value
 
@@ -102,6 +107,11 @@ class SignalBank:
         self._realizations: Dict[Hashable, ContinuousFilter] = {}
         self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
+        # State trajectories of the input channels (output and its sensitivities at the same
+        # parameters come from one simulation of each filter) and of the output.
+        self._responses: Dict[Hashable, List[StateResponse]] = {}
+        self._sensitivities: Dict[Hashable, List[StateResponse]] = {}
+        self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
         def discretized() -> DiscreteFilter:
@@ -111,6 +121,15 @@ class SignalBank:
 
         return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
                            discretized)
+
+    def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
+                           delay: float, size: int) -> List[StateResponse]:
+        """State trajectories of every input channel through ``1/den`` with ``delay`` (cached)."""
+        def simulate() -> List[StateResponse]:
+            discrete = self._discrete(den, delay, self.intersample)
+            return [discrete.response(self.driving[:, j]) for j in range(self.driving.shape[1])]
+
+        return _remembered(cache, (den.tobytes(), float(delay)), simulate, size)
 
     def realized(self, den: np.ndarray, delay: float) -> DiscreteFilter:
         """
@@ -128,9 +147,10 @@ class SignalBank:
     def output(self, coefficients: Coefficients) -> np.ndarray:
         """Model output ``sum_j N_j/D u_j`` at given coefficients (no sensitivities), read-only."""
         def simulate() -> np.ndarray:
-            discrete = self._discrete(coefficients.den, coefficients.delay + self.extra_delay,
-                                      self.intersample)
-            output = sum(discrete.outputs(self.driving[:, j], [num])[0][self.trim:]
+            responses = self._channel_responses(self._responses, coefficients.den,
+                                                coefficients.delay + self.extra_delay,
+                                                _REMEMBERED_RESPONSES)
+            output = sum(responses[j].outputs([num])[0][self.trim:]
                          for j, num in enumerate(coefficients.num))
             output.setflags(write=False)
             return output
@@ -150,8 +170,11 @@ class SignalBank:
         delay_used = np.any(coefficients.delay_gradient != 0.0)
         delay = coefficients.delay + self.extra_delay
         bank_u = self._discrete(den, delay, self.intersample)
+        u_responses = self._channel_responses(self._responses, den, delay,
+                                              _REMEMBERED_RESPONSES)
         # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
-        bank_sensitivity = self._discrete(np.convolve(den, den), delay, self.intersample)
+        sensitivity_responses = self._channel_responses(self._sensitivities,
+                                                        np.convolve(den, den), delay, 1)
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         jump = np.zeros(self.y.size)
@@ -172,7 +195,7 @@ class SignalBank:
                 u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
             if regressors:
                 u_numerators.extend(num_jac)
-            u_parts = bank_u.outputs(signal, u_numerators)[:, trim:]
+            u_parts = u_responses[j].outputs(u_numerators)[:, trim:]
             output += u_parts[0]
             if delay_used:
                 derivative += u_parts[1]
@@ -190,15 +213,16 @@ class SignalBank:
             sensitivity_numerators = [
                 np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
                 for i in range(params)]
-            psi += bank_sensitivity.outputs(signal, sensitivity_numerators)[:, trim:]
+            psi += sensitivity_responses[j].outputs(sensitivity_numerators)[:, trim:]
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
         delay_jump = np.outer(coefficients.delay_gradient, jump).T if np.any(jump) else None
         psi += delay_term
         phi = None
         if regressors:
-            bank_y = self._discrete(den, 0.0, 'foh')
-            y_parts = bank_y.outputs(self.y, list(coefficients.den_jacobian))
+            bank_y = _remembered(self._output_filtered, den.tobytes(),
+                                 lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
+            y_parts = bank_y.outputs(list(coefficients.den_jacobian))
             phi = (u_regressors - y_parts + delay_term).T
         output.setflags(write=False)
         _remembered(self._outputs, self._output_key(coefficients), lambda: output)

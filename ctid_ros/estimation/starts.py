@@ -19,9 +19,10 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+import weakref
 
 from ctid_ros.core.data import Data
-from ctid_ros.core.model import Coefficients
+from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import ContinuousFilter, shifted
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
@@ -30,11 +31,12 @@ from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedMode
                                          settling_time, State)
 import numpy as np
 from scipy import optimize
+from scipy.linalg import lapack
 
 __all__ = [
     'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
-    'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths', 'initial_estimate',
-    'local_fit', 'random_starts', 'stabilized',
+    'default_filters', 'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths',
+    'initial_estimate', 'local_fit', 'random_starts', 'stabilized',
 ]
 
 # Initial values by parameter name, or 'auto'/None for none.
@@ -92,7 +94,7 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     pinned = dict({} if len(given) == len(model.parameters) else given, **pin)
     given = dict(given, **pin)
     delay_index = delay_parameter(model)
-    filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
+    filters = default_filters(problem)
     free = np.array([name not in pinned for name in model.parameters])
     if delay_index is not None:
         free[delay_index] = False
@@ -384,6 +386,21 @@ class StateVariableFilters:
                           for channel in problem.bank.driving.T]).T
 
 
+# The filtered signals of each problem's default filters: the automatic start, the dead-time
+# search and every nested structure filter the same data with the same filters.
+_DEFAULT_FILTERS: 'weakref.WeakKeyDictionary[Problem, StateVariableFilters]' = \
+    weakref.WeakKeyDictionary()
+
+
+def default_filters(problem: Problem) -> StateVariableFilters:
+    """Return the :data:`FILTER_COUNT` filters of :func:`filter_bandwidths`, once per problem."""
+    filters = _DEFAULT_FILTERS.get(problem)
+    if filters is None:
+        filters = StateVariableFilters(problem, filter_bandwidths(problem.data, FILTER_COUNT))
+        _DEFAULT_FILTERS[problem] = filters
+    return filters
+
+
 def filter_bandwidths(data: Data, count: int) -> np.ndarray:
     """Return ``count`` filter corners from ten per record to 0.3 of the Nyquist frequency."""
     return np.geomspace(10.0 / (data.ts * len(data)), 0.3 * np.pi / data.ts, count)
@@ -426,24 +443,41 @@ class _EquationError:
         self._factor = factor
         self._free = free
         self._latest = None
+        # A Model's flat coefficient array is read directly (thousands of evaluations per fit);
+        # [den; num] are these of its entries. A StabilizedModel changes D: it goes through
+        # its coefficients.
+        self._order = None
+        if isinstance(model, Model):
+            nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
+            self._order = np.r_[nums:nums + model.den_degree + 1, 0:nums]
+            self._rows = nums + model.den_degree + 2          # ... and the dead time
 
-    def _coefficients(self, values: np.ndarray, start: np.ndarray) -> Coefficients:
+    def _evaluated(self, values: np.ndarray, start: np.ndarray):
         # least_squares asks for the Jacobian where it has just evaluated the residual.
         key = values.tobytes() + start.tobytes()
         if self._latest is None or self._latest[0] != key:
             theta = start.copy()
             theta[self._free] = values
-            self._latest = (key, self._model.coefficients(theta))
+            model = self._model
+            self._latest = (key, model.coefficients(theta) if self._order is None
+                            else model.coefficient_array(theta))
         return self._latest[1]
 
     def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        coefficients = self._coefficients(values, start)
-        return self._factor @ np.concatenate([coefficients.den, coefficients.num.ravel()])
+        evaluated = self._evaluated(values, start)
+        if self._order is not None:
+            return self._factor @ evaluated[self._order]
+        return self._factor @ np.concatenate([evaluated.den, evaluated.num.ravel()])
 
     def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        coefficients = self._coefficients(values, start)
-        gradient = np.hstack([coefficients.den_jacobian,
-                              coefficients.num_jacobian.reshape(start.size, -1)])[self._free]
+        evaluated = self._evaluated(values, start)
+        if self._order is not None:
+            # Rows of the flat Jacobian: one per coefficient, its derivatives by the parameters.
+            derivatives = evaluated[self._rows:].reshape(self._rows, start.size)
+            gradient = np.ascontiguousarray(derivatives[self._order].T)[self._free]
+        else:
+            gradient = np.hstack([evaluated.den_jacobian,
+                                  evaluated.num_jacobian.reshape(start.size, -1)])[self._free]
         return self._factor @ gradient.T
 
     def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
@@ -461,31 +495,36 @@ class _EquationError:
         residual = self.residual(values, start)
         cost = residual @ residual
         damping = 1e-3
+        tiny = np.finfo(float).tiny
         for _ in range(_START_ITERATIONS):
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            scaling = np.maximum(np.diag(gram), np.finfo(float).tiny)
+            # Each damping is tried on the same matrices: the diagonal is built once.
+            scaling = np.diag(np.maximum(np.diag(gram), tiny))
             while True:
-                try:
-                    step = -np.linalg.solve(gram + damping * np.diag(scaling), gradient)
-                except np.linalg.LinAlgError:
-                    step = None
-                if step is not None and np.all(np.isfinite(step)):
-                    trial = np.clip(values + step, lower, upper)
+                # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
+                # (the same solution to the bit; info > 0: singular).
+                solution, info = lapack.dgesv(gram + damping * scaling, gradient)[2:]
+                step = -solution if info == 0 else None
+                if step is not None and np.isfinite(step).all():
+                    # np.clip, without its dispatch overhead (the step is finite).
+                    trial = np.minimum(np.maximum(values + step, lower), upper)
                     try:
                         trial_residual = self.residual(trial, start)
                     except ModelError:
                         trial_residual = None
-                    if trial_residual is not None and trial_residual @ trial_residual < cost:
-                        break
+                    if trial_residual is not None:
+                        trial_cost = trial_residual @ trial_residual
+                        if trial_cost < cost:
+                            break
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = np.max(np.abs(trial - values) / np.maximum(np.abs(values), 1e-12))
-            decrease = 1.0 - trial_residual @ trial_residual / cost
+            change = (np.abs(trial - values) / np.maximum(np.abs(values), 1e-12)).max()
+            decrease = 1.0 - trial_cost / cost
             values, residual = trial, trial_residual
-            cost = residual @ residual
+            cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
             if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
                 break

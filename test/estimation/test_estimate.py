@@ -173,6 +173,20 @@ def test_non_affine_dead_time_from_a_far_start():
     assert result.params['tau'] == pytest.approx(0.73, abs=0.03)
 
 
+def test_two_lags_plus_dead_time_reference_system():
+    # The benchmark's two-lag system from a start with the lags the other way round: the
+    # estimate is the truth up to the order of T1 and T2, which the model cannot tell apart.
+    system = systems.two_lags_dead_time()
+    result = estimate(system.model, system.data(seed=5),
+                      {'K': 1.0, 'T1': 0.3, 'T2': 3.0, 'tau': 2.0}, bounds=system.bounds)
+    assert result.converged
+    labelled = system.model.as_dict(system.labelled_like_truth(result.theta))
+    for name, true_value in system.truth.items():
+        assert abs(labelled[name] - true_value) < 4.0 * system.crlb_std[name], (name, labelled)
+    spread = {name: result.std[name] for name in ('K', 'tau')}
+    assert spread == pytest.approx({'K': 0.0176, 'tau': 0.0171}, rel=0.25)
+
+
 def test_noise_free_affine_data_give_the_truth_to_high_precision():
     system = systems.mass_spring_damper()
     data = Data(system.u, system.noise_free(), system.ts)
