@@ -30,10 +30,13 @@ the :class:`AlarmStatus` it returns. The method (docs/algorithm.md, section 17):
   two per watched parameter). ``c`` is the overshoot of the discrete sum over the barriers:
   1.166 for independent windows (Siegmund), larger for overlapping ones, for which it was
   fitted by Monte Carlo (:func:`overshoot`; checked by test_alarm.py and bench/alarm.py).
-* **Persistence.** An alarm needs the last two windows used to both add to the sum (a real
-  change persists, and overlapping windows share its data), and a window adds at most
-  ``0.55 h`` unless the one before it added too: a single window (an estimator outlier) can
-  neither raise an alarm nor leave more than ``0.55 h`` behind.
+* **Persistence.** An alarm needs the window before to lean the same way (its estimate beyond
+  the dead zone on that side: a real change persists, and overlapping windows share its
+  data), and a window adds at most ``0.55 h`` unless the one before leaned that way: a single
+  window (an estimator outlier) can neither raise an alarm nor leave more than ``0.55 h``
+  behind. A window whose model check failed (below) adds nothing but still leans: the windows
+  that straddle a step fail the check (or carry inflated standard deviations), and the first
+  clean window after them can then raise the alarm.
 * **Robustness.** The windows' standard deviations are scaled by ``lambda``, at least 1: the
   robust spread of the standardised differences of non-overlapping windows over the last
   :data:`SCALE_HISTORY` (:func:`robust_scale`). A covariance that is optimistic by a constant
@@ -462,14 +465,16 @@ class _Sums:
     since: List[Optional[int]] = field(default_factory=lambda: [None, None])
     added: List[bool] = field(default_factory=lambda: [False, False])
 
-    def add(self, increments: Sequence[float], threshold: float, previous_ns: int) -> None:
+    def add(self, increments: Sequence[float], threshold: float, previous_ns: int,
+            leaning: Sequence[bool]) -> None:
         """
         Add one window's increments (up, down) to the sums.
 
-        An increment is capped at :data:`CAP` of the threshold unless the previous used
-        window also added to that sum, and an alarm is raised only when the sum reaches the
-        threshold with the last two used windows both adding to it: one window alone (an
-        estimator outlier) can neither raise an alarm nor leave more than ``CAP`` behind.
+        An increment is capped at :data:`CAP` of the threshold unless the previous window
+        leaned the same way (its estimate beyond the dead zone on that side, ``leaning``), and
+        an alarm is raised only when the sum reaches the threshold with this window adding and
+        the previous one leaning: one window alone (an estimator outlier) can neither raise an
+        alarm nor leave more than ``CAP`` behind.
         """
         sums = [self.up, self.down]
         for side, increment in enumerate(increments):
@@ -485,8 +490,19 @@ class _Sums:
                 if grown == 0.0:
                     self.alarmed[side], self.since[side] = False, None
             sums[side] = grown
-            self.added[side] = increment > 0.0
+        self.corroborate(leaning)
         self.up, self.down = sums
+
+    def corroborate(self, leaning: Sequence[bool]) -> None:
+        """
+        Note on which sides a window's estimate lies beyond the dead zone, for the next window.
+
+        Also for a window that is not added (its model check failed): such a window straddles
+        a parameter step (or the model misses dynamics), so its estimate must not feed the
+        sums, but whether it lies beyond the dead zone tells whether the next window's excess
+        persists, as :meth:`add` asks of the previous window.
+        """
+        self.added = [bool(side) for side in leaning]
 
     @property
     def raised(self) -> bool:
@@ -701,6 +717,11 @@ class ChangeDetector:
                 changes, distance = self._test(update, values, covariance)
             self._recent.append((update.end_ns, values, covariance))
             self._last_end = update.end_ns
+        elif usable and self._baseline is not None:
+            for position, index in enumerate(self._watched):
+                excess = self._increments(position, index, values, covariance)[0]
+                if excess is not None:
+                    self._sums[position].corroborate(excess > 0.0)
         self._status = self._compose(update.end_ns, changes, model_ok, verdict, distance, usable)
         return self._status
 
@@ -730,23 +751,20 @@ class ChangeDetector:
         baseline, settings, threshold = self._baseline, self._settings, self._threshold
         watched = list(self._watched)
         scale = self._scales(watched)
-        spread = np.sqrt(long_run_variance(settings.window, settings.update_period))
+        spread = math.sqrt(long_run_variance(settings.window, settings.update_period))
         previous = self._last_end if self._last_end is not None else update.start_ns
         changes = []
         for position, index in enumerate(watched):
-            name = settings.names[index]
+            excess, sigma = self._increments(position, index, values, covariance)
             reference = float(baseline.values[position])
-            sigma = scale[position] * math.sqrt(max(covariance[index, index], 0.0))
             sigma0 = float(baseline.stds[position])
-            delta = settings.relative_changes[index] * abs(reference)
-            change = float(values[index]) - reference
             sums = self._sums[position]
-            if math.isfinite(sigma) and sigma > 0.0:
-                margin = delta + BASELINE_QUANTILE * sigma0
-                excess = np.array([change - margin, -change - margin]) / sigma
-                sums.add((excess - REFERENCE) / spread, threshold, previous)
+            if excess is not None:
+                sums.add((excess - REFERENCE) / spread, threshold, previous, excess > 0.0)
             changes.append(ParameterChange(
-                name, reference, float(values[index]), change, math.hypot(sigma, sigma0), delta,
+                settings.names[index], reference, float(values[index]),
+                float(values[index]) - reference, math.hypot(sigma, sigma0),
+                settings.relative_changes[index] * abs(reference),
                 max(sums.up, sums.down) / threshold, float(scale[position]), sums.raised,
                 sums.raised_since))
         difference = values[watched] - baseline.values
@@ -757,6 +775,24 @@ class ChangeDetector:
         except (np.linalg.LinAlgError, ValueError):
             distance = math.nan
         return tuple(changes), distance
+
+    def _increments(self, position: int, index: int, values: np.ndarray,
+                    covariance: np.ndarray) -> Tuple[Optional[np.ndarray], float]:
+        """
+        Return a watched parameter's excess (up, down) in scaled stds, and the scaled std.
+
+        The excess is the change beyond the dead zone and the baseline's bound, (17.1) of
+        docs/algorithm.md; None where the window gives no finite, positive std.
+        """
+        settings, baseline = self._settings, self._baseline
+        reference = float(baseline.values[position])
+        sigma = float(self._scales([index])[0]) * math.sqrt(max(covariance[index, index], 0.0))
+        if not (math.isfinite(sigma) and sigma > 0.0):
+            return None, sigma
+        margin = (settings.relative_changes[index] * abs(reference)
+                  + BASELINE_QUANTILE * float(baseline.stds[position]))
+        change = float(values[index]) - reference
+        return np.array([change - margin, -change - margin]) / sigma, sigma
 
     def _idle(self, previous: AlarmStatus) -> AlarmStatus:
         """Return the status right after the baseline changed (no window tested yet)."""
