@@ -47,7 +47,8 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
-                                        initial_estimate, local_fit, random_starts)
+                                        initial_estimate, local_fit, random_starts,
+                                        resembles_output)
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -69,6 +70,12 @@ _NUDGES = 14
 # unconverged, which then pay for the automatic start and search; more only delay the search
 # for a guess that cannot explain the data.
 _WARM_START_ITERATIONS = 6
+# Updates of the local optimisation from a complete guess that the full steps left unconverged
+# (least_squares LM needs 8-15 Jacobians from such starts).
+_WARM_START_BUDGET = 15
+# The local optimisation gives up when its cost fell by less than this share over two updates
+# far from a minimum.
+_WARM_START_PROGRESS = 0.01
 # Iterations that fit a nested structure without a dead time to search.
 _NESTED_ITERATIONS = 10
 # Output-error updates from each random draw when the residual says the model misses dynamics.
@@ -111,8 +118,9 @@ class Estimate:
     delay_profile : list of (tau, cost)
         Costs of the dead-time grid search, if one ran.
     start : {'initial', 'search'}
-        ``'initial'``: the given values, iterated a few times, explained the data (their
-        residual is independent of the input), so no automatic start was searched;
+        ``'initial'``: the given values, iterated a few times (full steps, then a short local
+        optimisation to convergence), explained the data (their residual is independent of
+        the input), so no automatic start was searched;
         ``'search'``: the automatic start (and, for a dead time, the delay search) was used.
     initial_state, output_offset, integrator_cutoff
         The options of :func:`estimate` that shaped the fit (:meth:`compare` uses the first
@@ -481,12 +489,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start = complete_guess(problem, initial)
         from_initial = False
         if start is not None:
-            warm = local_fit(problem, _started(problem, start, transient), method,
-                             first_ls=True, full_steps_only=True,
-                             iterations=_WARM_START_ITERATIONS)
-            start, history = warm.state, warm.history
-            from_initial = warm.reason is not StopReason.NO_FULL_STEP and \
-                explains_data(problem, start, delay_index, delay_range)
+            start, history, from_initial = _warm_start(
+                problem, _started(problem, start, transient), method, delay_index, delay_range)
         refined = from_initial
         if not from_initial:
             history = []
@@ -715,6 +719,38 @@ def _from_best_seen(problem: Problem, final: IterationResult, history: List[Iter
         history.extend(again.history)
         final = again if again.state.cost <= final.state.cost else final
     return final
+
+
+def _warm_start(problem: Problem, start: State, method: str, delay_index: Optional[int],
+                delay_range: DelayRange) -> Tuple[State, List[Iteration], bool]:
+    """
+    Check a complete guess: return where it led, the updates, and whether the search is skipped.
+
+    At most :data:`_WARM_START_ITERATIONS` full steps first; if they do not reach a model that
+    explains the data, the controlled iteration goes on from there (line search and fallbacks,
+    at most :data:`_WARM_START_BUDGET` updates, given up when the cost stops falling far from a
+    minimum). The search is skipped if a convergence test stopped it and its residual is
+    independent of the input. A model whose output does not resemble the measured one
+    (:func:`resembles_output`: a dead time far off) goes to the search at once, before the
+    full steps for a dead-time structure (``docs/algorithm.md`` section 11).
+    """
+    if delay_index is not None and not resembles_output(problem, start):
+        # The full steps, linear in the dead time, cannot move it that far either.
+        return start, [], False
+    warm = local_fit(problem, start, method, first_ls=True, full_steps_only=True,
+                     iterations=_WARM_START_ITERATIONS)
+    state, history = warm.state, warm.history
+    if warm.reason is not StopReason.NO_FULL_STEP and \
+            explains_data(problem, state, delay_index, delay_range):
+        return state, history, True
+    if not resembles_output(problem, state):
+        return state, history, False
+    local = iterate(problem, state, method=method, frozen=np.zeros(state.theta.size, dtype=bool),
+                    max_iterations=_WARM_START_BUDGET, tolerance=1e-6, first_ls=not history,
+                    check_optimality=True, min_progress=_WARM_START_PROGRESS)
+    history = history + local.history
+    return local.state, history, local.converged and \
+        explains_data(problem, local.state, delay_index, delay_range)
 
 
 def _started(problem: Problem, start: State, transient: Union[float, str]) -> State:

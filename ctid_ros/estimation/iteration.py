@@ -42,6 +42,8 @@ _STRUGGLING = 1
 # Relative singular values of the scaled sensitivities below this carry no usable gradient
 # information: the first-order model is swamped by second-order terms along such directions.
 _OPTIMALITY_RCOND = 1e-6
+# Updates over which min_progress measures the fall of the cost.
+_PROGRESS_SPAN = 2
 
 
 class StopReason(enum.Enum):
@@ -61,12 +63,13 @@ class StopReason(enum.Enum):
     EXACT_FIT = 'output reproduced exactly'
     ITERATION_LIMIT = 'iteration limit ({max_iterations}) reached'
     STALLED = 'stalled: the cost still decreases along its gradient'
+    SLOW = 'the cost fell too slowly far from a minimum'
 
     @property
     def converged(self) -> bool:
         """Return True for a convergence test, False for the limit or a check that gave up."""
         return self not in (StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT,
-                            StopReason.STALLED)
+                            StopReason.STALLED, StopReason.SLOW)
 
     def describe(self, tolerance: float, max_iterations: int) -> str:
         """Return the text users see, with the iteration's settings filled in."""
@@ -399,10 +402,24 @@ def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float
     return float(np.linalg.norm(psi @ step) / np.sqrt(variance))
 
 
+def _slow(costs: List[float], struggled: List[bool], min_progress: float) -> bool:
+    """
+    Return True if the last updates lowered the cost by less than ``min_progress`` far away.
+
+    Over the last :data:`_PROGRESS_SPAN` updates, each of which ``struggled`` (needed another
+    direction or a shorter step): far from a minimum. Near one the cost falls little at every
+    full step, and the convergence tests stop the iteration there.
+    """
+    if not min_progress or len(costs) <= _PROGRESS_SPAN:
+        return False
+    return costs[-1] > (1.0 - min_progress) * costs[-1 - _PROGRESS_SPAN] and \
+        all(struggled[-_PROGRESS_SPAN:])
+
+
 def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             max_iterations: int, tolerance: float, first_ls: bool = True,
             trust_first_ls: bool = False, full_steps_only: bool = False,
-            check_optimality: bool = False) -> IterationResult:
+            check_optimality: bool = False, min_progress: float = 0.0) -> IterationResult:
     """
     Run the controlled projection iteration from ``state``.
 
@@ -431,6 +448,10 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         Give up (:attr:`StopReason.NO_FULL_STEP`, not converged) at the first update that needs
         a shorter or damped step: a quick check of a start that is either close to a minimum or
         not worth the halving.
+    min_progress : float
+        Give up (:attr:`StopReason.SLOW`, not converged) when the cost fell by less than this
+        share over the last two updates and both needed another direction or a shorter step
+        (far from a minimum): a local optimisation a search does better. 0: never.
     check_optimality : bool
         Before a rule that claims convergence stops the iteration, test first-order optimality
         (:func:`optimality` below :data:`OPTIMALITY_LIMIT`): a small step or a small decrease
@@ -462,6 +483,9 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
 
     # Updates so far that needed another direction or a shorter step.
     struggling = 0
+    # Costs after every update (the start's first) and whether each update struggled.
+    costs = [state.cost]
+    struggled: List[bool] = []
     for iteration in range(max_iterations):
         lin = problem.linearize(state.coefficients, regressors=method != 'gn')
         error = problem.measured - lin.output
@@ -490,6 +514,8 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
                 size = _truncated_step_size(lin, error, free)
             if size < NEGLIGIBLE_STEP:
                 return stop(StopReason.NEGLIGIBLE_UPDATE)
+            if _slow(costs, struggled, min_progress):
+                return stop(StopReason.SLOW)
         # Pure P-LS follows its own fixed point, not the output-error descent.
         trusted = method == 'ls' or (trust_first_ls and iteration == 0 and primary == 'ls')
         if trusted:
@@ -524,12 +550,14 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
                 return stop(StopReason.NO_FULL_STEP)
             return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
         kind, step, (new_state, scale) = accepted
-        struggling += kind != primary or scale < 1.0
+        struggled.append(kind != primary or scale < 1.0)
+        struggling += struggled[-1]
         change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
         previous = max(state.cost, np.finfo(float).tiny)
         decrease = (state.cost - new_state.cost) / previous
         state = new_state
         history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
+        costs.append(state.cost)
         if change < tolerance and optimal():
             return stop(StopReason.PARAMETER_CHANGE)
         if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls' and optimal():

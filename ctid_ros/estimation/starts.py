@@ -36,7 +36,7 @@ from scipy.linalg import lapack
 __all__ = [
     'FILTER_COUNT', 'Initial', 'StateVariableFilters', 'best_candidate', 'complete_guess',
     'default_filters', 'distinct', 'equation_error_fits', 'explains_data', 'filter_bandwidths',
-    'initial_estimate', 'local_fit', 'random_starts', 'stabilized',
+    'initial_estimate', 'local_fit', 'random_starts', 'resembles_output', 'stabilized',
 ]
 
 # Initial values by parameter name, or 'auto'/None for none.
@@ -49,6 +49,9 @@ _RANDOM_STARTS = 4
 _LOCAL_ITERATIONS = 4
 # A model explaining the data leaves a residual below this share of the output's spread.
 _UNEXPLAINED = 0.9
+# Share of the output's variance a start's output, scaled at best, must explain to be worth a
+# local optimisation (a dead time far off leaves a squared correlation below 1e-3).
+_RESEMBLANCE = 0.01
 # Fractions of a sample whose filtered input is kept (the lattice, half samples, a hint).
 _REMEMBERED_FRACTIONS = 4
 
@@ -586,3 +589,18 @@ def explains_data(problem: Problem, state: State, delay_index: Optional[int],
         horizon += problem.delay_bracket(delay_index, delay_range)[1]
     lags = int(np.ceil(horizon / data.ts))
     return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
+
+
+def resembles_output(problem: Problem, state: State) -> bool:
+    """
+    Return True if the model output at ``state`` is correlated with the measured output.
+
+    The squared correlation of the two (both less their means) is the share of the output's
+    variance the model output explains at its best scale; a start with a dead time far off
+    explains almost none (below :data:`_RESEMBLANCE`), however close its other parameters.
+    """
+    measured = problem.measured - np.mean(problem.measured)
+    output = problem.prediction(state.coefficients)
+    output = output - np.mean(output)
+    power = float((measured @ measured) * (output @ output))
+    return power > 0.0 and float(measured @ output) ** 2 >= _RESEMBLANCE * power

@@ -99,18 +99,24 @@ def test_iv_stops_at_the_output_error_minimum_within_a_thousandth_of_a_std():
 
 
 def test_dead_time_profile_runs_when_the_local_fit_leaves_dynamics_unexplained():
-    # A slowly held input defeats the prewhitened delay guess (it comes out near 0) and the
-    # start is far too: the local fit fails the residual test and the range is profiled.
+    # A slowly held input defeats the prewhitened delay guess (it comes out near 0): the local
+    # fit from the automatic start fails the residual test and the range is profiled. A given
+    # start that far off (tau 0.2) gets there by the warm start's local optimisation instead.
     model = Model('K*exp(-tau*s)/(T*s + 1)')
     u = prbs(9, 20)[:5000]
     clean = model.simulate({'K': 2.0, 'T': 1.0, 'tau': 2.0}, u, 0.05)
     noisy = clean + 0.5 * np.std(clean) * np.random.default_rng(1).standard_normal(u.size)
-    result = estimate(model, Data(u, noisy, 0.05), {'K': 1.0, 'T': 1.0, 'tau': 0.2},
-                      bounds={'T': (1e-3, None), 'tau': (0.0, 5.0)})
-    assert result.delay_profile
-    assert result.params['tau'] == pytest.approx(2.0, abs=0.05)
-    assert result.params['T'] == pytest.approx(1.0, rel=0.1)
-    assert result.params['K'] == pytest.approx(2.0, rel=0.05)
+    data = Data(u, noisy, 0.05)
+    bounds = {'T': (1e-3, None), 'tau': (0.0, 5.0)}
+    searched = estimate(model, data, 'auto', bounds=bounds)
+    warm = estimate(model, data, {'K': 1.0, 'T': 1.0, 'tau': 0.2}, bounds=bounds)
+    assert searched.delay_profile
+    assert warm.start == 'initial' and not warm.delay_profile
+    assert warm.cost == pytest.approx(searched.cost, rel=1e-9)
+    for result in (searched, warm):
+        assert result.params['tau'] == pytest.approx(2.0, abs=0.05)
+        assert result.params['T'] == pytest.approx(1.0, rel=0.1)
+        assert result.params['K'] == pytest.approx(2.0, rel=0.05)
 
 
 def test_warm_start_that_explains_the_data_is_iterated_without_a_search():

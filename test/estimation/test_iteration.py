@@ -48,9 +48,28 @@ def test_stop_reasons_read_as_before_and_say_whether_they_converged():
         StopReason.EXACT_FIT: 'output reproduced exactly',
         StopReason.ITERATION_LIMIT: 'iteration limit (100) reached',
         StopReason.STALLED: 'stalled: the cost still decreases along its gradient',
+        StopReason.SLOW: 'the cost fell too slowly far from a minimum',
     }
     assert {reason for reason in StopReason if not reason.converged} == \
-        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT, StopReason.STALLED}
+        {StopReason.NO_FULL_STEP, StopReason.ITERATION_LIMIT, StopReason.STALLED,
+         StopReason.SLOW}
+
+
+def test_slow_progress_far_from_a_minimum_gives_up_and_never_near_one():
+    # The long dead time 6 s short: damped and fallback updates that hardly lower the cost.
+    system = systems.second_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=3), system.bounds)
+    options = {'max_iterations': 15, 'tolerance': 1e-6, 'check_optimality': True}
+    far = start_at(problem, {**system.truth, 'tau': 2.0})
+    result = run(problem, far, min_progress=0.01, **options)
+    assert result.reason is StopReason.SLOW and not result.converged
+    assert result.message == 'the cost fell too slowly far from a minimum'
+    assert result.state.cost < far.cost
+    for tau in (7.5, 8.0):
+        near = start_at(problem, {**system.truth, 'tau': tau})
+        given_up = run(problem, near, min_progress=0.01, **options)
+        assert given_up.converged
+        assert given_up.state.cost == run(problem, near, **options).state.cost
 
 
 def test_first_least_squares_step_lands_next_to_the_truth_from_far_away():

@@ -7,7 +7,8 @@ from ctid_ros.estimation.iteration import StopReason
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, complete_guess, distinct,
                                         explains_data, filter_bandwidths, initial_estimate,
-                                        local_fit, stabilized, StateVariableFilters)
+                                        local_fit, resembles_output, stabilized,
+                                        StateVariableFilters)
 import numpy as np
 import pytest
 
@@ -143,6 +144,17 @@ def test_local_fit_from_a_warm_start_converges_near_the_truth():
     assert np.all(np.abs(result.state.theta - system.model.vector(system.truth))
                   < 4.0 * crlb(system))
     assert explains_data(problem, result.state, system.model.parameters.index('tau'), None)
+
+
+def test_a_dead_time_far_off_leaves_an_output_that_does_not_resemble_the_measured_one():
+    # The long dead time of 8 s: its output, uncorrelated with a model 6 s early, explains none
+    # of the measured output at any scale; a tenfold gain or a 0.5 s error does not matter.
+    system = systems.second_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=3), system.bounds)
+    truth = dict(system.truth)
+    assert resembles_output(problem, state_at(problem, truth))
+    assert resembles_output(problem, state_at(problem, {**truth, 'b0': 120.0, 'tau': 7.5}))
+    assert not resembles_output(problem, state_at(problem, {**truth, 'tau': 2.0}))
 
 
 def test_an_unstable_fit_is_mirrored_into_a_stable_start():
