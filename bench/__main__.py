@@ -16,6 +16,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'cli_startup': [],
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
+    'against_commit': [],
     'stamps': [],
     'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
     'real_records': ['--json', 'bench/results-real-records.json'],
