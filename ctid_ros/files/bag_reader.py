@@ -578,13 +578,16 @@ class BagReader:
 
         """
         selected = self._select(topics)
+        return self._source.records(selected, *self._window_ns(start, end, start_ns, end_ns))
+
+    def _window_ns(self, start: Optional[float], end: Optional[float], start_ns: Optional[int],
+                   end_ns: Optional[int]) -> Tuple[int, int]:
+        """Return the window in nanoseconds, from seconds or nanoseconds but not both."""
         if start is not None and start_ns is not None or end is not None and end_ns is not None:
             raise BagError('give the window either in seconds (start/end) or in nanoseconds '
                            '(start_ns/end_ns), not both')
         lo, hi = self.time_range_ns(start, end)
-        lo = start_ns if start_ns is not None else lo
-        hi = end_ns if end_ns is not None else hi
-        return self._source.records(selected, lo, hi)
+        return (start_ns if start_ns is not None else lo, end_ns if end_ns is not None else hi)
 
     def raw_streams(self, topics: Union[str, Iterable[str]]) -> Dict[int, RawStream]:
         """
@@ -610,13 +613,7 @@ class BagReader:
         raises :class:`~ctid_ros.errors.BagError` once the messages before the damage were
         yielded.
         """
-        if start is not None and start_ns is not None or end is not None and end_ns is not None:
-            raise BagError('give the window either in seconds (start/end) or in nanoseconds '
-                           '(start_ns/end_ns), not both')
-        lo, hi = self.time_range_ns(start, end)
-        lo = start_ns if start_ns is not None else lo
-        hi = end_ns if end_ns is not None else hi
-        return self._source.raw_blocks(streams, lo, hi)
+        return self._source.raw_blocks(streams, *self._window_ns(start, end, start_ns, end_ns))
 
     def topic_schema(self, topic: str) -> TopicSchema:
         """

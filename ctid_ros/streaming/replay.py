@@ -174,23 +174,12 @@ def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
 def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConfig,
                      sampler: MessageSampler, capacity: int, detector: ChangeDetector) -> Replay:
     buffer = sampler.buffer(capacity, config)
-    session = IdentificationSession(config)
+    ticks = _Ticks(config, buffer, detector)
     period_ns = round(config.update_period * NANOSECONDS)
-    updates: List[Update] = []
-    alarms: List[AlarmStatus] = []
-    skipped: List[SkippedTick] = []
     tick: Optional[int] = None
     newest: Optional[int] = None
     last: Optional[int] = None
     count = 0
-
-    def fire(time_ns: int) -> None:
-        try:
-            updates.append(session.update(session.take_window(buffer)))
-        except (DataError, EstimationError) as error:
-            skipped.append(SkippedTick(time_ns, *failure_status(error)))
-            return
-        alarms.append(detector.update(updates[-1]))
 
     def add(block: SampleColumns, first: int, stop: int) -> None:
         """Admit the samples of messages ``first`` to ``stop - 1`` of the block."""
@@ -215,22 +204,41 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
             stop = int(np.searchsorted(reached, tick, side='right'))
             add(block, position, stop)
             position = stop
-            fire(tick)
+            ticks.fire(tick)
             tick += period_ns
         add(block, position, times.size)
         newest, last = int(reached[-1]), int(times[-1])
     if tick is not None and tick <= last:
-        fire(tick)
-    return _sliding_result(config, buffer, updates, count, skipped, alarms)
+        ticks.fire(tick)
+    return ticks.result(count)
 
 
-def _sliding_result(config: IdentificationConfig, buffer: Any, updates: List[Update], count: int,
-                    skipped: List[SkippedTick], alarms: List[AlarmStatus]) -> Replay:
-    if not updates:
-        reason = skipped[-1].reason if skipped else (
-            f'the span is shorter than update_period ({config.update_period:g} s)')
-        raise DataError(f'no estimate in the whole replay: {reason}')
-    return Replay(updates, buffer.stats(), count, skipped, alarms)
+class _Ticks:
+    """The sliding replay's ticks: an estimate on the buffer's window, its alarm or its failure."""
+
+    def __init__(self, config: IdentificationConfig, buffer: Any, detector: ChangeDetector):
+        self.config, self.buffer, self.detector = config, buffer, detector
+        self.session = IdentificationSession(config)
+        self.updates: List[Update] = []
+        self.alarms: List[AlarmStatus] = []
+        self.skipped: List[SkippedTick] = []
+
+    def fire(self, time_ns: int) -> None:
+        """Estimate at the tick ``time_ns``; a failed window is recorded as a skipped tick."""
+        try:
+            self.updates.append(self.session.update(self.session.take_window(self.buffer)))
+        except (DataError, EstimationError) as error:
+            self.skipped.append(SkippedTick(time_ns, *failure_status(error)))
+            return
+        self.alarms.append(self.detector.update(self.updates[-1]))
+
+    def result(self, count: int) -> Replay:
+        """Return the replay of ``count`` messages; no estimate at all is an error."""
+        if not self.updates:
+            reason = self.skipped[-1].reason if self.skipped else (
+                f'the span is shorter than update_period ({self.config.update_period:g} s)')
+            raise DataError(f'no estimate in the whole replay: {reason}')
+        return Replay(self.updates, self.buffer.stats(), count, self.skipped, self.alarms)
 
 
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,
@@ -332,32 +340,20 @@ def _require_samples(streams: Sequence[Tuple[array, array]], names: Sequence[str
 def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig,
                     sampler: MessageSampler, capacity: int, detector: ChangeDetector) -> Replay:
     buffer = sampler.buffer(capacity, config)
-    session = IdentificationSession(config)
+    ticks = _Ticks(config, buffer, detector)
     period_ns = round(config.update_period * NANOSECONDS)
-    updates: List[Update] = []
-    alarms: List[AlarmStatus] = []
-    skipped: List[SkippedTick] = []
     tick: Optional[int] = None
     count = 0
-
-    def fire(time_ns: int) -> None:
-        try:
-            updates.append(session.update(session.take_window(buffer)))
-        except (DataError, EstimationError) as error:
-            skipped.append(SkippedTick(time_ns, *failure_status(error)))
-            return
-        alarms.append(detector.update(updates[-1]))
-
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         if tick is None:
             tick = log_time_ns + period_ns
         while tick < log_time_ns:
-            fire(tick)
+            ticks.fire(tick)
             tick += period_ns
         count += 1
         sample = sampler(topic, log_time_ns, msg)
         sample.check()
         sample.add_to(buffer)
     if tick is not None and tick <= log_time_ns:
-        fire(tick)
-    return _sliding_result(config, buffer, updates, count, skipped, alarms)
+        ticks.fire(tick)
+    return ticks.result(count)
