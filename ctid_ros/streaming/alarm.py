@@ -718,8 +718,9 @@ class ChangeDetector:
             self._recent.append((update.end_ns, values, covariance))
             self._last_end = update.end_ns
         elif usable and self._baseline is not None:
+            scale = self._scales(self._watched)
             for position, index in enumerate(self._watched):
-                excess = self._increments(position, index, values, covariance)[0]
+                excess = self._excess(position, index, values, covariance, scale[position])[0]
                 if excess is not None:
                     self._sums[position].corroborate(excess > 0.0)
         self._status = self._compose(update.end_ns, changes, model_ok, verdict, distance, usable)
@@ -755,7 +756,7 @@ class ChangeDetector:
         previous = self._last_end if self._last_end is not None else update.start_ns
         changes = []
         for position, index in enumerate(watched):
-            excess, sigma = self._increments(position, index, values, covariance)
+            excess, sigma = self._excess(position, index, values, covariance, scale[position])
             reference = float(baseline.values[position])
             sigma0 = float(baseline.stds[position])
             sums = self._sums[position]
@@ -776,17 +777,18 @@ class ChangeDetector:
             distance = math.nan
         return tuple(changes), distance
 
-    def _increments(self, position: int, index: int, values: np.ndarray,
-                    covariance: np.ndarray) -> Tuple[Optional[np.ndarray], float]:
+    def _excess(self, position: int, index: int, values: np.ndarray, covariance: np.ndarray,
+                scale: float) -> Tuple[Optional[np.ndarray], float]:
         """
         Return a watched parameter's excess (up, down) in scaled stds, and the scaled std.
 
         The excess is the change beyond the dead zone and the baseline's bound, (17.1) of
-        docs/algorithm.md; None where the window gives no finite, positive std.
+        docs/algorithm.md, with the window's std times the robust ``scale``; None where the
+        window gives no finite, positive std.
         """
         settings, baseline = self._settings, self._baseline
         reference = float(baseline.values[position])
-        sigma = float(self._scales([index])[0]) * math.sqrt(max(covariance[index, index], 0.0))
+        sigma = float(scale) * math.sqrt(max(covariance[index, index], 0.0))
         if not (math.isfinite(sigma) and sigma > 0.0):
             return None, sigma
         margin = (settings.relative_changes[index] * abs(reference)
