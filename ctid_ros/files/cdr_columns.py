@@ -278,8 +278,10 @@ class CdrColumns:
             cursor = _Cursor(data, ids, starts[ids] + 4, starts[ids] + 4, limit[ids], order,
                              bad)
             self._walk(self.msgtype, self._wanted, cursor, outputs)
-            trailing = limit[ids] - cursor.pos > _TRAILING
-            bad[ids[trailing]] = True
+            # A message that ends inside its last field is short even when the fields read lie
+            # before its end (a sequence's count is checked without its alignment padding).
+            left = limit[ids] - cursor.pos
+            bad[ids[(left > _TRAILING) | (left < 0)]] = True
         stamp_ns = raw_sec * NANOSECONDS + raw_nanosec if self._has_stamp else None
         return Decoded(values, stamp_ns, bad | self._path_errors(count, outputs))
 

@@ -175,6 +175,25 @@ def test_damaged_bytes_are_handed_to_the_per_message_decoder(msgtype):
         assert decoded.values[index].tolist() == expected(msg, paths), index
 
 
+def test_a_message_cut_inside_its_last_element_is_handed_over():
+    """
+    Cut after the element read: the message is still short for rosbags.
+
+    The effort count ends 4 bytes before an 8-byte boundary, so the bytes left after it hold
+    the two elements but not their alignment padding as well.
+    """
+    types = STORE.types
+    msg = types[JOINT_STATE](types['std_msgs/msg/Header'](
+        types['builtin_interfaces/msg/Time'](1, 2), 'ab'), ['a'], np.zeros(1), np.zeros(1),
+        np.array([1.0, 2.0]))
+    blob = STORE.serialize_cdr(msg, JOINT_STATE)[:-2]
+    with pytest.raises(Exception, match='buffer is smaller'):
+        STORE.deserialize_cdr(blob, JOINT_STATE)
+    decoder = CdrColumns(STORE.fielddefs, JOINT_STATE, [parse_field_path('effort[0]')])
+    data = np.frombuffer(blob, dtype=np.uint8)
+    assert decoder.decode(data, np.array([0]), np.array([data.size])).fallback.all()
+
+
 def test_types_outside_the_layouts_are_declined():
     store = get_typestore(Stores.ROS2_JAZZY)
     store.register(get_types_from_msg('wstring text\nfloat64 x\n', 'my_pkg/msg/Wide'))
