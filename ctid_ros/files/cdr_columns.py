@@ -212,15 +212,32 @@ class _NameList:
         for length in np.unique(size[valid]).tolist():
             rows = np.flatnonzero(valid & (size == length))
             block = cursor.data[start[rows, None] + np.arange(length)]
-            _, first, inverse = np.unique(block, axis=0, return_index=True,
-                                          return_inverse=True)
+            first, inverse = _distinct_rows(block)
             lists = [_split_names(block[row].tobytes(), cursor.order, fixed) for row in first]
             for key in keys:
                 name = key.name.encode()
                 index = np.array([names.index(name) if name in names else -1
                                   for names in lists])
-                found[key][rows] = index[inverse.reshape(-1)]
+                found[key][rows] = index[inverse]
         return found
+
+
+def _distinct_rows(block: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the first row of each distinct row of ``block`` and each row's distinct row.
+
+    Rows equal to the first are found by one comparison, since a publisher mostly sends the
+    same list; only the others are sorted.
+    """
+    inverse = np.zeros(block.shape[0], dtype=np.int64)
+    first = np.zeros(1, dtype=np.int64)
+    others = np.flatnonzero(np.any(block != block[0], axis=1))
+    if others.size:
+        _, other_first, other_inverse = np.unique(block[others], axis=0, return_index=True,
+                                                  return_inverse=True)
+        first = np.concatenate([first, others[other_first]])
+        inverse[others] = other_inverse.reshape(-1) + 1
+    return first, inverse
 
 
 def _split_names(raw: bytes, order: str, fixed: Optional[int]) -> List[bytes]:
