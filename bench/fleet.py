@@ -4,8 +4,10 @@
 1. A 10-minute 500 Hz ``sensor_msgs/JointState`` bag (300 000 messages, rosbag2 directory with
    MCAP storage, written here) replayed through the streaming path (``replay_messages`` over
    decoded messages: the path of the live node and of ``ctid replay`` before) and the columnar
-   path (``sample_columns`` + ``replay_columns``), one estimate over the bag and ``--sliding``;
-   the largest relative difference of the estimates and standard deviations.
+   path (``sample_columns`` + ``replay_columns``), one estimate over the bag and ``--sliding``,
+   with the wheel selected by index (``velocity[0]``), then one estimate with the wheel selected
+   by name (``velocity[wheel_left]``, the same joint); the largest relative difference of the
+   estimates and standard deviations, and of the estimates by name against those by index.
 2. A synthetic fleet of 50 bags (5 robots, one with a 20 % heavier payload; 60 s at 500 Hz each)
    plus a corrupt bag and a bag missing the topic, through ``ctid fleet`` with a ``LocalCluster``
    of 1 worker and of every core; then the same run again (every bag skipped).
@@ -61,22 +63,28 @@ def throughput(work: Path, minutes: float) -> None:
     started = time.perf_counter()
     bag = write_joint_state_bag(work / 'js500', {'J': 0.05, 'b': 0.2, 'tau': 0.0373},
                                 minutes * 60, 500.0, seed=1, noise=0.05)
-    params = write_params(work / 'js500.yaml', sample_time=0.002, window=20.0,
-                          update_period=10.0)
+    params = {joint: write_params(work / f'js500_{joint}.yaml', sample_time=0.002, window=20.0,
+                                  update_period=10.0, joint=joint)
+              for joint in ('0', 'wheel_left')}
     size = sum(item.stat().st_size for item in bag.iterdir())
     print(f'bag: {minutes:g} min of JointState at 500 Hz, {round(minutes * 60 * 500)} '
           f'messages, {size / 2**20:.1f} MiB (written in {time.perf_counter() - started:.1f} s)')
-    print('| mode | streaming s | columnar s | speed-up | estimates | largest relative '
-          'difference |')
-    print('|---|---|---|---|---|---|')
-    for sliding in (False, True):
-        columnar_time, columnar = _replay(bag, params, sliding, True)
-        streaming_time, streaming = _replay(bag, params, sliding, False)
+    print('| mode | output field | streaming s | columnar s | speed-up | estimates | largest '
+          'relative difference |')
+    print('|---|---|---|---|---|---|---|')
+    replays = {}
+    for sliding, joint in ((False, '0'), (True, '0'), (False, 'wheel_left')):
+        columnar_time, columnar = _replay(bag, params[joint], sliding, True)
+        streaming_time, streaming = _replay(bag, params[joint], sliding, False)
         assert len(columnar.updates) == len(streaming.updates)
-        print(f'| {"sliding" if sliding else "one estimate"} | {streaming_time:.2f} | '
-              f'{columnar_time:.2f} | {streaming_time / columnar_time:.1f} | '
-              f'{len(columnar.updates)} | {_difference(columnar, streaming):.1e} |')
-    update = columnar.updates[-1]
+        replays[sliding, joint] = columnar
+        print(f'| {"sliding" if sliding else "one estimate"} | velocity[{joint}] | '
+              f'{streaming_time:.2f} | {columnar_time:.2f} | '
+              f'{streaming_time / columnar_time:.1f} | {len(columnar.updates)} | '
+              f'{_difference(columnar, streaming):.1e} |')
+    print('estimates by name against by index (one estimate): largest relative difference '
+          f'{_difference(replays[False, "wheel_left"], replays[False, "0"]):.1e}')
+    update = replays[True, '0'].updates[-1]
     print(f'last window: {dict(zip(update.names, np.round(update.values, 6)))}')
 
 

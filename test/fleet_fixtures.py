@@ -60,10 +60,11 @@ def write_joint_state_bag(path: Path, truth: Dict[str, float], seconds: float, r
 
 
 def write_params(path: Path, sample_time: float = 0.01, window: float = 10.0,
-                 update_period: float = 5.0) -> Path:
-    """Write the params file of the fleet's identification."""
-    values = {'input_topic': '/joint_states', 'input_field': 'effort[0]',
-              'output_topic': '/joint_states', 'output_field': 'velocity[0]', 'model': MODEL,
+                 update_period: float = 5.0, joint: str = '0') -> Path:
+    """Write the params file of the fleet's identification (``joint``: index or name)."""
+    values = {'input_topic': '/joint_states', 'input_field': f'effort[{joint}]',
+              'output_topic': '/joint_states', 'output_field': f'velocity[{joint}]',
+              'model': MODEL,
               'parameter_names': ['J', 'b', 'tau'], 'lower': [0.001, 0.0, 0.0],
               'upper': [10.0, 10.0, 0.2], 'delay_min': 0.0, 'delay_max': 0.1,
               'sample_time': sample_time, 'window': window, 'update_period': update_period}

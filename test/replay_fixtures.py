@@ -66,6 +66,30 @@ def joint_state_records(u, y, latency_ns):
     return sorted(records, key=lambda record: record.time_ns)
 
 
+# Orders in which named JointStates list their joints, message after message.
+JOINT_ORDERS = (['wheel_right', 'joint', 'arm'], ['joint', 'arm', 'wheel_right'],
+                ['arm', 'wheel_right', 'joint'])
+# Position, velocity and effort of the joints next to 'joint', which carries the recording.
+_DECOYS = {'wheel_right': (5.0, 7.0, -5.0), 'arm': (-3.0, 2.0, 3.0)}
+
+
+def name_joints(records, orders=JOINT_ORDERS):
+    """
+    Turn single-joint JointState records into three named joints, listed in changing orders.
+
+    ``joint`` carries the record's position, velocity and effort; record ``k`` lists the joints
+    as ``orders[k % len(orders)]``, which may leave ``joint`` out.
+    """
+    for k, record in enumerate(records):
+        names = orders[k % len(orders)]
+        values = {'joint': tuple(record.fields[field][0]
+                                 for field in ('position', 'velocity', 'effort')), **_DECOYS}
+        record.fields.update({'name': list(names), **{
+            field: [values[name][column] for name in names]
+            for column, field in enumerate(('position', 'velocity', 'effort'))}})
+    return records
+
+
 def types_of(records):
     return {record.topic: JOINT_STATE if 'header' in record.fields else FLOAT64
             for record in records}

@@ -13,18 +13,26 @@ by field (a sequence of strings or of messages one element index at a time).
 It reads the fields of :class:`~ctid_ros.streaming.message_fields.FieldPath` paths and
 ``header.stamp`` of messages of any type built from primitives, strings, nested messages,
 fixed arrays and sequences, from the type definitions the bag stores (a rosbags typestore).
+An element of an array of numbers selected by joint name (``position[wheel_left]``) is found
+through the name list of the same message (``name`` or ``joint_names``): messages whose name
+lists have the same bytes share one lookup, so a bag that keeps one list (or a few orders)
+costs one lookup per distinct list and block, and the order may change from message to
+message.
 Every message whose bytes do not follow the layout exactly (a length beyond its end, a string
 without its terminator or with non-ASCII bytes, more than 3 trailing bytes, another
 encapsulation than plain CDR) and every message whose path does not lead to a number (a field
 that does not exist, an index beyond a sequence's length) is flagged for the per-message
-decoder instead, which decodes it, or reports it, exactly as the streaming replay does.
+decoder instead, which decodes it, or reports it, exactly as the streaming replay does; so
+does every message whose name list lacks the joint, and every name selecting an element of
+an array of messages.
 """
 
 from dataclasses import dataclass
+import struct
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ctid_ros.streaming.contract import NANOSECONDS
-from ctid_ros.streaming.message_fields import FieldPath
+from ctid_ros.streaming.message_fields import FieldPath, Key, NAME_FIELDS
 import numpy as np
 
 __all__ = ['CdrColumns', 'Decoded', 'PRIMITIVES']
@@ -148,6 +156,101 @@ class _Cursor:
         if np.any(flagged):
             self.bad[self.ids[flagged]] = True
         self.pos = np.where(broken, self.limit, end)
+
+
+class _NameList:
+    """
+    The name list of one message level of a batch, and the elements of arrays selected by it.
+
+    ``span`` holds where each message's list starts (4-byte aligned) and ends, and the count of
+    a fixed array (None for a sequence); ``pending`` the reads of elements selected by name,
+    done once the whole level is walked since the list may come after the array.
+    """
+
+    def __init__(self, field: str):
+        self.field = field
+        self.span: Optional[Tuple[np.ndarray, np.ndarray, Optional[int]]] = None
+        self.pending: List[Tuple[np.ndarray, np.ndarray, str, int, Key, Sequence[Any]]] = []
+
+    @classmethod
+    def of(cls, fields: Sequence[Tuple[str, Tuple[int, Any]]], wanted: Mapping[Any, Any]
+           ) -> Optional['_NameList']:
+        """
+        Return the name list of a level whose arrays are selected by name, else None.
+
+        As in :func:`~ctid_ros.streaming.message_fields.extract`, the first of
+        :data:`~ctid_ros.streaming.message_fields.NAME_FIELDS` the type declares is the list;
+        one that is not an array of strings resolves nothing (the per-message decoder reports
+        it).
+        """
+        if not any(isinstance(step, Key) for below in wanted.values()
+                   if isinstance(below, dict) for step in below):
+            return None
+        declared = dict(fields)
+        field = next((name for name in NAME_FIELDS if name in declared), None)
+        if field is None:
+            return None
+        kind, detail = declared[field]
+        strings = kind in (_ARRAY, _SEQUENCE) and int(detail[0][0]) == _BASE and \
+            detail[0][1][0] == 'string'
+        return cls(field) if strings else None
+
+    def indices(self, cursor: _Cursor) -> Dict[Key, np.ndarray]:
+        """
+        Return, per key of :attr:`pending`, its index in each message's list (-1 if absent).
+
+        Messages whose lists have the same bytes have the same names, so each distinct list is
+        split and searched once; messages already flagged are left at -1.
+        """
+        keys = {entry[4] for entry in self.pending}
+        found = {key: np.full(cursor.ids.size, -1, dtype=np.int64) for key in keys}
+        if self.span is None:
+            return found
+        start, end, fixed = self.span
+        size = end - start
+        valid = ~cursor.bad[cursor.ids] & (size > 0) & (end <= cursor.limit)
+        for length in np.unique(size[valid]).tolist():
+            rows = np.flatnonzero(valid & (size == length))
+            block = cursor.data[start[rows, None] + np.arange(length)]
+            first, inverse = _distinct_rows(block)
+            lists = [_split_names(block[row].tobytes(), cursor.order, fixed) for row in first]
+            for key in keys:
+                name = key.name.encode()
+                index = np.array([names.index(name) if name in names else -1
+                                  for names in lists])
+                found[key][rows] = index[inverse]
+        return found
+
+
+def _distinct_rows(block: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the first row of each distinct row of ``block`` and each row's distinct row.
+
+    Rows equal to the first are found by one comparison, since a publisher mostly sends the
+    same list; only the others are sorted.
+    """
+    inverse = np.zeros(block.shape[0], dtype=np.int64)
+    first = np.zeros(1, dtype=np.int64)
+    others = np.flatnonzero(np.any(block != block[0], axis=1))
+    if others.size:
+        _, other_first, other_inverse = np.unique(block[others], axis=0, return_index=True,
+                                                  return_inverse=True)
+        first = np.concatenate([first, others[other_first]])
+        inverse[others] = other_inverse.reshape(-1) + 1
+    return first, inverse
+
+
+def _split_names(raw: bytes, order: str, fixed: Optional[int]) -> List[bytes]:
+    """Split a name list's bytes (validated, from its aligned start) into the names' bytes."""
+    count, pos = (fixed, 0) if fixed is not None else (struct.unpack_from(order + 'I', raw)[0], 4)
+    names = []
+    for _ in range(count):
+        pos += -pos % 4
+        length = struct.unpack_from(order + 'I', raw, pos)[0]
+        # The string without its terminator, as rosbags and mcap_ros2 decode it.
+        names.append(raw[pos + 4:pos + 3 + length])
+        pos += 4 + length
+    return names
 
 
 class CdrColumns:
@@ -278,8 +381,10 @@ class CdrColumns:
             cursor = _Cursor(data, ids, starts[ids] + 4, starts[ids] + 4, limit[ids], order,
                              bad)
             self._walk(self.msgtype, self._wanted, cursor, outputs)
-            trailing = limit[ids] - cursor.pos > _TRAILING
-            bad[ids[trailing]] = True
+            # A message that ends inside its last field is short even when the fields read lie
+            # before its end (a sequence's count is checked without its alignment padding).
+            left = limit[ids] - cursor.pos
+            bad[ids[(left > _TRAILING) | (left < 0)]] = True
         stamp_ns = raw_sec * NANOSECONDS + raw_nanosec if self._has_stamp else None
         return Decoded(values, stamp_ns, bad | self._path_errors(count, outputs))
 
@@ -292,14 +397,25 @@ class CdrColumns:
 
     def _walk(self, msgtype: str, wanted: Mapping[Any, Any], cursor: _Cursor,
               outputs: Dict[str, Any]) -> None:
-        for name, (kind, detail) in self._fields(msgtype):
+        fields = self._fields(msgtype)
+        names = _NameList.of(fields, wanted)
+        for name, (kind, detail) in fields:
             below = wanted.get(name, {})
             if kind == _BASE:
                 self._primitive(detail[0], below, cursor, outputs)
             elif kind == _NAME:
                 self._walk(detail, below, cursor, outputs)
+            elif names is not None and name == names.field:
+                cursor.align(4)
+                start = cursor.pos.copy()
+                self._array(kind, detail, below, cursor, outputs, names)
+                names.span = (start, cursor.pos.copy(), detail[1] if kind == _ARRAY else None)
             else:
-                self._array(kind, detail, below, cursor, outputs)
+                self._array(kind, detail, below, cursor, outputs, names)
+        if names is not None and names.pending:
+            found = names.indices(cursor)
+            for pos, counts, code, size, key, columns in names.pending:
+                self._element(cursor, (code, size), pos, counts, found[key], columns, outputs)
 
     def _primitive(self, typename: str, wanted: Mapping[Any, Any], cursor: _Cursor,
                    outputs: Dict[str, Any]) -> None:
@@ -327,7 +443,7 @@ class CdrColumns:
                 reached[ids, column] = True
 
     def _array(self, kind: int, detail: Any, wanted: Mapping[Any, Any], cursor: _Cursor,
-               outputs: Dict[str, Any]) -> None:
+               outputs: Dict[str, Any], names: Optional['_NameList']) -> None:
         (element_kind, element), fixed = detail
         element_kind = int(element_kind)
         primitive = element_kind == _BASE and element[0] != 'string'
@@ -341,11 +457,14 @@ class CdrColumns:
             code, size = PRIMITIVES[element[0]]
             cursor.align(size, counts > 0)
             for index, below in wanted.items():
-                if isinstance(index, int) and None in below:
-                    inside = index < counts
-                    if np.any(inside):
-                        value = cursor.read(code, size, cursor.pos[inside] + index * size, inside)
-                        self._store(below[None], cursor.ids[inside], value, outputs)
+                if None not in below:
+                    continue
+                if isinstance(index, int):
+                    self._element(cursor, (code, size), cursor.pos, counts,
+                                  np.full(counts.size, index), below[None], outputs)
+                elif isinstance(index, Key) and names is not None:
+                    # Read when the whole message is walked: the names may come after.
+                    names.pending.append((cursor.pos, counts, code, size, index, below[None]))
             cursor.pos = cursor.pos + counts * size
             return
         for index in range(int(counts.max(initial=0))):
@@ -357,3 +476,13 @@ class CdrColumns:
                 self._walk(element, wanted.get(index, {}), part, outputs)
             cursor.pos = cursor.pos.copy()
             cursor.pos[active] = part.pos
+
+    def _element(self, cursor: _Cursor, primitive: Tuple[str, int], pos: np.ndarray,
+                 counts: np.ndarray, index: np.ndarray, columns: Sequence[Any],
+                 outputs: Dict[str, Any]) -> None:
+        """Read element ``index`` (per message, -1 for none) of arrays starting at ``pos``."""
+        code, size = primitive
+        inside = (index >= 0) & (index < counts)
+        if np.any(inside):
+            value = cursor.read(code, size, pos[inside] + index[inside] * size, inside)
+            self._store(columns, cursor.ids[inside], value, outputs)

@@ -3,23 +3,25 @@ The columnar replay gives the streaming replay's numbers on the same bags.
 
 Bags of replay_fixtures (rosbags sqlite3 and mcap directories, mcap_ros2 standalone files) with
 Float64 topics (no header) and JointState (header stamps, a shared input/output topic, two
-inputs from one message), stamped from the header or the receive time, one estimate over the
-span and sliding: every estimate, standard deviation, window and counter is the same.
+inputs from one message, joints selected by index or by name in lists whose order changes),
+stamped from the header or the receive time, one estimate over the span and sliding: every
+estimate, standard deviation, window and counter is the same, and joints selected by name take
+the columnar path.
 """
 
 from pathlib import Path
 
 from bag_fixtures import MSGDEFS
 from ctid_ros.errors import BagError, ConfigError
-from ctid_ros.files.bag_reader import open_bag
+from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.streaming.params_file import load_params_file
 from ctid_ros.streaming.replay import replay_columns, replay_messages
 from mcap.writer import Writer as McapWriter
 import numpy as np
 import pytest
-from replay_fixtures import (DELAY, float_records, joint_state_records, OPEN_LOOP, params_file,
-                             simulate, write_bag)
+from replay_fixtures import (DELAY, float_records, joint_state_records, name_joints, OPEN_LOOP,
+                             params_file, simulate, write_bag)
 from rosbags.typesys import get_typestore, Stores
 
 KINDS = ['sqlite3', 'mcap', 'mcap-file']
@@ -75,21 +77,84 @@ def test_joint_states_on_one_topic(tmp_path, kind, stamp_source, sliding):
     assert_same(*both(path, params, sliding))
 
 
-def test_two_inputs_from_one_message(tmp_path):
+def one_by_one(monkeypatch):
+    """Record the log time of every message the columnar path hands to the streaming decoder."""
+    handed = []
+    raw_streams = BagReader.raw_streams
+
+    def counted(bag, topics):
+        def decode(log_time_ns, data, decoder):
+            handed.append(log_time_ns)
+            return decoder(log_time_ns, data)
+
+        return {key: stream._replace(decode=lambda time, data, decoder=stream.decode: decode(
+            time, data, decoder)) for key, stream in raw_streams(bag, topics).items()}
+
+    monkeypatch.setattr(BagReader, 'raw_streams', counted)
+    return handed
+
+
+@pytest.mark.parametrize('kind', KINDS)
+@pytest.mark.parametrize('sliding', [False, True])
+def test_joints_selected_by_name_in_a_changing_order(tmp_path, monkeypatch, kind, sliding):
+    u, y = simulate(OPEN_LOOP, 14.0)
+    records = name_joints(joint_state_records(u, y, latency_ns=4_000_000))
+    path = write_bag(tmp_path, records, kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]', stamp_source='header', window=6.0,
+                         update_period=4.0)
+    handed = one_by_one(monkeypatch)
+    assert_same(*both(path, params, sliding))
+    assert handed == []
+
+
+@pytest.mark.parametrize('named', [False, True])
+def test_two_inputs_from_one_message(tmp_path, monkeypatch, named):
     u, y = simulate(OPEN_LOOP, 12.0)
     records = joint_state_records(u, y, latency_ns=0)
     w = np.repeat(np.random.default_rng(4).choice([-1.0, 1.0], size=len(records) // 20 + 1), 20)
     for record, w_k in zip(records, w):
         record.fields['velocity'] = [float(w_k)]
-    path = write_bag(tmp_path, records, 'mcap')
+    joint = '[joint]' if named else '[0]'
+    path = write_bag(tmp_path, name_joints(records) if named else records, 'mcap')
     params = params_file(tmp_path, {**OPEN_LOOP, 'model': 'm*s**2*y + d*s*y + k*y = u + c*w',
                                     'params': {}},
                          input_topic='/joint_states', output_topic='/joint_states',
-                         input_field='effort[0]', extra_input_fields=['velocity[0]'],
-                         input_names=['u', 'w'], output_field='position[0]')
+                         input_field=f'effort{joint}', extra_input_fields=[f'velocity{joint}'],
+                         input_names=['u', 'w'], output_field=f'position{joint}')
+    handed = one_by_one(monkeypatch)
     streaming, columnar = both(path, params, False)
     assert columnar.updates[0].window.data.u.shape[1] == 2
+    np.testing.assert_array_equal(np.unique(columnar.updates[0].window.data.u[:, 1]), [-1, 1])
     assert_same(streaming, columnar)
+    assert handed == []
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_a_joint_missing_from_a_message_raises_the_same_error_there(tmp_path, monkeypatch,
+                                                                    kind):
+    """Columnar up to the message without the joint, which the streaming decoder reports."""
+    u, y = simulate(OPEN_LOOP, 6.0)
+    orders = [['joint', 'arm', 'wheel_right']] * 350 + [['arm', 'wheel_right']] + [['arm']] * 9
+    records = name_joints(joint_state_records(u, y, latency_ns=0), orders)
+    path = write_bag(tmp_path, records, kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]')
+    config = load_params_file(params, 'ctid_node')
+    topics = ('/joint_states', '/joint_states')
+    errors = []
+    with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
+        replay_messages(bag.messages(['/joint_states']), config, topics=topics)
+    errors.append(str(raised.value))
+    handed = one_by_one(monkeypatch)
+    with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
+        replay_columns(sample_columns(bag, config, topics), config, topics=topics)
+    errors.append(str(raised.value))
+    assert errors == ["field effort[joint]: no joint 'joint' in name; names seen: arm, "
+                      'wheel_right'] * 2
+    assert handed == [records[350].time_ns]
 
 
 def test_a_wrong_field_path_raises_the_same_error(tmp_path):

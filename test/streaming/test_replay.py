@@ -18,8 +18,8 @@ from ctid_ros.streaming.replay import replay_messages
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession
 import numpy as np
 import pytest
-from replay_fixtures import (FLOAT64, float_records, JOINT_STATE, joint_state_records, OPEN_LOOP,
-                             params_file, simulate, T0_NS, TS, write_bag)
+from replay_fixtures import (FLOAT64, float_records, JOINT_STATE, joint_state_records,
+                             name_joints, OPEN_LOOP, params_file, simulate, T0_NS, TS, write_bag)
 from rosbags.typesys import get_typestore, Stores
 
 
@@ -127,16 +127,7 @@ def test_ticks_without_an_estimate_are_reported_with_their_status_level():
 def test_joint_names_select_the_joint_in_a_recording(tmp_path, capsys, kind):
     """Select one of three joints by name in JointStates that list them in a changing order."""
     u, y = simulate(OPEN_LOOP, 20.0)
-    records = joint_state_records(u, y, latency_ns=2_000_000)
-    orders = (['wheel_right', 'joint', 'arm'], ['joint', 'arm', 'wheel_right'],
-              ['arm', 'wheel_right', 'joint'])
-    decoys = {'wheel_right': 5.0, 'arm': -3.0}
-    for k, record in enumerate(records):
-        names = orders[k % 3]
-        values = {'joint': (record.fields['position'][0], record.fields['effort'][0]), **{
-            name: (value, -value) for name, value in decoys.items()}}
-        record.fields.update(name=names, position=[values[name][0] for name in names],
-                             velocity=[0.0] * 3, effort=[values[name][1] for name in names])
+    records = name_joints(joint_state_records(u, y, latency_ns=2_000_000))
     bag = write_bag(tmp_path, records, kind)
     params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
                          output_topic='/joint_states', input_field='effort[joint]',
