@@ -506,7 +506,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
                     'tolerance': tolerance, 'check_optimality': True}
         # A start refined by iterations needs no least-squares step.
-        final = iterate(problem, start, first_ls=not refined, **settings)
+        # A warm start that explained the data is a converged local fit: near its minimum.
+        final = iterate(problem, start, first_ls=not refined, near_start=from_initial,
+                        **settings)
         history.extend(final.history)
         rng = np.random.default_rng(0)
         final = _from_best_seen(problem, final, history, settings)
@@ -730,14 +732,20 @@ def _warm_start(problem: Problem, start: State, method: str, delay_index: Option
     explains the data, the controlled iteration goes on from there (line search and fallbacks,
     at most :data:`_WARM_START_BUDGET` updates, given up when the cost stops falling far from a
     minimum). The search is skipped if a convergence test stopped it and its residual is
-    independent of the input. A model whose output does not resemble the measured one
-    (:func:`resembles_output`: a dead time far off) goes to the search at once, before the
-    full steps for a dead-time structure (``docs/algorithm.md`` section 11).
+    independent of the input. The full steps are IV projections from the first: consistent
+    under noise, and, like the least-squares projection, exact in one step for a noise-free
+    affine structure. A dead-time model whose output does not resemble the measured one
+    (:func:`resembles_output`: a dead time far off) is tried with the data's own dead-time
+    guess instead (:attr:`Problem.delay_guess`, the search's first guess too); if that does not
+    resemble it either, it goes to the search at once (``docs/algorithm.md`` section 11).
     """
     if delay_index is not None and not resembles_output(problem, start):
-        # The full steps, linear in the dead time, cannot move it that far either.
-        return start, [], False
-    warm = local_fit(problem, start, method, first_ls=True, full_steps_only=True,
+        moved = _with_data_delay(problem, start, delay_index)
+        if moved is None:
+            # The full steps, linear in the dead time, cannot move it that far either.
+            return start, [], False
+        start = moved
+    warm = local_fit(problem, start, method, first_ls=False, full_steps_only=True,
                      iterations=_WARM_START_ITERATIONS)
     state, history = warm.state, warm.history
     if warm.reason is not StopReason.NO_FULL_STEP and \
@@ -751,6 +759,23 @@ def _warm_start(problem: Problem, start: State, method: str, delay_index: Option
     history = history + local.history
     return local.state, history, local.converged and \
         explains_data(problem, local.state, delay_index, delay_range)
+
+
+def _with_data_delay(problem: Problem, start: State, delay_index: int) -> Optional[State]:
+    """
+    Return ``start`` with the data's dead-time guess if its output then resembles the data.
+
+    None if the guess leaves the bounds or an inadmissible model, or its output does not
+    resemble the measured one either (:func:`resembles_output`).
+    """
+    theta = start.theta.copy()
+    theta[delay_index] = np.clip(problem.delay_guess, problem.lower[delay_index],
+                                 problem.upper[delay_index])
+    coefficients = problem.admissible(theta)
+    if coefficients is None:
+        return None
+    moved = problem.state(theta, coefficients)
+    return moved if resembles_output(problem, moved) else None
 
 
 def _started(problem: Problem, start: State, transient: Union[float, str]) -> State:
