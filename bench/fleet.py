@@ -11,18 +11,23 @@
 2. A synthetic fleet of 50 bags (5 robots, one with a 20 % heavier payload; 60 s at 500 Hz each)
    plus a corrupt bag and a bag missing the topic, through ``ctid fleet`` with a ``LocalCluster``
    of 1 worker and of every core; then the same run again (every bag skipped).
+3. The bag of part 1 through ``ctid fleet --span`` (default 60 s: ten spans) on a
+   ``LocalCluster`` of 1 worker and of every core, against the whole bag as one task: the
+   clusters are started and their workers have imported ctid_ros before the clock starts, so
+   the times are those of the spans' work and its scheduling; then resumed (every span skipped).
 
 Timings are wall-clock on whatever else the machine runs: compare the ratios of one run.
 """
 
 import argparse
+import importlib
 import os
 from pathlib import Path
 import shutil
 import sys
 import tempfile
 import time
-from typing import List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -56,19 +61,28 @@ def _difference(first, second) -> float:
     return worst
 
 
-def throughput(work: Path, minutes: float) -> None:
-    """Part 1: the 500 Hz bag, streaming against columnar."""
+def _long_bag(work: Path, minutes: float) -> Tuple[Path, Dict[str, Path]]:
+    """Write the 500 Hz bag and its params files (wheel by index, by name) once; return them."""
     from fleet_fixtures import write_joint_state_bag, write_params
 
+    bag = work / 'js500'
+    params = {joint: work / f'js500_{joint}.yaml' for joint in ('0', 'wheel_left')}
+    if bag.exists():
+        return bag, params
     started = time.perf_counter()
-    bag = write_joint_state_bag(work / 'js500', {'J': 0.05, 'b': 0.2, 'tau': 0.0373},
-                                minutes * 60, 500.0, seed=1, noise=0.05)
-    params = {joint: write_params(work / f'js500_{joint}.yaml', sample_time=0.002, window=20.0,
-                                  update_period=10.0, joint=joint)
-              for joint in ('0', 'wheel_left')}
+    write_joint_state_bag(bag, {'J': 0.05, 'b': 0.2, 'tau': 0.0373}, minutes * 60, 500.0,
+                          seed=1, noise=0.05)
+    for joint, path in params.items():
+        write_params(path, sample_time=0.002, window=20.0, update_period=10.0, joint=joint)
     size = sum(item.stat().st_size for item in bag.iterdir())
     print(f'bag: {minutes:g} min of JointState at 500 Hz, {round(minutes * 60 * 500)} '
           f'messages, {size / 2**20:.1f} MiB (written in {time.perf_counter() - started:.1f} s)')
+    return bag, params
+
+
+def throughput(work: Path, minutes: float) -> None:
+    """Part 1: the 500 Hz bag, streaming against columnar, the wheel by index and by name."""
+    bag, params = _long_bag(work, minutes)
     print('| mode | output field | streaming s | columnar s | speed-up | estimates | largest '
           'relative difference |')
     print('|---|---|---|---|---|---|---|')
@@ -128,6 +142,43 @@ def fleet(work: Path, bags_per_robot: int, seconds: float, workers: List[int]) -
             print(f'flagged {row["robot"]}: {row["flag_reason"]}')
 
 
+def spans(work: Path, minutes: float, span: float, workers: List[int]) -> None:
+    """Part 3: one long bag cut into spans, on 1 worker and on every core."""
+    from ctid_ros.cli.fleet import run_fleet
+    from distributed import Client, LocalCluster
+    import pyarrow.parquet as pq
+
+    bag, params = _long_bag(work, minutes)
+    print(f'\none {minutes:g}-minute bag, --span {span:g}')
+    print('| run | workers | tasks | wall s | analysed | skipped | errors |')
+    print('|---|---|---|---|---|---|---|')
+    times = {}
+    for count, spanned in [(workers[0], False)] + [(count, True) for count in workers]:
+        results = work / f'spans_{count}_{spanned}'
+        with LocalCluster(n_workers=count, threads_per_worker=1, dashboard_address=':0'
+                          ) as cluster, Client(cluster) as client:
+            # The workers' first task would import sympy and scipy: done before the clock.
+            client.run(importlib.import_module, 'ctid_ros.files.fleet')
+            runs = ['fresh', 'resumed'] if spanned and count == workers[-1] else ['fresh']
+            for run in runs:
+                started = time.perf_counter()
+                summary = run_fleet([str(bag)], params['0'], results, client=client, plots=False,
+                                    span=span if spanned else None)
+                elapsed = time.perf_counter() - started
+                if run == 'fresh':
+                    times[count, spanned] = elapsed
+                what = f'--span {span:g}' if spanned else 'whole bag'
+                print(f'| {what}, {run} | {count} | {summary.get("spans", 1)} | {elapsed:.2f} | '
+                      f'{summary["computed"]} | {summary["skipped"]} | {summary["errors"]} |')
+    one, many = times[workers[0], True], times[workers[-1], True]
+    print(f'speed-up of --span from {workers[0]} to {workers[-1]} workers: {one / many:.2f}; '
+          f'against the whole bag as one task: {times[workers[0], False] / many:.2f} (load '
+          f'average: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)')
+    rows = pq.read_table(work / f'spans_{workers[-1]}_True' / 'bags.parquet').to_pylist()
+    values = np.array([row['J'] for row in rows])
+    print(f'J per span: {values.min():.6f} to {values.max():.6f} (truth 0.05)')
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     """Run the benchmark."""
     parser = argparse.ArgumentParser(prog='python -m bench.fleet', description=__doc__)
@@ -137,6 +188,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--seconds', type=float, default=60.0, help='length of a fleet bag')
     parser.add_argument('--skip-throughput', action='store_true')
     parser.add_argument('--skip-fleet', action='store_true')
+    parser.add_argument('--span', type=float, default=60.0,
+                        help='span of the long bag in part 3 (default 60 s)')
+    parser.add_argument('--skip-spans', action='store_true')
     arguments = parser.parse_args(argv)
     sys.path.insert(0, str(TEST))
     work = Path(tempfile.mkdtemp(prefix='ctid-bench-fleet-'))
@@ -146,6 +200,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         if not arguments.skip_fleet:
             fleet(work, arguments.bags_per_robot, arguments.seconds,
                   sorted({1, os.cpu_count() or 1}))
+        if not arguments.skip_spans:
+            spans(work, arguments.minutes, arguments.span, sorted({1, os.cpu_count() or 1}))
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 0

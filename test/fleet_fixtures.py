@@ -11,7 +11,7 @@ on the path).
 
 from pathlib import Path
 import shutil
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 from ctid_ros import Model
 from ctid_ros.core.excitation import prbs
@@ -31,15 +31,28 @@ DAY_NS = 86_400 * 10 ** 9
 
 def write_joint_state_bag(path: Path, truth: Dict[str, float], seconds: float, rate_hz: float,
                           seed: int, start_ns: int = T0_NS, topic: str = '/joint_states',
-                          noise: float = 0.02) -> Path:
-    """Write one recording of a wheel drive as a rosbag2 directory (MCAP storage)."""
+                          noise: float = 0.02,
+                          gain_change: Optional[Tuple[float, float]] = None,
+                          pause: Optional[Tuple[float, float]] = None) -> Path:
+    """
+    Write one recording of a wheel drive as a rosbag2 directory (MCAP storage).
+
+    ``gain_change`` ``(seconds, factor)``: from that time on the drive delivers ``factor`` times
+    the commanded torque (a weaker motor), so that from the command the wheel behaves as
+    ``J / factor`` and ``b / factor`` with the same dead time; the state carries over.
+    ``pause`` ``(first, last)``: no message is recorded from ``first`` to ``last`` seconds (the
+    recorder was paused; the drive went on).
+    """
     store = get_typestore(Stores.ROS2_JAZZY)
     types = store.types
     count = int(round(seconds * rate_hz))
     ts = 1.0 / rate_hz
     rng = np.random.default_rng(seed)
     u = np.resize(prbs(11, max(1, int(round(0.05 * rate_hz)))), count)
-    y = Model(MODEL).simulate(truth, u, ts) + noise * rng.standard_normal(count)
+    torque = u.copy()
+    if gain_change is not None:
+        torque[int(round(gain_change[0] * rate_hz)):] *= gain_change[1]
+    y = Model(MODEL).simulate(truth, torque, ts) + noise * rng.standard_normal(count)
     step = int(round(ts * 1e9))
     jitter = rng.integers(50_000, 400_000, size=count)
     if path.exists():
@@ -52,6 +65,8 @@ def write_joint_state_bag(path: Path, truth: Dict[str, float], seconds: float, r
         header, time = types['std_msgs/msg/Header'], types['builtin_interfaces/msg/Time']
         message = types[JOINT_STATE]
         for k in range(count):
+            if pause is not None and pause[0] <= k * ts < pause[1]:
+                continue
             stamp = start_ns + k * step
             msg = message(header(time(stamp // 10 ** 9, stamp % 10 ** 9), 'base'), names, zero,
                           np.array([y[k], 0.0]), np.array([u[k], 0.0]))

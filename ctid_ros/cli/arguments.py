@@ -245,14 +245,16 @@ def configure_echo(parser: argparse.ArgumentParser) -> None:
 def configure_fleet(parser: argparse.ArgumentParser) -> None:
     """Add the ``ctid fleet`` arguments to ``parser``."""
     parser.description = ('Estimate on every bag of a fleet (rosbag2 directories, .mcap and '
-                          '.db3 files), each bag a task on Dask distributed; results and a '
-                          'fleet report as Parquet, CSV and PNG in --results.')
+                          '.db3 files), each bag (or each --span of a bag) a task on Dask '
+                          'distributed; results and a fleet report as Parquet, CSV and PNG in '
+                          '--results.')
     parser.add_argument('paths', nargs='+', metavar='PATH_OR_GLOB',
                         help="bags, directories holding bags, or globs ('fleet/**/*.mcap')")
     parser.add_argument('--params-file', required=True, help='ROS 2 params YAML of the node')
     parser.add_argument('--results', required=True, type=Path, metavar='DIR',
                         help='directory for bags.parquet, windows.parquet, robots.parquet, '
-                        'robots.csv and the figures (created; finished bags are skipped)')
+                        'robots.csv and the figures (created; finished bags or spans are '
+                        'skipped)')
     parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
                         help='node section of the params file')
     parser.add_argument('--robot-from', default=None, metavar='PATTERN',
@@ -262,6 +264,12 @@ def configure_fleet(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--sliding', action='store_true',
                         help='estimate every update_period as the live node does; one row per '
                         'window in windows.parquet')
+    parser.add_argument('--span', type=float, default=None, metavar='SECONDS',
+                        help='cut each bag into consecutive spans of SECONDS of log time from '
+                        'its first message, each span a task and a row of bags.parquet (column '
+                        'span): the workers share a long bag and the rows trace the parameters '
+                        'through it. At least the window of the params file; a last piece '
+                        'shorter than the window is merged into the span before it')
     parser.add_argument('--workers', type=int, default=None, metavar='N',
                         help='worker processes of the local Dask cluster (default: the cores)')
     parser.add_argument('--scheduler', default=None, metavar='ADDRESS',
@@ -270,5 +278,5 @@ def configure_fleet(parser: argparse.ArgumentParser) -> None:
                         help='run the local cluster in this process (threads, no worker '
                         'processes)')
     parser.add_argument('--rerun', action='store_true',
-                        help='recompute bags whose results are already in --results')
+                        help='recompute bags (spans) whose results are already in --results')
     parser.add_argument('--no-plots', action='store_true', help='write no figures')

@@ -1,10 +1,14 @@
 """
 The fleet report of ``ctid fleet``: one row per robot, outliers flagged, one figure per parameter.
 
-Per robot and parameter, the estimates of its bags are combined with inverse-variance weights;
-the combined standard deviation is widened by the Birge ratio (``sqrt(chi2 / (n - 1))`` when
-above 1) where the bags scatter more than their own standard deviations allow (the plant
-varies from day to day, or the model is not exact).
+Per robot and parameter, the estimates of its rows (its bags, or with ``--span`` the spans of
+its bags) are combined with inverse-variance weights; the combined standard deviation is widened
+by the Birge ratio (``sqrt(chi2 / (n - 1))`` when above 1) where the rows scatter more than their
+own standard deviations allow (the plant varies from day to day or within a bag, or the model is
+not exact). Spans are pooled exactly as bags are: they are disjoint stretches of data with
+independent noise, so for a steady plant their inverse-variance mean is close to the estimate
+over the whole bag (and its std to that estimate's), and a plant that changes within a bag
+widens the std through the Birge ratio instead of being averaged away silently.
 
 A robot is **flagged** for a parameter when its robust z-score
 
@@ -70,16 +74,18 @@ def flag_robots(bags: List[Dict[str, Any]], names: Sequence[str]) -> List[Dict[s
     Parameters
     ----------
     bags : list of dict
-        Rows of ``bags.parquet`` (``robot``, ``status``, ``start`` and a value and ``_std`` per
-        parameter).
+        Rows of ``bags.parquet`` (``robot``, ``bag``, ``status``, ``start`` and a value and
+        ``_std`` per parameter), one per bag or per span.
     names : sequence of str
         The parameters.
 
     Returns
     -------
     list of dict
-        Keys ``robot``, ``bags`` (estimated), ``errors``, ``first``, ``last`` (ns), per parameter
-        ``<name>``, ``<name>_std`` and ``<name>_z``, then ``flagged`` and ``flag_reason``.
+        Keys ``robot``, ``bags`` (with at least one estimate), ``errors`` (error rows),
+        ``estimates`` (the rows pooled: bags, or spans), ``first``, ``last`` (ns), per
+        parameter ``<name>``, ``<name>_std`` and ``<name>_z``, then ``flagged`` and
+        ``flag_reason``.
 
     """
     robots: Dict[str, Dict[str, Any]] = {}
@@ -92,8 +98,9 @@ def flag_robots(bags: List[Dict[str, Any]], names: Sequence[str]) -> List[Dict[s
     table = []
     for robot, found in sorted(robots.items()):
         starts = [row['start'] for row in found['ok'] if row.get('start') is not None]
-        entry: Dict[str, Any] = {'robot': robot, 'bags': len(found['ok']),
-                                 'errors': found['errors'],
+        entry: Dict[str, Any] = {'robot': robot,
+                                 'bags': len({row.get('bag') for row in found['ok']}),
+                                 'errors': found['errors'], 'estimates': len(found['ok']),
                                  'first': min(starts) if starts else None,
                                  'last': max(starts) if starts else None}
         for name in names:
@@ -131,7 +138,7 @@ def write_robot_tables(results: Path, robots: List[Dict[str, Any]], names: Seque
     import pyarrow.csv as pa_csv
     import pyarrow.parquet as pq
 
-    columns = ['robot', 'bags', 'errors', 'first', 'last']
+    columns = ['robot', 'bags', 'errors', 'estimates', 'first', 'last']
     for name in names:
         columns += [name, f'{name}_std', f'{name}_z']
     columns += ['flagged', 'flag_reason']
@@ -142,7 +149,7 @@ def write_robot_tables(results: Path, robots: List[Dict[str, Any]], names: Seque
             data[column] = pa.array(values, type=pa.int64()).cast(pa.timestamp('ns', tz='UTC'))
         elif column in ('robot', 'flag_reason'):
             data[column] = pa.array(values, type=pa.string())
-        elif column in ('bags', 'errors'):
+        elif column in ('bags', 'errors', 'estimates'):
             data[column] = pa.array(values, type=pa.int64())
         elif column == 'flagged':
             data[column] = pa.array(values, type=pa.bool_())
@@ -159,8 +166,9 @@ def write_figures(results: Path, bags: List[Dict[str, Any]], robots: List[Dict[s
     Write ``fleet_<name>.png`` per parameter: the fleet's distribution and each robot's trend.
 
     Left, each robot's combined value with ±2σ and the fleet median with the band within which
-    a robot is not flagged for a robot of zero std; right, every bag's estimate (±2σ) over its
-    start time, one line per robot. Flagged robots are drawn in red.
+    a robot is not flagged for a robot of zero std; right, every bag's (or span's) estimate
+    (±2σ) at the middle of the data it was estimated on, one line per robot, so spans trace the
+    parameter through a bag. Flagged robots are drawn in red.
     """
     import matplotlib
     matplotlib.use('Agg')
@@ -198,7 +206,8 @@ def write_figures(results: Path, bags: List[Dict[str, Any]], robots: List[Dict[s
                          key=lambda row: row['start'])
             if not own:
                 continue
-            times = [np.datetime64(int(row['start']), 'ns') for row in own]
+            times = [np.datetime64((int(row['start']) + int(row.get('end') or row['start'])) // 2,
+                                   'ns') for row in own]
             colour = 'tab:red' if robot in flagged else palette[number % len(palette)]
             right.errorbar(times, [row[name] for row in own],
                            yerr=[2 * (row.get(f'{name}_std') or 0.0) for row in own],
@@ -206,7 +215,8 @@ def write_figures(results: Path, bags: List[Dict[str, Any]], robots: List[Dict[s
                            label=f'{robot} (flagged)' if robot in flagged else robot)
         right.xaxis.set_major_formatter(mdates.ConciseDateFormatter(
             mdates.AutoDateLocator()))
-        right.set_title(f'{name} per bag over time (±2σ)')
+        spans = any(row.get('span') is not None for row in bags)
+        right.set_title(f'{name} per {"span" if spans else "bag"} over time (±2σ)')
         right.legend(fontsize=8, ncol=2)
         figure.tight_layout()
         path = results / f'fleet_{name}.png'

@@ -1,19 +1,25 @@
 """
-The work of ``ctid fleet``: many bags, each one task, results as table rows.
+The work of ``ctid fleet``: many bags, each one task (or one per time span), results as rows.
 
 :func:`find_bags` expands paths and globs into bags (rosbag2 directories, ``.mcap`` and ``.db3``
 files) and names each bag's robot from a path pattern (:func:`robot_fields`);
-:func:`analyse_bag` replays one bag through the columnar path
+:func:`analyse_bag` replays one bag, or one span of its log time, through the columnar path
 (:func:`~ctid_ros.files.columns.sample_columns`,
 :func:`~ctid_ros.streaming.replay.replay_columns`) and returns its rows, an error row if
-anything fails (a broken bag never ends a run). It is a plain function of picklable arguments,
-so a Dask worker (``ctid fleet``) or any other executor can run it.
+anything fails (a broken bag or span never ends a run). It is a plain function of picklable
+arguments, so a Dask worker (``ctid fleet``) or any other executor can run it.
 
-A task is identified by the bag's path, size and modification time and the params file's
-content (:attr:`BagTask.key`): a result with the same key is not computed again.
+``ctid fleet --span SECONDS`` cuts each bag into consecutive spans of log time
+(:func:`bag_time_range` reads the bag's first and last log time from its metadata or summary,
+:func:`span_bounds` cuts, :func:`split_task` makes one task per span), so that the workers share
+a long bag and its rows trace the parameters through it.
+
+A task is identified by the bag's path, size and modification time, the params file's content,
+the mode and the span's boundaries (:data:`IDENTITY`, :attr:`BagTask.key`): a result with the
+same key is not computed again.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import glob
 import hashlib
 import os
@@ -30,12 +36,18 @@ from ctid_ros.streaming.params_file import node_parameters, parse_yaml
 from ctid_ros.streaming.replay import replay_columns
 from ctid_ros.streaming.session import Update
 
-__all__ = ['BagResult', 'BagTask', 'analyse_bag', 'bag_row_columns', 'find_bags',
-           'load_params_text', 'make_task', 'robot_fields']
+__all__ = ['IDENTITY', 'BagResult', 'BagTask', 'analyse_bag', 'bag_row_columns',
+           'bag_time_range', 'find_bags', 'load_params_text', 'make_task', 'robot_fields',
+           'span_bounds', 'split_task']
 
 _BAG_SUFFIXES = ('.mcap', '.db3')
 # Characters of an error message kept in a result row.
 _ERROR_LIMIT = 500
+# The columns of a result row that identify its task (see BagTask.key); the span columns are
+# only written with --span, and a row without them (a run without spans, or of an earlier
+# version) reads them as None, which is the key of a task without spans.
+IDENTITY = ('path', 'size', 'mtime_ns', 'params_sha256', 'sliding', 'span', 'span_start_ns',
+            'span_end_ns')
 
 
 @dataclass(frozen=True)
@@ -61,6 +73,10 @@ class BagTask:
         Node section of the params file.
     sliding : bool
         One row per window as well (``windows.parquet``).
+    span : int or None
+        Index of the time span of the bag (from 0), None for the whole bag.
+    span_start_ns, span_end_ns : int or None
+        The span's log times, ``span_start_ns <= t < span_end_ns`` (None: that side open).
 
     """
 
@@ -73,11 +89,19 @@ class BagTask:
     params_sha256: str
     node_name: str = 'ctid_node'
     sliding: bool = False
+    span: Optional[int] = None
+    span_start_ns: Optional[int] = None
+    span_end_ns: Optional[int] = None
 
     @property
-    def key(self) -> Tuple[str, int, int, str, bool]:
-        """Return what makes a stored result this task's: path, size, mtime, params, mode."""
-        return (self.path, self.size, self.mtime_ns, self.params_sha256, self.sliding)
+    def key(self) -> Tuple[Any, ...]:
+        """Return what makes a stored result this task's: the values of :data:`IDENTITY`."""
+        return tuple(getattr(self, name) for name in IDENTITY)
+
+    def identity(self) -> Dict[str, Any]:
+        """Return the identifying columns of its rows (the span's only for a span)."""
+        names = IDENTITY if self.span is not None else IDENTITY[:IDENTITY.index('span')]
+        return {name: getattr(self, name) for name in names}
 
 
 @dataclass
@@ -198,9 +222,77 @@ def make_task(path: Path, root: Path, pattern: Optional[str], params: str, node_
                    hashlib.sha256(params.encode()).hexdigest(), node_name, sliding)
 
 
-def bag_row_columns(names: Sequence[str]) -> List[str]:
-    """Return the columns of a result row for parameters ``names``, in order."""
-    columns = ['robot', 'bag', 'start', 'end']
+def bag_time_range(path: str) -> Optional[Tuple[int, int]]:
+    """
+    Return the log times of a bag's first and last message, without reading the messages.
+
+    They come from ``metadata.yaml`` or the MCAP summary (checked against the storage, see
+    :class:`~ctid_ros.files.bag_reader.BagReader`). None for a bag without messages or one
+    that cannot be opened: its task then runs on the whole bag and its row says why.
+    """
+    try:
+        with open_bag(path) as bag:
+            if bag.start_time_ns is None:
+                return None
+            return bag.start_time_ns, bag.end_time_ns
+    except Exception:   # a broken bag is reported by its task (analyse_bag), not here
+        return None
+
+
+def span_bounds(start_ns: int, end_ns: int, span: float, minimum: float
+                ) -> List[Tuple[int, int]]:
+    """
+    Cut a bag's log times into consecutive spans of ``span`` seconds.
+
+    The spans start at the bag's first message and follow one another without gaps or overlap,
+    the last ending just after the last message, so every message is in exactly one span. The
+    last piece is kept as a span of its own if it lasts at least ``minimum`` seconds (the
+    params file's ``window``: as much data as one estimate of the live node uses), and is
+    otherwise merged into the span before it, which then lasts less than ``span + minimum``.
+    Merged rather than dropped, because dropping would silently leave out the end of every bag;
+    merged rather than estimated alone, because an estimate on less data than the window is
+    weak or fails, and its row would look like a fault of the plant.
+
+    Parameters
+    ----------
+    start_ns, end_ns : int
+        Log times of the bag's first and last message (ns).
+    span, minimum : float
+        Length of a span and the shortest last span kept, in seconds.
+
+    Returns
+    -------
+    list of (int, int)
+        ``(lo, hi)`` per span: the messages with ``lo <= t < hi``. One span for a bag shorter
+        than ``span``.
+
+    """
+    step = max(1, round(span * NANOSECONDS))
+    stop = end_ns + 1
+    spans = [(lo, min(lo + step, stop)) for lo in range(start_ns, stop, step)]
+    if len(spans) > 1 and spans[-1][1] - spans[-1][0] < minimum * NANOSECONDS:
+        last = spans.pop()
+        spans[-1] = (spans[-1][0], last[1])
+    return spans
+
+
+def split_task(task: BagTask, time_range: Optional[Tuple[int, int]], span: float,
+               minimum: float) -> List[BagTask]:
+    """
+    Return the tasks of a bag's spans (:func:`span_bounds`), numbered from 0.
+
+    Without a time range (see :func:`bag_time_range`) the bag is one task, span 0 with open
+    boundaries, whose row gives the reason.
+    """
+    if time_range is None:
+        return [replace(task, span=0)]
+    return [replace(task, span=index, span_start_ns=lo, span_end_ns=hi)
+            for index, (lo, hi) in enumerate(span_bounds(*time_range, span, minimum))]
+
+
+def bag_row_columns(names: Sequence[str], spans: bool = False) -> List[str]:
+    """Return the columns of a result row for parameters ``names`` in order (``span`` too)."""
+    columns = ['robot', 'bag'] + (['span'] if spans else []) + ['start', 'end']
     for name in names:
         columns += [name, f'{name}_std']
     return columns + ['fit', 'residual', 'status', 'error']
@@ -220,23 +312,24 @@ def _update_row(task: BagTask, update: Update) -> Dict[str, Any]:
 
 def analyse_bag(task: BagTask) -> BagResult:
     """
-    Replay one bag through the columnar path and return its rows, never raising.
+    Replay one bag (or one span) through the columnar path and return its rows, never raising.
 
-    The bag row holds the estimate over the whole bag (or, with ``sliding``, the last window's,
-    every window in :attr:`BagResult.windows`); ``start``/``end`` are the first and last grid
-    instants estimated on (ns since the epoch). A bag that cannot be read, misses a topic or
-    cannot be estimated gives a row with ``status`` ``'error'`` and the one-line reason.
+    The bag row holds the estimate over the whole bag or span (or, with ``sliding``, the last
+    window's, every window in :attr:`BagResult.windows`); ``start``/``end`` are the first and
+    last grid instants estimated on (ns since the epoch). A span is replayed on its own: its
+    messages only, a fresh buffer and session, the transient at its start not fitted as for a
+    window of the live node. A bag or span that cannot be read, misses a topic or cannot be
+    estimated gives a row with ``status`` ``'error'`` and the one-line reason.
     """
-    identity = {'path': task.path, 'size': task.size, 'mtime_ns': task.mtime_ns,
-                'params_sha256': task.params_sha256, 'sliding': task.sliding}
+    identity = task.identity()
     try:
         config = load_params_text(task.params, task.node_name)
         topics = (resolve_topic(config.input_topic, task.node_name),
                   resolve_topic(config.output_topic, task.node_name))
         with open_bag(task.path) as bag:
             topics = tuple(bag.topic_name(topic) or topic for topic in topics)
-            replay = replay_columns(sample_columns(bag, config, topics), config,
-                                    sliding=task.sliding, topics=topics)
+            samples = sample_columns(bag, config, topics, task.span_start_ns, task.span_end_ns)
+            replay = replay_columns(samples, config, sliding=task.sliding, topics=topics)
             warnings = list(bag.warnings)
     except CtidError as error:
         return BagResult(_error_row(task, identity, str(error)))

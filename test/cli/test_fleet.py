@@ -4,7 +4,9 @@
 Three robots, one with a 20 % heavier payload, two bags each, a corrupt bag and a bag missing
 the topic (test/fleet_fixtures.py): the heavy robot is flagged, the bad bags are rows with
 their errors, a second run skips every finished bag, and the bag rows equal a direct columnar
-replay of each bag.
+replay of each bag. With ``--span``, three 40 s bags (steady; the torque down to 80 % from
+20 s; nothing recorded from 9.5 to 20.5 s) cut into 10 s spans: one row per span showing the
+change, the empty span an error row, a resumed run skipping every span without opening a bag.
 """
 
 from pathlib import Path
@@ -15,8 +17,9 @@ from ctid_ros.cli.main import main
 from ctid_ros.errors import CtidError
 from ctid_ros.files.fleet import analyse_bag, find_bags, make_task, robot_fields
 from distributed import Client, LocalCluster
-from fleet_fixtures import write_fleet, write_params
+from fleet_fixtures import TRUTH, write_fleet, write_joint_state_bag, write_params
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -128,3 +131,112 @@ def test_the_command_with_worker_processes(fleet, tmp_path, capsys):
     assert 'ctid fleet: 2 bags: 2 analysed, 0 already done, 1 with errors' in \
         capsys.readouterr().out
     assert Path(results / 'bags.parquet').exists()
+
+
+@pytest.fixture(scope='module')
+def long_bags(tmp_path_factory):
+    root = tmp_path_factory.mktemp('long')
+    write_joint_state_bag(root / 'bags' / 'r0' / 'run_0', TRUTH, 40.0, 100.0, seed=11)
+    write_joint_state_bag(root / 'bags' / 'r1' / 'run_0', TRUTH, 40.0, 100.0, seed=12,
+                          gain_change=(20.0, 0.8))
+    write_joint_state_bag(root / 'bags' / 'r2' / 'run_0', TRUTH, 40.0, 100.0, seed=13,
+                          pause=(9.5, 20.5))
+    return root / 'bags', write_params(root / 'params.yaml', window=5.0, update_period=2.5)
+
+
+def test_spans_are_rows_pooled_per_robot_and_resumed(long_bags, client, tmp_path, monkeypatch):
+    bags, params = long_bags
+    results = tmp_path / 'results'
+    summary = run_fleet([str(bags)], params, results, span=10.0, client=client)
+    assert summary == {'bags': 3, 'spans': 12, 'computed': 12, 'skipped': 0, 'errors': 1,
+                       'robots': 3, 'flagged': 0}
+    table = pq.read_table(results / 'bags.parquet')
+    assert table.column_names[:5] == ['robot', 'bag', 'span', 'start', 'end']
+    rows = table.to_pylist()
+    assert [(row['robot'], row['span']) for row in rows] == [
+        (f'r{robot}', span) for robot in range(3) for span in range(4)]
+    # r1's torque is 80 % of the command from 20 s: J = 0.05 / 0.8 in spans 2 and 3.
+    j = [row['J'] for row in rows if row['robot'] == 'r1']
+    assert j == pytest.approx([0.05, 0.05, 0.0625, 0.0625], rel=0.005)
+    errors = [(row['robot'], row['span'], row['error']) for row in rows
+              if row['status'] == 'error']
+    assert errors == [('r2', 1, 'no messages of the input /joint_states (effort[0]) and the '
+                       'output /joint_states (velocity[0]) in the selected span')]
+    robots = {row['robot']: row for row in pq.read_table(results / 'robots.parquet').to_pylist()}
+    assert [(row['bags'], row['estimates'], row['errors']) for row in robots.values()] == [
+        (1, 4, 0), (1, 4, 0), (1, 3, 1)]
+    # Pooled inverse-variance over the spans; r1's spans disagree, which the Birge ratio shows
+    # as a std of about half the change instead of the spans' own 3e-5.
+    assert robots['r0']['J'] == pytest.approx(0.05, rel=0.001) and robots['r0']['J_std'] < 1e-4
+    assert 0.05 < robots['r1']['J'] < 0.0625 and robots['r1']['J_std'] > 0.002
+    assert (results / 'fleet_J.png').exists()
+
+    def opened(path):
+        raise AssertionError(f'{path} opened on resume')
+
+    monkeypatch.setattr('ctid_ros.cli.fleet.bag_time_range', opened)
+    again = run_fleet([str(bags)], params, results, span=10.0, client=client, plots=False)
+    assert (again['computed'], again['skipped']) == (0, 12)
+    assert pq.read_table(results / 'bags.parquet').to_pylist() == rows
+    monkeypatch.undo()
+    # Whole bags and spans are kept apart: each kind is computed once and then reused.
+    whole = run_fleet([str(bags)], params, results, client=client, plots=False)
+    assert (whole['computed'], 'spans' in whole) == (3, False)
+    assert 'span' not in pq.read_table(results / 'bags.parquet').column_names
+    assert run_fleet([str(bags)], params, results, span=10.0, client=client,
+                     plots=False)['computed'] == 0
+    assert run_fleet([str(bags)], params, results, client=client, plots=False)['computed'] == 0
+    # Other boundaries are other spans.
+    assert run_fleet([str(bags)], params, results, span=20.0, client=client,
+                     plots=False)['computed'] == 6
+
+
+def test_spans_with_sliding_windows(long_bags, client, tmp_path):
+    bags, params = long_bags
+    results = tmp_path / 'results'
+    run_fleet([str(bags / 'r1')], params, results, span=20.0, sliding=True, client=client,
+              plots=False)
+    spans = pq.read_table(results / 'bags.parquet').to_pylist()
+    windows = pq.read_table(results / 'windows.parquet')
+    ends = windows.column('end').cast(pa.int64()).to_pylist()
+    assert [row['span'] for row in spans] == [0, 1]
+    for row in spans:
+        own = [(window, end) for window, end in zip(windows.to_pylist(), ends)
+               if window['span'] == row['span']]
+        assert len(own) == row['windows'] >= 4
+        assert own[-1][0]['J'] == row['J']
+        assert all(row['span_start_ns'] <= end < row['span_end_ns'] for _, end in own)
+    # The last window of each span is on one side of the change at 20 s.
+    assert [row['J'] for row in spans] == pytest.approx([0.05, 0.0625], rel=0.005)
+
+
+@pytest.mark.parametrize('span, message', [
+    ('0', '--span must be a positive number of seconds, got 0'),
+    ('-5', '--span must be a positive number of seconds, got -5'),
+    ('nan', '--span must be a positive number of seconds, got nan'),
+    ('2', '--span 2 s is shorter than the window of '),
+])
+def test_a_bad_span_is_a_user_error(long_bags, tmp_path, capsys, span, message):
+    bags, params = long_bags
+    results = tmp_path / 'results'
+    status = main(['fleet', str(bags), '--params-file', str(params), '--results', str(results),
+                   '--span', span])
+    assert status == 2
+    assert f'ctid fleet: error: {message}' in capsys.readouterr().err
+    assert not results.exists()
+
+
+def test_the_command_with_spans(long_bags, tmp_path, capsys):
+    bags, params = long_bags
+    results = tmp_path / 'results'
+    status = main(['fleet', str(bags / 'r0'), '--params-file', str(params), '--results',
+                   str(results), '--span', '18', '--threads', '--workers', '2', '--no-plots'])
+    assert status == 0
+    assert 'ctid fleet: 1 bags in 2 spans: 2 analysed, 0 already done, 0 with errors' in \
+        capsys.readouterr().out
+    rows = pq.read_table(results / 'bags.parquet').to_pylist()
+    # The bag's messages span 39.99 s: after two spans of 18 s, 3.99 s are left, less than the
+    # 5 s window, so they are part of the second span.
+    lengths = [(row['span_end_ns'] - row['span_start_ns']) / 1e9 for row in rows]
+    assert lengths[0] == 18.0 and lengths[1] == pytest.approx(21.99, abs=0.001)
+    assert rows[1]['J'] == pytest.approx(TRUTH['J'], rel=0.005)
