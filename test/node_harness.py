@@ -15,6 +15,7 @@ import time
 
 from ctid_ros.ros.node import IdentificationNode
 from ctid_ros.ros.plant_node import PlantNode
+from ctid_ros.ros.spinner import Spinner
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import rclpy
 from rclpy.context import Context
@@ -68,9 +69,9 @@ class Harness:
     def spin(self, node):
         executor = SingleThreadedExecutor(context=self.context)
         executor.add_node(node)
-        thread = threading.Thread(target=executor.spin, daemon=True)
-        thread.start()
-        self._spinning.append((executor, node, thread))
+        spinner = Spinner(executor, node.get_name())
+        spinner.start()
+        self._spinning.append((executor, node, spinner))
         return node
 
     def plant(self, **parameters) -> PlantNode:
@@ -134,12 +135,11 @@ class Harness:
         for process in self.processes:
             process.terminate()
             process.wait(timeout=10)
-        for executor, node, _ in self._spinning:
+        for executor, node, spinner in self._spinning:
+            spinner.stop()
             executor.shutdown()
             node.destroy_node()
         rclpy.shutdown(context=self.context)
-        for _, _, thread in self._spinning:
-            thread.join(timeout=10)
 
 
 def wait_for(predicate, timeout, what):

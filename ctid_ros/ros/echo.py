@@ -10,10 +10,10 @@ it. The layouts are those of :mod:`ctid_ros.streaming.contract`.
 
 from dataclasses import dataclass
 import functools
-import threading
 from typing import Callable, Dict, Tuple, Union
 
 from ctid_ros.ros.graph import matching_qos
+from ctid_ros.ros.spinner import Spinner
 from ctid_ros.streaming.contract import NANOSECONDS, NodeTopics
 from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
@@ -109,8 +109,7 @@ class NodeListener:
                          self.topics.diagnostics: ('status', DiagnosticArray)}
         self._timer = self._node.create_timer(_DISCOVERY_PERIOD, self._connect)
         self._executor.add_node(self._node)
-        self._spinner = threading.Thread(target=self._executor.spin, name=listener_name,
-                                         daemon=True)
+        self._spinner = Spinner(self._executor, listener_name)
         self._spinner.start()
 
     def __enter__(self) -> 'NodeListener':
@@ -160,10 +159,10 @@ class NodeListener:
 
     def close(self) -> None:
         """Stop spinning and shut the context down."""
+        # The thread leaves the executor before it is shut down (see ctid_ros.ros.spinner).
+        self._spinner.stop()
         self._executor.shutdown()
         if self._node is not None:
             self._node.destroy_node()
             self._node = None
         rclpy.try_shutdown(context=self._context)
-        if self._spinner.is_alive():
-            self._spinner.join(timeout=10.0)

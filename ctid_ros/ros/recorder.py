@@ -8,11 +8,11 @@ thread of its own, beside whatever else the process does.
 """
 
 import functools
-import threading
 from typing import Any, Callable, Dict, Mapping, Optional, TypeVar
 
 from ctid_ros.files.mcap_writer import RecordingWriter
 from ctid_ros.ros.messages import import_message
+from ctid_ros.ros.spinner import Spinner
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -63,7 +63,7 @@ class TopicRecorder:
         self._context = Context()
         rclpy.init(context=self._context)
         self._executor: Optional[SingleThreadedExecutor] = None
-        self._spinner: Optional[threading.Thread] = None
+        self._spinner: Optional[Spinner] = None
         try:
             self._executor = SingleThreadedExecutor(context=self._context)
             self._node = rclpy.create_node(node_name, context=self._context)
@@ -111,17 +111,17 @@ class TopicRecorder:
     def start(self) -> None:
         """Start spinning in a thread of its own."""
         self._executor.add_node(self._node)
-        self._spinner = threading.Thread(target=self._executor.spin, name='ctid_recorder',
-                                         daemon=True)
+        self._spinner = Spinner(self._executor, 'ctid_recorder')
         self._spinner.start()
 
     def close(self) -> None:
         """Stop spinning and shut the context down; the writer stays open."""
+        # The thread leaves the executor before it is shut down (see ctid_ros.ros.spinner).
+        if self._spinner is not None:
+            self._spinner.stop()
         if self._executor is not None:
             self._executor.shutdown()
         if getattr(self, '_node', None) is not None:
             self._node.destroy_node()
             self._node = None
         rclpy.try_shutdown(context=self._context)
-        if self._spinner is not None and self._spinner.is_alive():
-            self._spinner.join(timeout=10.0)
