@@ -258,7 +258,8 @@ def extract(message, path: Union[FieldPath, str]) -> float:
             raise ConfigError(f'field {path}: index {index}{named} out of range for {where}, '
                               f'an array of length {len(value)}')
         parent, value = None, value[index]
-    if isinstance(value, numbers.Real):
+    # numpy's bool is no numbers.Real: the elements of a bool[] that rosbags decodes.
+    if isinstance(value, (numbers.Real, np.bool_)):
         return float(value)
     hint = f'; {_describe(value)}' if message_fields(value) or _is_array(value) else ''
     raise ConfigError(f'field {path} is not a number: it is a {_type_name(value)}{hint}')

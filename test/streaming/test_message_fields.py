@@ -11,7 +11,7 @@ from geometry_msgs.msg import TwistStamped
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray
+from std_msgs.msg import Bool, Float64, Float64MultiArray
 
 
 @dataclass
@@ -181,6 +181,23 @@ def test_non_numeric_values_are_refused():
         extract(joint_state([1.0, 2.0], [0.0, 0.0]), 'position')
     with pytest.raises(ConfigError, match='not a number: it is a str'):
         extract(joint_state([1.0], [1.0]), 'name[0]')
+
+
+@dataclass
+class BagSwitches:
+    """Shaped like a rosbags deserialised message with a bool[] field (a numpy bool array)."""
+
+    closed: np.ndarray
+    __msgtype__: ClassVar[str] = 'test_msgs/msg/Switches'
+
+
+def test_booleans_are_numbers_in_every_message_source():
+    # A relay or valve input: rosbags gives a bool[] as a numpy bool array, whose elements
+    # are np.bool_ (not numbers.Real); mcap_ros2 and the columnar decoder give 0/1.
+    message = BagSwitches(np.array([True, False]))
+    assert extract(message, 'closed[0]') == 1.0
+    assert extract(message, 'closed[1]') == 0.0
+    assert extract(Bool(data=True), 'data') == 1.0
 
 
 def test_only_declared_fields_are_followed():
