@@ -3,13 +3,13 @@ ctid_node under the storm of issue #16 on real DDS: it runs on, in bounded memor
 
 The storm is ``bench/node_storm.py`` (the benchmark measures the same run): node and plant in
 their own processes, a wrong-type publisher before the node starts, a burst of 50 000 messages,
-NaN and infinity, wrong message types on both topics, stamps 10 s and 1 h back and zero stamps,
-invalid runtime parameters (the 29 TiB window, the 0.3 ns grid, the 0.1 ns gap, an update every
-microsecond, model texts that once hung the node), the plant's publishers restarted, and last
-stamps an hour ahead. Bounds: the estimate within 2 % of the truth (K = 2, T = 0.5: its
-standard deviations are about 0.1 %) within 40 s after the storm, every parameter update
-answered within the validation bound, the node's RSS within 100 MB of its start (the whole
-sample buffer of this configuration is 1 MB).
+NaN and infinity, wrong message types on both topics, stamps 0.3 s, 10 s and 1 h back and
+zero stamps, invalid runtime parameters (the 29 TiB window, the 0.3 ns grid, the 0.1 ns gap,
+an update every microsecond, model texts that once hung the node), the plant's publishers
+restarted, and last stamps an hour ahead. Bounds: the estimate within 2 % of the truth (K = 2,
+T = 0.5: its standard deviations are about 0.1 %) within 40 s after the storm, every parameter
+update answered within the validation bound, the node's RSS within 100 MB of its start (the
+whole sample buffer of this configuration is 1 MB).
 """
 
 import threading
