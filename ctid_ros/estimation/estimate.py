@@ -538,7 +538,10 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             blind = _blind_combination(problem, final.state)
         if blind is not None and (blind.startswith('the output does not depend') or
                                   _structurally_blind(problem.model, final.state.theta, rng)):
-            raise EstimationError(blind)
+            # A model that explains nothing determines nothing either: that is the news.
+            note = _fit_note(fit_percent(problem.measured,
+                                         problem.prediction(final.state.coefficients)))
+            raise EstimationError(blind if note is None else f'{note}; {blind}')
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
         uncertainty = covariance(problem, final.state, residuals.long_autocorrelation)
@@ -822,6 +825,18 @@ def _combination(weights: np.ndarray, names: Sequence[str]) -> str:
                     if abs(weight) > 0.1)
 
 
+def _fit_note(fit: float) -> Optional[str]:
+    """Return what a fit below :data:`LOW_FIT` per cent says about the data, else None."""
+    if fit < 0.0:
+        return (f'fit {fit:.1f} %: the model does not explain these data (its output is '
+                'further from the measurements than their mean is)')
+    if fit < LOW_FIT:
+        return (f'fit {fit:.1f} %: the model explains almost none of the output; check that '
+                'input and output are the right signals (not swapped), the dead time and the '
+                'structure, or that the input excites the output above its noise')
+    return None
+
+
 def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertainty,
               std: np.ndarray, fit: float, residuals: ResidualAnalysis) -> List[str]:
     """
@@ -850,13 +865,8 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
             notes.append(f'{name} is at its {side} bound {bound:g}{held}')
     if not result.converged:
         notes.append(f'not converged: {result.message}')
-    if fit < 0.0:
-        notes.append(f'fit {fit:.1f} %: the model does not explain these data (its output is '
-                     'further from the measurements than their mean is)')
-    elif fit < LOW_FIT:
-        notes.append(f'fit {fit:.1f} %: the model explains almost none of the output; check '
-                     'that input and output are the right signals (not swapped), the dead time '
-                     'and the structure, or that the input excites the output above its noise')
+    if _fit_note(fit) is not None:
+        notes.append(_fit_note(fit))
     if uncertainty.condition > ILL_CONDITIONED:
         notes.append(f'the data barely determine {_combination(uncertainty.weakest, names)} '
                      f'(condition number {uncertainty.condition:.1e}): these parameters trade '

@@ -42,6 +42,9 @@ _STRUGGLING = 1
 # Relative singular values of the scaled sensitivities below this carry no usable gradient
 # information: the first-order model is swamped by second-order terms along such directions.
 _OPTIMALITY_RCOND = 1e-6
+# A scaled Gauss-Newton normal matrix whose eigenvalues lie within this ratio is solved
+# directly (a relative error below 1e-8 in the step); a worse conditioned one by lstsq.
+_NORMAL_CONDITION = 1e-8
 # Updates over which min_progress measures the fall of the cost.
 _PROGRESS_SPAN = 2
 # After a full update shorter than this many standard deviations the IV iteration takes
@@ -126,23 +129,94 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
-def _shrinking(lin: Linearization) -> Linearization:
-    """Return the linearisation for a shrinking dead time (itself where both sides agree)."""
-    if lin.delay_jump is None:
-        return lin
-    return Linearization(lin.output, None if lin.phi is None else lin.phi + lin.delay_jump,
-                         lin.psi + lin.delay_jump, None, lin.delay_gradient)
+def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Return the rows and columns of the free parameters (the matrix if all are free)."""
+    return matrix if free.all() else matrix[np.ix_(free, free)]
 
 
-def _delay_change(lin: Linearization, step: np.ndarray) -> float:
-    """Change of the dead time along ``step``, to first order (0 without a jump)."""
-    if lin.delay_jump is None:
-        return 0.0
-    return float(lin.delay_gradient @ step)
+class _Side:
+    """
+    The sensitivities of one side of a dead-time kink and their small products.
+
+    ``psi^T psi``, ``psi^T e`` and ``psi^T phi`` are the only record-length work of an update:
+    every direction, gradient and measure of it follows from these ``p x p`` products.
+    """
+
+    def __init__(self, psi: np.ndarray, phi: Optional[np.ndarray], error: np.ndarray,
+                 gradient: np.ndarray):
+        self.psi = psi
+        self.phi = phi
+        self.error = error
+        self.gradient = gradient                             # psi^T e = -dV/dtheta
+        self._gram: Optional[np.ndarray] = None
+        self._cross: Optional[np.ndarray] = None
+
+    @property
+    def gram(self) -> np.ndarray:
+        """``psi^T psi``."""
+        if self._gram is None:
+            self._gram = self.psi.T @ self.psi
+        return self._gram
+
+    @property
+    def cross(self) -> np.ndarray:
+        """``psi^T phi``: the instrumental-variable normal matrix."""
+        if self._cross is None:
+            self._cross = self.psi.T @ self.phi
+        return self._cross
+
+    def scales(self, free: np.ndarray) -> np.ndarray:
+        """:func:`column_scales` of the free columns, from the diagonal of the gram matrix."""
+        scales = np.sqrt(np.diag(self.gram)[free])
+        return np.where(scales > 0.0, scales, 1.0)
 
 
-def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-                       at_lower: np.ndarray, at_upper: np.ndarray, damping: float = 0.0,
+class _Linear:
+    """
+    A linearisation with its output error: the equations of every update from one point.
+
+    The sides are built when first asked for: ``'up'`` (the sensitivities as given, for a
+    growing dead time) and ``'down'`` (with the feedthrough's jump, for a shrinking one), the
+    same where the dead time is off the sample lattice.
+    """
+
+    def __init__(self, lin: Linearization, error: np.ndarray):
+        self.lin = lin
+        self.error = error
+        count, params = lin.psi.shape
+        self.variance = float(error @ error) / max(count - params, 1)
+        self._sides: Dict[str, _Side] = {}
+
+    @property
+    def kinked(self) -> bool:
+        """Return True where the dead time's two sides differ (on the sample lattice)."""
+        return self.lin.delay_jump is not None
+
+    def side(self, which: str = 'up') -> _Side:
+        """Return the products of the ``'up'`` or ``'down'`` sensitivities."""
+        if not self.kinked:
+            which = 'up'
+        if which not in self._sides:
+            lin = self.lin
+            if which == 'up':
+                self._sides[which] = _Side(lin.psi, lin.phi, self.error, lin.psi.T @ self.error)
+            else:
+                up = self.side('up')
+                self._sides[which] = _Side(
+                    lin.psi + lin.delay_jump,
+                    None if lin.phi is None else lin.phi + lin.delay_jump, self.error,
+                    up.gradient + lin.delay_jump.T @ self.error)
+        return self._sides[which]
+
+    def delay_change(self, step: np.ndarray) -> float:
+        """Change of the dead time along ``step``, to first order (0 without a jump)."""
+        if not self.kinked:
+            return 0.0
+        return float(self.lin.delay_gradient @ step)
+
+
+def _bounded_direction(kind: str, linear: _Linear, free: np.ndarray, at_lower: np.ndarray,
+                       at_upper: np.ndarray, damping: float = 0.0,
                        rcond: Optional[float] = None, side: str = 'auto'
                        ) -> Optional[np.ndarray]:
     """
@@ -154,7 +228,7 @@ def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: n
     """
     free = free.copy()
     while True:
-        step = _direction(kind, lin, error, free, damping, rcond, side)
+        step = _direction(kind, linear, free, damping, rcond, side)
         if step is None:
             return None
         outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
@@ -165,9 +239,8 @@ def _bounded_direction(kind: str, lin: Linearization, error: np.ndarray, free: n
             return None
 
 
-def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-               damping: float = 0.0, rcond: Optional[float] = None, side: str = 'auto'
-               ) -> Optional[np.ndarray]:
+def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.0,
+               rcond: Optional[float] = None, side: str = 'auto') -> Optional[np.ndarray]:
     """
     Update direction on the free parameters (zeros elsewhere), or None if singular.
 
@@ -181,71 +254,106 @@ def _direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarra
     holds it.
 
     """
-    if lin.delay_jump is None:
-        return _one_sided_direction(kind, lin, error, free, damping, rcond)
-    held = free & (lin.delay_gradient == 0.0)
+    if not linear.kinked:
+        return _one_sided_direction(kind, linear.side(), free, damping, rcond)
+    gradient = linear.lin.delay_gradient
+    held = free & (gradient == 0.0)
     if side == 'auto':
         # The side where the cost falls faster first, then the other.
-        rising, falling = _one_sided_gradients(lin, error)
-        delays = free & (lin.delay_gradient != 0.0)
+        rising, falling = _one_sided_gradients(linear)
+        delays = free & (gradient != 0.0)
         down_first = np.max(falling[delays], initial=0.0) > np.max(rising[delays], initial=0.0)
         sides = ('down', 'up') if down_first else ('up', 'down')
     else:
         sides = (side,)
     for which in sides:
-        sided = lin if which == 'up' else _shrinking(lin)
-        step = _one_sided_direction(kind, sided, error, free, damping, rcond)
-        change = 0.0 if step is None else _delay_change(lin, step)
+        step = _one_sided_direction(kind, linear.side(which), free, damping, rcond)
+        change = 0.0 if step is None else linear.delay_change(step)
         if step is None or (change >= 0.0 if which == 'up' else change <= 0.0):
             return step
     if not np.any(held):
         return None
-    return _one_sided_direction(kind, lin, error, held, damping, rcond)
+    return _one_sided_direction(kind, linear.side(), held, damping, rcond)
 
 
-def _one_sided_direction(kind: str, lin: Linearization, error: np.ndarray, free: np.ndarray,
-                         damping: float, rcond: Optional[float] = None) -> Optional[np.ndarray]:
-    """Direction of :func:`_direction` with the sensitivities as given."""
-    psi = lin.psi[:, free]
-    scales = column_scales(psi)
-    psi_s = psi / scales
+def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: float,
+                         rcond: Optional[float] = None) -> Optional[np.ndarray]:
+    """Direction of :func:`_direction` with the sensitivities of one side."""
+    scales = side.scales(free)
+    outer = np.outer(scales, scales)
+    rhs = side.gradient[free] / scales
     if kind == 'ls':
-        phi_s = lin.phi[:, free] / scales
-        step = np.linalg.lstsq(phi_s, error, rcond=None)[0]
+        phi_s = side.phi[:, free] / scales
+        step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
-        phi_s = lin.phi[:, free] / scales
-        matrix = psi_s.T @ phi_s
-        if np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
+        matrix = _block(side.cross, free) / outer
+        if not np.all(np.isfinite(matrix)) or np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
             return None
-        step = np.linalg.solve(matrix, psi_s.T @ error)
-    elif kind == 'gn':
-        step = np.linalg.lstsq(psi_s, error, rcond=rcond)[0]
+        step = np.linalg.solve(matrix, rhs) / scales
     else:
-        gram = psi_s.T @ psi_s
-        try:
-            step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), psi_s.T @ error)
-        except np.linalg.LinAlgError:
+        gram = _block(side.gram, free) / outer
+        if not np.all(np.isfinite(gram)):
             return None
+        if kind == 'gn':
+            step = _gauss_newton(side, free, scales, gram, rhs, rcond)
+        else:
+            try:
+                step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), rhs) / scales
+            except np.linalg.LinAlgError:
+                return None
     if not np.all(np.isfinite(step)):
         return None
     full = np.zeros(free.size)
-    full[free] = step / scales
+    full[free] = step
     return full
 
 
-def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray,
-               upper: np.ndarray) -> float:
-    """Largest fraction (<= 1) of ``step`` that keeps theta inside the box."""
-    limit = 1.0
+def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.ndarray,
+                  rhs: np.ndarray, rcond: Optional[float]) -> np.ndarray:
+    """
+    Least-squares solution of ``psi step = e`` on the free columns (unscaled step).
+
+    From the eigenpairs of the scaled normal matrix ``gram`` (right-hand side ``rhs``),
+    dropping those whose singular value is below ``rcond`` of the largest; without ``rcond``
+    where the matrix is well conditioned (the squared condition number costs nothing then),
+    else by ``lstsq`` on the scaled sensitivities themselves, which resolves singular values
+    down to rounding.
+    """
+    values, vectors = np.linalg.eigh(gram)
+    largest = max(values[-1], np.finfo(float).tiny)
+    if rcond is not None:
+        kept = values > rcond ** 2 * largest
+    elif values[0] > _NORMAL_CONDITION * largest:
+        kept = np.ones(values.size, dtype=bool)
+    else:
+        psi = side.psi[:, free]
+        norms = column_scales(psi)
+        return np.linalg.lstsq(psi / norms, side.error, rcond=None)[0] / norms
+    return vectors[:, kept] @ ((vectors[:, kept].T @ rhs) / values[kept]) / scales
+
+
+def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray, upper: np.ndarray
+               ) -> Tuple[float, Optional[Tuple[int, float]]]:
+    """
+    Largest fraction (<= 1) of ``step`` that keeps theta inside the box, and what limits it.
+
+    A step the box cuts stops 0.999 of the way to the bound, and the bound is returned as
+    ``(index, value)`` (None for a whole step).
+    """
     with np.errstate(divide='ignore', invalid='ignore'):
         up = np.where(step > 0, (upper - theta) / step, np.inf)
         down = np.where(step < 0, (lower - theta) / step, np.inf)
-    limit = min(limit, float(np.min(up, initial=np.inf)), float(np.min(down, initial=np.inf)))
-    return limit if limit >= 1.0 else 0.999 * limit
+    reach = np.fmin(up, down)
+    if reach.size == 0:
+        return 1.0, None
+    index = int(np.nanargmin(reach)) if not np.all(np.isnan(reach)) else 0
+    if not reach[index] < 1.0:
+        return 1.0, None
+    bound = float(upper[index] if step[index] > 0 else lower[index])
+    return 0.999 * float(reach[index]), (index, bound)
 
 
-def _one_sided_gradients(lin: Linearization, error: np.ndarray
-                         ) -> Tuple[np.ndarray, np.ndarray]:
+def _one_sided_gradients(linear: _Linear) -> Tuple[np.ndarray, np.ndarray]:
     """
     Rates at which the cost falls when each parameter rises, and when it falls.
 
@@ -253,12 +361,12 @@ def _one_sided_gradients(lin: Linearization, error: np.ndarray
     sample lattice the two sides have different sensitivities (the side a parameter moves the
     dead time to decides). Elsewhere the second is minus the first.
     """
-    up = lin.psi.T @ error                                   # -dV/dtheta, growing dead time
-    if lin.delay_jump is None:
+    up = linear.side('up').gradient                          # -dV/dtheta, growing dead time
+    if not linear.kinked:
         return up, -up
-    down = up + lin.delay_jump.T @ error                     # the same, shrinking dead time
+    down = linear.side('down').gradient                      # the same, shrinking dead time
     # A parameter that shrinks the dead time when it rises takes the other side's derivative.
-    raises = lin.delay_gradient >= 0.0
+    raises = linear.lin.delay_gradient >= 0.0
     rising = np.where(raises, up, down)
     falling = -np.where(raises, down, up)
     return rising, falling
@@ -281,18 +389,25 @@ def on_bounds(theta: np.ndarray, problem: Problem, tolerance: float = 1e-9
     return near_lower, near_upper
 
 
-def _free_mask(theta: np.ndarray, lin: Linearization, error: np.ndarray,
-               problem: Problem, frozen: np.ndarray) -> np.ndarray:
+def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: np.ndarray
+               ) -> np.ndarray:
     """
     Active set: hold parameters that can only move where the cost rises.
 
-    A parameter on a bound is held if the cost rises inward (the one-sided derivative into the
-    box), and a dead time on the sample lattice is held where the cost rises on both sides.
+    A parameter on a bound (``bounded``: :func:`on_bounds` of the point) is held if the cost
+    rises inward (the one-sided derivative into the box), and a dead time on the sample
+    lattice is held where the cost rises on both sides.
     """
-    rising, falling = _one_sided_gradients(lin, error)
-    at_lower, at_upper = on_bounds(theta, problem)
+    rising, falling = _one_sided_gradients(linear)
+    at_lower, at_upper = bounded
     kink = (rising < 0) & (falling < 0)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
+
+
+def _linear_at(problem: Problem, state: State) -> _Linear:
+    """Return the linearisation at ``state`` (no regressors) with its output error."""
+    lin = problem.linearize(state.coefficients, regressors=False)
+    return _Linear(lin, problem.measured - lin.output)
 
 
 def free_parameters(problem: Problem, state: State, frozen: np.ndarray) -> np.ndarray:
@@ -303,9 +418,7 @@ def free_parameters(problem: Problem, state: State, frozen: np.ndarray) -> np.nd
     data (:func:`_free_mask`); identifiability and covariance concern the others. A dead time
     at a kink of the cost on the sample lattice is a minimum the data chose: it stays free.
     """
-    lin = problem.linearize(state.coefficients, regressors=False)
-    error = problem.measured - lin.output
-    rising, falling = _one_sided_gradients(lin, error)
+    rising, falling = _one_sided_gradients(_linear_at(problem, state))
     at_lower, at_upper = on_bounds(state.theta, problem)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)))
 
@@ -319,38 +432,52 @@ def optimality(problem: Problem, state: State, frozen: np.ndarray) -> float:
     measured as ``|Psi step| / sigma``, i.e. ``sqrt(g^T (Psi^T Psi)^-1 g) / sigma`` with ``g``
     the projected gradient. Zero at a stationary point; ``docs/algorithm.md`` section 8.
     """
-    lin = problem.linearize(state.coefficients, regressors=False)
-    error = problem.measured - lin.output
-    free = _free_mask(state.theta, lin, error, problem, frozen)
+    return _optimality(_linear_at(problem, state), on_bounds(state.theta, problem), frozen)
+
+
+def _optimality(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: np.ndarray
+                ) -> float:
+    """:func:`optimality` of a point linearised as ``linear`` with ``bounded`` its bounds."""
+    free = _free_mask(linear, bounded, frozen)
     if not np.any(free):
         return 0.0
     # Combinations the data barely determine (their sensitivities nearly dependent, as where
     # two time constants coincide) have no first-order information: the measure leaves them
     # out rather than reading rounding as a gradient.
-    step = _bounded_direction('gn', lin, error, free, *on_bounds(state.theta, problem),
-                              rcond=_OPTIMALITY_RCOND)
+    step = _bounded_direction('gn', linear, free, *bounded, rcond=_OPTIMALITY_RCOND)
     if step is None:
         return np.inf
-    return _step_size(lin, error, step)
+    return _step_size(linear, step)
 
 
 def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
-              scales: Sequence[float]) -> Optional[Tuple[State, float]]:
-    """First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V."""
-    limit = _box_limit(state.theta, step, problem.lower, problem.upper)
+              scales: Sequence[float], land: Optional[Tuple[int, float]] = None
+              ) -> Optional[Tuple[State, float, Optional[Tuple[int, float]]]]:
+    """
+    First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V.
+
+    Returns the new state, the fraction of ``step`` taken and the bound that cut a whole step
+    (:func:`_box_limit`; None if it was not cut or a shorter one was taken). A whole step cut
+    by ``land``, the bound that cut the previous update too, lands on it: stopping 0.999 of
+    the way again would only creep towards the bound, 1000 times closer per update.
+    """
+    limit, bound = _box_limit(state.theta, step, problem.lower, problem.upper)
     if not limit > 0.0:
         return None
     for scale in scales:
         candidate = state.theta + limit * scale * step
+        if scale == 1.0 and bound is not None and bound == land:
+            candidate = state.theta + (limit / 0.999) * step
+            candidate[bound[0]] = bound[1]
         coefficients = problem.admissible(candidate)
         if coefficients is not None:
             new_state = problem.state(candidate, coefficients)
             if not monotone or new_state.cost <= state.cost:
-                return new_state, limit * scale
+                return new_state, limit * scale, bound if scale == 1.0 else None
     return None
 
 
-def _truncated_step_size(lin: Linearization, error: np.ndarray, free: np.ndarray) -> float:
+def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
     """
     Length in standard deviations of the Gauss-Newton step of the free parameters, truncated.
 
@@ -359,20 +486,18 @@ def _truncated_step_size(lin: Linearization, error: np.ndarray, free: np.ndarray
     the measure of (8.1) without the directions the data barely see, from the small normal
     matrix (a measure, not a solve: the squared condition number does no harm above 1e-12).
     """
-    count, params = lin.psi.shape
-    variance = float(error @ error) / max(count - params, 1)
-    if variance == 0.0:
+    if linear.variance == 0.0:
         return np.inf
-    psi = lin.psi[:, free]
-    scaled = psi / column_scales(psi)
-    values, vectors = np.linalg.eigh(scaled.T @ scaled)
+    side = linear.side()
+    scales = side.scales(free)
+    values, vectors = np.linalg.eigh(_block(side.gram, free) / np.outer(scales, scales))
     kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], np.finfo(float).tiny)
-    projected = vectors[:, kept].T @ (scaled.T @ error)
-    return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / variance))
+    projected = vectors[:, kept].T @ (side.gradient[free] / scales)
+    return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / linear.variance))
 
 
-def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.ndarray,
-                 free: np.ndarray, bounded: Tuple[np.ndarray, np.ndarray], kind: str
+def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarray,
+                 bounded: Tuple[np.ndarray, np.ndarray], kind: str
                  ) -> Optional[Tuple[str, np.ndarray, Tuple[State, float]]]:
     """
     At a dead time on the lattice where the cost falls to both sides, take the better side.
@@ -381,14 +506,14 @@ def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.n
     halved at most three times until the cost falls) and the lower cost wins (None if neither
     lowers it: the usual attempts follow).
     """
-    rising, falling = _one_sided_gradients(lin, error)
-    delays = free & (lin.delay_gradient != 0.0)
+    rising, falling = _one_sided_gradients(linear)
+    delays = free & (linear.lin.delay_gradient != 0.0)
     if not np.any(delays & (rising > 0.0) & (falling > 0.0)):
         return None
     best = None
     for side in ('up', 'down'):
-        step = _bounded_direction(kind, lin, error, free, *bounded, side=side)
-        if step is None or _delay_change(lin, step) == 0.0:
+        step = _bounded_direction(kind, linear, free, *bounded, side=side)
+        if step is None or linear.delay_change(step) == 0.0:
             continue
         outcome = _try_step(problem, state, step, True, _KINK_STEPS)
         if outcome is not None and (best is None or outcome[0].cost < best[2][0].cost):
@@ -396,14 +521,12 @@ def _across_kink(problem: Problem, state: State, lin: Linearization, error: np.n
     return best
 
 
-def _step_size(lin: Linearization, error: np.ndarray, step: np.ndarray) -> float:
+def _step_size(linear: _Linear, step: np.ndarray) -> float:
     """Length of ``step`` in standard deviations of the estimate, ``|Psi step| / sigma`` (8.1)."""
-    count, params = lin.psi.shape
-    variance = float(error @ error) / max(count - params, 1)
-    if variance == 0.0:
+    if linear.variance == 0.0:
         return np.inf
-    psi = lin.psi if _delay_change(lin, step) >= 0.0 else _shrinking(lin).psi
-    return float(np.linalg.norm(psi @ step) / np.sqrt(variance))
+    side = linear.side('up' if linear.delay_change(step) >= 0.0 else 'down')
+    return float(np.linalg.norm(side.psi @ step) / np.sqrt(linear.variance))
 
 
 def _slow(costs: List[float], struggled: List[bool], min_progress: float) -> bool:
@@ -488,10 +611,20 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         return IterationResult(state, history, reason,
                                reason.describe(tolerance, max_iterations))
 
+    # The latest linearisation with its products: the optimality test at a new point and the
+    # next update from it share one.
+    latest: List[_Linear] = []
+
+    def linearized(regressors: bool) -> _Linear:
+        lin = problem.linearize(state.coefficients, regressors=regressors)
+        if not latest or latest[0].lin is not lin:
+            latest[:] = [_Linear(lin, problem.measured - lin.output)]
+        return latest[0]
+
     def optimal() -> bool:
         # LS follows its own fixed point, not the minimum of V.
-        return not check_optimality or method == 'ls' or \
-            optimality(problem, state, frozen) <= OPTIMALITY_LIMIT
+        return not check_optimality or method == 'ls' or _optimality(
+            linearized(False), on_bounds(state.theta, problem), frozen) <= OPTIMALITY_LIMIT
 
     # Updates so far that needed another direction or a shorter step.
     struggling = 0
@@ -501,12 +634,13 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
     # Near a minimum the IV and Gauss-Newton updates agree (both vanish where Psi^T e = 0) and
     # Gauss-Newton needs no filtered output: one simulation fewer per update.
     near = method == 'iv' and near_start
+    # The bound that cut the latest update (None if it was whole or shorter).
+    creeping: Optional[Tuple[int, float]] = None
     while len(history) < max_iterations:
         iteration = len(history)
-        lin = problem.linearize(state.coefficients, regressors=method != 'gn' and not near)
-        error = problem.measured - lin.output
-        free = _free_mask(state.theta, lin, error, problem, frozen)
+        linear = linearized(method != 'gn' and not near)
         bounded = on_bounds(state.theta, problem)
+        free = _free_mask(linear, bounded, frozen)
         if not np.any(free):
             return stop(StopReason.ALL_AT_BOUNDS)
         primary = 'gn' if method == 'gn' or near else ('ls' if method == 'ls' or (
@@ -515,20 +649,20 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
 
         def direction(kind: str, damping: float) -> Optional[np.ndarray]:
             if (kind, damping) not in directions:
-                directions[kind, damping] = _bounded_direction(kind, lin, error, free,
-                                                               *bounded, damping)
+                directions[kind, damping] = _bounded_direction(kind, linear, free, *bounded,
+                                                               damping)
             return directions[kind, damping]
 
         first = direction(primary, 0.0)
         size = np.inf
         if primary != 'ls':
-            size = np.inf if first is None else _step_size(lin, error, first)
+            size = np.inf if first is None else _step_size(linear, first)
             if size >= NEGLIGIBLE_STEP and (first is None or struggling >= _STRUGGLING):
                 # Where two parameters act alike (coinciding time constants) the IV step is
                 # singular or large along what the data cannot see, and the updates that pass
                 # are damped or halved; the Gauss-Newton step without those directions
                 # measures the update then.
-                size = _truncated_step_size(lin, error, free)
+                size = _truncated_step_size(linear, free)
             if size < NEGLIGIBLE_STEP:
                 return stop(StopReason.NEGLIGIBLE_UPDATE)
             if near and size >= _NEAR_MINIMUM:
@@ -553,8 +687,8 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             attempts = [(kind, damping, _FULL_STEP, monotone)
                         for kind, damping, _, monotone in attempts if kind != 'lm']
         accepted = None
-        if not trusted and lin.delay_jump is not None:
-            accepted = _across_kink(problem, state, lin, error, free, bounded, primary)
+        if not trusted and linear.kinked:
+            accepted = _across_kink(problem, state, linear, free, bounded, primary)
         tried = set()
         for kind, damping, scales, monotone in attempts:
             if accepted is not None:
@@ -563,7 +697,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             if step is None or (kind, damping, scales) in tried:
                 continue
             tried.add((kind, damping, scales))
-            outcome = _try_step(problem, state, step, monotone, scales)
+            outcome = _try_step(problem, state, step, monotone, scales, land=creeping)
             if outcome is not None:
                 accepted = (kind, step, outcome)
                 break
@@ -577,7 +711,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             if full_steps_only:
                 return stop(StopReason.NO_FULL_STEP)
             return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
-        kind, step, (new_state, scale) = accepted
+        kind, step, (new_state, scale, creeping) = accepted
         struggled.append(kind != primary or scale < 1.0)
         near = method == 'iv' and not struggled[-1] and (near or size < _NEAR_MINIMUM)
         struggling += struggled[-1]
@@ -594,7 +728,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         # A decrease smaller than a step of NEGLIGIBLE_STEP standard deviations would give,
         # (8.1) squared: progress along directions the data barely see (coinciding time
         # constants) that no user could tell from here.
-        count, params = lin.psi.shape
+        count, params = linear.lin.psi.shape
         variance = 2.0 * state.cost / max(count - params, 1)
         if check_optimality and method != 'ls' and kind != 'ls' and \
                 decrease * previous < 0.5 * NEGLIGIBLE_STEP ** 2 * variance and optimal():
