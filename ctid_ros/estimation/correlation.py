@@ -51,7 +51,8 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     error = np.zeros_like(residual)
     error[first:] = residual[first:] - np.mean(residual[first:])
     centred = inputs - np.mean(inputs, axis=0)
-    size = 1 << int(np.ceil(np.log2(2 * residual.size)))
+    # Zero padding to N + max_lag keeps the circular correlation free of wrap-around.
+    size = 1 << int(np.ceil(np.log2(residual.size + max_lag + 1)))
     spectrum = np.fft.rfft(error, size)[:, None] * np.conj(np.fft.rfft(centred, size, axis=0))
     correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
     scale = np.sqrt(np.sum(error ** 2) * np.sum(centred ** 2, axis=0))

@@ -244,20 +244,48 @@ def _check_excitation(model: Model, data: Data) -> None:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
 
 
-def _blind_combination(problem: Problem, state: State) -> Optional[str]:
+class _Sensitivities:
+    """
+    The sensitivities of the free parameters at the latest state asked for, and their SVD.
+
+    The identifiability check and the covariance of one estimate use the same column-scaled
+    sensitivities: one decomposition serves both.
+    """
+
+    def __init__(self, problem: Problem):
+        self._problem = problem
+        self._latest: Optional[Tuple[State, tuple]] = None
+
+    def at(self, state: State) -> Tuple[np.ndarray, np.ndarray, np.ndarray, Optional[tuple]]:
+        """
+        Return ``free``, ``psi[:, free]``, its column norms and the SVD of ``psi / norms``.
+
+        ``free`` are the parameters not held at a bound (:func:`free_parameters`); the SVD is
+        None if a column is zero.
+        """
+        if self._latest is None or self._latest[0] is not state:
+            problem = self._problem
+            free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
+            psi = problem.linearize(state.coefficients, regressors=False).psi[:, free]
+            norms = np.linalg.norm(psi, axis=0)
+            svd = None if np.any(norms == 0.0) else \
+                np.linalg.svd(psi / norms, full_matrices=False)
+            self._latest = (state, (free, psi, norms, svd))
+        return self._latest[1]
+
+
+def _blind_combination(problem: Problem, state: State,
+                       sensitivities: Optional[_Sensitivities] = None) -> Optional[str]:
     """
     Explain why the output is (almost) blind to a parameter combination, or None.
 
     Parameters held at a bound are left out.
     """
-    free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
+    free, psi, norms, svd = (sensitivities or _Sensitivities(problem)).at(state)
     if not np.any(free):
         return None
     names = [name for name, keep in zip(problem.model.parameters, free) if keep]
-    lin = problem.linearize(state.coefficients, regressors=False)
-    psi = lin.psi[:, free]
-    norms = np.linalg.norm(psi, axis=0)
-    if np.any(norms == 0.0):
+    if svd is None:
         dead = ', '.join(names[i] for i in np.flatnonzero(norms == 0.0))
         delay_index = delay_parameter(problem.model)
         record = problem.data.ts * len(problem.data)
@@ -269,7 +297,7 @@ def _blind_combination(problem: Problem, state: State) -> Optional[str]:
                     'A dead time beyond half the record is not searched: record longer, check '
                     'that input and output are the right signals, or bound the dead time')
         return f'the output does not depend on {dead} on these data: the input does not excite it'
-    singular, vectors = np.linalg.svd(psi / norms, full_matrices=False)[1:]
+    singular, vectors = svd[1:]
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
     if condition <= _IDENTIFIABILITY_LIMIT:
         return None
@@ -361,7 +389,8 @@ class Uncertainty:
 
 
 def covariance(problem: Problem, state: State,
-               autocorrelation: Optional[np.ndarray] = None) -> Uncertainty:
+               autocorrelation: Optional[np.ndarray] = None,
+               sensitivities: Optional[_Sensitivities] = None) -> Uncertainty:
     """
     Return the parameter covariance at ``state`` and what it rests on.
 
@@ -370,20 +399,23 @@ def covariance(problem: Problem, state: State,
     ``sigma^2 (Psi^T Psi)^-1``, ``sigma^2 = |e|^2 / (N - n_theta)``, when the residual is white.
     Only parameters the data determine enter (a parameter held at a bound gets NaN); the
     column-scaled sensitivities give the condition number and the weakest combination
-    (``docs/algorithm.md`` section 15). ``autocorrelation``: the residual's, if known.
+    (``docs/algorithm.md`` section 15). ``autocorrelation``: the residual's, if known;
+    ``sensitivities``: the identifiability check's, if it looked at ``state`` too.
 
     """
     lin = problem.linearize(state.coefficients, regressors=False)
     error = problem.measured - lin.output
-    free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
-    # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
-    # sensitivities differ; their mean stands for both.
-    psi = psi[:, free]
-    scales = column_scales(psi)
-    svd = np.linalg.svd(psi / scales, full_matrices=False)
+    free, psi, norms, svd = (sensitivities or _Sensitivities(problem)).at(state)
+    scales = np.where(norms > 0.0, norms, 1.0)
+    if lin.delay_jump is not None or svd is None:
+        # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
+        # sensitivities differ; their mean stands for both.
+        psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
+        psi = psi[:, free]
+        scales = column_scales(psi)
+        svd = np.linalg.svd(psi / scales, full_matrices=False)
     scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
                                         autocorrelation)
     result = np.full((params, params), np.nan)
@@ -512,7 +544,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         history.extend(final.history)
         rng = np.random.default_rng(0)
         final = _from_best_seen(problem, final, history, settings)
-        blind = _blind_combination(problem, final.state)
+        sensitivities = _Sensitivities(problem)
+        blind = _blind_combination(problem, final.state, sensitivities)
         for _ in range(_SYMMETRY_RESTARTS):
             if blind is None:
                 break
@@ -525,7 +558,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                 # Back where it started, or worse: the data put the minimum at the coincidence.
                 break
             final = _from_best_seen(problem, restarted, history, settings)
-            blind = _blind_combination(problem, final.state)
+            blind = _blind_combination(problem, final.state, sensitivities)
         analysis = _residual_analysis(problem, final.state)
         if not from_initial and blind is None:
             final = _elsewhere(problem, final, history, settings, delay_index, analysis)
@@ -535,7 +568,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
                     again = iterate(problem, across.state, first_ls=False, **settings)
                     history.extend(across.history + again.history)
                     final = _from_best_seen(problem, _lower(final, again), history, settings)
-            blind = _blind_combination(problem, final.state)
+            blind = _blind_combination(problem, final.state, sensitivities)
         if blind is not None and (blind.startswith('the output does not depend') or
                                   _structurally_blind(problem.model, final.state.theta, rng)):
             # A model that explains nothing determines nothing either: that is the news.
@@ -544,7 +577,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             raise EstimationError(blind if note is None else f'{note}; {blind}')
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
-        uncertainty = covariance(problem, final.state, residuals.long_autocorrelation)
+        uncertainty = covariance(problem, final.state, residuals.long_autocorrelation,
+                                 sensitivities)
     residuals.noise_order = uncertainty.noise.order
     residuals.noise_power_ratio = uncertainty.noise.variance_ratio
     parameter_covariance = uncertainty.covariance

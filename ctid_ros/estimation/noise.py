@@ -17,6 +17,7 @@ sample grid from a slower measurement, so the estimate can say so.
 """
 
 from dataclasses import dataclass
+import math
 from typing import Optional, Tuple
 
 import numpy as np
@@ -90,22 +91,27 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
         size = 1 << int(np.ceil(np.log2(count + top + 1)))
         spectrum = np.fft.rfft(centred, size)
         autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
-    best = (count * np.log(variance), np.ones(1), variance, 0)
-    ar = np.ones(1)
-    error = autocovariance[0]
+    best = (count * math.log(variance), 0, variance)
+    # a_0 .. a_top, grown in place: the first order + 1 are the model of that order.
+    ar = np.zeros(top + 1)
+    ar[0] = 1.0
+    kept = ar[:1].copy()
+    error = float(autocovariance[0])
     for order in range(1, top + 1):
-        reflection = -(autocovariance[order] + ar[1:] @ autocovariance[order - 1:0:-1]) / error
-        ar = np.append(ar, 0.0) + reflection * np.append(ar, 0.0)[::-1]
+        reflection = -(autocovariance[order] + ar[1:order] @ autocovariance[order - 1:0:-1]
+                       ) / error
+        ar[1:order + 1] = ar[1:order + 1] + reflection * ar[order - 1::-1]
         error *= 1.0 - reflection ** 2
         if error <= 0.0:
             break
-        criterion = count * np.log(error) + order * np.log(count)
+        criterion = count * math.log(error) + order * math.log(count)
         if criterion < best[0]:
-            best = (criterion, ar.copy(), error, order)
-        elif order - best[3] >= _PATIENCE:
+            best = (criterion, order, error)
+            kept = ar[:order + 1].copy()
+        elif order - best[1] >= _PATIENCE:
             # Each further order costs log N in BIC; ten without a gain end the search.
             break
-    return NoiseModel(best[1], float(best[2]), variance)
+    return NoiseModel(kept, float(best[2]), variance)
 
 
 def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
