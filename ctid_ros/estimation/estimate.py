@@ -519,9 +519,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         # A complete guess (a warm start) is iterated first; if that model leaves nothing
         # correlated with the input there is nothing for the global start and search to find.
         start = complete_guess(problem, initial)
-        from_initial = False
+        from_initial, stopped = False, None
         if start is not None:
-            start, history, from_initial = _warm_start(
+            start, history, from_initial, stopped = _warm_start(
                 problem, _started(problem, start, transient), method, delay_index, delay_range)
         refined = from_initial
         if not from_initial:
@@ -537,10 +537,16 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         frozen = np.zeros(len(model.parameters), dtype=bool)
         settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
                     'tolerance': tolerance, 'check_optimality': True}
-        # A start refined by iterations needs no least-squares step.
-        # A warm start that explained the data is a converged local fit: near its minimum.
-        final = iterate(problem, start, first_ls=not refined, near_start=from_initial,
-                        **settings)
+        if stopped is not None:
+            # The warm start ended where the next update is negligible: the final iteration's
+            # first test, on the same point.
+            final = IterationResult(start, [], stopped,
+                                    stopped.describe(tolerance, max_iterations))
+        else:
+            # A start refined by iterations needs no least-squares step.
+            # A warm start that explained the data is a converged local fit: near its minimum.
+            final = iterate(problem, start, first_ls=not refined, near_start=from_initial,
+                            **settings)
         history.extend(final.history)
         rng = np.random.default_rng(0)
         final = _from_best_seen(problem, final, history, settings)
@@ -761,9 +767,14 @@ def _from_best_seen(problem: Problem, final: IterationResult, history: List[Iter
 
 
 def _warm_start(problem: Problem, start: State, method: str, delay_index: Optional[int],
-                delay_range: DelayRange) -> Tuple[State, List[Iteration], bool]:
+                delay_range: DelayRange
+                ) -> Tuple[State, List[Iteration], bool, Optional[StopReason]]:
     """
-    Check a complete guess: return where it led, the updates, and whether the search is skipped.
+    Check a complete guess: where it led, the updates, whether the search is skipped, and why.
+
+    The reason is :attr:`StopReason.NEGLIGIBLE_UPDATE` where the search is skipped and the
+    update from the end point is below ``iteration.NEGLIGIBLE_STEP`` standard deviations (the test
+    the final iteration would start with), else None.
 
     At most :data:`_WARM_START_ITERATIONS` full steps first; if they do not reach a model that
     explains the data, the controlled iteration goes on from there (line search and fallbacks,
@@ -780,22 +791,28 @@ def _warm_start(problem: Problem, start: State, method: str, delay_index: Option
         moved = _with_data_delay(problem, start, delay_index)
         if moved is None:
             # The full steps, linear in the dead time, cannot move it that far either.
-            return start, [], False
+            return start, [], False, None
         start = moved
     warm = local_fit(problem, start, method, first_ls=False, full_steps_only=True,
                      iterations=_WARM_START_ITERATIONS)
     state, history = warm.state, warm.history
     if warm.reason is not StopReason.NO_FULL_STEP and \
             explains_data(problem, state, delay_index, delay_range):
-        return state, history, True
+        return state, history, True, _negligible(warm)
     if not resembles_output(problem, state):
-        return state, history, False
+        return state, history, False, None
     local = iterate(problem, state, method=method, frozen=np.zeros(state.theta.size, dtype=bool),
                     max_iterations=_WARM_START_BUDGET, tolerance=1e-6, first_ls=not history,
                     check_optimality=True, min_progress=_WARM_START_PROGRESS)
     history = history + local.history
-    return local.state, history, local.converged and \
-        explains_data(problem, local.state, delay_index, delay_range)
+    explained = local.converged and explains_data(problem, local.state, delay_index, delay_range)
+    return local.state, history, explained, _negligible(local) if explained else None
+
+
+def _negligible(result: IterationResult) -> Optional[StopReason]:
+    """Return the result's reason if it is :attr:`StopReason.NEGLIGIBLE_UPDATE`, else None."""
+    negligible = result.reason is StopReason.NEGLIGIBLE_UPDATE
+    return result.reason if negligible else None
 
 
 def _with_data_delay(problem: Problem, start: State, delay_index: int) -> Optional[State]:

@@ -208,6 +208,11 @@ class _Linear:
                     up.gradient + lin.delay_jump.T @ self.error)
         return self._sides[which]
 
+    def descends(self, step: np.ndarray) -> bool:
+        """Return True if the cost falls along ``step`` (to first order, on its side)."""
+        side = self.side('up' if self.delay_change(step) >= 0.0 else 'down')
+        return float(side.gradient @ step) > 0.0
+
     def delay_change(self, step: np.ndarray) -> float:
         """Change of the dead time along ``step``, to first order (0 without a jump)."""
         if not self.kinked:
@@ -232,10 +237,10 @@ def _bounded_direction(kind: str, linear: _Linear, free: np.ndarray, at_lower: n
         if step is None:
             return None
         outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
-        if not np.any(outward):
+        if not outward.any():
             return step
         free &= ~outward
-        if not np.any(free):
+        if not free.any():
             return None
 
 
@@ -271,7 +276,7 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
         change = 0.0 if step is None else linear.delay_change(step)
         if step is None or (change >= 0.0 if which == 'up' else change <= 0.0):
             return step
-    if not np.any(held):
+    if not held.any():
         return None
     return _one_sided_direction(kind, linear.side(), held, damping, rcond)
 
@@ -287,12 +292,12 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
         matrix = _block(side.cross, free) / outer
-        if not np.all(np.isfinite(matrix)) or np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
+        if not np.isfinite(matrix).all() or np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
             return None
         step = np.linalg.solve(matrix, rhs) / scales
     else:
         gram = _block(side.gram, free) / outer
-        if not np.all(np.isfinite(gram)):
+        if not np.isfinite(gram).all():
             return None
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
@@ -301,7 +306,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
                 step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), rhs) / scales
             except np.linalg.LinAlgError:
                 return None
-    if not np.all(np.isfinite(step)):
+    if not np.isfinite(step).all():
         return None
     full = np.zeros(free.size)
     full[free] = step
@@ -340,13 +345,13 @@ def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray, upper: np
     A step the box cuts stops 0.999 of the way to the bound, and the bound is returned as
     ``(index, value)`` (None for a whole step).
     """
-    with np.errstate(divide='ignore', invalid='ignore'):
-        up = np.where(step > 0, (upper - theta) / step, np.inf)
-        down = np.where(step < 0, (lower - theta) / step, np.inf)
-    reach = np.fmin(up, down)
-    if reach.size == 0:
+    moving = step != 0.0
+    if not moving.any():
         return 1.0, None
-    index = int(np.nanargmin(reach)) if not np.all(np.isnan(reach)) else 0
+    distance = np.where(step > 0.0, upper - theta, lower - theta)
+    reach = np.full(step.size, np.inf)
+    reach[moving] = distance[moving] / step[moving]
+    index = int(np.argmin(reach))
     if not reach[index] < 1.0:
         return 1.0, None
     bound = float(upper[index] if step[index] > 0 else lower[index])
@@ -439,7 +444,7 @@ def _optimality(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen:
                 ) -> float:
     """:func:`optimality` of a point linearised as ``linear`` with ``bounded`` its bounds."""
     free = _free_mask(linear, bounded, frozen)
-    if not np.any(free):
+    if not free.any():
         return 0.0
     # Combinations the data barely determine (their sensitivities nearly dependent, as where
     # two time constants coincide) have no first-order information: the measure leaves them
@@ -508,7 +513,7 @@ def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarr
     """
     rising, falling = _one_sided_gradients(linear)
     delays = free & (linear.lin.delay_gradient != 0.0)
-    if not np.any(delays & (rising > 0.0) & (falling > 0.0)):
+    if not (delays & (rising > 0.0) & (falling > 0.0)).any():
         return None
     best = None
     for side in ('up', 'down'):
@@ -641,7 +646,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         linear = linearized(method != 'gn' and not near)
         bounded = on_bounds(state.theta, problem)
         free = _free_mask(linear, bounded, frozen)
-        if not np.any(free):
+        if not free.any():
             return stop(StopReason.ALL_AT_BOUNDS)
         primary = 'gn' if method == 'gn' or near else ('ls' if method == 'ls' or (
             iteration == 0 and first_ls) else 'iv')
@@ -697,6 +702,10 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
             if step is None or (kind, damping, scales) in tried:
                 continue
             tried.add((kind, damping, scales))
+            if monotone and len(scales) > 1 and not linear.descends(step):
+                # Shorter steps along a direction the cost rises on cannot lower it: only the
+                # whole step, which may reach past the rise, is worth its simulation.
+                scales = scales[:1] if scales[0] == 1.0 else ()
             outcome = _try_step(problem, state, step, monotone, scales, land=creeping)
             if outcome is not None:
                 accepted = (kind, step, outcome)

@@ -317,7 +317,7 @@ class Problem:
 
     def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
         """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
-        if np.any(theta < self.lower) or np.any(theta > self.upper):
+        if (theta < self.lower).any() or (theta > self.upper).any():
             return None
         try:
             coefficients = self.model.coefficients(theta)
