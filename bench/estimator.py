@@ -6,7 +6,9 @@ For every reference system and run: fresh noise, a start drawn log-uniformly wit
 
 * ctid_ros: the projection estimator (``method='iv'``, automatic dead-time search);
 * least_squares LM and TRF on the output error ``y - yhat(theta)``, given the same exact
-  simulator and the exact Jacobian (the sensitivities), i.e. a strong hand-rolled baseline.
+  simulator and the exact Jacobian (the sensitivities), i.e. a strong hand-rolled baseline;
+* least_squares LM-FD: the same LM with scipy's forward-difference Jacobian, the plain
+  least_squares fit issue #18 measures the estimator against.
 
 Reported: success rate (every parameter within 20 % of the truth, interchangeable parameters
 such as ``T1``, ``T2`` of two lags ordered as in the truth), median time per fit and its
@@ -72,9 +74,14 @@ def draw_start(system: ReferenceSystem, rng: np.random.Generator) -> np.ndarray:
             return start
 
 
-def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: str
-                      ) -> np.ndarray:
-    """Output-error fit with scipy.optimize.least_squares and exact sensitivities."""
+def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: str,
+                      exact_jacobian: bool = True) -> np.ndarray:
+    """
+    Output-error fit with scipy.optimize.least_squares.
+
+    With the exact sensitivities as its Jacobian, or (``exact_jacobian=False``) scipy's own
+    forward differences, as a plain least_squares call would have it.
+    """
     model = system.model
     bank = SignalBank(model, data.u, data.y, data.ts)
 
@@ -100,8 +107,10 @@ def least_squares_fit(system: ReferenceSystem, data, start: np.ndarray, method: 
     with warnings.catch_warnings():
         # Far starts overflow inside scipy's own cost; the failed fit is what counts.
         warnings.simplefilter('ignore', RuntimeWarning)
-        result = optimize.least_squares(residual, start, jac=jacobian, method=method,
-                                        bounds=bounds, x_scale='jac', max_nfev=2000)
+        result = optimize.least_squares(residual, start,
+                                        jac=jacobian if exact_jacobian else '2-point',
+                                        method=method, bounds=bounds, x_scale='jac',
+                                        max_nfev=2000)
     return result.x
 
 
@@ -115,6 +124,9 @@ METHODS: Dict[str, Callable] = {
     'least_squares LM': lambda system, data, start: least_squares_fit(system, data, start, 'lm'),
     'least_squares TRF': lambda system, data, start: least_squares_fit(system, data, start,
                                                                        'trf'),
+    # Issue #18's reference: the same LM with finite differences, as a plain call has it.
+    'least_squares LM-FD': lambda system, data, start: least_squares_fit(
+        system, data, start, 'lm', exact_jacobian=False),
 }
 
 
@@ -158,7 +170,7 @@ def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
 
 
 def print_table(results: List[dict]) -> None:
-    print(f'{"system":<36} {"method":<18} {"success":>8} {"median s":>9} {"t/t_ctid":>9} '
+    print(f'{"system":<36} {"method":<20} {"success":>8} {"median s":>9} {"t/t_ctid":>9} '
           f'{"joint (95% band)":>19}  std/sqrt(CRLB)')
     for result in results:
         for name, entry in result['methods'].items():
@@ -167,7 +179,7 @@ def print_table(results: List[dict]) -> None:
                                   ) if ratios else ''
             joint = f'{entry["joint_over_crlb"]:.2f} ({entry["joint_band"][0]:.2f}-' \
                 f'{entry["joint_band"][1]:.2f})' if ratios else ''
-            print(f'{result["system"]:<36} {name:<18} {100 * entry["success_rate"]:>7.0f}% '
+            print(f'{result["system"]:<36} {name:<20} {100 * entry["success_rate"]:>7.0f}% '
                   f'{entry["median_time"]:>9.3f} {entry["time_ratio_to_ctid"]:>9.2f} '
                   f'{joint:>19}  {ratio_text}')
 
