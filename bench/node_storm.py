@@ -60,6 +60,12 @@ ATTACKS = (
 )
 
 
+def _counted(status, key: str) -> int:
+    """Return the count ``key`` of a diagnostics status (0 if absent)."""
+    value = next((pair.value for pair in status.values if pair.key == key), '0')
+    return int(value) if value.isdigit() else 0
+
+
 def _rss_mb(pid: int) -> Optional[float]:
     try:
         with open(f'/proc/{pid}/status', encoding='ascii') as status:
@@ -315,6 +321,13 @@ def run(workdir: Path, burst: int = BURST, recovery_timeout: float = 40.0,
                                        storm.since(storm.statuses, storm_start)), 30.0,
                            'the wrong types reported')
         figures['wrong_types_reported'] = wrong - storm_start
+        # The node reads each subscription in order: once its counts show non-finite values on
+        # both topics, the burst is behind it, and the stamps below are judged against the
+        # plant's current clock, not against a backlog older than them.
+        storm.wait(lambda: any(all(_counted(status, f'{role}_non_finite')
+                                   for role in ('input', 'output'))
+                               for status in storm.since(storm.statuses, storm_start)), 120.0,
+                   'the burst read')
         # 4. Stamps jumping back and zero stamps. A stamp 0.3 s back is late (beyond the reorder
         # horizon, within the clock's): each is followed by one that does not continue it, so
         # no run of them can pass for a publisher restarted with an earlier clock.
