@@ -331,13 +331,30 @@ def run(workdir: Path, burst: int = BURST, recovery_timeout: float = 40.0,
         # 4. Stamps jumping back and zero stamps. A stamp 0.3 s back is late (beyond the reorder
         # horizon, within the clock's): each is followed by one that does not continue it, so
         # no run of them can pass for a publisher restarted with an earlier clock.
-        now = time.time_ns()
-        for index in range(100):
-            for back in (3 * 10 ** 8, 10 * 10 ** 9, 3600 * 10 ** 9):
-                inputs.publish(_stamped(0.5, now - back + index * 1000))
-                outputs.publish(_stamped(0.5, now - back + index * 1000))
-            inputs.publish(_stamped(0.5, 0))
-            outputs.publish(_stamped(0.5, 0))
+        # A round that leaves no late count on a topic (seen once in a fresh-clone run, cause not
+        # found) is repeated, at most three rounds; the rounds and the counts are reported.
+        figures['stamp_rounds'] = []
+        for _ in range(3):
+            asked = time.monotonic()
+            now = time.time_ns()
+            for index in range(100):
+                for back in (3 * 10 ** 8, 10 * 10 ** 9, 3600 * 10 ** 9):
+                    inputs.publish(_stamped(0.5, now - back + index * 1000))
+                    outputs.publish(_stamped(0.5, now - back + index * 1000))
+                inputs.publish(_stamped(0.5, 0))
+                outputs.publish(_stamped(0.5, 0))
+            try:
+                storm.wait(lambda: any(all(_counted(status, f'{role}_late')
+                                           for role in ('input', 'output'))
+                                       for status in storm.since(storm.statuses, asked)),
+                           10.0, 'late stamps counted')
+            except TimeoutError:
+                latest = storm.since(storm.statuses, asked)[-1:]
+                figures['stamp_rounds'].append({pair.key: pair.value for status in latest
+                                                for pair in status.values})
+                continue
+            figures['stamp_rounds'].append('counted')
+            break
         # 5. Invalid runtime parameters, then a valid one: each answered, none fatal.
         client = AsyncParameterClient(storm.node, f'{namespace}/ctid_node')
         if not client.wait_for_services(timeout_sec=30.0):
