@@ -519,9 +519,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         # A complete guess (a warm start) is iterated first; if that model leaves nothing
         # correlated with the input there is nothing for the global start and search to find.
         start = complete_guess(problem, initial)
-        from_initial, stopped = False, None
+        from_initial, settled = False, False
         if start is not None:
-            start, history, from_initial, stopped = _warm_start(
+            start, history, from_initial, settled = _warm_start(
                 problem, _started(problem, start, transient), method, delay_index, delay_range)
         refined = from_initial
         if not from_initial:
@@ -537,11 +537,11 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         frozen = np.zeros(len(model.parameters), dtype=bool)
         settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
                     'tolerance': tolerance, 'check_optimality': True}
-        if stopped is not None:
+        if settled:
             # The warm start ended where the next update is negligible: the final iteration's
             # first test, on the same point.
-            final = IterationResult(start, [], stopped,
-                                    stopped.describe(tolerance, max_iterations))
+            reason = StopReason.NEGLIGIBLE_UPDATE
+            final = IterationResult(start, [], reason, reason.describe(tolerance, max_iterations))
         else:
             # A start refined by iterations needs no least-squares step.
             # A warm start that explained the data is a converged local fit: near its minimum.
@@ -768,13 +768,13 @@ def _from_best_seen(problem: Problem, final: IterationResult, history: List[Iter
 
 def _warm_start(problem: Problem, start: State, method: str, delay_index: Optional[int],
                 delay_range: DelayRange
-                ) -> Tuple[State, List[Iteration], bool, Optional[StopReason]]:
+                ) -> Tuple[State, List[Iteration], bool, bool]:
     """
-    Check a complete guess: where it led, the updates, whether the search is skipped, and why.
+    Check a complete guess: where it led, the updates, whether the search is skipped, settled.
 
-    The reason is :attr:`StopReason.NEGLIGIBLE_UPDATE` where the search is skipped and the
-    update from the end point is below ``iteration.NEGLIGIBLE_STEP`` standard deviations (the test
-    the final iteration would start with), else None.
+    Settled: the search is skipped and the iteration stopped because the update from the end
+    point is below ``iteration.NEGLIGIBLE_STEP`` standard deviations
+    (:attr:`StopReason.NEGLIGIBLE_UPDATE`, the test the final iteration would start with).
 
     At most :data:`_WARM_START_ITERATIONS` full steps first; if they do not reach a model that
     explains the data, the controlled iteration goes on from there (line search and fallbacks,
@@ -791,28 +791,23 @@ def _warm_start(problem: Problem, start: State, method: str, delay_index: Option
         moved = _with_data_delay(problem, start, delay_index)
         if moved is None:
             # The full steps, linear in the dead time, cannot move it that far either.
-            return start, [], False, None
+            return start, [], False, False
         start = moved
     warm = local_fit(problem, start, method, first_ls=False, full_steps_only=True,
                      iterations=_WARM_START_ITERATIONS)
     state, history = warm.state, warm.history
     if warm.reason is not StopReason.NO_FULL_STEP and \
             explains_data(problem, state, delay_index, delay_range):
-        return state, history, True, _negligible(warm)
+        return state, history, True, warm.reason is StopReason.NEGLIGIBLE_UPDATE
     if not resembles_output(problem, state):
-        return state, history, False, None
+        return state, history, False, False
     local = iterate(problem, state, method=method, frozen=np.zeros(state.theta.size, dtype=bool),
                     max_iterations=_WARM_START_BUDGET, tolerance=1e-6, first_ls=not history,
                     check_optimality=True, min_progress=_WARM_START_PROGRESS)
     history = history + local.history
     explained = local.converged and explains_data(problem, local.state, delay_index, delay_range)
-    return local.state, history, explained, _negligible(local) if explained else None
-
-
-def _negligible(result: IterationResult) -> Optional[StopReason]:
-    """Return the result's reason if it is :attr:`StopReason.NEGLIGIBLE_UPDATE`, else None."""
-    negligible = result.reason is StopReason.NEGLIGIBLE_UPDATE
-    return result.reason if negligible else None
+    return local.state, history, explained, \
+        explained and local.reason is StopReason.NEGLIGIBLE_UPDATE
 
 
 def _with_data_delay(problem: Problem, start: State, delay_index: int) -> Optional[State]:
@@ -916,8 +911,9 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
             notes.append(f'{name} is at its {side} bound {bound:g}{held}')
     if not result.converged:
         notes.append(f'not converged: {result.message}')
-    if _fit_note(fit) is not None:
-        notes.append(_fit_note(fit))
+    fit_note = _fit_note(fit)
+    if fit_note is not None:
+        notes.append(fit_note)
     if uncertainty.condition > ILL_CONDITIONED:
         notes.append(f'the data barely determine {_combination(uncertainty.weakest, names)} '
                      f'(condition number {uncertainty.condition:.1e}): these parameters trade '

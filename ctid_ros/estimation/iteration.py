@@ -23,6 +23,8 @@ __all__ = [
 ]
 
 _HALVINGS = 14
+# A step the box cuts stops this fraction of the way to the bound, strictly inside.
+_INSIDE_BOX = 0.999
 _FULL_STEP = (1.0,)
 _HALVED_STEPS = tuple(0.5 ** np.arange(1, _HALVINGS))
 _ALL_STEPS = _FULL_STEP + _HALVED_STEPS
@@ -51,6 +53,12 @@ _PROGRESS_SPAN = 2
 # Gauss-Newton steps for as long as they are accepted in full. Chosen on the reference systems
 # of bench/estimator.py: among 10, 30 and no limit, 30 needs the fewest simulations on most.
 _NEAR_MINIMUM = 30.0
+
+
+# A bound a step ran into: (parameter index, bound value).
+_Bound = Tuple[int, float]
+# What a tried step gives: the new state, the fraction of the step taken, the bound that cut it.
+_Outcome = Tuple[State, float, Optional[_Bound]]
 
 
 class StopReason(enum.Enum):
@@ -331,6 +339,8 @@ def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.nd
     elif values[0] > _NORMAL_CONDITION * largest:
         kept = np.ones(values.size, dtype=bool)
     else:
+        # Scaled by the columns' own norms, as every solve was before the products: where the
+        # rank is in doubt, which combination lstsq drops follows the rounding of its input.
         psi = side.psi[:, free]
         norms = column_scales(psi)
         return np.linalg.lstsq(psi / norms, side.error, rcond=None)[0] / norms
@@ -338,7 +348,7 @@ def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.nd
 
 
 def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray, upper: np.ndarray
-               ) -> Tuple[float, Optional[Tuple[int, float]]]:
+               ) -> Tuple[float, Optional[_Bound]]:
     """
     Largest fraction (<= 1) of ``step`` that keeps theta inside the box, and what limits it.
 
@@ -355,7 +365,7 @@ def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray, upper: np
     if not reach[index] < 1.0:
         return 1.0, None
     bound = float(upper[index] if step[index] > 0 else lower[index])
-    return 0.999 * float(reach[index]), (index, bound)
+    return _INSIDE_BOX * float(reach[index]), (index, bound)
 
 
 def _one_sided_gradients(linear: _Linear) -> Tuple[np.ndarray, np.ndarray]:
@@ -456,8 +466,7 @@ def _optimality(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen:
 
 
 def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
-              scales: Sequence[float], land: Optional[Tuple[int, float]] = None
-              ) -> Optional[Tuple[State, float, Optional[Tuple[int, float]]]]:
+              scales: Sequence[float], land: Optional[_Bound] = None) -> Optional[_Outcome]:
     """
     First admissible candidate ``theta + scale * step`` (box-limited) that does not raise V.
 
@@ -472,7 +481,7 @@ def _try_step(problem: Problem, state: State, step: np.ndarray, monotone: bool,
     for scale in scales:
         candidate = state.theta + limit * scale * step
         if scale == 1.0 and bound is not None and bound == land:
-            candidate = state.theta + (limit / 0.999) * step
+            candidate = state.theta + (limit / _INSIDE_BOX) * step
             candidate[bound[0]] = bound[1]
         coefficients = problem.admissible(candidate)
         if coefficients is not None:
@@ -503,7 +512,7 @@ def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
 
 def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarray,
                  bounded: Tuple[np.ndarray, np.ndarray], kind: str
-                 ) -> Optional[Tuple[str, np.ndarray, Tuple[State, float]]]:
+                 ) -> Optional[Tuple[str, np.ndarray, _Outcome]]:
     """
     At a dead time on the lattice where the cost falls to both sides, take the better side.
 
@@ -640,7 +649,7 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
     # Gauss-Newton needs no filtered output: one simulation fewer per update.
     near = method == 'iv' and near_start
     # The bound that cut the latest update (None if it was whole or shorter).
-    creeping: Optional[Tuple[int, float]] = None
+    creeping: Optional[_Bound] = None
     while len(history) < max_iterations:
         iteration = len(history)
         linear = linearized(method != 'gn' and not near)
