@@ -116,6 +116,11 @@ def command_lines(text: str) -> List[List[str]]:
             continue
         for command in block.code.replace('\\\n', ' ').splitlines():
             words = shlex.split(command, comments=True)
+            # The command alone: up to a background &, a pipe, a redirection or a next command.
+            for index, word in enumerate(words):
+                if word in ('&', '&&', '|', ';', '>', '<'):
+                    words = words[:index]
+                    break
             if words and words[0].rsplit('/', 1)[-1] == 'ctid':
                 lines.append(words[1:])
     return lines
