@@ -16,6 +16,7 @@ import shlex
 from typing import List, NamedTuple, Optional
 
 from ctid_ros.cli.main import build_parser
+from ctid_ros.streaming.params_file import load_params_file
 import pytest
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -136,6 +137,16 @@ def test_ctid_command_lines_parse(page):
             parser.parse_args(arguments)
         except SystemExit:
             pytest.fail(f'{page}: ctid {shlex.join(arguments)} does not parse')
+
+
+def test_params_files_written_by_the_readme_configure_a_node(tmp_path):
+    files = re.findall(r"^cat > (\S+) <<'END'\n(.*?)^END$", README, re.DOTALL | re.MULTILINE)
+    assert files
+    for name, content in files:
+        path = tmp_path / name
+        path.write_text(content, encoding='utf-8')
+        config = load_params_file(path)
+        assert config.model, name
 
 
 @pytest.mark.parametrize('dotted', sorted({dotted for text in VISIBLE.values()
