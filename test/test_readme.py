@@ -206,3 +206,10 @@ def test_real_data_tables_are_those_their_benchmark_wrote():
     assert shown.strip() == written.strip(), \
         'docs/benchmarks.md: copy bench/results-real-data.md (python -m bench real_data) ' \
         'between its markers'
+
+
+def test_benchmarks_page_lists_every_benchmark_of_make_bench():
+    from bench.__main__ import BENCHMARKS
+    page = TEXTS['docs/benchmarks.md']
+    missing = [name for name in BENCHMARKS if f'`bench/{name}.py`' not in page]
+    assert not missing, f'benchmarks of make bench missing in docs/benchmarks.md: {missing}'
