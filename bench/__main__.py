@@ -20,6 +20,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'stamps': [],
     'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
     'real_records': ['--json', 'bench/results-real-records.json'],
+    'real_data': ['--markdown', 'bench/results-real-data.md'],
     'hostile_files': [],
     'node_throughput': [],
     'node_storm': ['--json', 'bench/results-node-storm.json'],

@@ -102,7 +102,8 @@ def _check_work(nums: Sequence[sp.Poly], den: sp.Poly, tau: sp.Expr, parameters:
         raise ModelError(f'{what} is too large to differentiate: {len(coefficients)} '
                          f'coefficients of total weight {weight} in {parameters} parameters; '
                          f'P x (C x (P + 1) + 5 x weight) = {cost} exceeds the limit of '
-                         f'{MAX_WORK} (see "Limits" in the README)')
+                         f'{MAX_WORK} (see the limits of the model language in '
+                         'docs/user-guide.md)')
 
 
 def _check_proper(num: sp.Poly, den: sp.Poly, text: str) -> None:
