@@ -189,8 +189,9 @@ class IdentificationSession:
 
         """
         config = self._config
-        return buffer.window(self.window_length(), config.sample_time, end_ns,
-                             min_length=0.5 * config.window)
+        length = self.window_length()
+        return buffer.window(length, config.sample_time, end_ns,
+                             min_length=0.5 * config.window, transient=length - config.window)
 
     def update(self, window: Window) -> Update:
         """

@@ -1,0 +1,132 @@
+"""
+Warnings only for what happened: start-up, window changes, buffer turnover, time origin.
+
+Issue 25 item 4: a window that is short only because the data have not arrived yet (after a
+start or a window change) is no gap; a buffer's normal turnover is no loss; the messages of a
+sliding replay count time from one origin and name the configured window.
+"""
+
+from types import SimpleNamespace
+
+from ctid_ros.errors import DataError
+from ctid_ros.streaming.buffer import SampleBuffer
+from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.replay import replay_messages
+from ctid_ros.streaming.sampler import MessageSampler
+from ctid_ros.streaming.session import IdentificationSession
+import numpy as np
+import pytest
+from replay_fixtures import DELAY, float_records, simulate, T0_NS
+
+STEP_NS = 10_000_000
+
+
+def delay_config(**overrides):
+    params = {key: tuple(value) if isinstance(value, list) else value
+              for key, value in DELAY['params'].items()}
+    return IdentificationConfig(model=DELAY['model'], input_topic='/plant/u',
+                                output_topic='/plant/y', **{**params, **overrides})
+
+
+def messages(seconds):
+    u, y = simulate(DELAY, seconds)
+    return [(record.topic, record.time_ns, SimpleNamespace(data=record.fields['data']))
+            for record in float_records(u, y)]
+
+
+def test_start_up_windows_are_short_without_a_left_out_warning():
+    replay = replay_messages(messages(40.0), delay_config(window=10.0, update_period=2.0),
+                             sliding=True)
+    # The first estimates (from 6 s on) have less than the 10 s window and 10 s transient.
+    assert len(replay.updates) == 17
+    short = [update for update in replay.updates if update.window.dropped]
+    assert len(short) >= 5
+    for update in replay.updates:
+        assert not [note for note in update.warnings if 'left out' in note], update.warnings
+        assert update.window.dropped == update.window.unreceived
+    # A real gap is still reported: the input silent for 1 s in the middle.
+    silent = [message for message in messages(40.0) if not (
+        message[0] == '/plant/u' and T0_NS + 25 * 10 ** 9 < message[1] < T0_NS + 26 * 10 ** 9)]
+    gapped = replay_messages(silent, delay_config(window=10.0, update_period=2.0),
+                             sliding=True)
+    notes = [note for update in gapped.updates for note in update.warnings
+             if 'left out by 1 gap(s)' in note]
+    assert notes
+
+
+def test_skipped_ticks_count_from_one_origin_and_name_the_configured_window():
+    config = delay_config(window=20.0, update_period=2.0)
+    replay = replay_messages(messages(30.0), config, sliding=True)
+    first = replay.skipped[0]
+    assert first.time_ns == T0_NS + 2 * 10 ** 9
+    # Seconds since the first message, as the replay's own lines count them (t=2.00 s).
+    assert 'in the 20 s window (plus 20 s settling transient) ending at t=1.940 s' in \
+        first.reason
+    assert 'need at least 10 s' in first.reason
+    assert '1700000' not in first.reason
+    # The caller's origin (e.g. the bag's start) is used when given.
+    shifted = replay_messages(messages(30.0), config, sliding=True,
+                              origin_ns=T0_NS - 10 ** 9).skipped[0]
+    assert 'ending at t=2.940 s' in shifted.reason
+
+
+def fill(buffer, first, count):
+    """Input and output at 100 Hz, output 1 ms after the input; a slow square wave input."""
+    stamps = T0_NS + np.arange(first, first + count, dtype=np.int64) * STEP_NS
+    buffer.add_inputs(stamps, np.floor(np.arange(first, first + count) / 150) % 2)
+    buffer.add_outputs(stamps + 1_000_000, np.sin(np.arange(first, first + count) / 30.0))
+
+
+def test_a_window_change_keeps_the_data_that_still_fits():
+    old_config = delay_config(window=10.0)
+    sampler = MessageSampler(old_config, ('/plant/u', '/plant/y'))
+    old = sampler.buffer(old_config.buffer_capacity(100.0), old_config)
+    fill(old, 0, 3000)
+    before = old.stats()
+    # A shorter window: the newest samples that fit the smaller buffer are kept.
+    short = delay_config(window=5.0)
+    smaller = sampler.buffer(short.buffer_capacity(100.0), short, previous=old)
+    stats = smaller.stats()
+    assert stats.u.size == short.buffer_capacity(100.0) < before.u.size
+    assert stats.u.last == before.u.last and stats.y.last == before.y.last
+    assert stats.u.received == 3000 and stats.u.evicted == 0
+    window = IdentificationSession(short).take_window(smaller)
+    assert window.complete and window.warnings == ()
+    # A longer window: everything is kept, the first windows are short but not warned about.
+    long = delay_config(window=20.0)
+    larger = sampler.buffer(long.buffer_capacity(100.0), long, previous=old)
+    assert larger.stats().u.size == before.u.size
+    window = IdentificationSession(long).take_window(larger)
+    assert window.dropped == window.unreceived > 0 and window.warnings == ()
+    assert len(window.data) * 0.01 == pytest.approx(29.95, abs=0.02)
+    # Another input topic: its samples are another signal, not kept; the output is.
+    other = MessageSampler(old_config, ('/plant/other', '/plant/y'))
+    moved = other.buffer(old_config.buffer_capacity(100.0), old_config, previous=old)
+    assert (moved.stats().u.size, moved.stats().y.size) == (0, before.y.size)
+
+
+def test_normal_turnover_is_not_counted_as_evicted():
+    config = delay_config(window=2.0)
+    sampler = MessageSampler(config, ('/plant/u', '/plant/y'))
+    buffer = sampler.buffer(config.buffer_capacity(100.0), config)
+    for first in range(0, 20_000, 500):
+        fill(buffer, first, 500)
+    stats = buffer.stats()
+    assert stats.u.received == 20_000 and stats.u.size == buffer.capacity
+    assert (stats.u.evicted, stats.y.evicted) == (0, 0)
+    # A buffer too small for the span its windows need: what it pushes out is counted, and
+    # the short window says why.
+    small = SampleBuffer(300, history=config.history_span + config.max_gap +
+                         config.reorder_horizon)
+    small.origin_ns = T0_NS
+    for first in range(0, 2000, 100):
+        fill(small, first, 100)
+    stats = small.stats()
+    assert stats.u.evicted == pytest.approx(2000 - 300 - 0, abs=20) and stats.u.evicted > 0
+    window = small.window(4.0, 0.01, min_length=1.0)
+    assert window.unreceived > 0
+    assert any('the buffer of 300 samples holds input only since t=17.000 s' in note
+               for note in window.warnings), window.warnings
+    with pytest.raises(DataError, match=r'holds input only since t=17\.000 s: raise its '
+                                        'capacity'):
+        small.window(8.0, 0.01, min_length=4.0)
