@@ -11,6 +11,7 @@ from types import SimpleNamespace
 from ctid_ros.errors import DataError
 from ctid_ros.streaming.buffer import SampleBuffer
 from ctid_ros.streaming.config import IdentificationConfig
+from ctid_ros.streaming.contract import count_change
 from ctid_ros.streaming.replay import replay_messages
 from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import IdentificationSession
@@ -130,3 +131,22 @@ def test_normal_turnover_is_not_counted_as_evicted():
     with pytest.raises(DataError, match=r'holds input only since t=17\.000 s: raise its '
                                         'capacity'):
         small.window(8.0, 0.01, min_length=4.0)
+
+
+def test_counters_are_python_ints_that_only_grow_by_what_happened():
+    # A batch far larger than the buffer (a huge message's worth): received and accepted count
+    # it whole, the turnover is no eviction, and no counter is a fixed-width integer.
+    buffer = SampleBuffer(1000, history=0.5)
+    count = 2_000_000
+    stamps = np.arange(count, dtype=np.int64) * 1_000_000
+    buffer.add_inputs(stamps, np.zeros(count))
+    buffer.add_outputs(stamps, np.ones(count))
+    stats = buffer.stats().u
+    assert (stats.received, stats.accepted, stats.evicted, stats.size) == (
+        count, count, 0, 1000)
+    assert all(type(value) is int for value in (stats.received, stats.accepted, stats.evicted,
+                                                stats.late, stats.duplicates))
+    # The middleware's size_t increments: a negative one read as unsigned counts as nothing.
+    assert [count_change(value) for value in (
+        3, 0, 18446744071562067969, 2 ** 64 - 1, -5, None, float('nan'), np.uint64(7))] == [
+        3, 0, 0, 0, 0, 0, 0, 7]
