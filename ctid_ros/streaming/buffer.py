@@ -49,7 +49,7 @@ segment of at least ``min_length`` seconds is returned, since a live estimator w
 recent behaviour; :class:`Window` reports all segments and the gaps that split them.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import enum
 import math
 import operator
@@ -242,6 +242,10 @@ class Window:
         longer window): not in :attr:`data`, but no data were lost there, so no warning.
     notes : tuple of str
         Further warnings, e.g. a buffer too small for the requested span.
+    input_bounds : (ndarray, ndarray) or None
+        Where input instants lost their samples while the input changed (a dropped message at
+        a step), the lowest and highest value it may have had there, like ``data.u`` (equal
+        to it elsewhere); None if there is no such instant.
 
     """
 
@@ -255,6 +259,16 @@ class Window:
     missing: Tuple[int, int] = (0, 0)
     unreceived: int = 0
     notes: Tuple[str, ...] = ()
+    input_bounds: Optional[Tuple[np.ndarray, np.ndarray]] = field(default=None, compare=False)
+
+    @property
+    def uncertain_inputs(self) -> np.ndarray:
+        """Return the indices into ``data`` of the instants listed in :attr:`input_bounds`."""
+        if self.input_bounds is None:
+            return np.zeros(0, dtype=int)
+        low, high = self.input_bounds
+        differ = low != high
+        return np.flatnonzero(differ if differ.ndim == 1 else np.any(differ, axis=1))
 
     @property
     def dropped(self) -> int:
@@ -277,9 +291,8 @@ class Window:
         notes = list(self.plan.warnings) if self.plan is not None else []
         notes.extend(refusals.describe() for refusals in self.refused if refusals.total)
         names = [refusals.stream for refusals in self.refused] or [INPUT, OUTPUT]
-        for name, count, treatment in zip(names, self.missing, ('held or, between different '
-                                                                'values, interpolated',
-                                                                'interpolated')):
+        for name, count, treatment in zip(names, self.missing, (
+                'held or, where the input changed, estimated with the model', 'interpolated')):
             if count:
                 notes.append(f'{name}: {count} of {len(self.data)} instants without a sample '
                              f'of their own (messages dropped or bunched): {treatment}')
@@ -786,13 +799,16 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
     values, the command changed at one of them, unknown which: each takes the expected value
     under a change equally likely at every one of them, the line from the sample before to the
     sample after (holding the one before would move every such change late, biasing the dead
-    time).
+    time), and its bounds are the two values: the session estimates it within them with the
+    model (:class:`~ctid_ros.streaming.session.IdentificationSession`), so that the guess
+    costs one sample's information instead of biasing the estimate.
 
     Returns
     -------
-    (u, valid, missing) : (ndarray, ndarray, ndarray)
-        The input at each grid instant, its validity, and whether the instant is one of the
-        input's whose own sample is missing.
+    (u, valid, missing, bounds) : (ndarray, ndarray, ndarray, (ndarray, ndarray))
+        The input at each grid instant, its validity, whether the instant is one of the
+        input's whose own sample is missing, and the lowest and highest value the input may
+        have had there (both equal to ``u`` where it is known).
 
     """
     period = plan.input_period
@@ -815,6 +831,7 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
     bridged = has_next & (held[following] - held[position] <= max_gap_ns)
     valid = known & (own | bridged | (~has_next & (grid - held[position] <= max_gap_ns)))
     u = values[chosen[position]]
+    low, high = u.copy(), u.copy()
     lost = known & ~own & bridged
     if np.any(lost):
         before, after = chosen[position[lost]], chosen[following[lost]]
@@ -823,9 +840,11 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
         if u.ndim == 2:
             fraction = fraction[:, None]
         u[lost] = values[before] + fraction * (values[after] - values[before])
+        low[lost] = np.minimum(values[before], values[after])
+        high[lost] = np.maximum(values[before], values[after])
     # Instants of the input's lattice whose own sample is missing (a finer grid has others).
     instant = np.abs(position_float - wanted) < 1e-3
-    return u, valid, known & instant & ~own
+    return u, valid, known & instant & ~own, (low, high)
 
 
 def _own_samples(stamps: np.ndarray, grid: np.ndarray, plan: GridPlan) -> np.ndarray:
@@ -1128,7 +1147,7 @@ class SampleBuffer:
                         for name, stream_events in zip(self.names, events))
         return Window(window.data, window.requested, window.segments, window.gaps,
                       window.start_ns, plan, refused, window.missing, window.unreceived,
-                      window.notes)
+                      window.notes, window.input_bounds)
 
     def _silence(self) -> str:
         silent = [stream for stream in (self._input, self._output) if not len(stream)]
@@ -1148,13 +1167,13 @@ class SampleBuffer:
                   evicted: Tuple[int, int], frame: Tuple[int, float]) -> Window:
         gap = self._max_gap_ns
         sample_time = plan.step / NANOSECONDS
-        held = None
+        held = bounds = None
         if plan.input_period is None:
             index_u, inside_u, after_u = _bracket(su, grid, gap)
             valid_u = inside_u | (after_u & (grid - su[index_u] <= gap))
             u = vu[index_u]
         else:
-            u, valid_u, held = _held(su, vu, grid, plan, gap)
+            u, valid_u, held, bounds = _held(su, vu, grid, plan, gap)
         skew = round(plan.skew)
         index_y, inside_y, _ = _bracket(sy, grid + skew, gap)
         valid_y = inside_y
@@ -1196,8 +1215,11 @@ class SampleBuffer:
             f'{(since - int(grid[0])) / NANOSECONDS:.3g} s short: raise its capacity'
             for name, since, pushed in zip(self.names, oldest, evicted)
             if unreceived and pushed >= int(grid[0]))
+        uncertain = None
+        if bounds is not None and np.any(bounds[0][first:stop] != bounds[1][first:stop]):
+            uncertain = (bounds[0][first:stop], bounds[1][first:stop])
         return Window(data, grid.size, segments, gaps, int(grid[first]), missing=tuple(missing),
-                      unreceived=unreceived, notes=notes)
+                      unreceived=unreceived, notes=notes, input_bounds=uncertain)
 
     def _shortage(self, longest: int, needed: int, grid: np.ndarray, sample_time: float,
                   gaps: Tuple[Gap, ...], oldest: Tuple[int, int], evicted: Tuple[int, int],
