@@ -861,8 +861,21 @@ def _own_samples(stamps: np.ndarray, grid: np.ndarray, plan: GridPlan) -> np.nda
     every = max(1, round(plan.step / plan.output_period))
     # The grid's subdivision rather than the output's own period: the two clocks may drift.
     period = plan.step / every
-    relative = (stamps - grid[0]).astype(float) - plan.skew
-    index, assigned = assign_instants(relative / period, _early(plan, period))
+    lattice = plan.output_lattice
+    if lattice is None:
+        relative = (stamps - grid[0]).astype(float) - plan.skew
+        index, assigned = assign_instants(relative / period, _early(plan, period))
+    else:
+        # Each sample on its own lattice first (its jitter), then that instant to the nearest
+        # subdivision of the grid: the output's clock may drift against the input's.
+        own_index, assigned = assign_instants(
+            ((stamps - lattice.reference).astype(float) - lattice.origin) / lattice.period,
+            lattice.early)
+        instant = float(lattice.reference - grid[0]) + lattice.origin + \
+            own_index * lattice.period - plan.skew
+        position = instant / period
+        index = np.round(position).astype(np.int64)
+        assigned &= np.abs(position - index) < LATTICE_SLACK
     on_grid = assigned & (np.mod(index, every) == 0) & (index >= 0) & (index < every * grid.size)
     own[index[on_grid] // every] = np.flatnonzero(on_grid)
     return own

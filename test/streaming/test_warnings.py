@@ -150,3 +150,34 @@ def test_counters_are_python_ints_that_only_grow_by_what_happened():
     assert [count_change(value) for value in (
         3, 0, 18446744071562067969, 2 ** 64 - 1, -5, None, float('nan'), np.uint64(7))] == [
         3, 0, 0, 0, 0, 0, 0, 7]
+
+
+@pytest.mark.parametrize('output_rate', [20, 100])
+def test_a_jittered_command_without_drops_has_no_missing_samples(output_rate):
+    # A command stamped by a free-running 20 Hz timer (every interval 49.85-50.16 ms, so its
+    # clock wanders by milliseconds) against a steadily sampled output: no message is lost.
+    rng = np.random.default_rng(1)
+    count = 800
+    u_stamps = T0_NS + np.concatenate(([0], np.cumsum(rng.uniform(49.85e6, 50.16e6,
+                                                                  count - 1)))).astype(np.int64)
+    outputs = count * output_rate // 20
+    y_stamps = (T0_NS + 3_000_000 + np.arange(outputs) * (10 ** 9 // output_rate) +
+                rng.uniform(0, 300_000, outputs)).astype(np.int64)
+    u = (np.arange(count) // 37 % 2).astype(float)
+    y = np.sin(np.arange(outputs) / 50.0)
+    buffer = SampleBuffer(5000)
+    buffer.add_inputs(u_stamps, u)
+    buffer.add_outputs(y_stamps, y)
+    ends = u_stamps[[400, 600, 799]]
+    for end in ends:
+        window = buffer.window(16.2, 0.05, int(end), min_length=8.0)
+        assert window.missing == (0, 0), window.warnings
+        assert window.warnings == ()
+    # A message really lost is still counted: one output sample and one input sample.
+    lost = SampleBuffer(5000)
+    lost.add_inputs(np.delete(u_stamps, 500), np.delete(u, 500))
+    drop = int(np.searchsorted(y_stamps, u_stamps[520]))
+    lost.add_outputs(np.delete(y_stamps, drop), np.delete(y, drop))
+    window = lost.window(16.2, 0.05, int(ends[1]), min_length=8.0)
+    assert window.missing == (1, 1)
+    assert [note.split(':')[0] for note in window.warnings] == ['input', 'output']
