@@ -36,10 +36,13 @@ included); otherwise it is the absolute grid ``t_k = k * sample_time``.
 
 * input, zero-order hold: on the input's instants, the sample of the latest input instant at
   or before ``t_k`` (a stamp jittered past ``t_k`` still counts for ``t_k``); on the absolute
-  grid, the last input sample at or before ``t_k``;
+  grid, the last input sample at or before ``t_k``. An instant whose message was lost while
+  the input changed gets the midpoint and its bounds (:attr:`Window.input_bounds`), which the
+  session fits with the model;
 * output: a periodic output at the grid step (or a whole fraction of it) is taken at its own
-  samples, ``Data.output_skew`` after the grid instants; any other output is interpolated
-  linearly at ``t_k``.
+  samples, ``Data.output_skew`` after the grid instants (each on its own lattice, so a clock
+  drifting against the input's moves none); any other output is interpolated linearly at
+  ``t_k``.
 
 A stream is missing where two consecutive samples are more than ``max_gap`` apart (the whole
 interval between them) and after its newest sample: the output beyond it, the input beyond it
