@@ -65,7 +65,15 @@ class Sample:
             raise self.errors[0][1]
 
     def add_to(self, buffer: SampleBuffer) -> None:
-        """Append the samples to ``buffer``, input and output atomically when both are set."""
+        """
+        Append the samples to ``buffer``, input and output atomically when both are set.
+
+        The first sample given to a buffer without a time origin becomes its origin
+        (:attr:`SampleBuffer.origin_ns`), as it is the live node's: its messages then count
+        seconds from the first sample, like the node's own.
+        """
+        if buffer.origin_ns is None and (self.u is not None or self.y is not None):
+            buffer.origin_ns = self.stamp_ns
         if self.u is not None and self.y is not None:
             buffer.add_pair(self.stamp_ns, self.u, self.y)
         elif self.u is not None:

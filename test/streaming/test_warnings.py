@@ -181,3 +181,20 @@ def test_a_jittered_command_without_drops_has_no_missing_samples(output_rate):
     window = lost.window(16.2, 0.05, int(ends[1]), min_length=8.0)
     assert window.missing == (1, 1)
     assert [note.split(':')[0] for note in window.warnings] == ['input', 'output']
+
+
+def test_the_first_sample_of_a_message_sets_the_buffer_time_origin():
+    # The live node's path: its messages count from its first sample, not from the epoch.
+    settings = delay_config(window=10.0)
+    sampler = MessageSampler(settings, ('/plant/u', '/plant/y'))
+    buffer = sampler.buffer(settings.buffer_capacity(100.0), settings)
+    for topic, stamp, message in messages(3.0):
+        sampler(topic, stamp, message).add_to(buffer)
+    assert buffer.origin_ns == T0_NS
+    with pytest.raises(DataError, match=r'in the 10 s window \(plus 10 s settling transient\) '
+                                        r'ending at t=2\.940 s'):
+        IdentificationSession(settings).take_window(buffer)
+    # A window change keeps the origin with the data.
+    longer = delay_config(window=20.0)
+    assert sampler.buffer(longer.buffer_capacity(100.0), longer,
+                          previous=buffer).origin_ns == T0_NS
