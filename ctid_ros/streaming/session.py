@@ -370,6 +370,12 @@ class IdentificationSession:
             # otherwise be fitted from an unsettled state). Without a previous estimate the
             # estimator's 'auto' transient settles the starting model instead.
             options['transient'] = max(record - config.window, self._settling)
+        uncertain = window.uncertain_inputs.size
+        if uncertain > MAX_UNCERTAIN_INPUTS:
+            window = dataclasses.replace(window, notes=window.notes + (
+                f'{uncertain} input instants lost their messages while the input changed, '
+                f'more than the {MAX_UNCERTAIN_INPUTS} estimated with the model: they keep the '
+                'midpoint of their neighbours, which may bias the estimate',))
         started = time.perf_counter()
         result = estimate(config.compiled_model, window.data, **options)
         for _ in range(REFINEMENTS):

@@ -100,3 +100,13 @@ def test_three_single_drops_in_a_sliding_replay_cost_no_window_and_no_bias(monke
     without_refinement(monkeypatch)
     shift, _ = worst(replay_messages(messages(u, y, drops), settings, sliding=True))
     assert shift > 3.0
+
+
+def test_too_many_lost_changes_are_left_at_the_midpoint_with_a_warning(monkeypatch):
+    monkeypatch.setattr(session_module, 'MAX_UNCERTAIN_INPUTS', 2)
+    u, y, steps = recording(2000, 500)
+    drops = tuple(int(step) for step in steps[:3])
+    update = replay_messages(messages(u, y, drops), config()).updates[0]
+    assert list(update.window.data.u[list(drops)]) == [0.5, 0.5, 0.5]
+    assert any('3 input instants lost their messages while the input changed, more than the '
+               '2 estimated' in note for note in update.warnings), update.warnings
