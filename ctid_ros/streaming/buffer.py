@@ -129,8 +129,12 @@ class StreamStats:
         Samples offered, whatever became of them.
     accepted : int
         Samples admitted (some may since have been evicted).
-    duplicates, late, non_finite, evicted : int
-        Samples refused or removed for each reason.
+    duplicates, late, non_finite : int
+        Samples refused for each reason.
+    evicted : int
+        Samples pushed out by the capacity while a window could still have used them (within
+        the buffer's ``history`` of the newest stamp; every one pushed out without a
+        ``history``): a buffer too small, not its normal turnover.
     out_of_clock : int
         Samples refused because their stamps were far from the stream's clock.
     pending : int
