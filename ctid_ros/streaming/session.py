@@ -16,6 +16,7 @@ import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from ctid_ros.core.data import Data
+from ctid_ros.errors import EstimationError
 from ctid_ros.estimation.estimate import Estimate, estimate
 from ctid_ros.estimation.problem import settling_time
 from ctid_ros.streaming.buffer import SampleBuffer, Window
@@ -382,10 +383,14 @@ class IdentificationSession:
             refined = refine_lost_inputs(result, window, options.get('transient', 0.0))
             if refined is None:
                 break
-            # One more estimate, from the last one, on the input completed by it.
+            # One more estimate, from the last one, on the input completed by it; if that
+            # fails, the last one stands.
+            try:
+                result = estimate(config.compiled_model, refined,
+                                  **{**options, 'initial': dict(result.params)})
+            except EstimationError:
+                break
             window = dataclasses.replace(window, data=refined)
-            options['initial'] = dict(result.params)
-            result = estimate(config.compiled_model, refined, **options)
         # The input values fitted above are unknowns too: their cost in the parameters' spread.
         covariance = lost_input_covariance(result, window, options.get('transient', 0.0))
         elapsed = time.perf_counter() - started

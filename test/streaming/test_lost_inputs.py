@@ -11,7 +11,7 @@ pipeline with that step turned off.
 
 from types import SimpleNamespace
 
-from ctid_ros import Model
+from ctid_ros import EstimationError, Model
 from ctid_ros.streaming import session as session_module
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.replay import replay_messages
@@ -110,3 +110,23 @@ def test_too_many_lost_changes_are_left_at_the_midpoint_with_a_warning(monkeypat
     assert list(update.window.data.u[list(drops)]) == [0.5, 0.5, 0.5]
     assert any('3 input instants lost their messages while the input changed, more than the '
                '2 estimated' in note for note in update.warnings), update.warnings
+
+
+def test_a_failed_refit_keeps_the_first_estimate(monkeypatch):
+    u, y, steps = recording(2000, 500)
+    step = int(steps[0])
+    calls = []
+    real = session_module.estimate
+
+    def failing_refit(*arguments, **options):
+        calls.append(options.get('initial'))
+        if len(calls) > 1:
+            raise EstimationError('refit failed')
+        return real(*arguments, **options)
+
+    monkeypatch.setattr(session_module, 'estimate', failing_refit)
+    update = replay_messages(messages(u, y, (step,)), config()).updates[0]
+    assert len(calls) == 2 and calls[1] is not None
+    # The first estimate and the window it was made on.
+    assert update.window.data.u[step] == 0.5
+    assert update.values == pytest.approx(TRUTH, rel=0.05)
