@@ -26,6 +26,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'node_storm': ['--json', 'bench/results-node-storm.json'],
     'fleet': [],
     'alarm': ['--json', 'bench/results-alarm.json'],
+    'memory': ['--minutes', '20', '--json', 'bench/results-memory.json'],
 }
 
 

@@ -313,6 +313,9 @@ class StateVariableFilters:
     by ``d`` samples (exact: the filters start at rest), so a delay grid on the sample lattice
     (or on half samples) filters the input once per filter and fraction.
 
+    It keeps the problem's signal bank and sample time, not the problem itself, so that the
+    cache of :func:`default_filters` (keyed weakly by the problem) lets the problem go.
+
     """
 
     def __init__(self, problem: Problem, lams: np.ndarray):
@@ -320,7 +323,7 @@ class StateVariableFilters:
         n, m = model.den_degree, model.num_degree
         powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
         self._u_powers = powers[m::-1]
-        self._problem = problem
+        self._bank, self._ts = problem.bank, data.ts
         self._filters = []
         for lam in lams:
             realization = ContinuousFilter(np.poly(np.full(n, -lam)) if n else np.ones(1))
@@ -343,8 +346,7 @@ class StateVariableFilters:
         them) are projected out first.
 
         """
-        bank = self._problem.bank
-        ts = self._problem.data.ts
+        bank, ts = self._bank, self._ts
         delay = tau + bank.extra_delay
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
@@ -383,14 +385,14 @@ class StateVariableFilters:
         The input is the one the simulations run on (extended by a sample under an output
         skew, whose extra dead time ``delay`` includes): the caller drops the first row then.
         """
-        problem = self._problem
-        discrete = realization.discretize(problem.data.ts, delay, problem.bank.intersample)
+        discrete = realization.discretize(self._ts, delay, self._bank.intersample)
         return np.vstack([discrete.outputs(channel, self._u_powers)
-                          for channel in problem.bank.driving.T]).T
+                          for channel in self._bank.driving.T]).T
 
 
 # The filtered signals of each problem's default filters: the automatic start, the dead-time
-# search and every nested structure filter the same data with the same filters.
+# search and every nested structure filter the same data with the same filters. The values
+# must not refer to their problem, or no entry would ever be dropped.
 _DEFAULT_FILTERS: 'weakref.WeakKeyDictionary[Problem, StateVariableFilters]' = \
     weakref.WeakKeyDictionary()
 

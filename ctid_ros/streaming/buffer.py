@@ -22,7 +22,9 @@ Admission rules, per stream (stamps are integer nanoseconds):
 * a stream whose every new stamp is refused as too old, consistently for ``max_gap`` and
   ``CONFIRMATIONS`` stamps, re-anchors on them (a publisher restarted with an earlier clock):
   its samples of the old clock are dropped;
-* beyond ``capacity`` samples the oldest are evicted (counted).
+* beyond ``capacity`` samples the oldest are pushed out; they count as evicted only if newer
+  than the buffer's ``history`` before the newest stamp (a window would still have used them),
+  not as the normal turnover of a buffer sized for its windows.
 
 Each refusal is remembered with the stream's clock at the time, so a window reports how many
 samples of each stream were refused while its data arrived (:attr:`Window.refused`).
@@ -34,10 +36,13 @@ included); otherwise it is the absolute grid ``t_k = k * sample_time``.
 
 * input, zero-order hold: on the input's instants, the sample of the latest input instant at
   or before ``t_k`` (a stamp jittered past ``t_k`` still counts for ``t_k``); on the absolute
-  grid, the last input sample at or before ``t_k``;
+  grid, the last input sample at or before ``t_k``. An instant whose message was lost while
+  the input changed gets the midpoint and its bounds (:attr:`Window.input_bounds`), which the
+  session fits with the model;
 * output: a periodic output at the grid step (or a whole fraction of it) is taken at its own
-  samples, ``Data.output_skew`` after the grid instants; any other output is interpolated
-  linearly at ``t_k``.
+  samples, ``Data.output_skew`` after the grid instants (each on its own lattice, so a clock
+  drifting against the input's moves none); any other output is interpolated linearly at
+  ``t_k``.
 
 A stream is missing where two consecutive samples are more than ``max_gap`` apart (the whole
 interval between them) and after its newest sample: the output beyond it, the input beyond it
@@ -47,7 +52,7 @@ segment of at least ``min_length`` seconds is returned, since a live estimator w
 recent behaviour; :class:`Window` reports all segments and the gaps that split them.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import enum
 import math
 import operator
@@ -124,8 +129,12 @@ class StreamStats:
         Samples offered, whatever became of them.
     accepted : int
         Samples admitted (some may since have been evicted).
-    duplicates, late, non_finite, evicted : int
-        Samples refused or removed for each reason.
+    duplicates, late, non_finite : int
+        Samples refused for each reason.
+    evicted : int
+        Samples pushed out by the capacity while a window could still have used them (within
+        the buffer's ``history`` of the newest stamp; every one pushed out without a
+        ``history``): a buffer too small, not its normal turnover.
     out_of_clock : int
         Samples refused because their stamps were far from the stream's clock.
     pending : int
@@ -235,6 +244,15 @@ class Window:
         Instants of :attr:`data` without a sample of their own (dropped messages): input
         instants held from the sample before, output instants interpolated. Counted only for
         a stream on its own lattice.
+    unreceived : int
+        Requested instants before both streams' data begin (after a start, a clear or a
+        longer window): not in :attr:`data`, but no data were lost there, so no warning.
+    notes : tuple of str
+        Further warnings, e.g. a buffer too small for the requested span.
+    input_bounds : (ndarray, ndarray) or None
+        Where input instants lost their samples while the input changed (a dropped message at
+        a step), the lowest and highest value it may have had there, like ``data.u`` (equal
+        to it elsewhere); None if there is no such instant.
 
     """
 
@@ -246,6 +264,18 @@ class Window:
     plan: Optional[GridPlan] = None
     refused: Tuple[Refusals, ...] = ()
     missing: Tuple[int, int] = (0, 0)
+    unreceived: int = 0
+    notes: Tuple[str, ...] = ()
+    input_bounds: Optional[Tuple[np.ndarray, np.ndarray]] = field(default=None, compare=False)
+
+    @property
+    def uncertain_inputs(self) -> np.ndarray:
+        """Return the indices into ``data`` of the instants listed in :attr:`input_bounds`."""
+        if self.input_bounds is None:
+            return np.zeros(0, dtype=int)
+        low, high = self.input_bounds
+        differ = low != high
+        return np.flatnonzero(differ if differ.ndim == 1 else np.any(differ, axis=1))
 
     @property
     def dropped(self) -> int:
@@ -268,15 +298,17 @@ class Window:
         notes = list(self.plan.warnings) if self.plan is not None else []
         notes.extend(refusals.describe() for refusals in self.refused if refusals.total)
         names = [refusals.stream for refusals in self.refused] or [INPUT, OUTPUT]
-        for name, count, treatment in zip(names, self.missing, ('held or, between different '
-                                                                'values, interpolated',
-                                                                'interpolated')):
+        for name, count, treatment in zip(names, self.missing, (
+                'held or, where the input changed, estimated with the model', 'interpolated')):
             if count:
                 notes.append(f'{name}: {count} of {len(self.data)} instants without a sample '
                              f'of their own (messages dropped or bunched): {treatment}')
-        if self.dropped:
-            notes.append(f'{self.dropped} of {self.requested} samples left out by '
-                         f'{len(self.gaps)} gap(s) in the data')
+        left_out = self.dropped - self.unreceived
+        if left_out > 0:
+            cause = (f'by {len(self.gaps)} gap(s) in the data' if self.gaps else
+                     'where the input or the output has no sample')
+            notes.append(f'{left_out} of {self.requested} samples left out {cause}')
+        notes.extend(self.notes)
         return tuple(notes)
 
 
@@ -312,12 +344,13 @@ class _Stream:
     """
 
     def __init__(self, name: str, capacity: int, horizon_ns: int, max_gap_ns: int,
-                 width: int = 1):
+                 width: int = 1, history_ns: Optional[int] = None):
         self.name = name
         self.capacity = capacity
         self.horizon_ns = horizon_ns
         self.max_gap_ns = max_gap_ns
         self.width = width
+        self.history_ns = history_ns
         self._stamps = np.empty(2 * capacity, dtype=np.int64)
         # One value per stamp, or a row of ``width`` values (several inputs in one message).
         self._values = np.empty(2 * capacity if width == 1 else (2 * capacity, width))
@@ -330,6 +363,8 @@ class _Stream:
         self.received = self.accepted = self.duplicates = 0
         self.late = self.non_finite = self.evicted = 0
         self.out_of_clock = self.reanchors = 0
+        # The newest stamp pushed out by the capacity (a window reaching back to it is short).
+        self.evicted_until = _EARLIEST
         self._events = 0
         # Candidates (stamp, value) ahead of the clock, or (stamp, value, late) behind it.
         self._run: List[Tuple[Any, ...]] = []
@@ -382,8 +417,25 @@ class _Stream:
         self._stop += 1
         self.accepted += 1
         if len(self) > self.capacity:
+            self._evict(self._stamps[self._start:self._start + 1])
             self._start += 1
-            self.evicted += 1
+
+    def _evict(self, stamps: np.ndarray) -> None:
+        """
+        Count the samples at ``stamps`` (the oldest held, increasing) as pushed out.
+
+        Only those within ``history_ns`` of the newest stamp count as :attr:`evicted`: older
+        ones are the normal turnover of a buffer that holds what the windows need.
+        """
+        if not stamps.size:
+            return
+        newest = int(self._stamps[self._stop - 1])
+        self.evicted_until = max(self.evicted_until, int(stamps[-1]))
+        if self.history_ns is None:
+            self.evicted += int(stamps.size)
+        else:
+            kept = int(np.searchsorted(stamps, newest - self.history_ns, side='right'))
+            self.evicted += int(stamps.size) - kept
 
     def _jump_ns(self) -> int:
         """Return how far ahead of the newest stamp a new one is still in the stream's clock."""
@@ -552,7 +604,8 @@ class _Stream:
         self.accepted += count
         total = len(self) + count
         keep = min(self.capacity, total)
-        self.evicted += total - keep
+        if total > keep:
+            self._count_block_evictions(stamps, total - keep)
         if self._stop + count <= self._stamps.size:
             self._stamps[self._stop:self._stop + count] = stamps
             self._values[self._stop:self._stop + count] = values
@@ -565,6 +618,47 @@ class _Stream:
         self._stamps[old:keep] = stamps[count - (keep - old):]
         self._values[old:keep] = values[count - (keep - old):]
         self._start, self._stop = 0, keep
+
+    def _count_block_evictions(self, stamps: np.ndarray, count: int) -> None:
+        """Count the ``count`` oldest of the held samples followed by ``stamps`` as evicted."""
+        held = self.stamps
+        pushed = held[:count] if count <= held.size else np.concatenate(
+            (held, stamps[:count - held.size]))
+        newest = int(stamps[-1])
+        self.evicted_until = max(self.evicted_until, int(pushed[-1]))
+        if self.history_ns is None:
+            self.evicted += count
+        else:
+            self.evicted += count - int(np.searchsorted(pushed, newest - self.history_ns,
+                                                        side='right'))
+
+    def adopt(self, other: '_Stream') -> None:
+        """
+        Take the newest samples, counters and refusals of ``other`` (same signal, new sizes).
+
+        The samples that do not fit the capacity are pushed out oldest first, counted as
+        :meth:`_evict` counts them; a candidate run in progress is kept.
+        """
+        count = min(len(other), self.capacity)
+        self._start, self._stop = 0, count
+        self._stamps[:count] = other.stamps[len(other) - count:]
+        self._values[:count] = other.values[len(other) - count:]
+        for name in ('received', 'accepted', 'duplicates', 'late', 'non_finite', 'evicted',
+                     'out_of_clock', 'reanchors', 'evicted_until'):
+            setattr(self, name, getattr(other, name))
+        if count < len(other):
+            newest = int(other.stamps[-1])
+            pushed = other.stamps[:len(other) - count]
+            self.evicted_until = max(self.evicted_until, int(pushed[-1]))
+            self.evicted += int(pushed.size) if self.history_ns is None else int(
+                pushed.size - np.searchsorted(pushed, newest - self.history_ns, side='right'))
+        self._run = list(other._run)
+        self._run_forward = other._run_forward
+        stamps, kinds = other.events()
+        kept = min(stamps.size, self.capacity)
+        self._event_stamps[:kept] = stamps[stamps.size - kept:]
+        self._event_kinds[:kept] = kinds[kinds.size - kept:]
+        self._events = kept
 
     def events(self) -> Tuple[np.ndarray, np.ndarray]:
         """Copy the remembered refusals: the stream's clock at each (ns) and its reason code."""
@@ -712,13 +806,16 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
     values, the command changed at one of them, unknown which: each takes the expected value
     under a change equally likely at every one of them, the line from the sample before to the
     sample after (holding the one before would move every such change late, biasing the dead
-    time).
+    time), and its bounds are the two values: the session estimates it within them with the
+    model (:class:`~ctid_ros.streaming.session.IdentificationSession`), so that the guess
+    costs one sample's information instead of biasing the estimate.
 
     Returns
     -------
-    (u, valid, missing) : (ndarray, ndarray, ndarray)
-        The input at each grid instant, its validity, and whether the instant is one of the
-        input's whose own sample is missing.
+    (u, valid, missing, bounds) : (ndarray, ndarray, ndarray, (ndarray, ndarray))
+        The input at each grid instant, its validity, whether the instant is one of the
+        input's whose own sample is missing, and the lowest and highest value the input may
+        have had there (both equal to ``u`` where it is known).
 
     """
     period = plan.input_period
@@ -741,6 +838,7 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
     bridged = has_next & (held[following] - held[position] <= max_gap_ns)
     valid = known & (own | bridged | (~has_next & (grid - held[position] <= max_gap_ns)))
     u = values[chosen[position]]
+    low, high = u.copy(), u.copy()
     lost = known & ~own & bridged
     if np.any(lost):
         before, after = chosen[position[lost]], chosen[following[lost]]
@@ -749,9 +847,11 @@ def _held(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, plan: GridPl
         if u.ndim == 2:
             fraction = fraction[:, None]
         u[lost] = values[before] + fraction * (values[after] - values[before])
+        low[lost] = np.minimum(values[before], values[after])
+        high[lost] = np.maximum(values[before], values[after])
     # Instants of the input's lattice whose own sample is missing (a finer grid has others).
     instant = np.abs(position_float - wanted) < 1e-3
-    return u, valid, known & instant & ~own
+    return u, valid, known & instant & ~own, (low, high)
 
 
 def _own_samples(stamps: np.ndarray, grid: np.ndarray, plan: GridPlan) -> np.ndarray:
@@ -768,8 +868,21 @@ def _own_samples(stamps: np.ndarray, grid: np.ndarray, plan: GridPlan) -> np.nda
     every = max(1, round(plan.step / plan.output_period))
     # The grid's subdivision rather than the output's own period: the two clocks may drift.
     period = plan.step / every
-    relative = (stamps - grid[0]).astype(float) - plan.skew
-    index, assigned = assign_instants(relative / period, _early(plan, period))
+    lattice = plan.output_lattice
+    if lattice is None:
+        relative = (stamps - grid[0]).astype(float) - plan.skew
+        index, assigned = assign_instants(relative / period, _early(plan, period))
+    else:
+        # Each sample on its own lattice first (its jitter), then that instant to the nearest
+        # subdivision of the grid: the output's clock may drift against the input's.
+        own_index, assigned = assign_instants(
+            ((stamps - lattice.reference).astype(float) - lattice.origin) / lattice.period,
+            lattice.early)
+        instant = float(lattice.reference - grid[0]) + lattice.origin + \
+            own_index * lattice.period - plan.skew
+        position = instant / period
+        index = np.round(position).astype(np.int64)
+        assigned &= np.abs(position - index) < LATTICE_SLACK
     on_grid = assigned & (np.mod(index, every) == 0) & (index >= 0) & (index < every * grid.size)
     own[index[on_grid] // every] = np.flatnonzero(on_grid)
     return own
@@ -795,6 +908,14 @@ class SampleBuffer:
     inputs : int
         Values per input sample: more than one for a model with several inputs taken from one
         message (:meth:`add_input` then takes a sequence and windows have 2-D ``u``).
+    history : float, optional
+        Seconds of data the windows take (window, transient, ``max_gap``, reorder horizon): a
+        sample pushed out by the capacity counts as evicted only if it is newer than that
+        before its stream's newest stamp (older ones are normal turnover). Default: every
+        sample pushed out counts.
+    origin_ns : int, optional
+        Time origin of the times in messages (``t=...`` counts seconds from it); default 0,
+        absolute stamps (see :attr:`origin_ns`).
 
     Notes
     -----
@@ -804,7 +925,8 @@ class SampleBuffer:
     """
 
     def __init__(self, capacity: int, *, max_gap: float = 0.5, reorder_horizon: float = 0.05,
-                 names: Tuple[str, str] = (INPUT, OUTPUT), inputs: int = 1):
+                 names: Tuple[str, str] = (INPUT, OUTPUT), inputs: int = 1,
+                 history: Optional[float] = None, origin_ns: Optional[int] = None):
         capacity = operator.index(capacity)
         if capacity < 2:
             raise DataError(f'capacity must be at least 2 samples, got {capacity}')
@@ -815,10 +937,49 @@ class SampleBuffer:
             raise DataError('max_gap must be positive')
         self._horizon_ns = _to_ns(reorder_horizon, 'reorder_horizon')
         self.names = tuple(names)
+        history_ns = None if history is None else _to_ns(history, 'history')
         self._input = _Stream(self.names[0], capacity, self._horizon_ns, self._max_gap_ns,
-                              operator.index(inputs))
-        self._output = _Stream(self.names[1], capacity, self._horizon_ns, self._max_gap_ns)
+                              operator.index(inputs), history_ns)
+        self._output = _Stream(self.names[1], capacity, self._horizon_ns, self._max_gap_ns,
+                               history_ns=history_ns)
+        self._origin_ns = None if origin_ns is None else operator.index(origin_ns)
         self._lock = threading.Lock()
+
+    @property
+    def origin_ns(self) -> Optional[int]:
+        """
+        Return the time origin of messages, None for absolute stamps.
+
+        Times in error messages are ``t=`` seconds from it: a node or a replay sets it to its
+        own origin (e.g. its first sample or the bag's start), so that all its messages count
+        from one instant. It survives :meth:`clear` and :meth:`carry_over`.
+        """
+        return self._origin_ns
+
+    @origin_ns.setter
+    def origin_ns(self, value: Optional[int]) -> None:
+        self._origin_ns = None if value is None else operator.index(value)
+
+    def carry_over(self, previous: 'SampleBuffer') -> None:
+        """
+        Take the samples of ``previous`` that still fit (a window or capacity changed).
+
+        Each stream whose label and width are unchanged (same topic, field and number of
+        inputs) keeps its newest samples up to this buffer's capacity, its counters and its
+        refusals; a stream that changed starts empty. The time origin is kept either way. The
+        gap rules of this buffer apply to the windows taken from now on.
+        """
+        if previous is self:
+            return
+        with previous._lock:
+            origin = previous.origin_ns
+            with self._lock:
+                for mine, theirs in ((self._input, previous._input),
+                                     (self._output, previous._output)):
+                    if (mine.name, mine.width) == (theirs.name, theirs.width):
+                        mine.adopt(theirs)
+                if self._origin_ns is None:
+                    self._origin_ns = origin
 
     @property
     def capacity(self) -> int:
@@ -896,7 +1057,7 @@ class SampleBuffer:
             self._output.extend(stamps, values)
 
     def clear(self) -> None:
-        """Forget all samples and reset the counters (e.g. after the configuration changed)."""
+        """Forget all samples and reset the counters; the time origin is kept."""
         with self._lock:
             self._input.clear()
             self._output.clear()
@@ -937,7 +1098,8 @@ class SampleBuffer:
             return self._coverage(settled)
 
     def window(self, length: float, sample_time: float, end_ns: Optional[int] = None, *,
-               min_length: Optional[float] = None, start_ns: Optional[int] = None) -> Window:
+               min_length: Optional[float] = None, start_ns: Optional[int] = None,
+               transient: float = 0.0) -> Window:
         """
         Resample the latest ``length`` seconds onto the grid of the input's instants.
 
@@ -956,6 +1118,9 @@ class SampleBuffer:
         start_ns : int, optional
             Take every grid instant from ``start_ns`` on (whose input and output samples are
             held, up to the jitter of their stamps) instead of ``length`` seconds.
+        transient : float
+            Seconds of ``length`` that only settle the model's state before the fitted
+            window: messages then name the window as configured, ``length - transient``.
 
         Returns
         -------
@@ -987,19 +1152,22 @@ class SampleBuffer:
             su, vu = self._input.snapshot(begin - margin, end_ns + margin)
             sy, vy = self._output.snapshot(begin - margin, end_ns + margin)
             oldest = (int(self._input.stamps[0]), int(self._output.stamps[0]))
-            evicted = (self._input.evicted, self._output.evicted)
+            evicted = (self._input.evicted_until, self._output.evicted_until)
             events = (self._input.events(), self._output.events())
+            origin = self.origin_ns
         plan = plan_grid(*_recent(su, vu, begin, end_ns, self._max_gap_ns),
                          _recent(sy, vy, begin, end_ns, self._max_gap_ns)[0], step, self.names)
         if start_ns is not None:
             # The first instant whose input and output are both measured at or after start_ns.
             begin = max(begin, oldest[0], oldest[1] - round(plan.skew))
         grid, needed = _grid(plan, length, min_length, begin, end_ns, start_ns)
-        window = self._resample(su, vu, sy, vy, grid, needed, plan, oldest, evicted)
+        window = self._resample(su, vu, sy, vy, grid, needed, plan, oldest, evicted,
+                                (origin or 0, transient))
         refused = tuple(_refusals(name, *stream_events, window.start_ns, window.end_ns)
                         for name, stream_events in zip(self.names, events))
         return Window(window.data, window.requested, window.segments, window.gaps,
-                      window.start_ns, plan, refused, window.missing)
+                      window.start_ns, plan, refused, window.missing, window.unreceived,
+                      window.notes, window.input_bounds)
 
     def _silence(self) -> str:
         silent = [stream for stream in (self._input, self._output) if not len(stream)]
@@ -1016,16 +1184,16 @@ class SampleBuffer:
 
     def _resample(self, su: np.ndarray, vu: np.ndarray, sy: np.ndarray, vy: np.ndarray,
                   grid: np.ndarray, needed: int, plan: GridPlan, oldest: Tuple[int, int],
-                  evicted: Tuple[int, int]) -> Window:
+                  evicted: Tuple[int, int], frame: Tuple[int, float]) -> Window:
         gap = self._max_gap_ns
         sample_time = plan.step / NANOSECONDS
-        held = None
+        held = bounds = None
         if plan.input_period is None:
             index_u, inside_u, after_u = _bracket(su, grid, gap)
             valid_u = inside_u | (after_u & (grid - su[index_u] <= gap))
             u = vu[index_u]
         else:
-            u, valid_u, held = _held(su, vu, grid, plan, gap)
+            u, valid_u, held, bounds = _held(su, vu, grid, plan, gap)
         skew = round(plan.skew)
         index_y, inside_y, _ = _bracket(sy, grid + skew, gap)
         valid_y = inside_y
@@ -1044,7 +1212,7 @@ class SampleBuffer:
         if long_enough.size == 0:
             longest = int(np.max(stops - starts, initial=0))
             raise DataError(self._shortage(longest, needed, grid, sample_time, gaps, oldest,
-                                           evicted))
+                                           evicted, frame))
         first, stop = int(starts[long_enough[-1]]), int(stops[long_enough[-1]])
         instants = grid[first:stop] + skew
         origin = instants[0]
@@ -1058,30 +1226,49 @@ class SampleBuffer:
             missing[0] = int(np.count_nonzero(held[first:stop]))
         data = Data(u[first:stop], y, sample_time, float(seconds[first]),
                     plan.skew / NANOSECONDS)
-        return Window(data, grid.size, segments, gaps, int(grid[first]), missing=tuple(missing))
+        # Instants before both streams began are not lost data (yet to come, or never kept).
+        begun = max(oldest[0], oldest[1] - skew) + round(plan.tolerance)
+        unreceived = int(np.searchsorted(grid[:int(starts[0])], begun, side='right'))
+        notes = tuple(
+            f'{unreceived} of {grid.size} samples left out: the buffer of {self.capacity} '
+            f'samples holds {name} only since t={(since - frame[0]) / NANOSECONDS:.3f} s, '
+            f'{(since - int(grid[0])) / NANOSECONDS:.3g} s short: raise its capacity'
+            for name, since, pushed in zip(self.names, oldest, evicted)
+            if unreceived and pushed >= int(grid[0]))
+        uncertain = None
+        if bounds is not None and np.any(bounds[0][first:stop] != bounds[1][first:stop]):
+            uncertain = (bounds[0][first:stop], bounds[1][first:stop])
+        return Window(data, grid.size, segments, gaps, int(grid[first]), missing=tuple(missing),
+                      unreceived=unreceived, notes=notes, input_bounds=uncertain)
 
     def _shortage(self, longest: int, needed: int, grid: np.ndarray, sample_time: float,
-                  gaps: Tuple[Gap, ...], oldest: Tuple[int, int], evicted: Tuple[int, int]
-                  ) -> str:
-        end = float(grid[-1]) / NANOSECONDS
+                  gaps: Tuple[Gap, ...], oldest: Tuple[int, int], evicted: Tuple[int, int],
+                  frame: Tuple[int, float]) -> str:
+        origin, transient = frame
+        zero = origin / NANOSECONDS
+        end = (int(grid[-1]) - origin) / NANOSECONDS
+        span = grid.size * sample_time
+        fitted = span - transient if 0 < transient < span else span
+        extra = f' (plus {span - fitted:.6g} s settling transient)' if fitted < span else ''
         text = (f'not enough contiguous data: {longest * sample_time:.6g} s of {self.names[0]} '
-                f'and {self.names[1]} available together in the {grid.size * sample_time:.6g} s '
-                f'window ending at t={end:.3f} s, need at least {needed * sample_time:.6g} s')
+                f'and {self.names[1]} available together in the {fitted:.6g} s window{extra} '
+                f'ending at t={end:.3f} s, need at least {needed * sample_time:.6g} s')
         reasons = []
         for gap in gaps:
             if gap.end is None:
-                reasons.append(f'{gap.stream} silent since t={gap.start:.3f} s '
-                               f'({end - gap.start:.3g} s before the window end)')
+                reasons.append(f'{gap.stream} silent since t={gap.start - zero:.3f} s '
+                               f'({end + zero - gap.start:.3g} s before the window end)')
             else:
                 reasons.append(f'{gap.stream} missing for {gap.duration:.3g} s from '
-                               f't={gap.start:.3f} s (max_gap {self.max_gap:g} s)')
-        for name, first, dropped in zip(self.names, oldest, evicted):
-            if dropped and first > grid[0]:
+                               f't={gap.start - zero:.3f} s (max_gap {self.max_gap:g} s)')
+        for name, first, pushed in zip(self.names, oldest, evicted):
+            since = (first - origin) / NANOSECONDS
+            if pushed >= grid[0] and first > grid[0]:
                 reasons.append(f'the buffer of {self.capacity} samples holds {name} only since '
-                               f't={first / NANOSECONDS:.3f} s: raise its capacity')
+                               f't={since:.3f} s: raise its capacity')
             elif first > grid[0]:
-                reasons.append(f'{name} starts at t={first / NANOSECONDS:.3f} s: wait for more '
-                               'data or shorten the window')
+                reasons.append(f'{name} starts at t={since:.3f} s: wait for more data or '
+                               'shorten the window')
         return text + ('; ' + '; '.join(reasons) if reasons else '')
 
 

@@ -50,7 +50,7 @@ __all__ = [
     'ALARM', 'DEFAULT_NODE_NAME', 'DIAGNOSTIC_ARRAY', 'DIAGNOSTIC_STATUS', 'DIAGNOSTICS_TOPIC',
     'ERROR', 'ESTIMATE', 'LEVELS', 'alarm_message',
     'ESTIMATE_COVARIANCE', 'ESTIMATE_STD', 'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'LATCHED',
-    'NANOSECONDS', 'NodeTopics', 'OK', 'OutputMessage', 'PARAMS', 'PREDICTION',
+    'NANOSECONDS', 'NodeTopics', 'count_change', 'OK', 'OutputMessage', 'PARAMS', 'PREDICTION',
     'PREDICTION_LABEL', 'PublisherQos', 'STREAM', 'WARN', 'diagnostics_message',
     'estimate_line', 'estimate_messages', 'estimate_summary', 'failure_status',
     'format_diagnostic', 'matrix_multiarray', 'multiarray', 'resolve_topic', 'time_fields',
@@ -336,6 +336,23 @@ def estimate_messages(topics: NodeTopics, names: Sequence[str], values: Sequence
         messages.append(OutputMessage(topics.prediction, FLOAT64_MULTI_ARRAY,
                                       multiarray(PREDICTION_LABEL, prediction)))
     return messages
+
+
+def count_change(value: Any) -> int:
+    """
+    Return a middleware counter's increment as a non-negative Python int.
+
+    rmw reports counts such as ``total_count_change`` of a lost-message event as ``size_t``;
+    a negative change read through it (seen after a message of 1e7 elements) arrives as a
+    number near ``2**64`` and made ``input_lost`` read 18446744071562067969. Values from
+    ``2**63`` on are such wrapped negatives and count as 0, as does anything negative or not an
+    integer; the sum of the returned increments can then only grow, by what really happened.
+    """
+    try:
+        change = int(value)
+    except (TypeError, ValueError, OverflowError):
+        return 0
+    return change if 0 <= change < 2 ** 63 else 0
 
 
 def format_diagnostic(value: Any) -> str:

@@ -203,7 +203,10 @@ def _named_index(path: FieldPath, depth: int, parent, key: Key) -> int:
         raise ConfigError(f'field {path}: selecting [{key}] by name needs a list of names '
                           f'({" or ".join(NAME_FIELDS)}) next to {where}; '
                           f'{_describe(parent)}')
-    names = list(getattr(parent, field))
+    names = getattr(parent, field)
+    # A list or tuple is searched in place: a message of millions of joints is not copied.
+    if not isinstance(names, (list, tuple)):
+        names = list(names)
     try:
         return names.index(key.name)
     except ValueError:

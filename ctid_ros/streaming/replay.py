@@ -124,7 +124,8 @@ class SampleColumns:
 def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig, *,
                    sliding: bool = False, topics: Optional[Tuple[str, str]] = None,
                    capacity: Optional[int] = None,
-                   detector: Optional[ChangeDetector] = None) -> Replay:
+                   detector: Optional[ChangeDetector] = None,
+                   origin_ns: Optional[int] = None) -> Replay:
     """
     Replay blocks of samples as :func:`replay_messages` replays the messages they came from.
 
@@ -139,7 +140,7 @@ def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
         return _columns_sliding(blocks, config, sampler, capacity,
-                                detector or _detector(config))
+                                detector or _detector(config), origin_ns)
     return _columns_span(blocks, config, sampler)
 
 
@@ -172,7 +173,8 @@ def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
 
 
 def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConfig,
-                     sampler: MessageSampler, capacity: int, detector: ChangeDetector) -> Replay:
+                     sampler: MessageSampler, capacity: int, detector: ChangeDetector,
+                     origin_ns: Optional[int]) -> Replay:
     buffer = sampler.buffer(capacity, config)
     ticks = _Ticks(config, buffer, detector)
     period_ns = round(config.update_period * NANOSECONDS)
@@ -196,6 +198,7 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
         if tick is None:
             tick = int(times[0]) + period_ns
             newest = int(times[0])
+            buffer.origin_ns = int(times[0]) if origin_ns is None else origin_ns
         # A tick fires before the first message logged after it (replay_messages' rule): the
         # messages up to there are those whose running newest log time is not after it.
         reached = np.maximum.accumulate(np.maximum(times, newest))
@@ -244,7 +247,8 @@ class _Ticks:
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,
                     sliding: bool = False, topics: Optional[Tuple[str, str]] = None,
                     capacity: Optional[int] = None,
-                    detector: Optional[ChangeDetector] = None) -> Replay:
+                    detector: Optional[ChangeDetector] = None,
+                    origin_ns: Optional[int] = None) -> Replay:
     """
     Feed recorded messages through the live node's buffer and estimation session.
 
@@ -272,6 +276,10 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         Sliding mode: the change alarm fed every update (:attr:`Replay.alarms`); default one
         for ``config`` with its configured baseline
         (:func:`~ctid_ros.streaming.baseline.configured_baseline`).
+    origin_ns : int, optional
+        Sliding mode: the time origin of the skipped ticks' reasons (``t=`` seconds from it),
+        e.g. the bag's start, as the caller's own messages use; default the log time of the
+        first message on the two topics.
 
     Returns
     -------
@@ -295,7 +303,7 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
         return _replay_sliding(messages, config, sampler, capacity,
-                               detector or _detector(config))
+                               detector or _detector(config), origin_ns)
     return _replay_span(messages, config, sampler)
 
 
@@ -338,7 +346,8 @@ def _require_samples(streams: Sequence[Tuple[array, array]], names: Sequence[str
 
 
 def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig,
-                    sampler: MessageSampler, capacity: int, detector: ChangeDetector) -> Replay:
+                    sampler: MessageSampler, capacity: int, detector: ChangeDetector,
+                    origin_ns: Optional[int]) -> Replay:
     buffer = sampler.buffer(capacity, config)
     ticks = _Ticks(config, buffer, detector)
     period_ns = round(config.update_period * NANOSECONDS)
@@ -347,6 +356,7 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         if tick is None:
             tick = log_time_ns + period_ns
+            buffer.origin_ns = log_time_ns if origin_ns is None else origin_ns
         while tick < log_time_ns:
             ticks.fire(tick)
             tick += period_ns

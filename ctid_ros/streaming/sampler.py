@@ -65,7 +65,15 @@ class Sample:
             raise self.errors[0][1]
 
     def add_to(self, buffer: SampleBuffer) -> None:
-        """Append the samples to ``buffer``, input and output atomically when both are set."""
+        """
+        Append the samples to ``buffer``, input and output atomically when both are set.
+
+        The first sample given to a buffer without a time origin becomes its origin
+        (:attr:`SampleBuffer.origin_ns`), as it is the live node's: its messages then count
+        seconds from the first sample, like the node's own.
+        """
+        if buffer.origin_ns is None and (self.u is not None or self.y is not None):
+            buffer.origin_ns = self.stamp_ns
         if self.u is not None and self.y is not None:
             buffer.add_pair(self.stamp_ns, self.u, self.y)
         elif self.u is not None:
@@ -104,11 +112,24 @@ class MessageSampler:
         """Return which roles ``topic`` carries: ``input``, ``output``, both or none."""
         return tuple(role for role, wanted in zip(ROLES, self.topics) if topic == wanted)
 
-    def buffer(self, capacity: int, config: IdentificationConfig) -> SampleBuffer:
-        """Return an empty buffer for these streams, with the gap rules of ``config``."""
-        return SampleBuffer(capacity, max_gap=config.max_gap,
-                            reorder_horizon=config.reorder_horizon, names=self.names,
-                            inputs=self._inputs)
+    def buffer(self, capacity: int, config: IdentificationConfig,
+               previous: Optional[SampleBuffer] = None) -> SampleBuffer:
+        """
+        Return a buffer for these streams, with the gap rules of ``config``.
+
+        It is empty, or holds the samples of ``previous`` that still fit, for each stream
+        whose topic and fields are unchanged (:meth:`SampleBuffer.carry_over`): a runtime
+        change of the window keeps the data already received. Samples pushed out count as
+        evicted only if a window of ``config`` would still have used them.
+        """
+        buffer = SampleBuffer(capacity, max_gap=config.max_gap,
+                              reorder_horizon=config.reorder_horizon, names=self.names,
+                              inputs=self._inputs,
+                              history=config.history_span + config.max_gap +
+                              config.reorder_horizon)
+        if previous is not None:
+            buffer.carry_over(previous)
+        return buffer
 
     def __call__(self, topic: str, receive_ns: int, msg: Any) -> Sample:
         """

@@ -10,10 +10,13 @@ the predicted output. Because both front ends go through this one class, the rep
 gives the same numbers as the live node fed the same samples.
 """
 
+import dataclasses
 from dataclasses import dataclass
 import time
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+from ctid_ros.core.data import Data
+from ctid_ros.errors import EstimationError
 from ctid_ros.estimation.estimate import Estimate, estimate
 from ctid_ros.estimation.problem import settling_time
 from ctid_ros.streaming.buffer import SampleBuffer, Window
@@ -21,7 +24,18 @@ from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-__all__ = ['IdentificationSession', 'Update', 'buffer_capacity', 'history_span']
+__all__ = ['IdentificationSession', 'MAX_UNCERTAIN_INPUTS', 'REFINEMENTS', 'SETTLED_INPUT',
+           'Update', 'buffer_capacity', 'history_span', 'lost_input_covariance',
+           'refine_lost_inputs']
+
+# Input instants estimated at most per window (each is one unknown more; beyond that many
+# dropped messages at changes the midpoints stay, and the window's warning says so).
+MAX_UNCERTAIN_INPUTS = 64
+# Estimates on a completed input at most (each step of the input values is a Gauss-Newton
+# step of parameters and values together); another one only if a value still moved by more
+# than SETTLED_INPUT of its range.
+REFINEMENTS = 3
+SETTLED_INPUT = 0.02
 
 
 @dataclass(frozen=True)
@@ -128,6 +142,148 @@ def buffer_capacity(config: IdentificationConfig, rate_hz: float) -> int:
     return config.buffer_capacity(rate_hz)
 
 
+def _uncertain_entries(window: Window) -> List[Tuple[int, int]]:
+    """Return ``(instant, channel)`` of every input value known only within bounds."""
+    instants = window.uncertain_inputs
+    if window.input_bounds is None or not 0 < instants.size <= MAX_UNCERTAIN_INPUTS:
+        return []
+    low, high = (bound.reshape(len(window.data), -1) for bound in window.input_bounds)
+    return [(int(k), channel) for k in instants for channel in range(low.shape[1])
+            if low[k, channel] != high[k, channel]]
+
+
+def _skipped(transient: Any, data: Data) -> int:
+    """Return the samples at the start of ``data`` that the estimate did not fit."""
+    if isinstance(transient, (int, float)) and transient > 0:
+        return min(round(transient / data.ts), len(data) - 1)
+    return 0
+
+
+def _lost_input_design(result: Estimate, data: Data, entries: Sequence[Tuple[int, int]]
+                       ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the output's sensitivities to the uncertain input values and to the parameters.
+
+    The model is linear in its input: the response to a unit pulse at instant ``k`` is the
+    response to one at the first instant, shifted by ``k``. The parameters' sensitivities are
+    forward differences, in ``result.model.parameters`` order.
+    """
+    u = np.asarray(data.u, dtype=float)
+    responses = {}
+    for channel in {channel for _, channel in entries}:
+        pulse = np.zeros_like(u)
+        if u.ndim == 2:
+            pulse[0, channel] = 1.0
+        else:
+            pulse[0] = 1.0
+        responses[channel] = result.model.simulate(
+            result.params, pulse, data.ts, intersample=result.intersample,
+            output_skew=data.output_skew)
+    inputs = np.zeros((len(data), len(entries)))
+    for column, (k, channel) in enumerate(entries):
+        inputs[k:, column] = responses[channel][:len(data) - k]
+    simulated = result.simulate(data)
+    parameters = np.zeros((len(data), len(result.model.parameters)))
+    for column, name in enumerate(result.model.parameters):
+        value = result.params[name]
+        step = 1e-6 * max(abs(value), 1e-3)
+        moved = result.model.simulate({**result.params, name: value + step}, data.u, data.ts,
+                                      intersample=result.intersample,
+                                      output_skew=data.output_skew)
+        parameters[:, column] = (moved - simulated) / step
+    return inputs, parameters
+
+
+def refine_lost_inputs(result: Estimate, window: Window, transient: Any = 0.0
+                       ) -> Optional[Data]:
+    """
+    Estimate the input at instants whose message was lost while the input changed.
+
+    A dropped message at a step of a command leaves the instant between the value before
+    and the value after, unknown which (the buffer puts the midpoint there and gives the two
+    values as :attr:`~ctid_ros.streaming.buffer.Window.input_bounds`). Any fixed guess biases
+    the estimate when the change was at that very instant. The model is linear in its input,
+    so near ``result`` the output error is linear in those few values and in the parameters:
+    one Gauss-Newton step of both, the values kept within their bounds. The refit on the
+    completed input then loses one sample's information per such instant, no more (see
+    :func:`lost_input_covariance` for its standard deviations).
+
+    Parameters
+    ----------
+    result : Estimate
+        The estimate on ``window.data``.
+    window : Window
+        The window, with its :attr:`~ctid_ros.streaming.buffer.Window.input_bounds`.
+    transient : float or str
+        The estimate's transient: seconds at the start that are not fitted ('auto': none).
+
+    Returns
+    -------
+    Data or None
+        The window's data with the estimated input values, or None if there is nothing to
+        estimate (no such instant, more than :data:`MAX_UNCERTAIN_INPUTS`, a failed fit) or
+        no value moved by more than :data:`SETTLED_INPUT` of its range.
+
+    """
+    entries = _uncertain_entries(window)
+    if not entries:
+        return None
+    data = window.data
+    skip = _skipped(transient, data)
+    inputs, parameters = _lost_input_design(result, data, entries)
+    residual = data.y - result.predict(data)
+    design = np.hstack((inputs, parameters))[skip:]
+    if not (np.all(np.isfinite(design)) and np.all(np.isfinite(residual))):
+        return None
+    change = np.linalg.lstsq(design, residual[skip:], rcond=None)[0][:len(entries)]
+    low, high = (bound.reshape(len(data), -1) for bound in window.input_bounds)
+    u = np.array(data.u, dtype=float).reshape(len(data), -1)
+    settled = True
+    for (k, channel), delta in zip(entries, change):
+        value = min(max(u[k, channel] + delta, low[k, channel]), high[k, channel])
+        settled &= abs(value - u[k, channel]) <= SETTLED_INPUT * (high[k, channel] -
+                                                                  low[k, channel])
+        u[k, channel] = value
+    if settled:
+        return None
+    return Data(u if np.ndim(data.u) > 1 else u[:, 0], data.y, data.ts, data.t0,
+                data.output_skew)
+
+
+def lost_input_covariance(result: Estimate, window: Window, transient: Any = 0.0
+                          ) -> np.ndarray:
+    """
+    Return the parameter covariance of ``result`` with the uncertain input values as unknowns.
+
+    The estimate treats the input values of :func:`refine_lost_inputs` as known; they were
+    fitted from the same data, so the parameters' covariance grows by what fitting them costs:
+    ``s2 ((J' P J)^-1 - (J' J)^-1)`` over the free parameters, with ``J`` the parameters'
+    sensitivities, ``P`` the projection away from the sensitivities to those values and
+    ``s2`` the residual variance. ``result.covariance`` unchanged if there is none.
+    """
+    covariance = np.array(result.covariance, dtype=float)
+    entries = _uncertain_entries(window)
+    if not entries:
+        return covariance
+    data = window.data
+    skip = _skipped(transient, data)
+    inputs, parameters = _lost_input_design(result, data, entries)
+    free = np.isfinite(np.diag(covariance)) & (np.diag(covariance) > 0)
+    inputs, parameters = inputs[skip:], parameters[skip:, free]
+    if not (free.any() and np.all(np.isfinite(inputs)) and np.all(np.isfinite(parameters))):
+        return covariance
+    basis = np.linalg.qr(inputs)[0]
+    projected = parameters - basis @ (basis.T @ parameters)
+    try:
+        growth = np.linalg.inv(projected.T @ projected) - \
+            np.linalg.inv(parameters.T @ parameters)
+    except np.linalg.LinAlgError:
+        return covariance
+    index = np.ix_(free, free)
+    covariance[index] = covariance[index] + result.noise_variance * growth
+    return covariance
+
+
 class IdentificationSession:
     """
     Estimate a configured model on successive windows, warm-starting each from the last.
@@ -189,8 +345,9 @@ class IdentificationSession:
 
         """
         config = self._config
-        return buffer.window(self.window_length(), config.sample_time, end_ns,
-                             min_length=0.5 * config.window)
+        length = self.window_length()
+        return buffer.window(length, config.sample_time, end_ns,
+                             min_length=0.5 * config.window, transient=length - config.window)
 
     def update(self, window: Window) -> Update:
         """
@@ -214,19 +371,42 @@ class IdentificationSession:
             # otherwise be fitted from an unsettled state). Without a previous estimate the
             # estimator's 'auto' transient settles the starting model instead.
             options['transient'] = max(record - config.window, self._settling)
+        uncertain = window.uncertain_inputs.size
+        if uncertain > MAX_UNCERTAIN_INPUTS:
+            window = dataclasses.replace(window, notes=window.notes + (
+                f'{uncertain} input instants lost their messages while the input changed, '
+                f'more than the {MAX_UNCERTAIN_INPUTS} estimated with the model: they keep the '
+                'midpoint of their neighbours, which may bias the estimate',))
         started = time.perf_counter()
         result = estimate(config.compiled_model, window.data, **options)
+        for _ in range(REFINEMENTS):
+            refined = refine_lost_inputs(result, window, options.get('transient', 0.0))
+            if refined is None:
+                break
+            # One more estimate, from the last one, on the input completed by it; if that
+            # fails, the last one stands.
+            try:
+                result = estimate(config.compiled_model, refined,
+                                  **{**options, 'initial': dict(result.params)})
+            except EstimationError:
+                break
+            window = dataclasses.replace(window, data=refined)
+        # The input values fitted above are unknowns too: their cost in the parameters' spread.
+        covariance = lost_input_covariance(result, window, options.get('transient', 0.0))
         elapsed = time.perf_counter() - started
         self._previous = dict(result.params)
         self._settling = settling_time(result.model.coefficients(result.params))
         order = [result.model.parameters[index] for index in config.model_index]
         index = np.asarray(config.model_index, dtype=int)
+        stds = np.array([result.std[name] for name in result.model.parameters], dtype=float)
+        before = np.diag(np.asarray(result.covariance, dtype=float))
+        with np.errstate(divide='ignore', invalid='ignore'):
+            grown = np.sqrt(np.diag(covariance) / before)
+        stds = np.where(np.isfinite(grown) & (grown > 1.0), stds * grown, stds)
         data = window.data
         return Update(
             end_ns=window.end_ns, start_ns=window.start_ns,
             names=config.names,
             values=np.array([result.params[name] for name in order]),
-            stds=np.array([result.std[name] for name in order]),
-            prediction=result.simulate(data), result=result, window=window,
-            compute_time=elapsed,
-            covariance=np.asarray(result.covariance, dtype=float)[np.ix_(index, index)])
+            stds=stds[index], prediction=result.simulate(data), result=result, window=window,
+            compute_time=elapsed, covariance=covariance[np.ix_(index, index)])

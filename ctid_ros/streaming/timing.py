@@ -302,6 +302,11 @@ class GridPlan:
         What a user should know (the dead time or the standard deviations may suffer).
     description : str
         How the grid was chosen, for the diagnostics.
+    output_lattice : Lattice or None
+        The output's own lattice when its own samples are taken: each sample belongs to the
+        grid instant nearest its lattice instant minus ``skew``, so that a clock drifting
+        against the input's (a command stamped by a free-running timer) moves no sample to
+        another instant.
 
     """
 
@@ -315,6 +320,7 @@ class GridPlan:
     tolerance: float
     warnings: Tuple[str, ...]
     description: str
+    output_lattice: Optional[Lattice] = None
 
     def instants(self, first: int, count: int) -> np.ndarray:
         """Return ``count`` successive grid instants, integer ns, from index ``first`` on."""
@@ -486,4 +492,4 @@ def _with_output(plan: GridPlan, output: Optional[Lattice], stamps: np.ndarray, 
     return GridPlan(plan.reference, plan.origin, plan.step, plan.follows_input,
                     plan.input_period, skew, output.period, tolerance, tuple(warnings),
                     description + f'; {name} at its own samples, {_seconds(skew)} after the '
-                    'grid instants')
+                    'grid instants', output)

@@ -1,12 +1,16 @@
 """Equation-error starts and the warm-start check (docs/algorithm.md sections 10 and 11)."""
 
+import gc
+import weakref
+
 from ctid_ros import Data, EstimationError, Model, ModelError
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.iteration import StopReason
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
-from ctid_ros.estimation.starts import (best_candidate, complete_guess, distinct,
-                                        explains_data, filter_bandwidths, initial_estimate,
+from ctid_ros.estimation.starts import (best_candidate, complete_guess, default_filters,
+                                        distinct, explains_data, filter_bandwidths,
+                                        FILTER_COUNT, initial_estimate,
                                         local_fit, resembles_output, stabilized,
                                         StateVariableFilters)
 import numpy as np
@@ -169,3 +173,19 @@ def test_an_unstable_fit_is_mirrored_into_a_stable_start():
     assert problem.admissible(mirrored) is not None
     # The numerator is untouched.
     assert mirrored[0] == 1.0 and mirrored[1] == 2.0
+
+
+def test_the_cached_default_filters_let_their_problem_be_collected():
+    # The cache is keyed weakly by the problem; a value that referred to its problem kept
+    # every window's problem (and its data) alive in a live run (issue 25).
+    system = systems.mass_spring_damper()
+    problem = problem_for(system.model, Data(system.u, system.noise_free(), system.ts))
+    filters = default_filters(problem)
+    assert default_filters(problem) is filters and filters.count == FILTER_COUNT
+    factors = filters.factors(0.0)
+    alive = weakref.ref(problem)
+    del problem
+    gc.collect()
+    assert alive() is None
+    # The filters taken out still work without the problem.
+    np.testing.assert_array_equal(filters.factors(0.0)[0], factors[0])

@@ -2,6 +2,7 @@
 
 from dataclasses import dataclass, field
 import math
+import tracemalloc
 from typing import ClassVar, List
 
 from ctid_ros.errors import ConfigError
@@ -273,3 +274,20 @@ def test_has_header_stamp():
     assert has_header_stamp(joint_state([0.0], [0.0]))
     assert has_header_stamp(bag_joint_state([0.0], [0.0]))
     assert not has_header_stamp(Float64(data=1.0))
+
+
+def test_a_huge_message_is_read_without_copying_its_arrays():
+    # A JointState of a million joints: the named element is found in place (issue 25: one
+    # 1e7-element message raised the node's memory for good).
+    count = 1_000_000
+    names = [f'j{index}' for index in range(count)]
+    message = JointState(name=names, position=np.arange(count, dtype=float))
+    tracemalloc.start()
+    try:
+        value = extract(message, 'position[j999998]')
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert value == 999_998.0
+    # A copy of the name list alone would take 8 MB.
+    assert peak < 1_000_000, peak
