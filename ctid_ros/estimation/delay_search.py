@@ -12,7 +12,8 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
-from ctid_ros.estimation.iteration import iterate, Iteration, IterationResult
+from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
+                                           Opening)
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
@@ -34,6 +35,8 @@ _PROBE_OFFSETS = (-1.0, 1.0)
 _COLLAPSED = 10.0
 # Shares of the dead time given to a lag that collapsed onto its limit.
 _LAG_SHARES = (0.5, 0.25, 0.75)
+# Joint refinement of every candidate: IV projections from a start refined already.
+_JOINT = IterationPolicy(max_iterations=_JOINT_ITERATIONS, opening=Opening.PROJECTION)
 
 
 @dataclass
@@ -167,6 +170,8 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         return DelaySearch(start)
     # With tau frozen an affine structure is nearly solved by the first (LS) projection step.
     frozen_iterations = 2 if problem.model.is_affine else 3
+    profiled_policy = IterationPolicy(max_iterations=frozen_iterations,
+                                      opening=Opening.TRUSTED_LEAST_SQUARES)
     best, history, margin = None, [], np.inf
     for state in _local_minima(profile):
         # Refinement lowered the best minimum's cost by some amount; a minimum whose profile
@@ -174,15 +179,12 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         if best is not None and state.cost - _REFINEMENT_MARGIN * margin > best.cost:
             continue
         profiled = state.cost
-        state = iterate(problem, state, method='iv', frozen=frozen,
-                        max_iterations=frozen_iterations, tolerance=1e-6,
-                        trust_first_ls=True).state
-        joint = iterate(problem, state, method='iv', frozen=fixed,
-                        max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+        state = iterate(problem, state, profiled_policy, frozen).state
+        joint = iterate(problem, state, _JOINT, fixed)
         if best is None or joint.state.cost < best.cost:
             best, history, margin = joint.state, joint.history, profiled - joint.state.cost
     best, history = _probe_neighbours(problem, best, history, delay_index, profile, frozen,
-                                      fixed, frozen_iterations)
+                                      fixed, profiled_policy)
     best, history = _lag_for_delay(problem, best, history, delay_index, low, fixed)
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
 
@@ -215,8 +217,7 @@ def across_the_sample(problem: Problem, best: State, delay_index: int,
     admissible = problem.admissible(theta)
     if admissible is None:
         return None
-    joint = iterate(problem, problem.state(theta, admissible), method='iv', frozen=fixed,
-                    max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+    joint = iterate(problem, problem.state(theta, admissible), _JOINT, fixed)
     return joint if joint.state.cost < best.cost else None
 
 
@@ -246,9 +247,7 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
             coefficients = problem.admissible(theta)
             if coefficients is None:
                 continue
-            joint = iterate(problem, problem.state(theta, coefficients), method='iv',
-                            frozen=fixed, max_iterations=_JOINT_ITERATIONS, tolerance=1e-6,
-                            first_ls=False)
+            joint = iterate(problem, problem.state(theta, coefficients), _JOINT, fixed)
             if joint.state.cost < best.cost:
                 best, history = joint.state, joint.history
     return best, history
@@ -256,7 +255,8 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
 
 def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,
                       profile: List[Tuple[float, float, State]], frozen: np.ndarray,
-                      fixed: np.ndarray, iterations: int) -> Tuple[State, List[Iteration]]:
+                      fixed: np.ndarray, profiled_policy: IterationPolicy
+                      ) -> Tuple[State, List[Iteration]]:
     """
     Refine the profile's fits one sample either side of the best dead time too.
 
@@ -274,12 +274,10 @@ def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], d
         if abs(taus[index] - (centre + offset * ts)) > 0.5 * ts or index in tried:
             continue
         tried.add(index)
-        probe = iterate(problem, profile[index][2], method='iv', frozen=frozen,
-                        max_iterations=iterations, tolerance=1e-6, trust_first_ls=True).state
+        probe = iterate(problem, profile[index][2], profiled_policy, frozen).state
         if probe.cost >= best.cost:
             continue
-        joint = iterate(problem, probe, method='iv', frozen=fixed,
-                        max_iterations=_JOINT_ITERATIONS, tolerance=1e-6, first_ls=False)
+        joint = iterate(problem, probe, _JOINT, fixed)
         if joint.state.cost < best.cost:
             best, history = joint.state, joint.history
     return best, history
