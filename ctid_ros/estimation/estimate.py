@@ -47,7 +47,8 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
                                          settling_time, State, with_fitted_nuisance)
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
-from ctid_ros.estimation.stages import (automatic_start, final_iteration, look_elsewhere,
+from ctid_ros.estimation.stages import (against_the_data_guess, automatic_start,
+                                        final_iteration, look_elsewhere,
                                         other_side_of_the_sample, symmetry_restarts,
                                         warm_start)
 from ctid_ros.estimation.starts import Initial
@@ -393,6 +394,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         # A complete guess (a warm start) first: if its model leaves nothing correlated with
         # the input, there is nothing for the automatic start and search to find.
         start = warm_start(problem, initial, transient, method, delay_index, delay_range)
+        if start is not None and method != 'ls':
+            start = against_the_data_guess(problem, start, delay_range)
         if start is None:
             start = automatic_start(problem, initial, transient, delay_index, delay_range)
         fit = final_iteration(problem, start, policy)

@@ -82,7 +82,12 @@ class Sensitivities:
         if self._latest is None or self._latest[0] is not state:
             problem = self._problem
             free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
-            psi = problem.linearize(state.coefficients, regressors=False).psi[:, free]
+            lin = problem.linearize(state.coefficients, regressors=False)
+            # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
+            # sensitivities differ; their mean stands for both (one side alone can be zero
+            # where a lag far below the sample time leaves the output a shifted input).
+            psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
+            psi = psi[:, free]
             norms = np.linalg.norm(psi, axis=0)
             svd = None if np.any(norms == 0.0) else \
                 np.linalg.svd(psi / norms, full_matrices=False)
@@ -141,6 +146,12 @@ def structurally_blind(model, theta: np.ndarray, rng: np.random.Generator) -> bo
     model must change. Where the data alone cannot (time constants that coincide, lags far
     below the sample time acting as dead time, a poorly exciting input) the estimate is
     returned with the weakly determined combination in its warnings instead.
+
+    The rank is judged on the Jacobian with its rows (parameters) and columns (coefficients)
+    scaled to unit norm (:func:`_equilibrated`): neither units nor the size of a value may
+    make a parameter look blind. Scaled by the parameters' values instead, a dead time at 0
+    or a lag far below the sample time (coefficients 1e-8 beside 1) read as blind, and a
+    merely symmetric start (``T1 = T2`` at 1e-4 s) was refused as structurally blind.
     """
     points = [theta] + [theta * (1.0 + 0.1 * rng.standard_normal(theta.size))
                         for _ in range(2)]
@@ -159,10 +170,16 @@ def structurally_blind(model, theta: np.ndarray, rng: np.random.Generator) -> bo
             coefficients.den_jacobian[:, 1:] / lead,
             coefficients.delay_gradient[:, None]])
         jacobian[:, :values.size] -= np.outer(lead_gradient, values) / lead
-        # Rows: parameters; scaled by their size, so units do not matter.
-        scaled = jacobian * np.maximum(np.abs(point), 1e-12)[:, None]
-        singular = np.linalg.svd(scaled, compute_uv=False)
+        singular = np.linalg.svd(_equilibrated(jacobian), compute_uv=False)
         if singular.size and singular[-1] > 1e-9 * singular[0] and \
                 singular.size >= point.size:
             return False
     return True
+
+
+def _equilibrated(matrix: np.ndarray) -> np.ndarray:
+    """Return ``matrix`` with its nonzero rows, then its nonzero columns, scaled to unit norm."""
+    rows = np.linalg.norm(matrix, axis=1)
+    matrix = matrix / np.where(rows > 0.0, rows, 1.0)[:, None]
+    columns = np.linalg.norm(matrix, axis=0)
+    return matrix[:, columns > 0.0] / columns[columns > 0.0]
