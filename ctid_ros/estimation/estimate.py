@@ -34,11 +34,12 @@ import warnings
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.errors import DataError, EstimationError, ModelError
-from ctid_ros.estimation.delay_search import across_the_sample, delay_search
+from ctid_ros.errors import DataError, EstimationError
+from ctid_ros.estimation.identifiability import (blind_combination, BlindCombination,
+                                                 Sensitivities, structurally_blind)
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
-from ctid_ros.estimation.iteration import (column_scales, free_parameters, iterate, Iteration,
-                                           IterationResult, on_bounds, StopReason)
+from ctid_ros.estimation.iteration import (column_scales, Iteration, IterationPolicy,
+                                           IterationResult, on_bounds, Opening)
 from ctid_ros.estimation.noise import coloured_covariance, measured_every, NoiseModel
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
@@ -46,9 +47,11 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
                                          settling_time, State, with_fitted_nuisance)
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
-from ctid_ros.estimation.starts import (complete_guess, explains_data, Initial,
-                                        initial_estimate, local_fit, random_starts,
-                                        resembles_output)
+from ctid_ros.estimation.stages import (against_the_data_guess, automatic_start,
+                                        final_iteration, look_elsewhere,
+                                        other_side_of_the_sample, symmetry_restarts,
+                                        warm_start)
+from ctid_ros.estimation.starts import Initial
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -57,29 +60,11 @@ __all__ = [
     'covariance', 'estimate', 'fit_percent',
 ]
 
-_IDENTIFIABILITY_LIMIT = 1e10
 # Above this condition number of the scaled sensitivities a combination is reported as weak.
 ILL_CONDITIONED = 1e3
 # Below this fit (%) the estimate carries a warning that the model explains almost nothing.
 LOW_FIT = 10.0
 _MAX_RESIDUAL_LAGS = 200
-_SYMMETRY_RESTARTS = 3
-# Random perturbations tried at a point where symmetric parameters coincide.
-_NUDGES = 14
-# Full steps from a complete guess before its residual is tested. Fewer leave more good guesses
-# unconverged, which then pay for the automatic start and search; more only delay the search
-# for a guess that cannot explain the data.
-_WARM_START_ITERATIONS = 6
-# Updates of the local optimisation from a complete guess that the full steps left unconverged
-# (least_squares LM needs 8-15 Jacobians from such starts).
-_WARM_START_BUDGET = 15
-# The local optimisation gives up when its cost fell by less than this share over two updates
-# far from a minimum.
-_WARM_START_PROGRESS = 0.01
-# Iterations that fit a nested structure without a dead time to search.
-_NESTED_ITERATIONS = 10
-# Output-error updates from each random draw when the residual says the model misses dynamics.
-_ELSEWHERE_ITERATIONS = 20
 
 
 @dataclass
@@ -244,118 +229,6 @@ def _check_excitation(model: Model, data: Data) -> None:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
 
 
-class _Sensitivities:
-    """
-    The sensitivities of the free parameters at the latest state asked for, and their SVD.
-
-    The identifiability check and the covariance of one estimate use the same column-scaled
-    sensitivities: one decomposition serves both.
-    """
-
-    def __init__(self, problem: Problem):
-        self._problem = problem
-        self._latest: Optional[Tuple[State, tuple]] = None
-
-    def at(self, state: State) -> Tuple[np.ndarray, np.ndarray, np.ndarray, Optional[tuple]]:
-        """
-        Return ``free``, ``psi[:, free]``, its column norms and the SVD of ``psi / norms``.
-
-        ``free`` are the parameters not held at a bound (:func:`free_parameters`); the SVD is
-        None if a column is zero.
-        """
-        if self._latest is None or self._latest[0] is not state:
-            problem = self._problem
-            free = free_parameters(problem, state, np.zeros(state.theta.size, dtype=bool))
-            psi = problem.linearize(state.coefficients, regressors=False).psi[:, free]
-            norms = np.linalg.norm(psi, axis=0)
-            svd = None if np.any(norms == 0.0) else \
-                np.linalg.svd(psi / norms, full_matrices=False)
-            self._latest = (state, (free, psi, norms, svd))
-        return self._latest[1]
-
-
-def _blind_combination(problem: Problem, state: State,
-                       sensitivities: Optional[_Sensitivities] = None) -> Optional[str]:
-    """
-    Explain why the output is (almost) blind to a parameter combination, or None.
-
-    Parameters held at a bound are left out.
-    """
-    free, psi, norms, svd = (sensitivities or _Sensitivities(problem)).at(state)
-    if not np.any(free):
-        return None
-    names = [name for name, keep in zip(problem.model.parameters, free) if keep]
-    if svd is None:
-        dead = ', '.join(names[i] for i in np.flatnonzero(norms == 0.0))
-        delay_index = delay_parameter(problem.model)
-        record = problem.data.ts * len(problem.data)
-        if np.all(norms == 0.0) and delay_index is not None and \
-                state.theta[delay_index] >= 0.5 * record:
-            return (f'the output does not depend on {dead} on these data: the dead time went '
-                    f'to {state.theta[delay_index]:.4g} s, where the model output is zero over '
-                    f'the {record:.4g} s record (the fit never found the input in the output). '
-                    'A dead time beyond half the record is not searched: record longer, check '
-                    'that input and output are the right signals, or bound the dead time')
-        return f'the output does not depend on {dead} on these data: the input does not excite it'
-    singular, vectors = svd[1:]
-    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
-    if condition <= _IDENTIFIABILITY_LIMIT:
-        return None
-    names = [f'{weight:+.2f}*{name}' for weight, name in zip(vectors[-1], names)
-             if abs(weight) > 0.1]
-    return ('the parameters are not identifiable from these data: the combination '
-            f'{" ".join(names)} has (almost) no effect on the output (condition number '
-            f'{condition:.1e}); fix one of them, reparameterise the model or use a richer input')
-
-
-def _structurally_blind(model, theta: np.ndarray, rng: np.random.Generator) -> bool:
-    """
-    Return True if the transfer function itself ignores a combination of the parameters.
-
-    The map from ``theta`` to the normalised coefficients (``N/d_0``, ``D/d_0`` without its
-    leading 1, the dead time) is rank deficient at ``theta`` and at two random points near it:
-    no data can separate such parameters (``g/(J s^2 + b s + k)``: only ratios count), so the
-    model must change. Where the data alone cannot (time constants that coincide, lags far
-    below the sample time acting as dead time, a poorly exciting input) the estimate is
-    returned with the weakly determined combination in its warnings instead.
-    """
-    points = [theta] + [theta * (1.0 + 0.1 * rng.standard_normal(theta.size))
-                        for _ in range(2)]
-    for point in points:
-        try:
-            coefficients = model.coefficients(point)
-        except ModelError:
-            continue
-        lead = coefficients.den[0]
-        if lead == 0.0:
-            continue
-        values = np.concatenate([coefficients.num.ravel(), coefficients.den[1:]]) / lead
-        lead_gradient = coefficients.den_jacobian[:, 0]
-        jacobian = np.hstack([
-            coefficients.num_jacobian.reshape(point.size, -1) / lead,
-            coefficients.den_jacobian[:, 1:] / lead,
-            coefficients.delay_gradient[:, None]])
-        jacobian[:, :values.size] -= np.outer(lead_gradient, values) / lead
-        # Rows: parameters; scaled by their size, so units do not matter.
-        scaled = jacobian * np.maximum(np.abs(point), 1e-12)[:, None]
-        singular = np.linalg.svd(scaled, compute_uv=False)
-        if singular.size and singular[-1] > 1e-9 * singular[0] and \
-                singular.size >= point.size:
-            return False
-    return True
-
-
-def _nudged(problem: Problem, state: State, rng: np.random.Generator) -> Optional[State]:
-    """Perturb a point where symmetric parameters coincide (e.g. T1 = T2) so they can split."""
-    for _ in range(_NUDGES):
-        theta = state.theta * (1.0 + 0.05 * rng.standard_normal(state.theta.size))
-        theta = np.clip(theta, problem.lower, problem.upper)
-        coefficients = problem.admissible(theta)
-        if coefficients is not None:
-            return problem.state(theta, coefficients)
-    return None
-
-
 @dataclass
 class Uncertainty:
     """
@@ -390,7 +263,7 @@ class Uncertainty:
 
 def covariance(problem: Problem, state: State,
                autocorrelation: Optional[np.ndarray] = None,
-               sensitivities: Optional[_Sensitivities] = None) -> Uncertainty:
+               sensitivities: Optional[Sensitivities] = None) -> Uncertainty:
     """
     Return the parameter covariance at ``state`` and what it rests on.
 
@@ -407,7 +280,7 @@ def covariance(problem: Problem, state: State,
     error = problem.measured - lin.output
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    free, psi, norms, svd = (sensitivities or _Sensitivities(problem)).at(state)
+    free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
     scales = np.where(norms > 0.0, norms, 1.0)
     if lin.delay_jump is not None or svd is None:
         # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
@@ -514,73 +387,29 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     with warnings.catch_warnings(), _thread_pools().limit(limits=1, user_api='blas'):
         warnings.simplefilter('ignore', RuntimeWarning)
         delay_index = delay_parameter(model)
-        profile: List[Tuple[float, float]] = []
-        history: List[Iteration] = []
-        # A complete guess (a warm start) is iterated first; if that model leaves nothing
-        # correlated with the input there is nothing for the global start and search to find.
-        start = complete_guess(problem, initial)
-        from_initial, settled = False, False
-        if start is not None:
-            start, history, from_initial, settled = _warm_start(
-                problem, _started(problem, start, transient), method, delay_index, delay_range)
-        refined = from_initial
-        if not from_initial:
-            history = []
-            start = _started(problem, initial_estimate(problem, initial, delay_range), transient)
-            if delay_index is not None:
-                search = delay_search(problem, start, delay_index, delay_range)
-                start, profile, history = search.state, search.profile, search.history
-            nested = _nested_start(problem, initial, delay_range, delay_index, start)
-            if nested is not None:
-                start, history = nested
-            refined = delay_index is not None or nested is not None
-        frozen = np.zeros(len(model.parameters), dtype=bool)
-        settings = {'method': method, 'frozen': frozen, 'max_iterations': max_iterations,
-                    'tolerance': tolerance, 'check_optimality': True}
-        if settled:
-            # The warm start ended where the next update is negligible: the final iteration's
-            # first test, on the same point.
-            reason = StopReason.NEGLIGIBLE_UPDATE
-            final = IterationResult(start, [], reason, reason.describe(tolerance, max_iterations))
-        else:
-            # A start refined by iterations needs no least-squares step.
-            # A warm start that explained the data is a converged local fit: near its minimum.
-            final = iterate(problem, start, first_ls=not refined, near_start=from_initial,
-                            **settings)
-        history.extend(final.history)
+        # The final iteration's settings; every stage after it iterates with them too.
+        policy = IterationPolicy(method=method, max_iterations=max_iterations,
+                                 tolerance=tolerance, opening=Opening.PROJECTION,
+                                 check_optimality=True)
+        # A complete guess (a warm start) first: if its model leaves nothing correlated with
+        # the input, there is nothing for the automatic start and search to find.
+        start = warm_start(problem, initial, transient, method, delay_index, delay_range)
+        if start is not None and method != 'ls':
+            start = against_the_data_guess(problem, start, delay_range)
+        if start is None:
+            start = automatic_start(problem, initial, transient, delay_index, delay_range)
+        fit = final_iteration(problem, start, policy)
+        sensitivities = Sensitivities(problem)
         rng = np.random.default_rng(0)
-        final = _from_best_seen(problem, final, history, settings)
-        sensitivities = _Sensitivities(problem)
-        blind = _blind_combination(problem, final.state, sensitivities)
-        for _ in range(_SYMMETRY_RESTARTS):
-            if blind is None:
-                break
-            nudged = _nudged(problem, final.state, rng)
-            if nudged is None:
-                break
-            restarted = iterate(problem, nudged, first_ls=False, **settings)
-            history.extend(restarted.history)
-            if restarted.state.cost >= final.state.cost:
-                # Back where it started, or worse: the data put the minimum at the coincidence.
-                break
-            final = _from_best_seen(problem, restarted, history, settings)
-            blind = _blind_combination(problem, final.state, sensitivities)
-        analysis = _residual_analysis(problem, final.state)
-        if not from_initial and blind is None:
-            final = _elsewhere(problem, final, history, settings, delay_index, analysis)
-            if delay_index is not None:
-                across = across_the_sample(problem, final.state, delay_index, delay_range)
-                if across is not None:
-                    again = iterate(problem, across.state, first_ls=False, **settings)
-                    history.extend(across.history + again.history)
-                    final = _from_best_seen(problem, _lower(final, again), history, settings)
-            blind = _blind_combination(problem, final.state, sensitivities)
-        if blind is not None and (blind.startswith('the output does not depend') or
-                                  _structurally_blind(problem.model, final.state.theta, rng)):
-            # A model that explains nothing determines nothing either: that is the news.
-            note = _fit_note(fit_percent(problem.measured,
-                                         problem.prediction(final.state.coefficients)))
-            raise EstimationError(blind if note is None else f'{note}; {blind}')
+        fit, blind = symmetry_restarts(problem, fit, policy, sensitivities, rng)
+        analysis = _residual_analysis(problem, fit.state)
+        if not start.from_initial and blind is None:
+            fit = look_elsewhere(problem, fit, policy, delay_index, analysis)
+            fit = other_side_of_the_sample(problem, fit, policy, delay_index, delay_range)
+            blind = blind_combination(problem, fit.state, sensitivities)
+        _refuse_blind(problem, fit.state, blind, rng)
+        final, history, profile = fit.result, list(fit.history), list(start.profile)
+        from_initial = start.from_initial
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
         uncertainty = covariance(problem, final.state, residuals.long_autocorrelation,
@@ -600,6 +429,24 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
+
+
+def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],
+                  rng: np.random.Generator) -> None:
+    """
+    Raise :class:`EstimationError` where no data could determine the parameters at ``state``.
+
+    The output does not depend on a parameter at all, or the model itself ignores a
+    combination (:func:`~ctid_ros.estimation.identifiability.structurally_blind`); a
+    combination only these data barely see is a warning of the estimate instead
+    (``docs/algorithm.md`` section 14). A model that explains nothing determines nothing
+    either: that is the news, so the fit's own words lead.
+    """
+    if blind is None or not (blind.status.always_fatal or
+                             structurally_blind(problem.model, state.theta, rng)):
+        return
+    note = _fit_note(fit_percent(problem.measured, problem.prediction(state.coefficients)))
+    raise EstimationError(blind.message if note is None else f'{note}; {blind.message}')
 
 
 def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
@@ -624,226 +471,6 @@ def build_problem(model: Model, data: Data, *, bounds: Optional[Bounds] = None,
     problem = Problem(fitted_model, fitted_data, lower, upper, intersample,
                       initial_state == 'estimate', output_offset)
     return problem, cutoff
-
-
-def _reductions(problem: Problem, theta: np.ndarray) -> Dict[int, float]:
-    """
-    Parameters whose limit gives a simpler structure, and that limit; one per distinct one.
-
-    A lag or mass at its order-reduction limit (:attr:`Problem.reductions`) unless that leaves
-    a static model. Of two parameters that play the same role (the model is unchanged when
-    they are swapped, as ``T1`` and ``T2`` in ``(T1 s + 1)(T2 s + 1)``) only the first counts:
-    both give the same nested structure. The dead time's own nested structure (no dead time) is
-    the first point of the dead-time profile, refined if it is among its best minima, and a
-    dead time on its lower bound is released when the cost falls inward (section 7).
-    """
-    # The structure one order lower still has dynamics only if D had degree 2 or more.
-    limits = dict(problem.reductions) if problem.model.den_degree >= 2 else {}
-    model = problem.model
-    probe = theta * np.random.default_rng(0).uniform(1.1, 1.9, theta.size)
-    distinct: Dict[int, float] = {}
-    for index, value in sorted(limits.items()):
-        if any(_interchangeable(model, probe, index, other) for other in distinct):
-            continue
-        distinct[index] = value
-    return distinct
-
-
-def _interchangeable(model, theta: np.ndarray, first: int, second: int) -> bool:
-    """Return True if swapping two parameters leaves the model's coefficients unchanged."""
-    swapped = theta.copy()
-    swapped[[first, second]] = theta[[second, first]]
-    try:
-        one, other = model.coefficients(theta), model.coefficients(swapped)
-    except ModelError:
-        return False
-    return bool(np.allclose(one.num, other.num) and np.allclose(one.den, other.den)
-                and np.isclose(one.delay, other.delay))
-
-
-def _nested_start(problem: Problem, initial: Initial, delay_range: DelayRange,
-                  delay_index: Optional[int], start: State
-                  ) -> Optional[Tuple[State, List[Iteration]]]:
-    """
-    Return the best nested structure's optimum if it is better than ``start``, else None.
-
-    Each structure a parameter's limit leaves (:func:`_reductions`: a lag dropped, the dead
-    time removed) is fitted by the same automatic start and dead-time search with that
-    parameter held at its limit; the final iteration then releases it. So a structure is never
-    left worse than one it contains (``docs/algorithm.md`` section 12).
-    """
-    names = problem.model.parameters
-    hints = {name: float(np.clip(value, problem.lower[names.index(name)],
-                                 problem.upper[names.index(name)]))
-             for name, value in _given_hints(initial).items()}
-    best = None
-    for index, value in _reductions(problem, start.theta).items():
-        fixed = np.zeros(len(names), dtype=bool)
-        fixed[index] = True
-        try:
-            nested = initial_estimate(problem, hints or 'auto', delay_range,
-                                      pin={names[index]: value})
-        except (EstimationError, ModelError):
-            continue
-        if delay_index is not None:
-            found = delay_search(problem, nested, delay_index, delay_range, fixed=fixed)
-        else:
-            found = local_fit(problem, nested, 'iv', first_ls=True, frozen=fixed,
-                              iterations=_NESTED_ITERATIONS)
-        if found.state.cost < (start.cost if best is None else best[0].cost):
-            best = (found.state, found.history)
-    if best is not None:
-        # The search's own result may be a few iterations short of its minimum: it competes
-        # refined, or a nested structure wins on an unfinished comparison.
-        own = local_fit(problem, start, 'iv', first_ls=False, iterations=_NESTED_ITERATIONS)
-        if own.state.cost <= best[0].cost:
-            return own.state, own.history
-    return best
-
-
-def _given_hints(initial: Initial) -> Dict[str, float]:
-    """Return the user's initial values as a dict (none for 'auto')."""
-    if initial is None or isinstance(initial, str):
-        return {}
-    return {name: float(value) for name, value in initial.items()}
-
-
-def _elsewhere(problem: Problem, final: IterationResult, history: List[Iteration],
-               settings: dict, delay_index: Optional[int], verdict: ResidualAnalysis
-               ) -> IterationResult:
-    """
-    Look elsewhere when the residual is not white.
-
-    A residual that is correlated with the input, or coloured (section 11; a coloured input
-    makes the two hard to tell apart), can mean the model misses something: a structure that
-    cannot do better, or a local minimum. For a non-affine structure, whose equation-error
-    start can miss the output-error basin altogether, the random draws of the automatic start
-    are then iterated on the output error directly (twenty updates each); a better end is
-    iterated to convergence and kept. Automatic searches only; ``docs/algorithm.md`` section 12.
-    """
-    if problem.model.is_affine or settings['method'] == 'ls' or \
-            verdict.white and not verdict.input_correlated:
-        return final
-    frozen = np.zeros(final.state.theta.size, dtype=bool)
-    best = None
-    for theta in random_starts(problem, final.state.theta, delay_index):
-        coefficients = problem.admissible(theta)
-        if coefficients is None:
-            continue
-        trial = iterate(problem, problem.state(theta, coefficients), method='iv',
-                        frozen=frozen, max_iterations=_ELSEWHERE_ITERATIONS, tolerance=1e-6)
-        if trial.state.cost < (final.state.cost if best is None else best.state.cost):
-            best = trial
-    if best is None:
-        return final
-    again = iterate(problem, best.state, first_ls=False, **settings)
-    history.extend(best.history + again.history)
-    return _from_best_seen(problem, _lower(final, again), history, settings)
-
-
-def _lower(first: IterationResult, second: IterationResult) -> IterationResult:
-    """Return the result of lower cost (the first on a tie)."""
-    return second if second.state.cost < first.state.cost else first
-
-
-def _from_best_seen(problem: Problem, final: IterationResult, history: List[Iteration],
-                    settings: dict) -> IterationResult:
-    """
-    Continue from the best point evaluated if the iteration ended above it.
-
-    Every start, profile point and line-search candidate is a point of the same cost
-    (:attr:`Problem.best`); the estimate may not be worse than any of them, nor than its start
-    (``docs/algorithm.md`` section 8). Least-squares projections (``method='ls'``) follow their
-    own fixed point and are left where they end.
-    """
-    for _ in range(2):
-        best = problem.best
-        if settings['method'] == 'ls' or best is None or best.cost >= final.state.cost:
-            return final
-        again = iterate(problem, best, first_ls=False, **settings)
-        history.extend(again.history)
-        final = again if again.state.cost <= final.state.cost else final
-    return final
-
-
-def _warm_start(problem: Problem, start: State, method: str, delay_index: Optional[int],
-                delay_range: DelayRange
-                ) -> Tuple[State, List[Iteration], bool, bool]:
-    """
-    Check a complete guess: where it led, the updates, whether the search is skipped, settled.
-
-    Settled: the search is skipped and the iteration stopped because the update from the end
-    point is below ``iteration.NEGLIGIBLE_STEP`` standard deviations
-    (:attr:`StopReason.NEGLIGIBLE_UPDATE`, the test the final iteration would start with).
-
-    At most :data:`_WARM_START_ITERATIONS` full steps first; if they do not reach a model that
-    explains the data, the controlled iteration goes on from there (line search and fallbacks,
-    at most :data:`_WARM_START_BUDGET` updates, given up when the cost stops falling far from a
-    minimum). The search is skipped if a convergence test stopped it and its residual is
-    independent of the input. The full steps are IV projections from the first: consistent
-    under noise, and, like the least-squares projection, exact in one step for a noise-free
-    affine structure. A dead-time model whose output does not resemble the measured one
-    (:func:`resembles_output`: a dead time far off) is tried with the data's own dead-time
-    guess instead (:attr:`Problem.delay_guess`, the search's first guess too); if that does not
-    resemble it either, it goes to the search at once (``docs/algorithm.md`` section 11).
-    """
-    if delay_index is not None and not resembles_output(problem, start):
-        moved = _with_data_delay(problem, start, delay_index)
-        if moved is None:
-            # The full steps, linear in the dead time, cannot move it that far either.
-            return start, [], False, False
-        start = moved
-    warm = local_fit(problem, start, method, first_ls=False, full_steps_only=True,
-                     iterations=_WARM_START_ITERATIONS)
-    state, history = warm.state, warm.history
-    if warm.reason is not StopReason.NO_FULL_STEP and \
-            explains_data(problem, state, delay_index, delay_range):
-        return state, history, True, warm.reason is StopReason.NEGLIGIBLE_UPDATE
-    if not resembles_output(problem, state):
-        return state, history, False, False
-    local = iterate(problem, state, method=method, frozen=np.zeros(state.theta.size, dtype=bool),
-                    max_iterations=_WARM_START_BUDGET, tolerance=1e-6, first_ls=not history,
-                    check_optimality=True, min_progress=_WARM_START_PROGRESS)
-    history = history + local.history
-    explained = local.converged and explains_data(problem, local.state, delay_index, delay_range)
-    return local.state, history, explained, \
-        explained and local.reason is StopReason.NEGLIGIBLE_UPDATE
-
-
-def _with_data_delay(problem: Problem, start: State, delay_index: int) -> Optional[State]:
-    """
-    Return ``start`` with the data's dead-time guess if its output then resembles the data.
-
-    None if the guess leaves the bounds or an inadmissible model, or its output does not
-    resemble the measured one either (:func:`resembles_output`).
-    """
-    theta = start.theta.copy()
-    theta[delay_index] = np.clip(problem.delay_guess, problem.lower[delay_index],
-                                 problem.upper[delay_index])
-    coefficients = problem.admissible(theta)
-    if coefficients is None:
-        return None
-    moved = problem.state(theta, coefficients)
-    return moved if resembles_output(problem, moved) else None
-
-
-def _started(problem: Problem, start: State, transient: Union[float, str]) -> State:
-    """
-    Prepare the problem at ``start`` and return the start, moved into the box if need be.
-
-    Anchors the sign of D's leading coefficient, bounds parameters whose zero would drop the
-    order of D (:meth:`Problem.limit_reductions`) and leaves out the transient.
-    """
-    problem.anchor(start.coefficients)
-    theta = problem.limit_reductions(start.theta)
-    if np.array_equal(theta, start.theta) and not transient:
-        return start
-    coefficients = problem.admissible(theta)
-    if coefficients is None:
-        theta, coefficients = start.theta, start.coefficients
-    if transient:
-        problem.exclude_transient(transient, coefficients)
-    return problem.state(theta, coefficients)
 
 
 def _residual_analysis(problem: Problem, state: State) -> ResidualAnalysis:

@@ -5,21 +5,25 @@ At the current parameters the output error is projected onto the regressors ``ph
 update by least squares, later ones by the instrumental-variable (oblique) projection with the
 instruments ``psi``. Every update is controlled: the bounds truncate it, ``D`` must stay stable,
 the output-error cost may not increase, and full steps are tried before halved ones and before
-Gauss-Newton and Levenberg-Marquardt fallbacks. :func:`iterate` reports why it stopped as a
+Gauss-Newton and Levenberg-Marquardt fallbacks. What a run does is one frozen
+:class:`IterationPolicy`: the method, the limits, how the first update is taken
+(:class:`Opening`), which steps an update may take (:class:`Steps`, from the named
+:class:`Schedule`) and the optional tests. :func:`iterate` reports why it stopped as a
 :class:`StopReason`. The equations are sections 5-8 of ``docs/algorithm.md``.
 """
 
 from dataclasses import dataclass
 import enum
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
 import numpy as np
 
 __all__ = [
-    'Iteration', 'IterationResult', 'NEGLIGIBLE_STEP', 'OPTIMALITY_LIMIT', 'StopReason',
-    'column_scales', 'free_parameters', 'iterate', 'on_bounds', 'optimality',
+    'Attempt', 'Iteration', 'IterationPolicy', 'IterationResult', 'NEGLIGIBLE_STEP',
+    'OPTIMALITY_LIMIT', 'Opening', 'Schedule', 'Steps', 'StopReason', 'column_scales',
+    'free_parameters', 'iterate', 'on_bounds', 'optimality',
 ]
 
 _HALVINGS = 14
@@ -557,11 +561,348 @@ def _slow(costs: List[float], struggled: List[bool], min_progress: float) -> boo
         all(struggled[-_PROGRESS_SPAN:])
 
 
-def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
-            max_iterations: int, tolerance: float, first_ls: bool = True,
-            trust_first_ls: bool = False, full_steps_only: bool = False,
-            check_optimality: bool = False, min_progress: float = 0.0,
-            near_start: bool = False) -> IterationResult:
+class Opening(enum.Enum):
+    """
+    How an iteration takes its first update (:attr:`IterationPolicy.opening`).
+
+    Attributes
+    ----------
+    LEAST_SQUARES
+        ``'iv'`` starts with a least-squares projection, controlled like every update: exact in
+        one step for a noise-free affine structure from any stable start, so the automatic
+        start's equation-error fit is refined without its bias.
+    TRUSTED_LEAST_SQUARES
+        As ``LEAST_SQUARES``, and that first step is accepted even if it raises the cost, as
+        long as the model stays stable and inside the bounds: for an affine structure it is the
+        exact regression from any start, which a profile over frozen parameters needs.
+    PROJECTION
+        Instrumental-variable projections from the first update: a start refined already.
+    NEAR_MINIMUM
+        The start is a converged local fit: ``'iv'`` begins with the Gauss-Newton steps it
+        otherwise takes after a full update below :data:`_NEAR_MINIMUM` standard deviations.
+
+    """
+
+    LEAST_SQUARES = 'least squares'
+    TRUSTED_LEAST_SQUARES = 'trusted least squares'
+    PROJECTION = 'projection'
+    NEAR_MINIMUM = 'near a minimum'
+
+
+_LEAST_SQUARES_OPENINGS = (Opening.LEAST_SQUARES, Opening.TRUSTED_LEAST_SQUARES)
+
+
+class Steps(enum.Enum):
+    """
+    Which steps an update may take (:attr:`IterationPolicy.steps`).
+
+    Attributes
+    ----------
+    CONTROLLED
+        The whole :class:`Schedule`: full steps, halved ones, Levenberg-Marquardt.
+    FULL_ONLY
+        Full steps only; the iteration gives up (:attr:`StopReason.NO_FULL_STEP`, not
+        converged) at the first update that needs a shorter or damped one: a quick check of a
+        start that is either close to a minimum or not worth the halving.
+
+    """
+
+    CONTROLLED = 'controlled'
+    FULL_ONLY = 'full steps only'
+
+
+class Attempt(NamedTuple):
+    """One attempt of an update: a direction, its damping, the step fractions, monotone."""
+
+    kind: str
+    damping: float
+    scales: Tuple[float, ...]
+    monotone: bool
+
+
+# The update's own direction (least squares, IV or Gauss-Newton) in a schedule.
+_PRIMARY = 'primary'
+_LEVENBERG_MARQUARDT = tuple(Attempt('lm', damping, _ALL_STEPS, True)
+                             for damping in _LM_DAMPINGS)
+
+
+class Schedule(enum.Enum):
+    """
+    The attempts of one update, in order (``docs/algorithm.md`` section 6).
+
+    Attributes
+    ----------
+    CONTROLLED
+        The full primary step, then the full Gauss-Newton step, and only then halved ones and
+        the Levenberg-Marquardt fallbacks, each kept only if the cost does not rise: a biased
+        first least-squares step costs one cost evaluation, not a whole halving sequence.
+    TRUSTED
+        The primary step (halved only until admissible, the cost may rise), then Gauss-Newton
+        and Levenberg-Marquardt: the opening :attr:`Opening.TRUSTED_LEAST_SQUARES`.
+    PROJECTION
+        The primary step alone, halved only until admissible: ``method='ls'`` follows its own
+        fixed point, not the descent of the output-error cost.
+
+    """
+
+    CONTROLLED = (Attempt(_PRIMARY, 0.0, _FULL_STEP, True), Attempt('gn', 0.0, _FULL_STEP, True),
+                  Attempt(_PRIMARY, 0.0, _HALVED_STEPS, True),
+                  Attempt('gn', 0.0, _HALVED_STEPS, True)) + _LEVENBERG_MARQUARDT
+    TRUSTED = (Attempt(_PRIMARY, 0.0, _ALL_STEPS, False),
+               Attempt('gn', 0.0, _ALL_STEPS, True)) + _LEVENBERG_MARQUARDT
+    PROJECTION = (Attempt(_PRIMARY, 0.0, _ALL_STEPS, False),)
+
+    def attempts(self, primary: str, full_only: bool) -> List[Attempt]:
+        """Return the attempts with ``primary`` as the primary direction, full steps only."""
+        attempts = [attempt._replace(kind=primary) if attempt.kind == _PRIMARY else attempt
+                    for attempt in self.value]
+        if full_only:
+            attempts = [attempt._replace(scales=_FULL_STEP) for attempt in attempts
+                        if attempt.kind != 'lm']
+        return attempts
+
+
+@dataclass(frozen=True)
+class IterationPolicy:
+    """
+    The settings of one :func:`iterate` run.
+
+    Attributes
+    ----------
+    method : {'iv', 'ls', 'gn'}
+        ``'iv'``: instrumental-variable projections (after the opening); ``'ls'``:
+        least-squares projections throughout; ``'gn'``: Gauss-Newton.
+    max_iterations : int
+        Limit on the number of updates.
+    tolerance : float
+        Stop when the largest relative parameter change falls below it.
+    opening : Opening
+        How the first update is taken.
+    steps : Steps
+        Which steps an update may take.
+    check_optimality : bool
+        Before a rule that claims convergence stops the iteration, test first-order optimality
+        (:func:`optimality` below :data:`OPTIMALITY_LIMIT`): a small step or a small decrease
+        away from a minimum does not stop it, and where no admissible step decreases the cost
+        away from a minimum it stops as :attr:`StopReason.STALLED` (not converged).
+    min_progress : float
+        Give up (:attr:`StopReason.SLOW`, not converged) when the cost fell by less than this
+        share over the last two updates and both needed another direction or a shorter step
+        (far from a minimum): a local optimisation a search does better. 0: never.
+
+    """
+
+    method: str = 'iv'
+    max_iterations: int = 100
+    tolerance: float = 1e-6
+    opening: Opening = Opening.LEAST_SQUARES
+    steps: Steps = Steps.CONTROLLED
+    check_optimality: bool = False
+    min_progress: float = 0.0
+
+
+class _Point:
+    """The linearisation of the current point, its active set and its directions (cached)."""
+
+    def __init__(self, linear: _Linear, free: np.ndarray,
+                 bounded: Tuple[np.ndarray, np.ndarray]):
+        self.linear = linear
+        self.free = free
+        self.bounded = bounded
+        self._directions: Dict[Tuple[str, float], Optional[np.ndarray]] = {}
+
+    def direction(self, kind: str, damping: float) -> Optional[np.ndarray]:
+        """:func:`_bounded_direction` of ``kind`` with ``damping``, solved once per point."""
+        if (kind, damping) not in self._directions:
+            self._directions[kind, damping] = _bounded_direction(
+                kind, self.linear, self.free, *self.bounded, damping)
+        return self._directions[kind, damping]
+
+
+# What an update accepted: the direction's kind, the direction, the outcome of the step.
+_Accepted = Tuple[str, np.ndarray, _Outcome]
+
+
+class _Run:
+    """One run of :func:`iterate`: where it is, what it recorded, whether it is near a minimum."""
+
+    def __init__(self, problem: Problem, state: State, policy: IterationPolicy,
+                 frozen: np.ndarray):
+        self.problem = problem
+        self.policy = policy
+        self.frozen = frozen
+        self.state = state
+        self.history: List[Iteration] = []
+        # The latest linearisation with its products: the optimality test at a new point and
+        # the next update from it share one.
+        self.latest: Optional[_Linear] = None
+        # Costs after every update (the start's first) and whether each update struggled
+        # (needed another direction or a shorter step); how many did.
+        self.costs = [state.cost]
+        self.struggled: List[bool] = []
+        self.struggling = 0
+        # Near a minimum the IV and Gauss-Newton updates agree (both vanish where Psi^T e = 0)
+        # and Gauss-Newton needs no filtered output: one simulation fewer per update.
+        self.near = policy.method == 'iv' and policy.opening is Opening.NEAR_MINIMUM
+        # The bound that cut the latest update (None if it was whole or shorter).
+        self.creeping: Optional[_Bound] = None
+
+    def result(self) -> IterationResult:
+        """Iterate until a stopping rule fires and return the outcome."""
+        reason = None
+        while reason is None and len(self.history) < self.policy.max_iterations:
+            reason = self._update()
+        reason = reason or StopReason.ITERATION_LIMIT
+        return IterationResult(self.state, self.history, reason, reason.describe(
+            self.policy.tolerance, self.policy.max_iterations))
+
+    def _linearized(self, regressors: bool) -> _Linear:
+        lin = self.problem.linearize(self.state.coefficients, regressors=regressors)
+        if self.latest is None or self.latest.lin is not lin:
+            self.latest = _Linear(lin, self.problem.measured - lin.output)
+        return self.latest
+
+    def _optimal(self) -> bool:
+        # LS follows its own fixed point, not the minimum of V.
+        policy = self.policy
+        return not policy.check_optimality or policy.method == 'ls' or _optimality(
+            self._linearized(False), on_bounds(self.state.theta, self.problem),
+            self.frozen) <= OPTIMALITY_LIMIT
+
+    def _primary(self) -> str:
+        """Return the direction of this update: least squares, IV or Gauss-Newton."""
+        method = self.policy.method
+        if method == 'gn' or self.near:
+            return 'gn'
+        if method == 'ls' or (not self.history and self.policy.opening in _LEAST_SQUARES_OPENINGS):
+            return 'ls'
+        return 'iv'
+
+    def _update(self) -> Optional[StopReason]:
+        """Take one update; return why to stop, or None to go on (maybe from the same point)."""
+        policy = self.policy
+        linear = self._linearized(policy.method != 'gn' and not self.near)
+        bounded = on_bounds(self.state.theta, self.problem)
+        free = _free_mask(linear, bounded, self.frozen)
+        if not free.any():
+            return StopReason.ALL_AT_BOUNDS
+        primary = self._primary()
+        point = _Point(linear, free, bounded)
+        size = np.inf
+        if primary != 'ls':
+            size = self._size(point, primary)
+            if size < NEGLIGIBLE_STEP:
+                return StopReason.NEGLIGIBLE_UPDATE
+            if self.near and size >= _NEAR_MINIMUM:
+                # Gauss-Newton disagrees with the IV step that judged this point near a
+                # minimum (a far, flat or large-residual region): the IV schedule goes on.
+                self.near = False
+                return None
+            if _slow(self.costs, self.struggled, policy.min_progress):
+                return StopReason.SLOW
+        accepted = self._accepted(point, primary)
+        if accepted is None and self.near:
+            # Where the residual is large (a model that does not explain everything) the
+            # Gauss-Newton step can fail where the IV step, which carries part of the curvature
+            # it leaves out, succeeds: the same point again, with the IV schedule.
+            self.near = False
+            return None
+        if accepted is None:
+            if policy.steps is Steps.FULL_ONLY:
+                return StopReason.NO_FULL_STEP
+            return StopReason.NO_DECREASE if self._optimal() else StopReason.STALLED
+        return self._record(accepted, primary, size, linear)
+
+    def _size(self, point: _Point, primary: str) -> float:
+        """Return the primary update's length in standard deviations of the estimate (8.1)."""
+        first = point.direction(primary, 0.0)
+        size = np.inf if first is None else _step_size(point.linear, first)
+        if size >= NEGLIGIBLE_STEP and (first is None or self.struggling >= _STRUGGLING):
+            # Where two parameters act alike (coinciding time constants) the IV step is
+            # singular or large along what the data cannot see, and the updates that pass are
+            # damped or halved; the Gauss-Newton step without those directions measures the
+            # update then.
+            size = _truncated_step_size(point.linear, point.free)
+        return size
+
+    def _schedule(self, primary: str) -> Tuple[Schedule, bool]:
+        """Return the schedule of this update and whether it is trusted (the cost may rise)."""
+        policy = self.policy
+        if policy.method == 'ls':
+            # Pure P-LS follows its own fixed point, not the output-error descent.
+            return Schedule.PROJECTION, True
+        if policy.opening is Opening.TRUSTED_LEAST_SQUARES and not self.history and \
+                primary == 'ls':
+            return Schedule.TRUSTED, True
+        return Schedule.CONTROLLED, False
+
+    def _accepted(self, point: _Point, primary: str) -> Optional[_Accepted]:
+        """Return the first attempt of the update's schedule that is accepted, or None."""
+        problem, state, linear = self.problem, self.state, point.linear
+        schedule, trusted = self._schedule(primary)
+        if not trusted and linear.kinked:
+            across = _across_kink(problem, state, linear, point.free, point.bounded, primary)
+            if across is not None:
+                return across
+        full_only = self.policy.steps is Steps.FULL_ONLY or self.near
+        tried = set()
+        for kind, damping, scales, monotone in schedule.attempts(primary, full_only):
+            step = point.direction(kind, damping)
+            if step is None or (kind, damping, scales) in tried:
+                continue
+            tried.add((kind, damping, scales))
+            if monotone and len(scales) > 1 and not linear.descends(step):
+                # Shorter steps along a direction the cost rises on cannot lower it: only the
+                # whole step, which may reach past the rise, is worth its simulation.
+                scales = scales[:1] if scales[0] == 1.0 else ()
+            outcome = _try_step(problem, state, step, monotone, scales, land=self.creeping)
+            if outcome is not None:
+                return kind, step, outcome
+        return None
+
+    def _record(self, accepted: _Accepted, primary: str, size: float, linear: _Linear
+                ) -> Optional[StopReason]:
+        """Move to the accepted point, record it and apply the convergence tests."""
+        kind, step, (new_state, scale, self.creeping) = accepted
+        struggled = kind != primary or scale < 1.0
+        self.struggled.append(struggled)
+        self.near = self.policy.method == 'iv' and not struggled and \
+            (self.near or size < _NEAR_MINIMUM)
+        self.struggling += struggled
+        state = self.state
+        change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
+        previous = max(state.cost, np.finfo(float).tiny)
+        decrease = (state.cost - new_state.cost) / previous
+        self.state = new_state
+        self.history.append(Iteration(new_state.theta.copy(), new_state.cost, scale, kind))
+        self.costs.append(new_state.cost)
+        return self._converged(kind, change, decrease * previous, decrease, linear)
+
+    def _converged(self, kind: str, change: float, fall: float, decrease: float,
+                   linear: _Linear) -> Optional[StopReason]:
+        """Return the convergence test that fires after an update of ``kind``, or None."""
+        policy, state = self.policy, self.state
+        if change < policy.tolerance and self._optimal():
+            return StopReason.PARAMETER_CHANGE
+        projection = policy.method == 'ls' or kind == 'ls'
+        if not projection and 0.0 <= decrease < policy.tolerance ** 2 and self._optimal():
+            return StopReason.COST_DECREASE
+        # A decrease smaller than a step of NEGLIGIBLE_STEP standard deviations would give,
+        # (8.1) squared: progress along directions the data barely see (coinciding time
+        # constants) that no user could tell from here.
+        count, params = linear.lin.psi.shape
+        variance = 2.0 * state.cost / max(count - params, 1)
+        if policy.check_optimality and not projection and \
+                fall < 0.5 * NEGLIGIBLE_STEP ** 2 * variance and self._optimal():
+            return StopReason.NEGLIGIBLE_UPDATE
+        measured = self.problem.measured
+        if state.cost <= 1e-30 * max(float(measured @ measured), 1e-300):
+            return StopReason.EXACT_FIT
+        return None
+
+
+def iterate(problem: Problem, state: State, policy: IterationPolicy,
+            frozen: Optional[np.ndarray] = None) -> IterationResult:
     """
     Run the controlled projection iteration from ``state``.
 
@@ -571,37 +912,10 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
         Data, model and bounds.
     state : State
         Admissible start.
-    method : {'iv', 'ls', 'gn'}
-        ``'iv'``: instrumental-variable projections (after a least-squares first update if
-        ``first_ls``); ``'ls'``: least-squares projections throughout; ``'gn'``: Gauss-Newton.
-    frozen : ndarray of bool
-        Parameters kept at their start values.
-    max_iterations : int
-        Limit on the number of updates.
-    tolerance : float
-        Stop when the largest relative parameter change falls below it.
-    first_ls : bool
-        Start the ``'iv'`` schedule with a least-squares update.
-    trust_first_ls : bool
-        Accept the first (least-squares) step even if it raises the cost, as long as the model
-        stays stable and inside the bounds: for an affine structure that step is the exact
-        regression from any start, which is what a profile over frozen parameters needs.
-    full_steps_only : bool
-        Give up (:attr:`StopReason.NO_FULL_STEP`, not converged) at the first update that needs
-        a shorter or damped step: a quick check of a start that is either close to a minimum or
-        not worth the halving.
-    min_progress : float
-        Give up (:attr:`StopReason.SLOW`, not converged) when the cost fell by less than this
-        share over the last two updates and both needed another direction or a shorter step
-        (far from a minimum): a local optimisation a search does better. 0: never.
-    check_optimality : bool
-        Before a rule that claims convergence stops the iteration, test first-order optimality
-        (:func:`optimality` below :data:`OPTIMALITY_LIMIT`): a small step or a small decrease
-        away from a minimum does not stop it, and where no admissible step decreases the cost
-        away from a minimum it stops as :attr:`StopReason.STALLED` (not converged).
-    near_start : bool
-        The start is a converged local fit: ``'iv'`` begins with the Gauss-Newton steps it
-        otherwise takes after a full update below :data:`_NEAR_MINIMUM` standard deviations.
+    policy : IterationPolicy
+        Method, limits, opening, steps and the optional tests.
+    frozen : ndarray of bool, optional
+        Parameters kept at their start values (default none).
 
     Returns
     -------
@@ -610,147 +924,15 @@ def iterate(problem: Problem, state: State, *, method: str, frozen: np.ndarray,
 
     Notes
     -----
-    Each update tries the full primary step, then the full Gauss-Newton step, and only then
-    halves them and falls back to Levenberg-Marquardt: a biased first least-squares step then
-    costs one cost evaluation, not a whole halving sequence (``docs/algorithm.md`` section 6).
-    For ``'iv'``, once a full update was shorter than :data:`_NEAR_MINIMUM` standard deviations
-    the primary step is Gauss-Newton, full steps only, until one needs another direction or
-    a shorter step; where no full Gauss-Newton step decreases the cost the same point is
-    updated by the IV schedule. The stopping rules are the same for both (section 5).
+    Each update tries the attempts of its :class:`Schedule` in order: the full primary step,
+    then the full Gauss-Newton step, and only then halves them and falls back to
+    Levenberg-Marquardt (``docs/algorithm.md`` section 6). For ``'iv'``, once a full update was
+    shorter than :data:`_NEAR_MINIMUM` standard deviations the primary step is Gauss-Newton,
+    full steps only, until one needs another direction or a shorter step; where no full
+    Gauss-Newton step decreases the cost the same point is updated by the IV schedule. The
+    stopping rules are the same for both (section 8).
 
     """
-    history: List[Iteration] = []
-
-    def stop(reason: StopReason) -> IterationResult:
-        return IterationResult(state, history, reason,
-                               reason.describe(tolerance, max_iterations))
-
-    # The latest linearisation with its products: the optimality test at a new point and the
-    # next update from it share one.
-    latest: List[_Linear] = []
-
-    def linearized(regressors: bool) -> _Linear:
-        lin = problem.linearize(state.coefficients, regressors=regressors)
-        if not latest or latest[0].lin is not lin:
-            latest[:] = [_Linear(lin, problem.measured - lin.output)]
-        return latest[0]
-
-    def optimal() -> bool:
-        # LS follows its own fixed point, not the minimum of V.
-        return not check_optimality or method == 'ls' or _optimality(
-            linearized(False), on_bounds(state.theta, problem), frozen) <= OPTIMALITY_LIMIT
-
-    # Updates so far that needed another direction or a shorter step.
-    struggling = 0
-    # Costs after every update (the start's first) and whether each update struggled.
-    costs = [state.cost]
-    struggled: List[bool] = []
-    # Near a minimum the IV and Gauss-Newton updates agree (both vanish where Psi^T e = 0) and
-    # Gauss-Newton needs no filtered output: one simulation fewer per update.
-    near = method == 'iv' and near_start
-    # The bound that cut the latest update (None if it was whole or shorter).
-    creeping: Optional[_Bound] = None
-    while len(history) < max_iterations:
-        iteration = len(history)
-        linear = linearized(method != 'gn' and not near)
-        bounded = on_bounds(state.theta, problem)
-        free = _free_mask(linear, bounded, frozen)
-        if not free.any():
-            return stop(StopReason.ALL_AT_BOUNDS)
-        primary = 'gn' if method == 'gn' or near else ('ls' if method == 'ls' or (
-            iteration == 0 and first_ls) else 'iv')
-        directions: Dict[Tuple[str, float], Optional[np.ndarray]] = {}
-
-        def direction(kind: str, damping: float) -> Optional[np.ndarray]:
-            if (kind, damping) not in directions:
-                directions[kind, damping] = _bounded_direction(kind, linear, free, *bounded,
-                                                               damping)
-            return directions[kind, damping]
-
-        first = direction(primary, 0.0)
-        size = np.inf
-        if primary != 'ls':
-            size = np.inf if first is None else _step_size(linear, first)
-            if size >= NEGLIGIBLE_STEP and (first is None or struggling >= _STRUGGLING):
-                # Where two parameters act alike (coinciding time constants) the IV step is
-                # singular or large along what the data cannot see, and the updates that pass
-                # are damped or halved; the Gauss-Newton step without those directions
-                # measures the update then.
-                size = _truncated_step_size(linear, free)
-            if size < NEGLIGIBLE_STEP:
-                return stop(StopReason.NEGLIGIBLE_UPDATE)
-            if near and size >= _NEAR_MINIMUM:
-                # Gauss-Newton disagrees with the IV step that judged this point near a
-                # minimum (a far, flat or large-residual region): the IV schedule goes on.
-                near = False
-                continue
-            if _slow(costs, struggled, min_progress):
-                return stop(StopReason.SLOW)
-        # Pure P-LS follows its own fixed point, not the output-error descent.
-        trusted = method == 'ls' or (trust_first_ls and iteration == 0 and primary == 'ls')
-        if trusted:
-            attempts = [(primary, 0.0, _ALL_STEPS, False), ('gn', 0.0, _ALL_STEPS, True)]
-        else:
-            attempts = [(primary, 0.0, _FULL_STEP, True), ('gn', 0.0, _FULL_STEP, True),
-                        (primary, 0.0, _HALVED_STEPS, True), ('gn', 0.0, _HALVED_STEPS, True)]
-        if method == 'ls':
-            attempts = attempts[:1]
-        else:
-            attempts += [('lm', damping, _ALL_STEPS, True) for damping in _LM_DAMPINGS]
-        if full_steps_only or near:
-            attempts = [(kind, damping, _FULL_STEP, monotone)
-                        for kind, damping, _, monotone in attempts if kind != 'lm']
-        accepted = None
-        if not trusted and linear.kinked:
-            accepted = _across_kink(problem, state, linear, free, bounded, primary)
-        tried = set()
-        for kind, damping, scales, monotone in attempts:
-            if accepted is not None:
-                break
-            step = direction(kind, damping)
-            if step is None or (kind, damping, scales) in tried:
-                continue
-            tried.add((kind, damping, scales))
-            if monotone and len(scales) > 1 and not linear.descends(step):
-                # Shorter steps along a direction the cost rises on cannot lower it: only the
-                # whole step, which may reach past the rise, is worth its simulation.
-                scales = scales[:1] if scales[0] == 1.0 else ()
-            outcome = _try_step(problem, state, step, monotone, scales, land=creeping)
-            if outcome is not None:
-                accepted = (kind, step, outcome)
-                break
-        if accepted is None and near:
-            # Where the residual is large (a model that does not explain everything) the
-            # Gauss-Newton step can fail where the IV step, which carries part of the curvature
-            # it leaves out, succeeds: the same point again, with the IV schedule.
-            near = False
-            continue
-        if accepted is None:
-            if full_steps_only:
-                return stop(StopReason.NO_FULL_STEP)
-            return stop(StopReason.NO_DECREASE if optimal() else StopReason.STALLED)
-        kind, step, (new_state, scale, creeping) = accepted
-        struggled.append(kind != primary or scale < 1.0)
-        near = method == 'iv' and not struggled[-1] and (near or size < _NEAR_MINIMUM)
-        struggling += struggled[-1]
-        change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
-        previous = max(state.cost, np.finfo(float).tiny)
-        decrease = (state.cost - new_state.cost) / previous
-        state = new_state
-        history.append(Iteration(state.theta.copy(), state.cost, scale, kind))
-        costs.append(state.cost)
-        if change < tolerance and optimal():
-            return stop(StopReason.PARAMETER_CHANGE)
-        if method != 'ls' and 0.0 <= decrease < tolerance ** 2 and kind != 'ls' and optimal():
-            return stop(StopReason.COST_DECREASE)
-        # A decrease smaller than a step of NEGLIGIBLE_STEP standard deviations would give,
-        # (8.1) squared: progress along directions the data barely see (coinciding time
-        # constants) that no user could tell from here.
-        count, params = linear.lin.psi.shape
-        variance = 2.0 * state.cost / max(count - params, 1)
-        if check_optimality and method != 'ls' and kind != 'ls' and \
-                decrease * previous < 0.5 * NEGLIGIBLE_STEP ** 2 * variance and optimal():
-            return stop(StopReason.NEGLIGIBLE_UPDATE)
-        if state.cost <= 1e-30 * max(float(problem.measured @ problem.measured), 1e-300):
-            return stop(StopReason.EXACT_FIT)
-    return stop(StopReason.ITERATION_LIMIT)
+    if frozen is None:
+        frozen = np.zeros(state.theta.size, dtype=bool)
+    return _Run(problem, state, policy, frozen).result()

@@ -26,7 +26,8 @@ from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import ContinuousFilter, shifted
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
-from ctid_ros.estimation.iteration import iterate, IterationResult
+from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
+                                           Opening, Steps)
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -561,10 +562,11 @@ def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
     otherwise (converged or not) the residual test of :func:`explains_data` judges the result.
 
     """
-    if frozen is None:
-        frozen = np.zeros(start.theta.size, dtype=bool)
-    return iterate(problem, start, method=method, frozen=frozen, max_iterations=iterations,
-                   tolerance=1e-6, first_ls=first_ls, full_steps_only=full_steps_only)
+    policy = IterationPolicy(
+        method=method, max_iterations=iterations,
+        opening=Opening.LEAST_SQUARES if first_ls else Opening.PROJECTION,
+        steps=Steps.FULL_ONLY if full_steps_only else Steps.CONTROLLED)
+    return iterate(problem, start, policy, frozen)
 
 
 def explains_data(problem: Problem, state: State, delay_index: Optional[int],

@@ -3,8 +3,8 @@
 from ctid_ros import Data, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.iteration import (iterate, IterationResult, optimality,
-                                           OPTIMALITY_LIMIT, StopReason)
+from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult, Opening,
+                                           optimality, OPTIMALITY_LIMIT, Steps, StopReason)
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
 import numpy as np
 import pytest
@@ -23,11 +23,13 @@ def start_at(problem, values):
     return State(theta, coefficients, problem.cost(coefficients))
 
 
-def run(problem, state, **options):
-    settings = {'method': 'iv', 'frozen': np.zeros(state.theta.size, dtype=bool),
-                'max_iterations': 100, 'tolerance': 1e-8}
+def run(problem, state, first_ls=True, full_steps_only=False, frozen=None, **options):
+    """Iterate with the policy of ``options`` (and the two openings/steps by name)."""
+    settings = {'method': 'iv', 'max_iterations': 100, 'tolerance': 1e-8,
+                'opening': Opening.LEAST_SQUARES if first_ls else Opening.PROJECTION,
+                'steps': Steps.FULL_ONLY if full_steps_only else Steps.CONTROLLED}
     settings.update(options)
-    return iterate(problem, state, **settings)
+    return iterate(problem, state, IterationPolicy(**settings), frozen)
 
 
 def noise_free_mass_spring_damper():
