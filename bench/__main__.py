@@ -16,6 +16,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'cli_startup': [],
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
+    'user_baseline': ['--json', 'bench/results-user-baseline.json'],
     'against_commit': [],
     'stamps': [],
     'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
@@ -48,7 +49,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         except ImportError as error:       # rclpy missing: the other benchmarks still stand
             print(f'{name} benchmark skipped: {error}')
             continue
-        run(BENCHMARKS[name] + (extra if name == 'estimator' else []))
+        run(BENCHMARKS[name] + (extra if name in ('estimator', 'user_baseline') else []))
     return 0
 
 
