@@ -18,7 +18,8 @@ realised in controllable canonical form whose states are ``s^j/D(s)`` applied to
 (so any numerator of degree <= deg D is just an output map of one state simulation), diagonally
 balanced, discretised with one matrix exponential per sub-interval, and propagated in modal
 (eigenvector, else complex Schur) coordinates where every mode is a first-order recursion run by
-:func:`scipy.signal.lfilter`.
+:func:`recursions` (LAPACK's banded triangular solve, the forward substitution of
+``scipy.signal.lfilter``, for all modes at once).
 No high-order difference equation is ever formed, so precision holds up to high orders, and no
 Python loop runs per sample.
 """
@@ -29,7 +30,7 @@ from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
-from scipy import linalg, signal
+from scipy import linalg
 from scipy.linalg import lapack
 
 INTERSAMPLE = ('zoh', 'foh')
@@ -136,7 +137,7 @@ class ContinuousFilter:
 
     @property
     def modal(self) -> Optional['_ContinuousModes']:
-        """The uncoupled modes of the realisation, None where they are ill-conditioned."""
+        """Return the uncoupled modes of the realisation, None if they are ill-conditioned."""
         if not self._modal_checked:
             self._modal = _continuous_modes(self)
             self._modal_checked = True
@@ -504,7 +505,7 @@ class _Modes:
     """
     The modal trajectories of ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
 
-    Each mode is a first-order recursion run by :func:`scipy.signal.lfilter`. When the
+    Each mode is a first-order recursion run by :func:`recursions`. When the
     eigenvectors of ``A`` form a well-conditioned basis the modes are uncoupled and, the signals
     being real, only one mode of each conjugate pair is run; otherwise (repeated poles, as in
     ``D^2``) the modes are the coupled ones of the complex Schur form. :meth:`mapped` reads
@@ -560,17 +561,68 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
     """Modal trajectories: ``modal[i, k+1] = pole_i modal[i, k] + driving[i, k]`` (+ coupling)."""
     count = driving.shape[1]
     modal = np.zeros(driving.shape, dtype=driving.dtype)
+    if count < 2:
+        return modal
+    if coupling is None:
+        # Uncoupled: the real modes in one solve, the complex ones in another; a real mode of
+        # real signals has only rounding in any imaginary part of its driving.
+        real = poles.imag == 0.0
+        if real.any():
+            modal[real, 1:] = recursions(poles[real].real, driving[real, :count - 1].real)
+        if not real.all():
+            modal[~real, 1:] = recursions(poles[~real], driving[~real, :count - 1])
+        return modal
     for i in range(poles.size - 1, -1, -1):
-        if coupling is not None and i + 1 < poles.size:
+        if i + 1 < poles.size:
             driving[i] += coupling[i, i + 1:] @ modal[i + 1:]
-        # modal[i, k+1] = pole * modal[i, k] + driving[i, k]
-        if coupling is None and poles[i].imag == 0.0:
-            # A real mode of real signals: any imaginary part is rounding.
-            modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i].real],
-                                          driving[i, :count - 1].real)
-        else:
-            modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i]], driving[i, :count - 1])
+        modal[i, 1:] = recursions(poles[i:i + 1], driving[i:i + 1, :count - 1])[0]
     return modal
+
+
+def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
+
+    Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, computed as one lower
+    bidiagonal triangular solve (LAPACK ``?tbtrs``, the same forward substitution) over all
+    rows at once: no per-row call, and no import of :mod:`scipy.signal` (and with it
+    :mod:`scipy.stats`) for the simulation.
+    """
+    rows, length = values.shape
+    complex_valued = np.iscomplexobj(values) or np.iscomplexobj(poles)
+    dtype = complex if complex_valued else float
+    if rows == 0 or length == 0:
+        return np.zeros((rows, length), dtype=dtype)
+    band = np.empty((2, rows * length), dtype=dtype)
+    band[0] = 1.0
+    below = band[1].reshape(rows, length)
+    below[:] = -poles[:, None]
+    below[:, -1] = 0.0                  # a row's last sample does not feed the next row
+    solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
+    out, _ = solve(band, values.astype(dtype, copy=False).reshape(-1, 1), uplo='L')
+    return out.reshape(rows, length)
+
+
+def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    Return ``scipy.signal.lfilter([1], den, values, axis=0)`` from rest, by column.
+
+    ``den[0] out[k] = values[k] - den[1] out[k-1] - ... - den[p] out[k-p]``: one banded lower
+    triangular solve (LAPACK ``?tbtrs``) for all columns, without importing
+    :mod:`scipy.signal`.
+    """
+    den = np.asarray(den, dtype=float)
+    values = np.asarray(values, dtype=float)
+    columns = values.reshape(values.shape[0], -1)
+    count, order = columns.shape[0], den.size - 1
+    if count == 0 or columns.shape[1] == 0:
+        return np.zeros(values.shape)
+    band = np.empty((order + 1, count))
+    band[:] = den[:, None]
+    for lag in range(1, order + 1):
+        band[lag, max(count - lag, 0):] = 0.0       # outside the matrix
+    out, _ = lapack.dtbtrs(band, columns, uplo='L')
+    return out.reshape(values.shape)
 
 
 # Below this magnitude of ``pole * length`` the hold integrals are summed as power series
