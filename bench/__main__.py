@@ -2,7 +2,8 @@
 ``make bench``: every benchmark, each against a baseline measured in the same run.
 
 ``python -m bench`` runs them all in the order below; ``python -m bench NAME...`` runs the named
-ones (extra arguments of the estimator benchmark go after ``--``). A benchmark that needs
+ones (extra arguments such as ``--runs N`` go to the estimator, user-baseline and
+cli start-up benchmarks). A benchmark that needs
 rclpy is skipped with a message where rclpy is not installed.
 """
 
@@ -29,6 +30,10 @@ BENCHMARKS: Dict[str, List[str]] = {
 }
 
 
+# The benchmarks that take the extra arguments of the command line.
+_EXTRA_ARGUMENTS = ('estimator', 'user_baseline', 'cli_startup')
+
+
 def _runner(name: str) -> Callable[[List[str]], object]:
     return importlib.import_module(f'bench.{name}').main
 
@@ -49,7 +54,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         except ImportError as error:       # rclpy missing: the other benchmarks still stand
             print(f'{name} benchmark skipped: {error}')
             continue
-        run(BENCHMARKS[name] + (extra if name in ('estimator', 'user_baseline') else []))
+        run(BENCHMARKS[name] + (extra if name in _EXTRA_ARGUMENTS else []))
     return 0
 
 

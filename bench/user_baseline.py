@@ -21,11 +21,12 @@ from typing import Callable, Dict, List, Optional, Tuple
 import warnings
 
 from bench.estimator import draw_start, FAR
+from bench.user_simulator import user_simulate
 from ctid_ros import estimate, EstimationError
 from ctid_ros.core import reference_systems
 from ctid_ros.core.reference_systems import ReferenceSystem
 import numpy as np
-from scipy import optimize, signal
+from scipy import optimize
 from threadpoolctl import threadpool_limits
 
 __all__ = ['USER_MODELS', 'user_simulate', 'user_fit', 'run_system', 'main']
@@ -57,39 +58,6 @@ USER_MODELS: Dict[str, Callable[[Dict[str, float]], Polynomials]] = {
     'two lags plus dead time': lambda p: (np.array([p['K']]),
                                           np.polymul([p['T1'], 1.0], [p['T2'], 1.0]), p['tau']),
 }
-
-
-def user_simulate(num: np.ndarray, den: np.ndarray, delay: float, u: np.ndarray,
-                  ts: float) -> np.ndarray:
-    """
-    Exact sampled response of ``num/den exp(-delay s)`` to a held input, starting at rest.
-
-    ``delay = d ts + eps``: ``x[k+1] = Phi x[k] + G0 u[k-d] + G1 u[k-d-1]`` with
-    ``G0 = int_0^{ts-eps} e^{As} B ds`` and ``G1 = e^{A(ts-eps)} int_0^eps e^{As} B ds``;
-    the output ``C x + D u[k-d]`` is one lfilter pass of the combined transfer function.
-    """
-    a, b, c, d = signal.tf2ss(num, den)
-    whole = int(np.floor(delay / ts + 1e-9))
-    eps = delay - whole * ts
-    if eps < 1e-9 * ts:
-        phi, gamma0, c, d, _ = signal.cont2discrete((a, b, c, d), ts, method='zoh')
-        gamma1 = np.zeros_like(gamma0)
-    else:
-        phi0, gamma0, _, _, _ = signal.cont2discrete((a, b, c, d), ts - eps, method='zoh')
-        phi_eps, gamma_eps, _, _, _ = signal.cont2discrete((a, b, c, d), eps, method='zoh')
-        phi = phi0 @ phi_eps
-        gamma1 = phi0 @ gamma_eps
-    # Output of input u[k-d] through C (zI - Phi)^-1 (G0 + G1 z^-1) + D, over det(zI - Phi).
-    num0, den_z = signal.ss2tf(phi, gamma0, c, d)
-    num1, _ = signal.ss2tf(phi, gamma1, c, np.zeros_like(d))
-    order = den_z.size
-    b_z = np.zeros(order + 1)
-    b_z[:order] += num0[0]
-    b_z[1:] += num1[0]
-    shifted = np.zeros_like(u)
-    if whole < u.size:
-        shifted[whole:] = u[:u.size - whole]
-    return signal.lfilter(b_z, den_z, shifted)
 
 
 def user_fit(system: ReferenceSystem, data, start: np.ndarray) -> np.ndarray:
@@ -125,7 +93,7 @@ def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     fits = {'ctid_ros': ctid_fit, 'user least_squares': user_fit}
     times: Dict[str, List[float]] = {name: [] for name in fits}
-    success = {name: 0 for name in fits}
+    success = dict.fromkeys(fits, 0)
     for run in range(runs):
         data = system.data(seed=seed * 1000 + run)
         start = draw_start(system, rng)
