@@ -26,12 +26,13 @@ BENCHMARKS: Dict[str, List[str]] = {
     'node_throughput': [],
     'node_storm': ['--json', 'bench/results-node-storm.json'],
     'fleet': [],
+    'replay_startup': [],
     'alarm': ['--json', 'bench/results-alarm.json'],
 }
 
 
 # The benchmarks that take the extra arguments of the command line.
-_EXTRA_ARGUMENTS = ('estimator', 'user_baseline', 'cli_startup')
+_EXTRA_ARGUMENTS = ('estimator', 'user_baseline', 'cli_startup', 'replay_startup')
 
 
 def _runner(name: str) -> Callable[[List[str]], object]:
