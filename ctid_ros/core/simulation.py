@@ -134,6 +134,8 @@ class ContinuousFilter:
         self.b = (np.eye(n)[-1] / sc) if n else np.zeros(0)
         self._modal: Optional[_ContinuousModes] = None
         self._modal_checked = False
+        # Set by :attr:`modal`: (nearly) repeated roots have no eigenvector basis to try.
+        self.repeated_roots = False
 
     @property
     def modal(self) -> Optional['_ContinuousModes']:
@@ -467,7 +469,8 @@ class StateResponse:
             else:
                 drive = discrete.drive
                 signals = np.array([_sampled(values, sample) for sample in drive])
-                self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())))
+                self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
+                                     self._continuous.repeated_roots)
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
@@ -514,10 +517,10 @@ class _Modes:
     """
 
     def __init__(self, transition: Optional[np.ndarray], signals: np.ndarray,
-                 drives: np.ndarray):
+                 drives: np.ndarray, repeated: bool = False):
         if transition is not None:
             self._basis, self._keep, self._weights, self._modal = _modes(transition, signals,
-                                                                         drives)
+                                                                         drives, repeated)
 
     @classmethod
     def uncoupled(cls, basis: np.ndarray, keep: np.ndarray, weights: np.ndarray,
@@ -535,10 +538,16 @@ class _Modes:
         return (out_map @ self._modal).real
 
 
-def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
-    """Return the basis, the modes kept and their weights, and the modal trajectories."""
-    eigenvalues, vectors = np.linalg.eig(transition)
-    if np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
+def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
+           repeated: bool = False):
+    """
+    Return the basis, the modes kept and their weights, and the modal trajectories.
+
+    ``repeated``: the poles are known to repeat (as those of ``D^2``), so the eigenvectors
+    are not tried.
+    """
+    eigenvalues, vectors = (None, None) if repeated else np.linalg.eig(transition)
+    if not repeated and np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
         keep = eigenvalues.imag >= 0.0
         poles = eigenvalues[keep]
         coupling = None
@@ -715,13 +724,15 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     differences = poles[:, None] - poles[None, :]
     np.fill_diagonal(differences, 1.0)
     if np.abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
+        realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
     basis = vandermonde / realisation._balance[:, None]
-    with np.errstate(all='ignore'):
-        condition = np.linalg.cond(basis / np.linalg.norm(basis, axis=0))
-    if not condition <= _MODAL_CONDITION_LIMIT:
-        return None
+    if n > 1:
+        with np.errstate(all='ignore'):
+            condition = np.linalg.cond(basis / np.linalg.norm(basis, axis=0))
+        if not condition <= _MODAL_CONDITION_LIMIT:
+            return None
     keep = poles.imag >= 0.0
     return _ContinuousModes(poles[keep], basis, keep,
                             np.where(poles[keep].imag > 0.0, 2.0, 1.0),
