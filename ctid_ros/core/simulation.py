@@ -676,7 +676,7 @@ class _ContinuousModes:
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
-        transition = np.ones(self.poles.size, dtype=complex)
+        transition = np.ones(self.poles.size, dtype=self.poles.dtype)
         drive: Dict[Sample, np.ndarray] = {}
         for length, start, end in segments:
             x = self.poles * length
@@ -734,9 +734,12 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not condition <= _MODAL_CONDITION_LIMIT:
             return None
     keep = poles.imag >= 0.0
+    residues = 1.0 / differences.prod(axis=1)[keep]
+    if not poles.imag.any():
+        # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
+        poles, basis, residues = poles.real, basis.real, residues.real
     return _ContinuousModes(poles[keep], basis, keep,
-                            np.where(poles[keep].imag > 0.0, 2.0, 1.0),
-                            1.0 / differences.prod(axis=1)[keep])
+                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues)
 
 
 def skew_delay(ts: float, output_skew: float) -> float:
