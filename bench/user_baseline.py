@@ -30,7 +30,7 @@ import numpy as np
 from scipy import optimize
 from threadpoolctl import threadpool_limits
 
-__all__ = ['USER_MODELS', 'user_simulate', 'user_fit', 'run_system', 'main']
+__all__ = ['USER_MODELS', 'ctid_fit', 'main', 'print_table', 'run_system', 'user_fit']
 
 Polynomials = Tuple[np.ndarray, np.ndarray, float]
 

@@ -30,6 +30,8 @@ from ctid_ros.errors import ModelError
 import numpy as np
 import sympy as sp
 
+__all__ = ['Coefficients', 'Model', 'ParameterValues']
+
 ParameterValues = Union[Mapping[str, float], Sequence[float], np.ndarray]
 # Models whose derivation is kept, by their texts (a node, a replay's windows, a fleet's tasks
 # and the command line build the same few models again and again).

@@ -33,6 +33,10 @@ import numpy as np
 from scipy import linalg
 from scipy.linalg import lapack
 
+__all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
+           'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses', 'shifted',
+           'skew_delay', 'skew_extended']
+
 INTERSAMPLE = ('zoh', 'foh')
 # Above this condition number of the eigenvector basis the propagation uses the Schur form.
 _MODAL_CONDITION_LIMIT = 1e4
