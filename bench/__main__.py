@@ -2,7 +2,8 @@
 ``make bench``: every benchmark, each against a baseline measured in the same run.
 
 ``python -m bench`` runs them all in the order below; ``python -m bench NAME...`` runs the named
-ones (extra arguments of the estimator benchmark go after ``--``). A benchmark that needs
+ones (extra arguments such as ``--runs N`` go to the estimator, user-baseline and
+cli start-up benchmarks). A benchmark that needs
 rclpy is skipped with a message where rclpy is not installed.
 """
 
@@ -16,6 +17,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'cli_startup': [],
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
+    'user_baseline': ['--json', 'bench/results-user-baseline.json'],
     'against_commit': [],
     'stamps': [],
     'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
@@ -25,9 +27,14 @@ BENCHMARKS: Dict[str, List[str]] = {
     'node_throughput': [],
     'node_storm': ['--json', 'bench/results-node-storm.json'],
     'fleet': [],
+    'replay_startup': [],
     'alarm': ['--json', 'bench/results-alarm.json'],
     'memory': ['--minutes', '20', '--json', 'bench/results-memory.json'],
 }
+
+
+# The benchmarks that take the extra arguments of the command line.
+_EXTRA_ARGUMENTS = ('estimator', 'user_baseline', 'cli_startup', 'replay_startup')
 
 
 def _runner(name: str) -> Callable[[List[str]], object]:
@@ -50,7 +57,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         except ImportError as error:       # rclpy missing: the other benchmarks still stand
             print(f'{name} benchmark skipped: {error}')
             continue
-        run(BENCHMARKS[name] + (extra if name == 'estimator' else []))
+        run(BENCHMARKS[name] + (extra if name in _EXTRA_ARGUMENTS else []))
     return 0
 
 

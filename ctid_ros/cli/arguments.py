@@ -2,29 +2,29 @@
 The command line of every ``ctid`` subcommand: its arguments, and nothing that computes.
 
 ``ctid --help`` and ``ctid <command> --help`` need only this module, so they start without
-sympy, scipy, matplotlib, rclpy or the bag readers (about a tenth of a second instead of two to
-three, see ``bench/cli_startup.py``). :mod:`ctid_ros.cli.main` imports the module that runs the
-chosen command only once the command line has been parsed, and that module imports the heavy
-libraries it needs. So the choices offered here are written out, not imported from the
-estimator: they are the
-same tuples as ``ctid_ros.estimation.options.METHODS``, ``INITIAL_STATES`` and
-``ctid_ros.core.simulation.INTERSAMPLE``, which ``test/cli/test_arguments.py`` checks.
+numpy, sympy, scipy, matplotlib, rclpy or the bag readers (about a tenth of a second instead
+of two to three, see ``bench/cli_startup.py``). :mod:`ctid_ros.cli.main` imports the module
+that runs the chosen command only once the command line has been parsed, and that module
+imports the heavy libraries it needs. So the choices offered here are written out, not
+imported from the estimator: they are the same tuples as
+``ctid_ros.estimation.options.METHODS``, ``INITIAL_STATES`` and
+``ctid_ros.core.simulation.INTERSAMPLE``, and the node's default name is that of
+``ctid_ros.streaming.contract`` (which imports numpy); ``test/cli/test_arguments.py`` checks.
 """
 
 import argparse
 from pathlib import Path
 from typing import Dict, Optional, Tuple
 
-from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
-
-__all__ = ['DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_echo',
-           'configure_fit', 'configure_fleet', 'configure_node', 'configure_record',
-           'configure_replay', 'parse_bounds', 'parse_fixed', 'parse_initial', 'parse_interval',
-           'parse_range', 'parse_units']
+__all__ = ['DEFAULT_NODE_NAME', 'DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS',
+           'configure_echo', 'configure_fit', 'configure_fleet', 'configure_node',
+           'configure_record', 'configure_replay', 'parse_bounds', 'parse_fixed',
+           'parse_initial', 'parse_interval', 'parse_range', 'parse_units']
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
 INTERSAMPLE = ('zoh', 'foh')
+DEFAULT_NODE_NAME = 'ctid_node'
 # The value of ``--plot`` given without a file name (each command picks its default path).
 DEFAULT_PLOT = object()
 

@@ -17,6 +17,7 @@ section 2).
 """
 
 from dataclasses import dataclass
+import functools
 import keyword
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
@@ -29,7 +30,12 @@ from ctid_ros.errors import ModelError
 import numpy as np
 import sympy as sp
 
+__all__ = ['Coefficients', 'Model', 'ParameterValues']
+
 ParameterValues = Union[Mapping[str, float], Sequence[float], np.ndarray]
+# Models whose derivation is kept, by their texts (a node, a replay's windows, a fleet's tasks
+# and the command line build the same few models again and again).
+_REMEMBERED_MODELS = 64
 
 
 @dataclass(frozen=True)
@@ -152,6 +158,27 @@ def _padded_coefficients(poly: sp.Poly, degree: int) -> list:
     return [sp.Integer(0)] * (degree + 1 - len(coefficients)) + coefficients
 
 
+def _model_key(expression, controller, inputs, output) -> Optional[Tuple]:
+    """Return the hashable key of a model's texts, None if they are not all plain strings."""
+    if inputs is not None:
+        if isinstance(inputs, str) or not all(type(name) is str for name in inputs):
+            return None
+        inputs = tuple(inputs)
+    if type(expression) is not str or type(output) is not str or \
+            (controller is not None and type(controller) is not str):
+        return None
+    return expression, controller, inputs, output
+
+
+@functools.lru_cache(maxsize=_REMEMBERED_MODELS)
+def _derived(expression: str, controller: Optional[str], inputs: Optional[Tuple[str, ...]],
+             output: str) -> Dict[str, object]:
+    """Return the attributes of the model of these texts (an error is raised each time)."""
+    model = Model.__new__(Model)
+    model._derive(expression, controller, inputs=inputs, output=output)
+    return dict(vars(model))
+
+
 class Model:
     """
     Continuous-time grey-box model: a transfer function ``G(s, theta)`` or a model equation.
@@ -185,6 +212,17 @@ class Model:
 
     def __init__(self, expression: str, controller: Optional[str] = None, *,
                  inputs: Optional[Sequence[str]] = None, output: str = 'y'):
+        key = _model_key(expression, controller, inputs, output)
+        if key is None:
+            self._derive(expression, controller, inputs=inputs, output=output)
+        else:
+            # A model is never changed once built: one built from the same texts shares the
+            # derivation (sympy and its compiled Jacobian), a few milliseconds per model.
+            self.__dict__.update(_derived(*key))
+
+    def _derive(self, expression: str, controller: Optional[str], *,
+                inputs: Optional[Sequence[str]], output: str) -> None:
+        """Parse the texts, derive the coefficients and their Jacobian and compile them."""
         if controller is not None and not isinstance(controller, str):
             raise ModelError(f'controller must be a string, got {type(controller).__name__}')
         self.expression = expression

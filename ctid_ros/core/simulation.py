@@ -18,7 +18,8 @@ realised in controllable canonical form whose states are ``s^j/D(s)`` applied to
 (so any numerator of degree <= deg D is just an output map of one state simulation), diagonally
 balanced, discretised with one matrix exponential per sub-interval, and propagated in modal
 (eigenvector, else complex Schur) coordinates where every mode is a first-order recursion run by
-:func:`scipy.signal.lfilter`.
+:func:`recursions` (LAPACK's banded triangular solve, the forward substitution of
+``scipy.signal.lfilter``, for all modes at once).
 No high-order difference equation is ever formed, so precision holds up to high orders, and no
 Python loop runs per sample.
 """
@@ -29,12 +30,19 @@ from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
-from scipy import linalg, signal
+from scipy import linalg
 from scipy.linalg import lapack
+
+__all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
+           'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses', 'shifted',
+           'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
 # Above this condition number of the eigenvector basis the propagation uses the Schur form.
 _MODAL_CONDITION_LIMIT = 1e4
+# Poles whose magnitudes are further apart than this factor are left to the matrix exponential,
+# which reports them as beyond floating point.
+_MODAL_RANGE_LIMIT = 1e30
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -128,6 +136,18 @@ class ContinuousFilter:
         self._balance = sc
         self.a = a / sc[:, None] * sc[None, :] if n else a
         self.b = (np.eye(n)[-1] / sc) if n else np.zeros(0)
+        self._modal: Optional[_ContinuousModes] = None
+        self._modal_checked = False
+        # Set by :attr:`modal`: (nearly) repeated roots have no eigenvector basis to try.
+        self.repeated_roots = False
+
+    @property
+    def modal(self) -> Optional['_ContinuousModes']:
+        """Return the uncoupled modes of the realisation, None if they are ill-conditioned."""
+        if not self._modal_checked:
+            self._modal = _continuous_modes(self)
+            self._modal_checked = True
+        return self._modal
 
     def output_map(self, num) -> Tuple[np.ndarray, float]:
         """
@@ -206,21 +226,40 @@ class ContinuousFilter:
         if fraction == 0.0:
             feed_left = {(-whole - 1, False): 1.0} if intersample == 'zoh' else \
                 {(-whole, True): 1.0}
-        n = self.order
-        transition = np.eye(n)
+        scaled_segments = [(length * scaled_ts, start, end) for length, start, end in segments]
+        modal = self.modal
+        if modal is not None:
+            discrete_modes = modal.discretize(scaled_segments)
+            if discrete_modes is None:
+                self._too_far_apart(ts)
+            return DiscreteFilter(self, ts, scaled_segments, feed, feed_left, discrete_modes)
+        discrete = DiscreteFilter(self, ts, scaled_segments, feed, feed_left)
+        discrete.transition     # discretised now: an overflow is an error here
+        return discrete
+
+    def _too_far_apart(self, ts: float) -> None:
+        # A time scale ratio far beyond any physical model (1e36 and more) overflows the matrix
+        # exponential: an error, rather than NaNs that fail later inside numpy.
+        raise ModelError(f'the denominator {self.den} has roots too many decades apart to '
+                         f'discretise with sample time {ts}')
+
+    def state_discretization(self, segments) -> Tuple[np.ndarray, Dict['Sample', np.ndarray]]:
+        """
+        Return ``Ad`` and the drive vectors ``B_o`` of the sub-intervals ``segments``.
+
+        ``segments`` are ``(scaled length, values at start, values at end)`` as
+        :func:`_delayed_segments` gives them with lengths times ``ts * scale``: one matrix
+        exponential per sub-interval.
+        """
+        transition = np.eye(self.order)
         drive: Dict[Sample, np.ndarray] = {}
         for length, start, end in segments:
-            e, p, q = _hold_integrals(self.a, self.b, length * scaled_ts)
+            e, p, q = _hold_integrals(self.a, self.b, length)
             transition = e @ transition
             drive = {sample: e @ vector for sample, vector in drive.items()}
             _accumulate(drive, start, p - q)
             _accumulate(drive, end, q)
-        # A time scale ratio far beyond any physical model (1e36 and more) overflows the matrix
-        # exponential: an error, rather than NaNs that fail later inside numpy.
-        if not all(np.all(np.isfinite(matrix)) for matrix in [transition, *drive.values()]):
-            raise ModelError(f'the denominator {self.den} has roots too many decades apart to '
-                             f'discretise with sample time {ts}')
-        return DiscreteFilter(self, transition, drive, feed, feed_left)
+        return transition, drive
 
 
 def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
@@ -295,15 +334,45 @@ def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
     return shifted(values, offset)
 
 
-@dataclass
 class DiscreteFilter:
-    """``x[k+1] = Ad x[k] + sum_o B_o u[k+o]`` realising a :class:`ContinuousFilter` exactly."""
+    """
+    ``x[k+1] = Ad x[k] + sum_o B_o u[k+o]`` realising a :class:`ContinuousFilter` exactly.
 
-    continuous: ContinuousFilter
-    transition: np.ndarray
-    drive: Dict[Sample, np.ndarray]
-    feed: Dict[Sample, float]
-    feed_left: Optional[Dict[Sample, float]] = None
+    Where the realisation has well-conditioned uncoupled modes the filter is discretised mode
+    by mode in closed form (:attr:`modes`) and simulations use only that; ``transition`` and
+    ``drive`` (the state-space form, for stepping a plant or free responses) are then formed
+    with matrix exponentials when first asked for.
+    """
+
+    def __init__(self, continuous: ContinuousFilter, ts: float, segments,
+                 feed: Dict[Sample, float],
+                 feed_left: Optional[Dict[Sample, float]] = None,
+                 modes: Optional['_DiscreteModes'] = None):
+        self.continuous = continuous
+        self.ts = ts
+        self.feed = feed
+        self.feed_left = feed_left
+        self.modes = modes
+        self._segments = segments
+        self._state_space: Optional[Tuple[np.ndarray, Dict[Sample, np.ndarray]]] = None
+
+    def _discretized(self) -> Tuple[np.ndarray, Dict[Sample, np.ndarray]]:
+        if self._state_space is None:
+            transition, drive = self.continuous.state_discretization(self._segments)
+            if not all(np.all(np.isfinite(matrix)) for matrix in [transition, *drive.values()]):
+                self.continuous._too_far_apart(self.ts)
+            self._state_space = transition, drive
+        return self._state_space
+
+    @property
+    def transition(self) -> np.ndarray:
+        """``Ad``, the state transition over one sample time."""
+        return self._discretized()[0]
+
+    @property
+    def drive(self) -> Dict[Sample, np.ndarray]:
+        """``B_o`` by input sample relative to ``k`` (see :data:`Sample`)."""
+        return self._discretized()[1]
 
     def states(self, values: np.ndarray) -> np.ndarray:
         """State trajectory (N x n) for the sampled signal, starting at rest."""
@@ -397,9 +466,15 @@ class StateResponse:
         self._held = discrete.delayed_input(values)
         self._modes = None
         if self._continuous.order:
-            signals = np.array([_sampled(values, sample) for sample in discrete.drive])
-            self._modes = _Modes(discrete.transition, signals,
-                                 np.array(list(discrete.drive.values())))
+            if discrete.modes is not None:
+                signals = np.array([_sampled(values, sample)
+                                    for sample in discrete.modes.samples])
+                self._modes = discrete.modes.run(signals)
+            else:
+                drive = discrete.drive
+                signals = np.array([_sampled(values, sample) for sample in drive])
+                self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
+                                     self._continuous.repeated_roots)
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
@@ -437,7 +512,7 @@ class _Modes:
     """
     The modal trajectories of ``x[k+1] = A x[k] + drives.T @ signals[:, k]``, ``x[0] = 0``.
 
-    Each mode is a first-order recursion run by :func:`scipy.signal.lfilter`. When the
+    Each mode is a first-order recursion run by :func:`recursions`. When the
     eigenvectors of ``A`` form a well-conditioned basis the modes are uncoupled and, the signals
     being real, only one mode of each conjugate pair is run; otherwise (repeated poles, as in
     ``D^2``) the modes are the coupled ones of the complex Schur form. :meth:`mapped` reads
@@ -445,8 +520,19 @@ class _Modes:
 
     """
 
-    def __init__(self, transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
-        self._basis, self._keep, self._weights, self._modal = _modes(transition, signals, drives)
+    def __init__(self, transition: Optional[np.ndarray], signals: np.ndarray,
+                 drives: np.ndarray, repeated: bool = False):
+        if transition is not None:
+            self._basis, self._keep, self._weights, self._modal = _modes(transition, signals,
+                                                                         drives, repeated)
+
+    @classmethod
+    def uncoupled(cls, basis: np.ndarray, keep: np.ndarray, weights: np.ndarray,
+                  modal: np.ndarray) -> '_Modes':
+        """Return the modes already run (:meth:`_DiscreteModes.run`)."""
+        modes = cls(None, signals=np.zeros((0, 0)), drives=np.zeros((0, 0)))
+        modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
+        return modes
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """Return ``rows @ x[k]`` for every k, shape (q, N)."""
@@ -456,11 +542,16 @@ class _Modes:
         return (out_map @ self._modal).real
 
 
-def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
-    """Return the basis, the modes kept and their weights, and the modal trajectories."""
-    count = signals.shape[1]
-    eigenvalues, vectors = np.linalg.eig(transition)
-    if np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
+def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
+           repeated: bool = False):
+    """
+    Return the basis, the modes kept and their weights, and the modal trajectories.
+
+    ``repeated``: the poles are known to repeat (as those of ``D^2``), so the eigenvectors
+    are not tried.
+    """
+    eigenvalues, vectors = (None, None) if repeated else np.linalg.eig(transition)
+    if not repeated and np.linalg.cond(vectors) <= _MODAL_CONDITION_LIMIT:
         keep = eigenvalues.imag >= 0.0
         poles = eigenvalues[keep]
         coupling = None
@@ -476,19 +567,183 @@ def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray):
         coupling = upper
         modal_drives = unitary.conj().T @ drives.T
         basis, keep, weights = unitary, None, None
-    driving = modal_drives @ signals
+    return basis, keep, weights, _run(poles, coupling, modal_drives @ signals)
+
+
+def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray) -> np.ndarray:
+    """Modal trajectories: ``modal[i, k+1] = pole_i modal[i, k] + driving[i, k]`` (+ coupling)."""
+    count = driving.shape[1]
     modal = np.zeros(driving.shape, dtype=driving.dtype)
+    if count < 2:
+        return modal
+    if coupling is None:
+        # Uncoupled: the real modes in one solve, the complex ones in another; a real mode of
+        # real signals has only rounding in any imaginary part of its driving.
+        real = poles.imag == 0.0
+        if real.any():
+            modal[real, 1:] = recursions(poles[real].real, driving[real, :count - 1].real)
+        if not real.all():
+            modal[~real, 1:] = recursions(poles[~real], driving[~real, :count - 1])
+        return modal
     for i in range(poles.size - 1, -1, -1):
-        if coupling is not None and i + 1 < poles.size:
+        if i + 1 < poles.size:
             driving[i] += coupling[i, i + 1:] @ modal[i + 1:]
-        # modal[i, k+1] = pole * modal[i, k] + driving[i, k]
-        if coupling is None and poles[i].imag == 0.0:
-            # A real mode of real signals: any imaginary part is rounding.
-            modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i].real],
-                                          driving[i, :count - 1].real)
-        else:
-            modal[i, 1:] = signal.lfilter([1.0], [1.0, -poles[i]], driving[i, :count - 1])
-    return basis, keep, weights, modal
+        modal[i, 1:] = recursions(poles[i:i + 1], driving[i:i + 1, :count - 1])[0]
+    return modal
+
+
+def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
+
+    Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, computed as one lower
+    bidiagonal triangular solve (LAPACK ``?tbtrs``, the same forward substitution) over all
+    rows at once: no per-row call, and no import of :mod:`scipy.signal` (and with it
+    :mod:`scipy.stats`) for the simulation.
+    """
+    rows, length = values.shape
+    complex_valued = np.iscomplexobj(values) or np.iscomplexobj(poles)
+    dtype = complex if complex_valued else float
+    if rows == 0 or length == 0:
+        return np.zeros((rows, length), dtype=dtype)
+    band = np.empty((2, rows * length), dtype=dtype)
+    band[0] = 1.0
+    below = band[1].reshape(rows, length)
+    below[:] = -poles[:, None]
+    below[:, -1] = 0.0                  # a row's last sample does not feed the next row
+    solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
+    out, _ = solve(band, values.astype(dtype, copy=False).reshape(-1, 1), uplo='L')
+    return out.reshape(rows, length)
+
+
+def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    Return ``scipy.signal.lfilter([1], den, values, axis=0)`` from rest, by column.
+
+    ``den[0] out[k] = values[k] - den[1] out[k-1] - ... - den[p] out[k-p]``: one banded lower
+    triangular solve (LAPACK ``?tbtrs``) for all columns, without importing
+    :mod:`scipy.signal`.
+    """
+    den = np.asarray(den, dtype=float)
+    values = np.asarray(values, dtype=float)
+    columns = values.reshape(values.shape[0], -1)
+    count, order = columns.shape[0], den.size - 1
+    if count == 0 or columns.shape[1] == 0:
+        return np.zeros(values.shape)
+    band = np.empty((order + 1, count))
+    band[:] = den[:, None]
+    for lag in range(1, order + 1):
+        band[lag, max(count - lag, 0):] = 0.0       # outside the matrix
+    out, _ = lapack.dtbtrs(band, columns, uplo='L')
+    return out.reshape(values.shape)
+
+
+# Below this magnitude of ``pole * length`` the hold integrals are summed as power series
+# (their closed forms cancel); 19 terms reach rounding at 0.5.
+_SERIES_LIMIT = 0.5
+_SERIES_POWERS = np.arange(19)
+_FACTORIALS = np.cumprod(np.arange(1, 22, dtype=float))       # 1!, 2!, ..., 21!
+_SERIES_FIRST = 1.0 / _FACTORIALS[:19]                          # 1/(k+1)!
+_SERIES_SECOND = 1.0 / _FACTORIALS[1:20]                        # 1/(k+2)!
+
+
+def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0)."""
+    with np.errstate(all='ignore'):
+        expm1 = np.expm1(x)
+        first, second = expm1 / x, (expm1 - x) / (x * x)
+        small = np.abs(x) < _SERIES_LIMIT
+        if small.any():
+            powers = x[:, None] ** _SERIES_POWERS
+            first = np.where(small, powers @ _SERIES_FIRST, first)
+            second = np.where(small, powers @ _SERIES_SECOND, second)
+    return first, second
+
+
+@dataclass
+class _ContinuousModes:
+    """
+    The uncoupled modes of a :class:`ContinuousFilter` with distinct, well-separated poles.
+
+    With the (scaled) roots ``z_i`` of ``D`` the companion states ``s^j/D`` are
+    ``sum_i z_i^j r_i/(s - z_i)``, ``r_i = 1/D'(z_i)``: the eigenvectors are the Vandermonde
+    columns and every mode is discretised in closed form, without matrix exponentials,
+    eigen-decompositions or solves. Only one mode of each conjugate pair is kept (``keep``),
+    the other being its conjugate (``weights`` 2).
+    """
+
+    poles: np.ndarray          # kept scaled continuous poles z_i
+    basis: np.ndarray          # balanced states of each mode (all modes, columns)
+    keep: np.ndarray
+    weights: np.ndarray
+    residues: np.ndarray       # r_i of the kept modes
+
+    def discretize(self, segments) -> Optional['_DiscreteModes']:
+        """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
+        transition = np.ones(self.poles.size, dtype=self.poles.dtype)
+        drive: Dict[Sample, np.ndarray] = {}
+        for length, start, end in segments:
+            x = self.poles * length
+            e = np.exp(x)
+            first, second = _hold_factors(x)
+            q = length * second * self.residues
+            transition = e * transition
+            drive = {sample: e * vector for sample, vector in drive.items()}
+            _accumulate(drive, start, length * first * self.residues - q)
+            _accumulate(drive, end, q)
+        drives = np.array(list(drive.values()))
+        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+            return None
+        return _DiscreteModes(self, transition, list(drive), drives)
+
+
+@dataclass
+class _DiscreteModes:
+    """One sample period of :class:`_ContinuousModes`: ``m_i[k+1] = p_i m_i[k] + drive``."""
+
+    continuous: _ContinuousModes
+    poles: np.ndarray
+    samples: List[Sample]
+    drives: np.ndarray         # (samples, kept modes)
+
+    def run(self, signals: np.ndarray) -> _Modes:
+        """Run every kept mode over the signals of :attr:`samples` (one row each)."""
+        modes = self.continuous
+        modal = _run(self.poles, None, self.drives.T @ signals)
+        return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
+
+
+def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousModes]:
+    """Return the uncoupled modes of ``realisation``, None if they are ill-conditioned."""
+    n = realisation.order
+    if n == 0:
+        return None
+    poles = np.asarray(polynomial_roots(realisation.den), dtype=complex) / realisation.scale
+    if poles.size != n or not np.isfinite(poles).all():
+        return None
+    magnitudes = np.abs(poles)
+    nonzero = magnitudes[magnitudes > 0.0]
+    if nonzero.size and nonzero.max() > _MODAL_RANGE_LIMIT * nonzero.min():
+        return None                     # beyond any physical model: the state-space path says so
+    differences = poles[:, None] - poles[None, :]
+    np.fill_diagonal(differences, 1.0)
+    if np.abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
+        realisation.repeated_roots = True
+        return None                     # (nearly) repeated poles: no eigenvector basis
+    vandermonde = poles[None, :] ** np.arange(n)[:, None]
+    basis = vandermonde / realisation._balance[:, None]
+    if n > 1:
+        with np.errstate(all='ignore'):
+            condition = np.linalg.cond(basis / np.linalg.norm(basis, axis=0))
+        if not condition <= _MODAL_CONDITION_LIMIT:
+            return None
+    keep = poles.imag >= 0.0
+    residues = 1.0 / differences.prod(axis=1)[keep]
+    if not poles.imag.any():
+        # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
+        poles, basis, residues = poles.real, basis.real, residues.real
+    return _ContinuousModes(poles[keep], basis, keep,
+                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues)
 
 
 def skew_delay(ts: float, output_skew: float) -> float:

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy import signal
 
 __all__ = ['SpectralResponse', 'spectral_response']
 
@@ -116,6 +115,8 @@ def spectral_response(u, y, ts: float, segment: Optional[int] = None) -> Spectra
     if segment is None:
         segment = max(MIN_SEGMENT, 2 ** int(np.floor(np.log2(max(u.size // SEGMENTS, 1)))))
     segment = int(min(segment, u.size))
+    # Imported here: scipy.signal brings scipy.stats, which nothing else of an estimate needs.
+    from scipy import signal
     options = {'fs': 1.0 / ts, 'window': 'hann', 'nperseg': segment, 'detrend': 'constant'}
     frequency, s_uu = signal.welch(u, **options)
     _, s_yy = signal.welch(y, **options)

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import math
 from typing import Optional, Tuple
 
+from ctid_ros.core.simulation import all_pole
 import numpy as np
-from scipy import signal
 
 __all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model']
 
@@ -140,7 +140,7 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
     scale = count / max(count - parameters, 1)
-    filtered = signal.lfilter([1.0], model.ar, left[::-1], axis=0)[::-1]
+    filtered = all_pole(model.ar, left[::-1])[::-1]
     middle = scale * model.innovation_variance * (filtered.T @ filtered)
     return mapping @ middle @ mapping.T, model
 

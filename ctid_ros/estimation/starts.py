@@ -31,7 +31,6 @@ from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationRe
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
-from scipy import optimize
 from scipy.linalg import lapack
 
 __all__ = [
@@ -545,6 +544,8 @@ class _EquationError:
         step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
         if np.all(values + step >= lower) and np.all(values + step <= upper):
             return values + step
+        # Imported here: the bounded solve is rare, and scipy.optimize is slow to import.
+        from scipy import optimize
         return values + optimize.lsq_linear(jacobian, -residual,
                                             bounds=(lower - values, upper - values),
                                             method='bvls').x

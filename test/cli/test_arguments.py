@@ -8,15 +8,17 @@ from ctid_ros.cli import arguments
 from ctid_ros.cli.main import build_parser, COMMANDS
 from ctid_ros.core.simulation import INTERSAMPLE
 from ctid_ros.estimation.options import INITIAL_STATES, METHODS
+from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 import pytest
 
-HEAVY = ('sympy', 'scipy', 'matplotlib', 'rclpy', 'rosbags', 'mcap', 'tqdm', 'yaml')
+HEAVY = ('numpy', 'sympy', 'scipy', 'matplotlib', 'rclpy', 'rosbags', 'mcap', 'tqdm', 'yaml')
 
 
 def test_choices_are_the_estimators():
     assert arguments.METHODS == METHODS
     assert arguments.INITIAL_STATES == INITIAL_STATES
     assert arguments.INTERSAMPLE == INTERSAMPLE
+    assert arguments.DEFAULT_NODE_NAME == DEFAULT_NODE_NAME
 
 
 @pytest.mark.parametrize('command', [[]] + [[name] for name in COMMANDS])
