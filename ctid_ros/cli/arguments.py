@@ -167,10 +167,12 @@ def configure_fit(fit: argparse.ArgumentParser) -> None:
 
 def configure_replay(parser: argparse.ArgumentParser) -> None:
     """Add the ``ctid replay`` arguments to ``parser``."""
-    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage) or a '
-                          'standalone .mcap file with the params file of the live node: one '
+    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage), a '
+                          'standalone .mcap file or a ROS 1 .bag file with the params file of '
+                          'the live node: one '
                           'estimate over the selected span, or --sliding as the node would.')
-    parser.add_argument('path', help='rosbag2 directory or .mcap file (never modified)')
+    parser.add_argument('path',
+                        help='rosbag2 directory, .mcap or ROS 1 .bag file (never modified)')
     parser.add_argument('--params-file', required=True,
                         help='ROS 2 params YAML of the node (e.g. config/open_loop_delay.yaml)')
     parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
@@ -244,10 +246,10 @@ def configure_echo(parser: argparse.ArgumentParser) -> None:
 
 def configure_fleet(parser: argparse.ArgumentParser) -> None:
     """Add the ``ctid fleet`` arguments to ``parser``."""
-    parser.description = ('Estimate on every bag of a fleet (rosbag2 directories, .mcap and '
-                          '.db3 files), each bag (or each --span of a bag) a task on Dask '
-                          'distributed; results and a fleet report as Parquet, CSV and PNG in '
-                          '--results.')
+    parser.description = ('Estimate on every bag of a fleet (rosbag2 directories, .mcap, '
+                          '.db3 and ROS 1 .bag files), each bag (or each --span of a bag) a '
+                          'task on Dask distributed; results and a fleet report as Parquet, '
+                          'CSV and PNG in --results.')
     parser.add_argument('paths', nargs='+', metavar='PATH_OR_GLOB',
                         help="bags, directories holding bags, or globs ('fleet/**/*.mcap')")
     parser.add_argument('--params-file', required=True, help='ROS 2 params YAML of the node')

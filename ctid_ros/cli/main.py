@@ -58,7 +58,7 @@ class Command(NamedTuple):
 COMMANDS: Dict[str, Command] = {
     'fit': Command('estimate a model from a CSV file', command_lines.configure_fit,
                    'ctid_ros.cli.fit'),
-    'replay': Command('estimate from a rosbag2 directory or an MCAP file',
+    'replay': Command('estimate from a rosbag2 directory, an MCAP file or a ROS 1 bag',
                       command_lines.configure_replay, 'ctid_ros.cli.replay'),
     'node': Command('run the live identification node (same as ctid_node)',
                     command_lines.configure_node, 'ctid_ros.cli.node', ros_arguments=True),

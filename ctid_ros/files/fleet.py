@@ -1,8 +1,8 @@
 """
 The work of ``ctid fleet``: many bags, each one task (or one per time span), results as rows.
 
-:func:`find_bags` expands paths and globs into bags (rosbag2 directories, ``.mcap`` and ``.db3``
-files) and names each bag's robot from a path pattern (:func:`robot_fields`);
+:func:`find_bags` expands paths and globs into bags (rosbag2 directories, ``.mcap``, ``.db3``
+and ROS 1 ``.bag`` files) and names each bag's robot from a path pattern (:func:`robot_fields`);
 :func:`analyse_bag` replays one bag, or one span of its log time, through the columnar path
 (:func:`~ctid_ros.files.columns.sample_columns`,
 :func:`~ctid_ros.streaming.replay.replay_columns`) and returns its rows, an error row if
@@ -40,7 +40,7 @@ __all__ = ['IDENTITY', 'BagResult', 'BagTask', 'analyse_bag', 'bag_row_columns',
            'bag_time_range', 'find_bags', 'load_params_text', 'make_task', 'robot_fields',
            'span_bounds', 'split_task']
 
-_BAG_SUFFIXES = ('.mcap', '.db3')
+_BAG_SUFFIXES = ('.mcap', '.db3', '.bag')
 # Characters of an error message kept in a result row.
 _ERROR_LIMIT = 500
 # The columns of a result row that identify its task (see BagTask.key); the span columns are
@@ -145,7 +145,8 @@ def find_bags(patterns: Sequence[str]) -> Tuple[Path, List[Path]]:
     Expand paths and globs into bags, and return their common root too.
 
     A directory with ``metadata.yaml`` is one bag; any other directory is searched for bags
-    (rosbag2 directories, ``.mcap`` and ``.db3`` files outside them). Globs may use ``**``.
+    (rosbag2 directories, ``.mcap``, ``.db3`` and ROS 1 ``.bag`` files outside them). Globs
+    may use ``**``.
 
     Raises
     ------

@@ -240,3 +240,25 @@ def test_the_command_with_spans(long_bags, tmp_path, capsys):
     lengths = [(row['span_end_ns'] - row['span_start_ns']) / 1e9 for row in rows]
     assert lengths[0] == 18.0 and lengths[1] == pytest.approx(21.99, abs=0.001)
     assert rows[1]['J'] == pytest.approx(TRUTH['J'], rel=0.005)
+
+
+def test_a_fleet_mixes_ros1_bags_with_rosbag2_and_mcap(client, tmp_path):
+    from replay_fixtures import convert_to_rosbag2, DELAY, params_file, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, 20.0)
+    bags = tmp_path / 'bags'
+    bags.mkdir()
+    ros1 = write_rosbag1(bags / 'old.bag', u, y)
+    converted = convert_to_rosbag2(ros1, bags / 'converted')
+    # The storage file of the conversion on its own: a standalone MCAP file.
+    (bags / 'single.mcap').write_bytes((converted / 'converted.mcap').read_bytes())
+    params = params_file(tmp_path, DELAY, input_topic='/plant/cmd', input_field='effort')
+    summary = run_fleet([str(bags)], params, tmp_path / 'results', client=client, plots=False)
+    assert summary['bags'] == 3 and summary['errors'] == 0
+    rows = {row['bag']: row for row in pq.read_table(tmp_path / 'results' / 'bags.parquet')
+            .to_pylist()}
+    assert set(rows) == {'old.bag', 'converted', 'single.mcap'}
+    for name in DELAY['truth']:
+        assert rows['old.bag'][name] == pytest.approx(rows['converted'][name], rel=1e-9)
+        assert rows['single.mcap'][name] == pytest.approx(rows['converted'][name], rel=1e-9)
+        assert rows['old.bag'][name] == pytest.approx(DELAY['truth'][name], rel=0.03)

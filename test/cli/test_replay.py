@@ -490,3 +490,34 @@ def test_sliding_replay_audits_a_recorded_shift(tmp_path, capsys):
     raised = next(alarm for time_s, alarm in alarms if alarm['level'] == 'ERROR')
     assert raised['parameters'] == ['J'] and set(raised) == {'level', 'parameters', 'since'}
     assert 37.5 < raised['since'] - T0_NS / 1e9 <= 40.5
+
+
+def test_a_ros1_bag_gives_the_estimate_of_its_rosbag2_conversion(tmp_path, capsys):
+    from replay_fixtures import convert_to_rosbag2, write_rosbag1
+
+    u, y = simulate(DELAY, 30.0)
+    ros1 = write_rosbag1(tmp_path / 'run.bag', u, y)
+    ros2 = convert_to_rosbag2(ros1, tmp_path / 'run_ros2')
+    params = params_file(tmp_path, DELAY, input_topic='/plant/cmd', input_field='effort')
+    results = {}
+    for bag in (ros1, ros2):
+        code, out, err = replay(capsys, bag, '--params-file', params, '--json')
+        assert code == 0, err
+        results[bag.name] = json.loads(out)
+    assert results['run.bag']['params'] == pytest.approx(results['run_ros2']['params'],
+                                                         rel=1e-9)
+    assert results['run.bag']['std'] == pytest.approx(results['run_ros2']['std'], rel=1e-9)
+    # The command is logged 3 ms after its header stamp: the stamp rule removes that from tau.
+    assert results['run.bag']['params'] == pytest.approx(DELAY['truth'], rel=0.03)
+    assert results['run.bag']['params']['tau'] == pytest.approx(DELAY['truth']['tau'],
+                                                                abs=0.0015)
+    # The per-message path (--output) gives the same estimate and copies ROS 2 messages.
+    output = tmp_path / 'est.mcap'
+    code, out, err = replay(capsys, ros1, '--params-file', params, '--json', '--output', output)
+    assert code == 0, err
+    assert json.loads(out)['params'] == pytest.approx(results['run.bag']['params'], rel=1e-9)
+    with open(output, 'rb') as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        efforts = [msg.effort for _, _, _, msg in
+                   reader.iter_decoded_messages(topics=['/plant/cmd'])]
+    assert efforts == pytest.approx(u.tolist())

@@ -327,3 +327,56 @@ def test_compressed_storage_files_are_checked_before_rosbags_decompresses_them(b
     with pytest.raises(BagError, match='decompresses to an unknown size from .* .the ratio '
                        'limit is 1000.: a decompression bomb'):
         BagReader(bag)
+
+
+def _ros1_bag(tmp_path, seconds=1.0):
+    from replay_fixtures import DELAY, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, seconds)
+    return write_rosbag1(tmp_path / 'run.bag', u, y), u, y
+
+
+def test_ros1_bag_yields_its_custom_type_as_the_ros2_message(tmp_path):
+    from replay_fixtures import COMMAND_TYPE, STEP_NS, T0_NS
+
+    path, u, y = _ros1_bag(tmp_path)
+    with BagReader(path) as bag:
+        assert bag.topics() == {'/plant/cmd': COMMAND_TYPE, '/plant/y': 'std_msgs/msg/Float64'}
+        assert bag.message_counts() == {'/plant/cmd': u.size, '/plant/y': y.size}
+        messages = list(bag.messages('/plant/cmd'))
+        schema = bag.topic_schema('/plant/cmd')
+        records = list(bag.records('/plant/cmd'))
+    assert [msg.msg.effort for msg in messages] == pytest.approx(u.tolist())
+    first = messages[1].msg
+    # The ROS 2 header: stamp and frame_id, without ROS 1's seq.
+    assert not hasattr(first.header, 'seq')
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == divmod(T0_NS + STEP_NS,
+                                                                          10 ** 9)
+    assert schema.encoding == 'ros2msg' and schema.message_encoding == 'cdr'
+    assert schema.definition.startswith(b'std_msgs/Header header\nfloat64 effort\n')
+    # The copied bytes are CDR that a ROS 2 decoder of that definition reads.
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(schema.definition.decode(), COMMAND_TYPE))
+    copy = store.deserialize_cdr(records[1].data, COMMAND_TYPE)
+    assert (copy.effort, copy.header.frame_id, copy.source) == (u[1], 'base', 'prbs')
+
+
+def test_files_that_are_no_bag_are_named(tmp_path):
+    path, _, _ = _ros1_bag(tmp_path)
+    renamed = tmp_path / 'run.rosbag'
+    shutil.copy(path, renamed)
+    with pytest.raises(BagError, match=r'is a ROS 1 bag, .*ending in \.bag'):
+        BagReader(renamed)
+    old = tmp_path / 'old.bag'
+    old.write_bytes(b'#ROSBAG V1.2\n' + bytes(100))
+    with pytest.raises(BagError, match='ROS 1 bag of format version 1.2'):
+        BagReader(old)
+    kinds = {'log.csv': (b't,u,y\n0,1,2\n', r"a text file, CSV-like \('t,u,y'"),
+             'x.bag': (b'\x1f\x8b\x08\x00' + bytes(40), 'a gzip-compressed file'),
+             'empty.bag': (b'', 'an empty file'),
+             'notes.txt': (b'hello\n', r"a text file \('hello'\)"),
+             'run.db': (b'SQLite format 3\x00' + bytes(100), 'an SQLite database')}
+    for name, (content, kind) in kinds.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(BagError, match=f'is not a bag: it is {kind}'):
+            BagReader(tmp_path / name)
