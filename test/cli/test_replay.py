@@ -12,6 +12,7 @@ window misses by far more.
 
 import hashlib
 import json
+import re
 
 from bag_fixtures import Record
 from ctid_ros import Model
@@ -521,3 +522,70 @@ def test_a_ros1_bag_gives_the_estimate_of_its_rosbag2_conversion(tmp_path, capsy
         efforts = [msg.effort for _, _, _, msg in
                    reader.iter_decoded_messages(topics=['/plant/cmd'])]
     assert efforts == pytest.approx(u.tolist())
+
+
+def test_output_is_complete_or_absent_and_never_a_pipe_or_device(tmp_path, capsys):
+    import os
+    import subprocess
+    import sys
+
+    u, y = simulate(DELAY, 5.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    fifo = tmp_path / 'pipe.mcap'
+    os.mkfifo(fifo)
+    full = tmp_path / 'full.mcap'
+    full.symlink_to('/dev/full')
+    for output, kind in ((fifo, r'a named pipe \(FIFO\)'),
+                         (full, r'a character device \(/dev/full\)')):
+        # In a process of its own: a regression would block on the pipe, not the test run.
+        done = subprocess.run([sys.executable, '-m', 'ctid_ros.cli.main', 'replay', str(bag),
+                               '--params-file', str(params), '--output', str(output),
+                               '--overwrite'], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and done.stderr.count('\n') == 1, done.stderr
+        assert re.search(f'error: cannot write {output}: it is {kind}', done.stderr)
+    # A replay that fails (here at the end: no estimate possible) leaves no file behind.
+    output = tmp_path / 'estimates.mcap'
+    code, _, err = replay(capsys, bag, '--params-file', params, '--output', output,
+                          '--start', '4.9')
+    assert code == 2 and not output.exists(), err
+    assert list(tmp_path.glob('*.partial.mcap')) == []
+
+
+def test_a_killed_replay_leaves_a_partial_file_that_a_rerun_replaces(tmp_path, capsys):
+    import subprocess
+    import sys
+    import time
+
+    u, y = simulate(DELAY, 120.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    output = tmp_path / 'estimates.mcap'
+    partial = tmp_path / 'estimates.partial.mcap'
+    process = subprocess.Popen([sys.executable, '-m', 'ctid_ros.cli.main', 'replay', str(bag),
+                                '--params-file', str(params), '--output', str(output),
+                                '--sliding'], stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not partial.exists():
+        assert process.poll() is None and time.monotonic() < deadline
+        time.sleep(0.005)
+    process.kill()
+    process.wait()
+    assert partial.exists() and not output.exists()
+    code, _, err = replay(capsys, bag, '--params-file', params, '--output', output, '--end', '20')
+    assert code == 0, err
+    assert output.read_bytes()[:5] == b'\x89MCAP' and not partial.exists()
+
+
+def test_a_full_disk_under_output_is_one_line_and_leaves_nothing(tmp_path, capsys):
+    from disk_fixtures import small_disk
+
+    u, y = simulate(DELAY, 30.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    with small_disk(tmp_path / 'disk', 64) as disk:
+        output = disk / 'estimates.mcap'
+        code, out, err = replay(capsys, bag, '--params-file', params, '--output', output)
+        assert code == 2 and out == '' and err.count('\n') == 1, err
+        assert f'error: cannot write {output}: No space left on device' in err
+        assert list(disk.iterdir()) == []
