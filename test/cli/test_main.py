@@ -97,8 +97,7 @@ def test_paths_too_long_are_one_line_user_errors(tmp_path, capsys):
 
 
 @pytest.mark.parametrize('value', ['abc', '500', '-1'])
-def test_a_domain_id_dds_cannot_use_is_refused_before_anything_starts(tmp_path, capsys,
-                                                                       monkeypatch, value):
+def test_a_domain_id_dds_cannot_use_is_refused_first(tmp_path, capsys, monkeypatch, value):
     monkeypatch.setenv('ROS_DOMAIN_ID', value)
     output = tmp_path / 'run.mcap'
     code, out, err = run(capsys, 'record', output, '/u', '--wait', '1')
