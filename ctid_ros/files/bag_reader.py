@@ -739,6 +739,12 @@ class BagReader:
         if missing:
             listing = '; '.join(f'{topic} ({msgtype}, {self._source.counts[topic]} messages)'
                                 for topic, msgtype in sorted(available.items())) or 'none'
+            if self.truncated:
+                readable = (f'its readable part has: {listing}' if available else 'nothing '
+                            'is readable before the cut (cut before its first complete chunk)')
+                raise BagError(f'topic(s) {", ".join(missing)} not in the readable part of '
+                               f'{self.path}: the file is truncated or damaged, and '
+                               f'{readable}')
             raise BagError(f'topic(s) {", ".join(missing)} not in {self.path}; it has: '
                            f'{listing}')
         return selected

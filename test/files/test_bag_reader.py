@@ -380,3 +380,14 @@ def test_files_that_are_no_bag_are_named(tmp_path):
         (tmp_path / name).write_bytes(content)
         with pytest.raises(BagError, match=f'is not a bag: it is {kind}'):
             BagReader(tmp_path / name)
+
+
+def test_a_file_cut_inside_its_first_chunk_is_called_truncated(bags, tmp_path):
+    content = bags['mcap_file'].read_bytes()
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(content[:300])
+    with BagReader(cut) as bag:
+        assert bag.truncated and bag.topics() == {}
+        with pytest.raises(BagError, match=r'not in the readable part of .*cut.mcap: the file '
+                                           r'is truncated or damaged, and nothing is readable'):
+            bag.messages('/plant/u')
