@@ -76,8 +76,10 @@ def _quoted(error: BaseException) -> str:
 
 def _open_reader(paths: Sequence[Path], path: Path) -> AnyReader:
     # The Jazzy store is only used by bags without stored definitions (pre-Iron sqlite3).
-    with reading_errors(f'cannot read bag {path} (damaged, or a format rosbags does not '
-                        'support)'):
+    what = (f'cannot read ROS 1 bag {path} (damaged, or cut short before its index was '
+            'written: `rosbag reindex` on ROS 1 rebuilds it)' if path.suffix == '.bag' else
+            f'cannot read bag {path} (damaged, or a format rosbags does not support)')
+    with reading_errors(what):
         reader = AnyReader(list(paths), default_typestore=get_typestore(Stores.ROS2_JAZZY))
         reader.open()
     return reader

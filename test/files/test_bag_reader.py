@@ -345,6 +345,10 @@ def test_ros1_bag_yields_its_custom_type_as_the_ros2_message(tmp_path):
         assert bag.message_counts() == {'/plant/cmd': u.size, '/plant/y': y.size}
         messages = list(bag.messages('/plant/cmd'))
         schema = bag.topic_schema('/plant/cmd')
+        # The listing of a missing topic's error, as for every other bag.
+        with pytest.raises(BagError, match=r'it has: /plant/cmd \(plant_msgs/msg/Command, 100 '
+                                           r'messages\); /plant/y \(std_msgs/msg/Float64'):
+            bag.messages('/plant/u')
         records = list(bag.records('/plant/cmd'))
     assert [msg.msg.effort for msg in messages] == pytest.approx(u.tolist())
     first = messages[1].msg
@@ -363,6 +367,10 @@ def test_ros1_bag_yields_its_custom_type_as_the_ros2_message(tmp_path):
 
 def test_files_that_are_no_bag_are_named(tmp_path):
     path, _, _ = _ros1_bag(tmp_path)
+    cut = tmp_path / 'cut.bag'
+    cut.write_bytes(path.read_bytes()[:5000])
+    with pytest.raises(BagError, match=r'cannot read ROS 1 bag .*cut short before its index'):
+        BagReader(cut)
     renamed = tmp_path / 'run.rosbag'
     shutil.copy(path, renamed)
     with pytest.raises(BagError, match=r'is a ROS 1 bag, .*ending in \.bag'):
