@@ -18,6 +18,7 @@ for a wrong command line (argparse); 1 with one line ``ctid <command>: internal 
 
 import argparse
 import errno
+import gc
 import importlib
 import os
 import re
@@ -187,8 +188,23 @@ def error_text(error: BaseException) -> str:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    """Entry point of the ``ctid`` command."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """
+    Entry point of the ``ctid`` command.
+
+    Called without ``argv`` (as the process's command) it leaves the objects it made out of
+    the interpreter's last garbage collections: those walk every object sympy and scipy
+    created, up to a second after the command ended (Ctrl-C of ``ctid echo`` took 1.3 s to
+    exit, 0.4 s without them). Everything that must be closed is closed before.
+    """
+    try:
+        return _run(sys.argv[1:] if argv is None else list(argv))
+    finally:
+        if argv is None:
+            gc.freeze()
+
+
+def _run(argv: List[str]) -> int:
+    """Parse ``argv``, run the command, turn its errors into messages and exit statuses."""
     parser = build_parser()
     arguments, unknown = parser.parse_known_args(argv)
     command = COMMANDS[arguments.command]

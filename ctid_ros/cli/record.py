@@ -29,13 +29,11 @@ Examples
 """
 
 import argparse
-import signal
 import sys
-import threading
 import time
-from types import FrameType
 from typing import Dict, List, Optional, Tuple
 
+from ctid_ros.cli.signals import stop_on_signals, StopRequest
 from ctid_ros.errors import BagError, ConfigError
 from ctid_ros.files.mcap_writer import RecordingWriter
 from ctid_ros.ros.graph import matching_qos, wait_for_topics
@@ -48,30 +46,9 @@ __all__ = ['FLUSH_INTERVAL', 'run']
 FLUSH_INTERVAL = 1.0
 # Seconds between two looks at the clock while recording.
 _TICK = 0.1
-_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-class _StopRequest:
-    """
-    SIGINT and SIGTERM as a request to stop.
-
-    While waiting for publishers the first one raises KeyboardInterrupt (nothing is recorded
-    yet); once recording, or after that first one, a signal only sets :attr:`requested`, so
-    that no exception can land in the middle of closing the file.
-    """
-
-    def __init__(self) -> None:
-        self.requested = threading.Event()
-        self.interrupting = True
-
-    def __call__(self, number: int, frame: Optional[FrameType]) -> None:
-        self.requested.set()
-        if self.interrupting:
-            self.interrupting = False
-            raise KeyboardInterrupt
-
-
-def _record(recorder: TopicRecorder, writer: RecordingWriter, stop: _StopRequest,
+def _record(recorder: TopicRecorder, writer: RecordingWriter, stop: StopRequest,
             duration: Optional[float]) -> float:
     """Record until ``duration``, a signal or a failed write; return the seconds recorded."""
     started = time.monotonic()
@@ -89,7 +66,7 @@ def _record(recorder: TopicRecorder, writer: RecordingWriter, stop: _StopRequest
 
 
 def _session(writer: RecordingWriter, topics: List[str], arguments: argparse.Namespace,
-             stop: _StopRequest) -> Tuple[Dict[str, int], float, Optional[BagError]]:
+             stop: StopRequest) -> Tuple[Dict[str, int], float, Optional[BagError]]:
     """Discover the topics, record them; return the messages per topic, seconds, failure."""
     with TopicRecorder(writer, {}, node_name='ctid_record') as recorder:
         print(f'ctid record: waiting for publishers of {", ".join(topics)}', file=sys.stderr,
@@ -113,9 +90,9 @@ def run(arguments: argparse.Namespace) -> int:
         raise ConfigError(f'{arguments.output} already exists; choose another file or pass '
                           '--overwrite to replace it')
     topics = [resolve_topic(topic) for topic in arguments.topics]
-    stop = _StopRequest()
-    previous = {number: signal.signal(number, stop) for number in _SIGNALS}
-    try:
+    # Waiting for publishers, a signal interrupts (nothing is recorded yet); once recording, it
+    # only asks to stop, so that no exception can land in the middle of closing the file.
+    with stop_on_signals(interrupting=True) as stop:
         writer = RecordingWriter(arguments.output, overwrite=arguments.overwrite,
                                  flush_interval=FLUSH_INTERVAL)
         try:
@@ -127,9 +104,6 @@ def run(arguments: argparse.Namespace) -> int:
             writer.close()
         except BagError as error:
             failure = failure or error
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
     written = (f'{sum(counts.values())} messages in {seconds:.1f} s (' +
                ', '.join(f'{topic}: {count}' for topic, count in counts.items()) + ')')
     if failure is not None:
