@@ -112,16 +112,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def check_ros_environment(environment: Mapping[str, str]) -> None:
     """
-    Refuse a ``ROS_DOMAIN_ID`` that DDS cannot use, before anything joins the graph.
+    Refuse what rcl and DDS would fail on, before anything joins the graph.
 
-    rcl refuses a value that is not a number only when the context starts, and Fast DDS one
-    above 232 (its ports would exceed 65535) when the first node is created, with a log line
-    and exit status 1.
+    rcl refuses a ``ROS_DOMAIN_ID`` that is not a number only when the context starts, and
+    Fast DDS one above 232 (its ports would exceed 65535) when the first node is created, with
+    a log line and exit status 1; rcl cannot start either where it cannot create its log
+    directory (``ROS_LOG_DIR``, else ``$ROS_HOME/log``, else ``~/.ros/log``), which this
+    creates as rcl would.
 
     Raises
     ------
     ConfigError
-        If ``ROS_DOMAIN_ID`` is set and is not an integer from 0 to 232.
+        If ``ROS_DOMAIN_ID`` is set and is not an integer from 0 to 232, or the log directory
+        cannot be created or written.
 
     """
     value = environment.get('ROS_DOMAIN_ID', '').strip()
@@ -130,6 +133,23 @@ def check_ros_environment(environment: Mapping[str, str]) -> None:
         raise ConfigError(f'the environment variable ROS_DOMAIN_ID={shown!r} is not a ROS '
                           f'domain: give an integer from 0 to {_MAX_DOMAIN_ID} (0 to 101 are '
                           'safe on every platform), or unset it for domain 0')
+    if environment.get('ROS_LOG_DIR'):
+        variable, directory = 'ROS_LOG_DIR', environment['ROS_LOG_DIR']
+    elif environment.get('ROS_HOME'):
+        variable, directory = 'ROS_HOME', os.path.join(environment['ROS_HOME'], 'log')
+    else:
+        variable, directory = 'HOME', os.path.join(os.path.expanduser('~'), '.ros', 'log')
+    try:
+        os.makedirs(os.path.expanduser(directory), exist_ok=True)
+        writable = os.access(os.path.expanduser(directory), os.W_OK)
+    except OSError as error:
+        problem = error.strerror or str(error)
+    else:
+        problem = None if writable else 'not writable'
+    if problem is not None:
+        raise ConfigError(f'ROS cannot write its log files in {_shown_path(directory)} ('
+                          f'{problem}; from the environment variable {variable}): set '
+                          'ROS_LOG_DIR to a writable directory')
 
 
 def _missing_dependency(error: ImportError) -> str:

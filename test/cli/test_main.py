@@ -125,3 +125,15 @@ def test_a_bogus_matplotlib_backend_is_named(tmp_path):
     _one_line_error(done.returncode, done.stdout, done.stderr, 'replay')
     assert "MPLBACKEND='bogus' is not a matplotlib backend" in done.stderr
     assert not list(tmp_path.glob('*.png'))
+
+
+def test_a_log_directory_ros_cannot_create_is_named(tmp_path, capsys, monkeypatch):
+    blocker = tmp_path / 'file'
+    blocker.write_text('not a directory')
+    monkeypatch.setenv('ROS_LOG_DIR', str(blocker / 'log'))
+    output = tmp_path / 'run.mcap'
+    code, out, err = run(capsys, 'record', output, '/u', '--wait', '1')
+    _one_line_error(code, out, err, 'record')
+    assert f'ROS cannot write its log files in {blocker}/log (Not a directory; from the ' \
+           'environment variable ROS_LOG_DIR)' in err
+    assert not output.exists()
