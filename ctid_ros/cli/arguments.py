@@ -213,7 +213,8 @@ def configure_record(parser: argparse.ArgumentParser) -> None:
     parser.description = ('Record live topics into a standalone MCAP file, as ros2 bag record '
                           'does: types from the graph, messages as they come off the wire, at '
                           'their reception time. Stops after --duration or at Ctrl-C; the file '
-                          'is closed with its index either way.')
+                          'is closed with its index either way, and is a readable MCAP file '
+                          'after every --flush-interval even if the recorder is killed.')
     parser.add_argument('output', type=Path, help='the .mcap file to write')
     parser.add_argument('topics', nargs='+', metavar='TOPIC',
                         help='topics to record (relative names are in the root namespace)')
@@ -223,6 +224,9 @@ def configure_record(parser: argparse.ArgumentParser) -> None:
                         help='how long to wait for every topic to have a publisher (default 10)')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace the output file if it exists')
+    parser.add_argument('--flush-interval', type=_positive, default=1.0, metavar='SECONDS',
+                        help='write what was received to disk at least this often: a killed '
+                        'recorder loses at most about that long (default 1)')
 
 
 def configure_echo(parser: argparse.ArgumentParser) -> None:

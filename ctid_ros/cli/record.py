@@ -11,7 +11,7 @@ Foxglove and PlotJuggler read it at once. An existing file is replaced only with
 ``--overwrite``.
 
 What was recorded is kept: the messages are written to disk at least every second
-(:data:`FLUSH_INTERVAL`), each time followed by a valid end of the file, so a recorder killed
+(``--flush-interval``), each time followed by a valid end of the file, so a recorder killed
 (SIGKILL, power cut) loses about the last second and leaves a file the plain ``mcap`` reader
 reads; once recording, Ctrl-C and SIGTERM only ask it to stop (a second one, as a parent that
 forwards Ctrl-C sends, changes nothing); a full disk stops the recording with a one-line error
@@ -40,10 +40,7 @@ from ctid_ros.ros.graph import matching_qos, wait_for_topics
 from ctid_ros.ros.recorder import TopicRecorder
 from ctid_ros.streaming.contract import resolve_topic
 
-__all__ = ['FLUSH_INTERVAL', 'run']
-
-# Seconds between two writes of the recording to disk: a killed recorder loses about this much.
-FLUSH_INTERVAL = 1.0
+__all__ = ['run']
 # Seconds between two looks at the clock while recording.
 _TICK = 0.1
 
@@ -94,7 +91,7 @@ def run(arguments: argparse.Namespace) -> int:
     # only asks to stop, so that no exception can land in the middle of closing the file.
     with stop_on_signals(interrupting=True) as stop:
         writer = RecordingWriter(arguments.output, overwrite=arguments.overwrite,
-                                 flush_interval=FLUSH_INTERVAL)
+                                 flush_interval=arguments.flush_interval)
         try:
             counts, seconds, failure = _session(writer, topics, arguments, stop)
         except BaseException:
