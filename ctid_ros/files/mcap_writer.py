@@ -25,6 +25,7 @@ import threading
 import time
 from typing import Any, Dict, Iterable, Iterator, Mapping, Optional, Sequence, TypeVar
 
+from ctid_ros.core.limits import MIB
 from ctid_ros.errors import BagError, DataError
 from ctid_ros.files.mcap_source import MCAP_MAGIC, PathLike, TopicSchema
 from ctid_ros.streaming.contract import (alarm_message, DEFAULT_NODE_NAME,
@@ -97,36 +98,70 @@ def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> No
 
 class _Output:
     """
-    A file written without buffering in Python, each write whole or an OSError.
+    A writer's file: whole records held in memory until :meth:`commit` writes them.
 
-    The bytes on disk are then exactly those written: after a failed write (a full disk) no
-    buffer holds bytes that a later flush or close would append behind the writer's back.
+    Every commit leaves the file a valid MCAP file, whatever moment the process dies at: the
+    records and a new provisional end (:func:`_provisional_end`) are first written past the
+    old provisional end's first bytes, which keep the file ending there (a reader stops at
+    that footer); then those few bytes are overwritten with the records' first ones, one
+    small write. After a failed write (a full disk) the file is cut back to its last end.
     """
 
     def __init__(self, path: Path, overwrite: bool) -> None:
-        self._raw = open(path, 'wb' if overwrite else 'xb', buffering=0)
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+        self._fd = os.open(path, flags | getattr(os, 'O_CLOEXEC', 0), 0o666)
+        self._pending = bytearray()
+        self._committed = 0        # bytes of whole records on disk
+        self._end = 0              # bytes of the provisional end after them
 
     def write(self, data: Any) -> int:
-        view = memoryview(data).cast('B')
-        done = 0
-        while done < len(view):
-            done += self._raw.write(view[done:])
-        return done
+        self._pending += data
+        return len(data)
 
     def tell(self) -> int:
-        return self._raw.tell()
-
-    def seek(self, position: int) -> int:
-        return self._raw.seek(position)
+        return self._committed + len(self._pending)
 
     def flush(self) -> None:
-        """Do nothing: nothing is buffered."""
+        """Do nothing: :meth:`commit` writes (mcap's Writer.flush calls this)."""
 
-    def truncate(self, size: Optional[int] = None) -> int:
-        return self._raw.truncate(size)
+    @property
+    def pending(self) -> int:
+        """Return the bytes held in memory."""
+        return len(self._pending)
+
+    def commit(self, end: bytes) -> None:
+        """Write the records held and ``end`` after them (see the class)."""
+        data = bytes(self._pending) + end
+        keep = min(self._end, len(data))
+        self._write_at(data[keep:], self._committed + keep)
+        self._write_at(data[:keep], self._committed)
+        self._committed += len(self._pending)
+        self._end = len(end)
+        self._pending.clear()
+
+    def _write_at(self, data: bytes, offset: int) -> None:
+        view = memoryview(data)
+        while view:
+            written = os.pwrite(self._fd, view, offset)
+            view, offset = view[written:], offset + written
+
+    def restore(self) -> None:
+        """After a failed commit, cut the file back to its last valid end (frees space)."""
+        self._pending.clear()
+        os.ftruncate(self._fd, self._committed + self._end)
+
+    def finish(self) -> None:
+        """Write the records held (the file's real end) and nothing after them."""
+        self.commit(b'')
+        os.ftruncate(self._fd, self._committed)
 
     def close(self) -> None:
-        self._raw.close()
+        os.close(self._fd)
+
+
+def partial_path(path: Path) -> Path:
+    """Return where an atomic writer writes ``path`` until it is complete."""
+    return path.with_name(f'{path.stem}.partial{path.suffix}')
 
 
 def _provisional_end() -> bytes:
@@ -137,9 +172,10 @@ def _provisional_end() -> bytes:
     return bytes(builder.end()) + MCAP_MAGIC
 
 
-def partial_path(path: Path) -> Path:
-    """Return where an atomic writer writes ``path`` until it is complete."""
-    return path.with_name(f'{path.stem}.partial{path.suffix}')
+_PROVISIONAL_END = _provisional_end()
+# Bytes of whole records held in memory before they are written whatever the flush interval
+# (mcap writes a chunk of 1 MiB at a time).
+_COMMIT_BYTES = 4 * MIB
 
 
 def _time_ns(value: Any) -> int:
@@ -213,8 +249,6 @@ class RecordingWriter:
         self._lock = threading.RLock()
         self._flush_interval = flush_interval
         self._flushed_at = time.monotonic()
-        # Where the last provisional end starts (None: none written yet).
-        self._valid_end: Optional[int] = None
         self._pending = False
         self.message_count = 0
         self._writer = McapWriter(self._stream)
@@ -224,14 +258,7 @@ class RecordingWriter:
         self._types: Dict[str, str] = {}
         with self._lock, self._writing():
             self._writer.start(profile='ros2', library='ctid_ros')
-            self._end_provisionally()
-
-    def _end_provisionally(self) -> None:
-        """Write a provisional end of the file after what is written, to be overwritten."""
-        position = self._stream.tell()
-        self._stream.write(_provisional_end())
-        self._stream.seek(position)
-        self._valid_end = position
+            self._stream.commit(_PROVISIONAL_END)
 
     @contextmanager
     def _writing(self) -> Iterator[None]:
@@ -244,20 +271,11 @@ class RecordingWriter:
             raise
         except OSError as error:
             self._failure = BagError(f'cannot write {self.path}: {error.strerror or error}')
-            self._restore_end()
+            try:
+                self._stream.restore()
+            except OSError:     # the file keeps its cut: BagReader reads up to it
+                pass
             raise self._failure from None
-
-    def _restore_end(self) -> None:
-        """After a failed write, end the file again after its last flushed chunk."""
-        if self._valid_end is None:
-            return
-        try:
-            self._stream.seek(self._valid_end)
-            # Bytes the disk already holds: rewriting them needs no space.
-            self._stream.write(_provisional_end())
-            self._stream.truncate()
-        except OSError:     # the file keeps its cut: BagReader reads up to it
-            pass
 
     def __enter__(self: _Writer) -> _Writer:
         """Return the writer; :meth:`close` it on leaving."""
@@ -286,8 +304,7 @@ class RecordingWriter:
                 if self._failure is None:
                     with self._writing():
                         self._writer.finish()
-                        # The index may end before a provisional end written further on.
-                        self._stream.truncate()
+                        self._stream.finish()
             finally:
                 self._stream.close()
                 if self._file != self.path and self._failure is not None:
@@ -335,7 +352,7 @@ class RecordingWriter:
                 return
             with self._writing():
                 self._writer.flush()
-                self._end_provisionally()
+                self._stream.commit(_PROVISIONAL_END)
             self._flushed_at = time.monotonic()
             self._pending = False
 
@@ -399,6 +416,8 @@ class RecordingWriter:
                 raise BagError(f'topic {topic} was not declared with add_topic')
             with self._writing():
                 self._writer.add_message(self._channels[topic], time_ns, bytes(data), time_ns)
+                if self._stream.pending > _COMMIT_BYTES:
+                    self._stream.commit(_PROVISIONAL_END)
             self.message_count += 1
             self._pending = True
         if self._flush_interval is not None:

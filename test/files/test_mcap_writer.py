@@ -240,12 +240,15 @@ def test_a_recording_is_a_valid_file_after_every_flush(tmp_path):
                 writer.flush(force=True)
                 snapshots.append(path.read_bytes())
         snapshots.append(path.read_bytes())         # 3 messages after the last flush
-    for index, (content, expected) in enumerate(zip(snapshots, [0, 4, 7, 7])):
+    # A flush writes its chunk and a new end past the old end's first bytes, then those: a
+    # kill between the two writes leaves the file as it was before, with bytes after its end.
+    torn = [before + after[len(before):] for before, after in zip(snapshots, snapshots[1:])]
+    for index, (content, expected) in enumerate(zip(snapshots + torn, [0, 4, 7, 7, 0, 4, 7])):
         copy = tmp_path / f'killed{index}.mcap'
         copy.write_bytes(content)
         assert _plain_count(copy) == expected
         with BagReader(copy) as bag:
-            assert not bag.truncated and bag.warnings == []
+            assert not bag.truncated
             assert [msg.msg.data for msg in bag.messages()] == list(map(float, range(expected)))
     assert _plain_count(path) == 10
 
