@@ -309,7 +309,7 @@ class RecordingWriter:
                 self._stream.close()
                 if self._file != self.path and self._failure is not None:
                     self._file.unlink(missing_ok=True)
-            if self._file != self.path:
+            if self._file != self.path and self._failure is None:
                 try:
                     os.replace(self._file, self.path)
                 except OSError as error:

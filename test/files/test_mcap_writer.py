@@ -216,10 +216,12 @@ def test_recorded_topics_are_copied_with_their_own_schemas(tmp_path):
         assert bag.message_count('/ctid_node/estimate') == 1
 
 
+_JAZZY = get_typestore(Stores.ROS2_JAZZY)
+
+
 def _float64(value):
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    return bytes(typestore.serialize_cdr(typestore.types['std_msgs/msg/Float64'](data=value),
-                                         'std_msgs/msg/Float64'))
+    return bytes(_JAZZY.serialize_cdr(_JAZZY.types['std_msgs/msg/Float64'](data=value),
+                                      'std_msgs/msg/Float64'))
 
 
 def _plain_count(path):
@@ -312,3 +314,19 @@ def test_an_atomic_file_is_complete_or_absent(tmp_path):
     assert not partial.exists()
     with BagReader(path) as bag:
         assert [msg.msg.status[0].message for msg in bag.messages()] == ['two']
+
+
+def test_an_atomic_file_that_fails_leaves_nothing(tmp_path):
+    from disk_fixtures import small_disk
+
+    rng = np.random.default_rng(5)
+    with small_disk(tmp_path / 'disk', 64) as disk:
+        path = disk / 'est.mcap'
+        writer = EstimateWriter(path, atomic=True)
+        writer.add_topic('/u', 'std_msgs/msg/Float64')
+        for k in range(20_000):         # 0.5 MB that zstd cannot shrink, held until the end
+            writer.write('/u', T0_NS + k, _float64(rng.normal()))
+        with pytest.raises(BagError, match=f'cannot write {path}: No space left on device'):
+            writer.close()
+        assert list(disk.iterdir()) == []
+        writer.close()      # closed already: nothing more to say
