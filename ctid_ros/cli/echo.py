@@ -30,9 +30,9 @@ import time
 from typing import Any, List, Optional, Tuple
 
 from ctid_ros.cli.report import format_estimate
-from ctid_ros.cli.signals import stop_on_signals
 from ctid_ros.errors import DataError
 from ctid_ros.ros.echo import Estimates, NodeListener, Status
+from ctid_ros.ros.spinner import stop_on_signals
 from ctid_ros.streaming.contract import ERROR, OK, WARN
 
 __all__ = ['LEVELS', 'Row', 'RowAssembler', 'format_row', 'header', 'row_json', 'run']

@@ -14,6 +14,8 @@ failed on a path or environment the user gave: a name too long, a full disk, no 
 for a wrong command line (argparse); 1 with one line ``ctid <command>: internal error: <type>:
 ...`` for anything else, which is a bug of ctid_ros: its traceback is printed only with ``ctid
 --debug`` or ``CTID_DEBUG=1`` in the environment. 130 on Ctrl-C.
+The commands that run until stopped (``ctid record``, ``ctid echo``) end with status 0 on
+SIGINT and SIGTERM (:func:`ctid_ros.ros.spinner.stop_on_signals`).
 """
 
 import argparse

@@ -33,11 +33,11 @@ import sys
 import time
 from typing import Dict, List, Optional, Tuple
 
-from ctid_ros.cli.signals import stop_on_signals, StopRequest
 from ctid_ros.errors import BagError, ConfigError
 from ctid_ros.files.mcap_writer import RecordingWriter
 from ctid_ros.ros.graph import matching_qos, wait_for_topics
 from ctid_ros.ros.recorder import TopicRecorder
+from ctid_ros.ros.spinner import stop_on_signals, StopRequest
 from ctid_ros.streaming.contract import resolve_topic
 
 __all__ = ['run']
