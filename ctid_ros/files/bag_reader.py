@@ -17,25 +17,29 @@ in ``_ns``; ``start`` and ``end`` given to :meth:`BagReader.messages` are second
 message of the bag.
 """
 
+import bz2
 import functools
 import math
 import os
 from pathlib import Path
 import re
-from typing import (Any, Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional,
-                    Sequence, Tuple, Union)
+from typing import (Any, Callable, Dict, Iterable, Iterator, List, Mapping, NamedTuple,
+                    Optional, Sequence, Tuple, Union)
 
 from ctid_ros.core.limits import (MAX_COMPRESSION_RATIO, MAX_METADATA_BYTES, MIB, read_limited,
                                   size_text)
 from ctid_ros.errors import BagError
 from ctid_ros.files.mcap_source import (BagMessage, BagRecord, check_chunk_sizes,
-                                        is_service_event, MCAP_MAGIC, McapSource, PathLike,
+                                        chunk_size_problem, is_service_event, MCAP_MAGIC,
+                                        McapSource, PathLike,
                                         raw_block, RawBlock, RawStream, reading_errors,
                                         service_event_error, TopicSchema)
 from ctid_ros.streaming.contract import NANOSECONDS
 from ctid_ros.streaming.params_file import parse_yaml
+import lz4.frame
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinitionFormat
+from rosbags.rosbag1.reader import Header as Ros1Header, RecordType as Ros1RecordType
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
 import zstandard
@@ -82,6 +86,12 @@ def _open_reader(paths: Sequence[Path], path: Path) -> AnyReader:
     with reading_errors(what):
         reader = AnyReader(list(paths), default_typestore=get_typestore(Stores.ROS2_JAZZY))
         reader.open()
+    if not reader.is2:
+        try:
+            _guard_ros1_chunks(reader, path)
+        except BagError:
+            reader.close()
+            raise
     return reader
 
 
@@ -153,6 +163,52 @@ def _difference(listed: Any, stored: Any) -> Optional[str]:
     if listed.digest and stored.digest and listed.digest != stored.digest:
         return 'type hash'
     return None
+
+
+def _bounded(decompress: Callable[[bytes], bytes], compression: str, declared: int
+             ) -> Callable[[bytes], bytes]:
+    """Return a decompressor of a ROS 1 chunk that stops past its declared size."""
+    if compression == 'none':
+        return decompress
+
+    def bounded(data: bytes) -> bytes:
+        engine = bz2.BZ2Decompressor() if compression == 'bz2' else \
+            lz4.frame.LZ4FrameDecompressor()
+        output = engine.decompress(data, max_length=declared + 1)
+        if len(output) != declared:
+            than = 'more' if len(output) > declared else 'less'
+            raise BagError(f'a {compression} chunk decompresses to {than} than the {declared} '
+                           'bytes it declares')
+        return output
+    return bounded
+
+
+def _guard_ros1_chunks(reader: AnyReader, path: Path) -> None:
+    """
+    Refuse the ROS 1 chunks whose declared sizes are absurd; bound every decompression.
+
+    rosbags decompresses a whole chunk at once, whatever its size: a chunk that declares
+    more than the chunk limit, or a ratio beyond the compression limit, is refused before
+    any message is read (as for MCAP), and one that decompresses past what it declares
+    raises once it has.
+    """
+    for bag in reader.readers:
+        chunks = getattr(bag, 'chunks', None)
+        stream = getattr(bag, 'bio', None)
+        if not isinstance(chunks, dict) or stream is None:
+            return      # another rosbags version: its own reading stands
+        for position, chunk in list(chunks.items()):
+            with reading_errors(f'cannot read ROS 1 bag {path}'):
+                stream.seek(position)
+                header = Ros1Header.read(stream, Ros1RecordType.CHUNK)
+                declared = header.get_uint32('size')
+                compression = header.get_string('compression')
+            problem = chunk_size_problem(declared, chunk.datasize,
+                                         '' if compression == 'none' else compression)
+            if problem is not None:
+                raise BagError(f'{path}: the chunk at byte {position} {problem}')
+            chunks[position] = chunk._replace(
+                decompressor=_bounded(chunk.decompressor, compression, declared))
 
 
 def _cdr_typestore(ros1: Typestore) -> Typestore:

@@ -399,3 +399,64 @@ def test_a_file_cut_inside_its_first_chunk_is_called_truncated(bags, tmp_path):
         with pytest.raises(BagError, match=r'not in the readable part of .*cut.mcap: the file '
                                            r'is truncated or damaged, and nothing is readable'):
             bag.messages('/plant/u')
+
+
+def _zeros_bag(path, compression, megabytes):
+    """Write a ROS 1 bag with one message of ``megabytes`` of zeros, compressed."""
+    from rosbags.rosbag1 import Writer as Writer1
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    msgtype = 'std_msgs/msg/UInt8MultiArray'
+    layout = store.types['std_msgs/msg/MultiArrayLayout'](dim=[], data_offset=0)
+    msg = store.types[msgtype](layout=layout, data=np.zeros(megabytes << 20, dtype=np.uint8))
+    writer = Writer1(path)
+    writer.set_compression(getattr(Writer1.CompressionFormat, compression.upper()))
+    with writer:
+        connection = writer.add_connection('/blob', msgtype, typestore=store)
+        writer.write(connection, 10 ** 18, store.serialize_ros1(msg, msgtype))
+    return path
+
+
+@pytest.mark.parametrize('compression', ['bz2', 'lz4'])
+def test_compressed_ros1_chunks_are_read_within_bounds(tmp_path, compression):
+    from replay_fixtures import DELAY, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, 2.0)
+    plain = write_rosbag1(tmp_path / 'plain.bag', u, y)
+    with BagReader(plain) as bag:
+        expected = [(msg.topic, msg.log_time_ns) for msg in bag.messages()]
+    # The same messages in compressed chunks (rosbags' writer), read through the bounds.
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer as Writer1
+
+    packed = tmp_path / 'packed.bag'
+    writer = Writer1(packed)
+    writer.set_compression(getattr(Writer1.CompressionFormat, compression.upper()))
+    with AnyReader([plain]) as source, writer:
+        connections = {conn.id: writer.add_connection(conn.topic, conn.msgtype,
+                                                      msgdef=conn.msgdef.data,
+                                                      md5sum=conn.digest)
+                       for conn in source.connections}
+        for conn, time_ns, data in source.messages():
+            writer.write(connections[conn.id], time_ns, data)
+    with BagReader(packed) as bag:
+        assert [(msg.topic, msg.log_time_ns) for msg in bag.messages()] == expected
+    # A chunk that declares less than it holds stops being decompressed there.
+    content = bytearray(packed.read_bytes())
+    field = content.index(b'\x09\x00\x00\x00size=') + 9
+    declared = int.from_bytes(content[field:field + 4], 'little')
+    content[field:field + 4] = (declared // 2).to_bytes(4, 'little')
+    lying = tmp_path / 'lying.bag'
+    lying.write_bytes(bytes(content))
+    with BagReader(lying) as bag:
+        with pytest.raises(BagError, match=f'a {compression} chunk decompresses to more than '
+                                           f'the {declared // 2} bytes it declares'):
+            list(bag.messages())
+
+
+def test_a_ros1_decompression_bomb_is_refused_before_decompressing(tmp_path):
+    # 8 MiB of zeros compress more than 1000-fold with bz2 (lz4 cannot exceed 255).
+    bomb = _zeros_bag(tmp_path / 'bomb.bag', 'bz2', 8)
+    with pytest.raises(BagError, match=r'the chunk at byte \d+ declares 8.* a decompression '
+                                       'bomb'):
+        BagReader(bomb)
