@@ -16,7 +16,7 @@ What was recorded is kept: the messages are written to disk at least every secon
 reads; once recording, Ctrl-C and SIGTERM only ask it to stop (a second one, as a parent that
 forwards Ctrl-C sends, changes nothing); a full disk stops the recording with a one-line error
 and the file holds what was flushed before. Only a file without any message (no publisher
-came, interrupted while waiting) is removed.
+came, stopped while waiting) is removed. Stopped by a signal, it ends with status 0.
 
 Examples
 --------
@@ -94,6 +94,11 @@ def run(arguments: argparse.Namespace) -> int:
                                  flush_interval=arguments.flush_interval)
         try:
             counts, seconds, failure = _session(writer, topics, arguments, stop)
+        except KeyboardInterrupt:   # stopped while waiting for publishers, as asked
+            _discard_if_empty(writer)
+            print('ctid record: stopped while waiting for publishers; nothing recorded',
+                  file=sys.stderr)
+            return 0
         except BaseException:
             _discard_if_empty(writer)
             raise

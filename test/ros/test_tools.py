@@ -313,3 +313,22 @@ def test_echo_ends_on_ctrl_c_and_sigterm_with_status_0(number):
     assert echo.returncode == 0 and rest == '', rest
     # 0.3 s on a quiet machine; the margin is for a busy one.
     assert took < 2.0, f'{took:.2f} s'
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('number', [signal.SIGINT, signal.SIGTERM])
+def test_record_stopped_while_waiting_ends_with_status_0_and_no_file(tmp_path, number):
+    bag = tmp_path / 'none.mcap'
+    record = subprocess.Popen([sys.executable, '-m', 'ctid_ros.cli.main', 'record', str(bag),
+                               f'{namespace()}/nobody', '--wait', '300'],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        line = record.stderr.readline()
+        assert line.startswith('ctid record: waiting for publishers of '), line
+        record.send_signal(number)
+        rest = record.communicate(timeout=30)[1]
+    finally:
+        stop(record)
+    assert record.returncode == 0, rest
+    assert rest == 'ctid record: stopped while waiting for publishers; nothing recorded\n'
+    assert not bag.exists()
