@@ -137,3 +137,53 @@ def params_file(tmp_path, case, node='ctid_node', **overrides):
     path = tmp_path / 'params.yaml'
     path.write_text(yaml.safe_dump({node: {'ros__parameters': values}}))
     return path
+
+
+# A ROS 1 command type of a package installed nowhere: known only from the bag's definitions.
+COMMAND_TYPE = 'plant_msgs/msg/Command'
+COMMAND_MSG = 'Header header\nfloat64 effort\nstring source\n'
+
+
+def write_rosbag1(path, u, y, latency_ns=3_000_000):
+    """
+    Write a ROS 1 bag (rosbags' rosbag1 writer): ``/plant/cmd`` and ``/plant/y``.
+
+    ``/plant/cmd`` carries the input in ``effort`` of the custom ``plant_msgs/Command``,
+    stamped at t_k in its header and logged ``latency_ns`` later; ``/plant/y`` the output as a
+    ``std_msgs/Float64`` logged 1 ms after t_k. Returns the path.
+    """
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.typesys import get_types_from_msg
+
+    typestore = get_typestore(Stores.ROS1_NOETIC)
+    typestore.register(get_types_from_msg(COMMAND_MSG, COMMAND_TYPE))
+    command = typestore.types[COMMAND_TYPE]
+    header = typestore.types['std_msgs/msg/Header']
+    stamp = typestore.types['builtin_interfaces/msg/Time']
+    value = typestore.types[FLOAT64]
+    messages = []
+    for k, (u_k, y_k) in enumerate(zip(u, y)):
+        time_ns = T0_NS + k * STEP_NS
+        msg = command(header=header(seq=k, stamp=stamp(sec=time_ns // 10 ** 9,
+                                                       nanosec=time_ns % 10 ** 9),
+                                    frame_id='base'), effort=float(u_k), source='prbs')
+        messages.append(('/plant/cmd', time_ns + latency_ns,
+                         typestore.serialize_ros1(msg, COMMAND_TYPE)))
+        messages.append(('/plant/y', time_ns + Y_LAG_NS,
+                         typestore.serialize_ros1(value(data=float(y_k)), FLOAT64)))
+    with Writer1(path) as writer:
+        connections = {'/plant/cmd': writer.add_connection('/plant/cmd', COMMAND_TYPE,
+                                                           typestore=typestore),
+                       '/plant/y': writer.add_connection('/plant/y', FLOAT64,
+                                                         typestore=typestore)}
+        for topic, time_ns, data in sorted(messages, key=lambda item: item[1]):
+            writer.write(connections[topic], time_ns, data)
+    return path
+
+
+def convert_to_rosbag2(source, destination):
+    """Convert a ROS 1 bag to a rosbag2 directory (mcap storage) with rosbags' converter."""
+    from rosbags.convert import convert
+
+    convert([source], destination, 'mcap', 9, None, 'none', None, None, [], [], [], [])
+    return destination

@@ -167,10 +167,12 @@ def configure_fit(fit: argparse.ArgumentParser) -> None:
 
 def configure_replay(parser: argparse.ArgumentParser) -> None:
     """Add the ``ctid replay`` arguments to ``parser``."""
-    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage) or a '
-                          'standalone .mcap file with the params file of the live node: one '
+    parser.description = ('Estimate from a rosbag2 directory (sqlite3 or mcap storage), a '
+                          'standalone .mcap file or a ROS 1 .bag file with the params file of '
+                          'the live node: one '
                           'estimate over the selected span, or --sliding as the node would.')
-    parser.add_argument('path', help='rosbag2 directory or .mcap file (never modified)')
+    parser.add_argument('path',
+                        help='rosbag2 directory, .mcap or ROS 1 .bag file (never modified)')
     parser.add_argument('--params-file', required=True,
                         help='ROS 2 params YAML of the node (e.g. config/open_loop_delay.yaml)')
     parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
@@ -211,7 +213,8 @@ def configure_record(parser: argparse.ArgumentParser) -> None:
     parser.description = ('Record live topics into a standalone MCAP file, as ros2 bag record '
                           'does: types from the graph, messages as they come off the wire, at '
                           'their reception time. Stops after --duration or at Ctrl-C; the file '
-                          'is closed with its index either way.')
+                          'is closed with its index either way, and is a readable MCAP file '
+                          'after every --flush-interval even if the recorder is killed.')
     parser.add_argument('output', type=Path, help='the .mcap file to write')
     parser.add_argument('topics', nargs='+', metavar='TOPIC',
                         help='topics to record (relative names are in the root namespace)')
@@ -221,6 +224,9 @@ def configure_record(parser: argparse.ArgumentParser) -> None:
                         help='how long to wait for every topic to have a publisher (default 10)')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace the output file if it exists')
+    parser.add_argument('--flush-interval', type=_positive, default=1.0, metavar='SECONDS',
+                        help='write what was received to disk at least this often: a killed '
+                        'recorder loses at most about that long (default 1)')
 
 
 def configure_echo(parser: argparse.ArgumentParser) -> None:
@@ -244,10 +250,10 @@ def configure_echo(parser: argparse.ArgumentParser) -> None:
 
 def configure_fleet(parser: argparse.ArgumentParser) -> None:
     """Add the ``ctid fleet`` arguments to ``parser``."""
-    parser.description = ('Estimate on every bag of a fleet (rosbag2 directories, .mcap and '
-                          '.db3 files), each bag (or each --span of a bag) a task on Dask '
-                          'distributed; results and a fleet report as Parquet, CSV and PNG in '
-                          '--results.')
+    parser.description = ('Estimate on every bag of a fleet (rosbag2 directories, .mcap, '
+                          '.db3 and ROS 1 .bag files), each bag (or each --span of a bag) a '
+                          'task on Dask distributed; results and a fleet report as Parquet, '
+                          'CSV and PNG in --results.')
     parser.add_argument('paths', nargs='+', metavar='PATH_OR_GLOB',
                         help="bags, directories holding bags, or globs ('fleet/**/*.mcap')")
     parser.add_argument('--params-file', required=True, help='ROS 2 params YAML of the node')

@@ -32,6 +32,7 @@ from typing import Any, List, Optional, Tuple
 from ctid_ros.cli.report import format_estimate
 from ctid_ros.errors import DataError
 from ctid_ros.ros.echo import Estimates, NodeListener, Status
+from ctid_ros.ros.spinner import stop_on_signals
 from ctid_ros.streaming.contract import ERROR, OK, WARN
 
 __all__ = ['LEVELS', 'Row', 'RowAssembler', 'format_row', 'header', 'row_json', 'run']
@@ -194,12 +195,13 @@ def run(arguments: argparse.Namespace) -> int:
     started = time.monotonic()
     names: Tuple[str, ...] = ()
     estimated = False
-    with NodeListener(arguments.node, events.put) as listener:
+    # Ctrl-C or SIGTERM end the table (exit status 0), the listener closed in order.
+    with stop_on_signals() as stop, NodeListener(arguments.node, events.put) as listener:
         node = listener.topics.node
         if not arguments.json:
             print(f'ctid echo: estimates of {node} (window end, estimate ± std, fit of the '
                   'window, status); Ctrl-C to stop', file=sys.stderr, flush=True)
-        while True:
+        while not stop.requested.is_set():
             try:
                 rows = assembler.add(events.get(timeout=0.1), time.monotonic())
             except queue.Empty:
@@ -220,6 +222,7 @@ def run(arguments: argparse.Namespace) -> int:
             if arguments.timeout is not None and not estimated and \
                     time.monotonic() - started > arguments.timeout:
                 raise DataError(_silence(listener, arguments.timeout))
+    return 0
 
 
 def _silence(listener: NodeListener, timeout: float) -> str:

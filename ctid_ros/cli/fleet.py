@@ -37,8 +37,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from ctid_ros.cli.fleet_report import flag_robots, write_figures, write_robot_tables
 from ctid_ros.errors import ConfigError, CtidError
 from ctid_ros.files.fleet import (analyse_bag, bag_row_columns, bag_time_range, BagResult,
-                                  BagTask, find_bags, IDENTITY, load_params_text, make_task,
-                                  split_task)
+                                  BagTask, distinct_bags, find_bags, IDENTITY, load_params_text,
+                                  make_task, split_task)
 from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -60,6 +60,7 @@ def run(arguments: argparse.Namespace) -> int:
                         rerun=arguments.rerun, plots=not arguments.no_plots,
                         span=arguments.span)
     spans = f' in {summary["spans"]} spans' if 'spans' in summary else ''
+    spans += f' ({summary["copies"]} copies counted once)' if 'copies' in summary else ''
     print(f'ctid fleet: {summary["bags"]} bags{spans}: {summary["computed"]} analysed, '
           f'{summary["skipped"]} already done, {summary["errors"]} with errors; '
           f'{summary["flagged"]} of {summary["robots"]} robots flagged; results in '
@@ -80,7 +81,9 @@ def run_fleet(paths: Sequence[str], params_file: Path, results: Path, *,
     ``LocalCluster`` of ``workers`` processes (threads in this process unless ``processes``)
     is started, or ``scheduler`` is connected to, and closed at the end. Returns the counts
     ``bags``, ``computed`` and ``skipped`` (tasks: bags, or spans), ``errors`` (error rows),
-    ``robots``, ``flagged``, and with ``span`` the number of ``spans``.
+    ``robots``, ``flagged``, with ``span`` the number of ``spans``, and where bags were
+    byte-identical copies of others (counted once: :func:`~ctid_ros.files.fleet.distinct_bags`)
+    the number of ``copies``.
 
     Raises
     ------
@@ -96,7 +99,11 @@ def run_fleet(paths: Sequence[str], params_file: Path, results: Path, *,
     config = load_params_text(params, node_name, str(params_file))
     if span is not None:
         _check_span(span, config.window, params_file)
-    root, bags = find_bags(paths)
+    root, found = find_bags(paths)
+    bags, copies = distinct_bags(found)
+    for copy, original in copies:
+        print(f'ctid fleet: {copy} is a byte-identical copy of {original}: counted once',
+              file=sys.stderr)
     tasks = [make_task(bag, root, robot_from, params, node_name, sliding) for bag in bags]
     try:
         results.mkdir(parents=True, exist_ok=True)
@@ -123,6 +130,8 @@ def run_fleet(paths: Sequence[str], params_file: Path, results: Path, *,
                'robots': len(robots), 'flagged': sum(bool(row['flagged']) for row in robots)}
     if span is not None:
         summary['spans'] = len(tasks)
+    if copies:
+        summary['copies'] = len(copies)
     return summary
 
 

@@ -27,9 +27,15 @@ from ctid_ros.estimation.problem import settling_time
 from ctid_ros.streaming.alarm import AlarmStatus
 from ctid_ros.streaming.contract import ERROR, NANOSECONDS, WARN
 from ctid_ros.streaming.session import Update
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 import numpy as np
+
+try:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+except ValueError as error:     # matplotlib checks the MPLBACKEND variable as it loads
+    raise ConfigError(f'the environment variable MPLBACKEND={os.environ.get("MPLBACKEND")!r} '
+                      f'is not a matplotlib backend ({error}); unset it or set '
+                      'MPLBACKEND=agg') from None
 
 __all__ = ['BodeData', 'COHERENT', 'bode', 'bode_data', 'check_figure_paths', 'default_omega',
            'fit_figure', 'label', 'mark_alarms', 'measured_response', 'parameters_figure',

@@ -2,11 +2,14 @@
 ``ctid replay``: estimate from a recorded bag as the live node would have.
 
 ``ctid replay PATH --params-file config/<file>.yaml`` reads the configured input and output
-topics of a rosbag2 directory (sqlite3 or mcap storage) or a standalone ``.mcap`` file and
-replays them through :func:`ctid_ros.streaming.replay.replay_messages`: one estimate over the
-selected span (``--start``/``--end``), or ``--sliding`` one every ``update_period`` on the last
-``window`` seconds. ``--output`` writes the node's topics (:mod:`ctid_ros.streaming.contract`)
-into a new MCAP file together with the replayed input and output messages, copied as recorded;
+topics of a rosbag2 directory (sqlite3 or mcap storage), a standalone ``.mcap`` file or a ROS 1
+``.bag`` file (its messages converted to their ROS 2 counterparts) and replays them through
+:func:`ctid_ros.streaming.replay.replay_messages`: one estimate over the selected span
+(``--start``/``--end``), or ``--sliding`` one every ``update_period`` on the last ``window``
+seconds. ``--output`` writes the node's topics (:mod:`ctid_ros.streaming.contract`)
+into a new MCAP file together with the replayed input and output messages, copied as recorded
+(it appears only complete: written as ``<stem>.partial.mcap``, renamed at the end; an existing
+file is replaced only with ``--overwrite``);
 ``--plot`` draws the fit, the estimates over time and a Bode plot. Without ``--output`` the
 messages are read as columns (:mod:`ctid_ros.files.columns`, the same numbers, faster).
 
@@ -22,6 +25,7 @@ Examples
 
     ctid replay run1/ --params-file config/open_loop_delay.yaml
     ctid replay run1.mcap --params-file config/closed_loop_pi.yaml --sliding --json
+    ctid replay pitch.bag --params-file config/open_loop_delay.yaml
     ctid replay run1/ --params-file config/joint_states.yaml --start 10 --end 40
     ctid replay run1/ --params-file config/open_loop_delay.yaml --output est.mcap --plot fit.png
 
@@ -237,16 +241,21 @@ def _check_topics(bag: BagReader, config: IdentificationConfig, node_name: str,
 @contextmanager
 def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwrite: bool
                      ) -> Iterator[Optional[EstimateWriter]]:
-    """Create the ``--output`` file before replaying (to fail fast); remove it on failure."""
+    """
+    Create the ``--output`` file before replaying (to fail fast), complete or not at all.
+
+    It is written as ``<stem>.partial.mcap`` and renamed when complete: a failure removes it
+    and leaves an existing ``path`` as it was; a killed replay leaves only the partial file.
+    """
     if path is None:
         yield None
         return
-    writer = EstimateWriter(path, inputs=[bag], node_name=node_name, overwrite=overwrite)
+    writer = EstimateWriter(path, inputs=[bag], node_name=node_name, overwrite=overwrite,
+                            atomic=True)
     try:
         yield writer
     except BaseException:
-        writer.close()
-        path.unlink(missing_ok=True)
+        writer.discard()
         raise
     writer.close()
 

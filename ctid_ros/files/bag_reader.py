@@ -1,43 +1,70 @@
 """
-Recorded messages from a rosbag2 directory or a standalone MCAP file, without ROS.
+Recorded messages from a rosbag2 directory, an MCAP file or a ROS 1 bag, without ROS.
 
 :class:`BagReader` accepts a rosbag2 directory (sqlite3 or mcap storage, read with rosbags), a
-single ``.db3`` file, or a standalone ``.mcap`` file (read by
+single ``.db3`` file, a standalone ``.mcap`` file (read by
 :class:`~ctid_ros.files.mcap_source.McapSource`, so that a recording cut short still replays up
-to the cut). Messages are decoded from the definitions stored in the bag itself: custom types
-need not be installed.
+to the cut), or a ROS 1 ``.bag`` file (read with rosbags' rosbag1 reader). Messages are decoded
+from the definitions stored in the bag itself: custom types need not be installed.
+
+A ROS 1 message is converted to CDR as it is read (rosbags' ``ros1_to_cdr``, which drops the
+``seq`` of ``std_msgs/Header`` as ``rosbags-convert`` does), so that every reader downstream
+sees what the same message recorded by rosbag2 would be: the same field paths, the same
+``header.stamp``, and ``--output`` copies that ROS 2 tools read.
 
 Times are integer nanoseconds since the epoch (the recorder's log time) wherever a name ends
 in ``_ns``; ``start`` and ``end`` given to :meth:`BagReader.messages` are seconds from the first
 message of the bag.
 """
 
+import bz2
 import functools
 import math
 import os
 from pathlib import Path
 import re
-from typing import (Any, Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional,
-                    Sequence, Tuple, Union)
+from typing import (Any, Callable, Dict, Iterable, Iterator, List, Mapping, NamedTuple,
+                    Optional, Sequence, Tuple, Union)
 
 from ctid_ros.core.limits import (MAX_COMPRESSION_RATIO, MAX_METADATA_BYTES, MIB, read_limited,
                                   size_text)
 from ctid_ros.errors import BagError
 from ctid_ros.files.mcap_source import (BagMessage, BagRecord, check_chunk_sizes,
-                                        is_service_event, MCAP_MAGIC, McapSource, PathLike,
+                                        chunk_size_problem, is_service_event, MCAP_MAGIC,
+                                        McapSource, PathLike,
                                         raw_block, RawBlock, RawStream, reading_errors,
                                         service_event_error, TopicSchema)
 from ctid_ros.streaming.contract import NANOSECONDS
 from ctid_ros.streaming.params_file import parse_yaml
+import lz4.frame
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinitionFormat
+from rosbags.rosbag1.reader import Header as Ros1Header, RecordType as Ros1RecordType
 from rosbags.typesys import get_typestore, Stores
+from rosbags.typesys.store import Typestore
 import zstandard
 
 __all__ = ['BagReader', 'open_bag']
 
 _VERSION = re.compile(rb'^\s*version:\s*(\d+)', re.MULTILINE)
 _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
+_ROS1_MAGIC = b'#ROSBAG V'
+# Bytes read from the start of a file to tell what it is.
+_HEAD_BYTES = 64
+# Magic numbers of file kinds that are given where a bag is expected, and what they are.
+_FILE_KINDS = (
+    (b'SQLite format 3\x00', 'an SQLite database'),
+    (b'\x1f\x8b', 'a gzip-compressed file'),
+    (_ZSTD_MAGIC, 'a zstd-compressed file'),
+    (b'BZh', 'a bzip2-compressed file'),
+    (b'\x04\x22\x4d\x18', 'an lz4-compressed file'),
+    (b'PK\x03\x04', 'a zip archive'),
+    (b'\xfd7zXZ\x00', 'an xz-compressed file'),
+    (b'\x7fELF', 'an executable (ELF)'),
+    (b'\x89PNG', 'a PNG image'),
+    (b'%PDF', 'a PDF document'),
+    (b'PAR1', 'a Parquet file'),
+)
 # YAML nodes of a metadata.yaml (about 20 per topic and 10 per storage file).
 _METADATA_NODES = 1_000_000
 # Characters of a third-party error quoted in a warning (rosbags quotes whole definitions).
@@ -53,10 +80,18 @@ def _quoted(error: BaseException) -> str:
 
 def _open_reader(paths: Sequence[Path], path: Path) -> AnyReader:
     # The Jazzy store is only used by bags without stored definitions (pre-Iron sqlite3).
-    with reading_errors(f'cannot read bag {path} (damaged, or a format rosbags does not '
-                        'support)'):
+    what = (f'cannot read ROS 1 bag {path} (damaged, or cut short before its index was '
+            'written: `rosbag reindex` on ROS 1 rebuilds it)' if path.suffix == '.bag' else
+            f'cannot read bag {path} (damaged, or a format rosbags does not support)')
+    with reading_errors(what):
         reader = AnyReader(list(paths), default_typestore=get_typestore(Stores.ROS2_JAZZY))
         reader.open()
+    if not reader.is2:
+        try:
+            _guard_ros1_chunks(reader, path)
+        except BagError:
+            reader.close()
+            raise
     return reader
 
 
@@ -130,8 +165,68 @@ def _difference(listed: Any, stored: Any) -> Optional[str]:
     return None
 
 
+def _bounded(decompress: Callable[[bytes], bytes], compression: str, declared: int
+             ) -> Callable[[bytes], bytes]:
+    """Return a decompressor of a ROS 1 chunk that stops past its declared size."""
+    if compression == 'none':
+        return decompress
+
+    def bounded(data: bytes) -> bytes:
+        engine = bz2.BZ2Decompressor() if compression == 'bz2' else \
+            lz4.frame.LZ4FrameDecompressor()
+        output = engine.decompress(data, max_length=declared + 1)
+        if len(output) != declared:
+            than = 'more' if len(output) > declared else 'less'
+            raise BagError(f'a {compression} chunk decompresses to {than} than the {declared} '
+                           'bytes it declares')
+        return output
+    return bounded
+
+
+def _guard_ros1_chunks(reader: AnyReader, path: Path) -> None:
+    """
+    Refuse the ROS 1 chunks whose declared sizes are absurd; bound every decompression.
+
+    rosbags decompresses a whole chunk at once, whatever its size: a chunk that declares
+    more than the chunk limit, or a ratio beyond the compression limit, is refused before
+    any message is read (as for MCAP), and one that decompresses past what it declares
+    raises once it has.
+    """
+    for bag in reader.readers:
+        chunks = getattr(bag, 'chunks', None)
+        stream = getattr(bag, 'bio', None)
+        if not isinstance(chunks, dict) or stream is None:
+            return      # another rosbags version: its own reading stands
+        for position, chunk in list(chunks.items()):
+            with reading_errors(f'cannot read ROS 1 bag {path}'):
+                stream.seek(position)
+                header = Ros1Header.read(stream, Ros1RecordType.CHUNK)
+                declared = header.get_uint32('size')
+                compression = header.get_string('compression')
+            problem = chunk_size_problem(declared, chunk.datasize,
+                                         '' if compression == 'none' else compression)
+            if problem is not None:
+                raise BagError(f'{path}: the chunk at byte {position} {problem}')
+            chunks[position] = chunk._replace(
+                decompressor=_bounded(chunk.decompressor, compression, declared))
+
+
+def _cdr_typestore(ros1: Typestore) -> Typestore:
+    """
+    Return the types of a ROS 1 bag as their ROS 2 counterparts, to hold its messages as CDR.
+
+    Every type keeps its fields but ``std_msgs/msg/Header``, which takes the ROS 2 layout
+    (without ``seq``), as ``rosbags-convert`` does.
+    """
+    store = get_typestore(Stores.EMPTY)
+    header = 'std_msgs/msg/Header'
+    store.register({**ros1.fielddefs,
+                    header: get_typestore(Stores.ROS2_JAZZY).fielddefs[header]})
+    return store
+
+
 class _RosbagsSource:
-    """A rosbag2 directory or a ``.db3`` file, read with rosbags."""
+    """A rosbag2 directory, a ``.db3`` file or a ROS 1 ``.bag`` file, read with rosbags."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -149,6 +244,8 @@ class _RosbagsSource:
         if storage is not None:
             reader = self._checked(reader, storage)
         self._reader = reader
+        # A ROS 1 bag's messages are handed on as CDR, decoded with the ROS 2 layout.
+        self._cdr: Optional[Typestore] = None if reader.is2 else _cdr_typestore(reader.typestore)
         self._has_definitions = any(conn.msgdef.format != MessageDefinitionFormat.NONE
                                     for conn in reader.connections)
         infos = reader.topics
@@ -221,6 +318,11 @@ class _RosbagsSource:
         conn = next(conn for conn in self._reader.connections if conn.topic == topic)
         if is_service_event(conn.topic, conn.msgtype):
             raise service_event_error(self.path, conn.topic, conn.msgtype)
+        if self._cdr is not None:
+            with reading_errors(f'{self.path}: cannot convert the definition of '
+                                f'{conn.msgtype} for {topic} to ROS 2'):
+                text, _ = self._cdr.generate_msgdef(conn.msgtype, ros_version=2)
+            return TopicSchema(conn.msgtype, 'ros2msg', text.encode())
         definition = conn.msgdef
         if definition.format == MessageDefinitionFormat.IDL:
             return TopicSchema(conn.msgtype, 'ros2idl', definition.data.encode())
@@ -267,12 +369,21 @@ class _RosbagsSource:
                 item = next(raw, None)
             if item is None:
                 return
+            if self._cdr is not None:
+                conn, log_time_ns, data = item
+                with reading_errors(self._mismatch(conn, log_time_ns)):
+                    item = conn, log_time_ns, self._cdr.ros1_to_cdr(data, conn.msgtype)
             yield item
 
+    def _mismatch(self, conn: Any, log_time_ns: int) -> str:
+        return (f'{self.path}: the message on {conn.topic} at {log_time_ns} ns does not match '
+                f'the definition of {conn.msgtype} the bag stores (a wrong definition, or '
+                'damaged data)')
+
     def _decode(self, conn: Any, log_time_ns: int, data: Any) -> Any:
-        with reading_errors(f'{self.path}: the message on {conn.topic} at {log_time_ns} ns '
-                            f'does not match the definition of {conn.msgtype} the bag '
-                            'stores (a wrong definition, or damaged data)'):
+        with reading_errors(self._mismatch(conn, log_time_ns)):
+            if self._cdr is not None:
+                return self._cdr.deserialize_cdr(data, conn.msgtype)
             return self._reader.deserialize(data, conn.msgtype)
 
     def raw_streams(self, topics: Sequence[str]) -> Dict[int, RawStream]:
@@ -282,7 +393,7 @@ class _RosbagsSource:
             if self._mcap is None:
                 self._mcap = McapSource(self._mcap_file)
             return self._mcap.raw_streams(topics)
-        fielddefs = self._reader.typestore.fielddefs
+        fielddefs = (self._cdr or self._reader.typestore).fielddefs
         return {index: RawStream(conn.topic, conn.msgtype, fielddefs,
                                  functools.partial(self._decode, conn))
                 for index, conn in enumerate(self._reader.connections) if conn.topic in topics}
@@ -320,18 +431,50 @@ class _RosbagsSource:
 _Source = Union[_RosbagsSource, McapSource]
 
 
+def _file_kind(head: bytes) -> str:
+    """Say what a file starting with ``head`` is, for a user who gave it as a bag."""
+    if not head:
+        return 'an empty file'
+    for magic, kind in _FILE_KINDS:
+        if head.startswith(magic):
+            return kind
+    try:
+        text = head.decode('utf-8')
+    except UnicodeDecodeError:
+        return 'a binary file of an unknown format'
+    if not text.isprintable() and not all(char.isprintable() or char in '\r\n\t'
+                                          for char in text):
+        return 'a binary file of an unknown format'
+    first = text.splitlines()[0] if text.strip() else ''
+    quoted = first if len(first) <= 40 else first[:37] + '...'
+    if ',' in first:
+        return f'a text file, CSV-like ({quoted!r}; ctid fit reads CSV records)'
+    return f'a text file ({quoted!r})'
+
+
 def _open_file(path: Path) -> _Source:
     try:
         with open(path, 'rb') as stream:
-            magic = stream.read(len(MCAP_MAGIC))
+            head = stream.read(_HEAD_BYTES)
     except OSError as error:
         raise BagError(f'cannot read {path}: {error.strerror}') from None
-    if magic == MCAP_MAGIC or path.suffix == '.mcap':
+    if head.startswith(MCAP_MAGIC) or path.suffix == '.mcap':
         return McapSource(path)
+    if head.startswith(_ROS1_MAGIC):
+        version = head[len(_ROS1_MAGIC):].split(b'\n', 1)[0].decode('ascii', 'replace')
+        if version != '2.0':
+            raise BagError(f'{path} is a ROS 1 bag of format version {version}, which rosbags '
+                           'cannot read (it reads version 2.0): migrate it with `rosbag fix` '
+                           'on ROS 1')
+        if path.suffix != '.bag':
+            raise BagError(f'{path} is a ROS 1 bag, but rosbags reads ROS 1 bags only under a '
+                           f'name ending in .bag: rename it, or link it (ln -s {path.name} '
+                           f'{path.stem}.bag)')
+        return _RosbagsSource(path)
     if path.suffix == '.db3':
         return _RosbagsSource(path)
-    raise BagError(f'{path} is not a bag: give a rosbag2 directory (with metadata.yaml), an '
-                   '.mcap file or a .db3 file')
+    raise BagError(f'{path} is not a bag: it is {_file_kind(head)}; give a rosbag2 directory '
+                   '(with metadata.yaml), an .mcap or .db3 file, or a ROS 1 .bag file')
 
 
 def _open_directory(path: Path) -> _Source:
@@ -407,7 +550,7 @@ def _check_compressed_file(path: Path) -> None:
 
 class BagReader:
     """
-    Read recorded messages from a rosbag2 directory, a ``.db3`` file or a ``.mcap`` file.
+    Read recorded messages from a rosbag2 directory, a ``.db3``, ``.mcap`` or ROS 1 ``.bag`` file.
 
     Use as a context manager (or call :meth:`close`)::
 
@@ -419,7 +562,8 @@ class BagReader:
     ----------
     path : str or os.PathLike
         A rosbag2 directory (sqlite3 or mcap storage), a directory holding a single ``.mcap`` or
-        ``.db3`` file but no metadata.yaml, or a single ``.mcap``/``.db3`` file.
+        ``.db3`` file but no metadata.yaml, a single ``.mcap``/``.db3`` file, or a ROS 1 bag
+        (format 2.0, named ``*.bag``), whose messages are yielded as their ROS 2 counterparts.
 
     Attributes
     ----------
@@ -653,6 +797,12 @@ class BagReader:
         if missing:
             listing = '; '.join(f'{topic} ({msgtype}, {self._source.counts[topic]} messages)'
                                 for topic, msgtype in sorted(available.items())) or 'none'
+            if self.truncated:
+                readable = (f'its readable part has: {listing}' if available else 'nothing '
+                            'is readable before the cut (cut before its first complete chunk)')
+                raise BagError(f'topic(s) {", ".join(missing)} not in the readable part of '
+                               f'{self.path}: the file is truncated or damaged, and '
+                               f'{readable}')
             raise BagError(f'topic(s) {", ".join(missing)} not in {self.path}; it has: '
                            f'{listing}')
         return selected

@@ -1,8 +1,8 @@
 """
 The work of ``ctid fleet``: many bags, each one task (or one per time span), results as rows.
 
-:func:`find_bags` expands paths and globs into bags (rosbag2 directories, ``.mcap`` and ``.db3``
-files) and names each bag's robot from a path pattern (:func:`robot_fields`);
+:func:`find_bags` expands paths and globs into bags (rosbag2 directories, ``.mcap``, ``.db3``
+and ROS 1 ``.bag`` files) and names each bag's robot from a path pattern (:func:`robot_fields`);
 :func:`analyse_bag` replays one bag, or one span of its log time, through the columnar path
 (:func:`~ctid_ros.files.columns.sample_columns`,
 :func:`~ctid_ros.streaming.replay.replay_columns`) and returns its rows, an error row if
@@ -37,12 +37,14 @@ from ctid_ros.streaming.replay import replay_columns
 from ctid_ros.streaming.session import Update
 
 __all__ = ['IDENTITY', 'BagResult', 'BagTask', 'analyse_bag', 'bag_row_columns',
-           'bag_time_range', 'find_bags', 'load_params_text', 'make_task', 'robot_fields',
-           'span_bounds', 'split_task']
+           'bag_time_range', 'distinct_bags', 'find_bags', 'load_params_text', 'make_task',
+           'robot_fields', 'span_bounds', 'split_task']
 
-_BAG_SUFFIXES = ('.mcap', '.db3')
+_BAG_SUFFIXES = ('.mcap', '.db3', '.bag')
 # Characters of an error message kept in a result row.
 _ERROR_LIMIT = 500
+# Bytes read at a time to hash a bag.
+_HASH_PIECE = 1 << 20
 # The columns of a result row that identify its task (see BagTask.key); the span columns are
 # only written with --span, and a row without them (a run without spans, or of an earlier
 # version) reads them as None, which is the key of a task without spans.
@@ -145,7 +147,8 @@ def find_bags(patterns: Sequence[str]) -> Tuple[Path, List[Path]]:
     Expand paths and globs into bags, and return their common root too.
 
     A directory with ``metadata.yaml`` is one bag; any other directory is searched for bags
-    (rosbag2 directories, ``.mcap`` and ``.db3`` files outside them). Globs may use ``**``.
+    (rosbag2 directories, ``.mcap``, ``.db3`` and ROS 1 ``.bag`` files outside them). Globs
+    may use ``**``.
 
     Raises
     ------
@@ -168,6 +171,68 @@ def find_bags(patterns: Sequence[str]) -> Tuple[Path, List[Path]]:
     if len(unique) == 1:
         root = unique[0].parent
     return root, unique
+
+
+def _files_of(bag: Path) -> List[Path]:
+    """Return the files of a bag: itself, or those of a directory in a stable order."""
+    return [bag] if bag.is_file() else sorted(item for item in bag.rglob('*') if item.is_file())
+
+
+def _layout(bag: Path) -> Tuple[Any, ...]:
+    """Return what two byte-identical bags share without reading them: names and sizes."""
+    files = _files_of(bag)
+    if bag.is_file():
+        return ('file', bag.suffix, bag.stat().st_size)
+    return ('directory',) + tuple((item.relative_to(bag).as_posix(), item.stat().st_size)
+                                  for item in files)
+
+
+def _content_hash(bag: Path) -> str:
+    """Return the SHA-256 of a bag's bytes (a directory's files with their relative names)."""
+    digest = hashlib.sha256()
+    for item in _files_of(bag):
+        if bag.is_dir():
+            digest.update(item.relative_to(bag).as_posix().encode() + b'\0')
+        with open(item, 'rb') as stream:
+            for piece in iter(lambda: stream.read(_HASH_PIECE), b''):
+                digest.update(piece)
+    return digest.hexdigest()
+
+
+def distinct_bags(bags: Sequence[Path]) -> Tuple[List[Path], List[Tuple[Path, Path]]]:
+    """
+    Drop the byte-identical copies of a bag: a copied recording counts once in a fleet.
+
+    Only bags with the same layout (a file's suffix and size; a directory's file names and
+    sizes) are hashed (SHA-256), so a fleet without copies is not read here.
+
+    Returns
+    -------
+    (list of Path, list of (Path, Path))
+        The bags kept, in the given order (of copies the first), and ``(copy, original)`` for
+        each dropped one.
+
+    """
+    groups: Dict[Tuple[Any, ...], List[Path]] = {}
+    for bag in bags:
+        try:
+            groups.setdefault(_layout(bag), []).append(bag)
+        except OSError:     # unreadable: analyse_bag reports it in the bag's row
+            groups.setdefault(('unreadable', bag), []).append(bag)
+    originals: Dict[Path, Path] = {}
+    for group in groups.values():
+        if len(group) < 2:
+            continue
+        first: Dict[str, Path] = {}
+        for bag in group:
+            try:
+                digest = _content_hash(bag)
+            except OSError:
+                continue
+            originals[bag] = first.setdefault(digest, bag)
+    copies = [(bag, originals[bag]) for bag in bags if originals.get(bag, bag) != bag]
+    dropped = {copy for copy, _ in copies}
+    return [bag for bag in bags if bag not in dropped], copies
 
 
 def _pattern_regex(pattern: str) -> 're.Pattern[str]':

@@ -39,7 +39,8 @@ import zstandard
 
 __all__ = ['BagMessage', 'BagRecord', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'RawBlock',
            'RawStream', 'field_definitions',
-           'TopicSchema', 'check_chunk_sizes', 'chunk_records', 'is_service_event', 'raw_block',
+           'TopicSchema', 'check_chunk_sizes', 'chunk_records', 'chunk_size_problem',
+           'is_service_event', 'raw_block',
            'reading_errors', 'service_event_error']
 
 PathLike = Union[str, os.PathLike]
@@ -274,7 +275,7 @@ class _ChunkRefused(BagError):
     """A chunk beyond the limits: refused, never decompressed (not a truncation)."""
 
 
-def _size_problem(declared: int, compressed: int, compression: str) -> Optional[str]:
+def chunk_size_problem(declared: int, compressed: int, compression: str) -> Optional[str]:
     """Say why a chunk of these sizes is refused before decompressing it, or None."""
     if declared > MAX_CHUNK_BYTES:
         return (f'declares {size_text(declared)} uncompressed, more than the limit of '
@@ -341,7 +342,7 @@ def _decompressed(chunk: Chunk) -> bytes:
 
 def chunk_bytes(chunk: Chunk) -> bytes:
     """Return the records of a chunk, decompressed within the limits of :func:`chunk_records`."""
-    problem = (_size_problem(chunk.uncompressed_size, len(chunk.data), chunk.compression)
+    problem = (chunk_size_problem(chunk.uncompressed_size, len(chunk.data), chunk.compression)
                or _frame_problem(chunk.uncompressed_size, chunk.compression,
                                  bytes(chunk.data[:_FRAME_HEADER_BYTES])))
     if problem:
@@ -474,7 +475,7 @@ def _check_chunk_header(stream: Any, path: Path, offset: int) -> None:
     if len(counted) < _RECORDS_LENGTH.size:
         return
     (compressed,) = _RECORDS_LENGTH.unpack(counted)
-    problem = (_size_problem(declared, compressed, compression)
+    problem = (chunk_size_problem(declared, compressed, compression)
                or _frame_problem(declared, compression, stream.read(_FRAME_HEADER_BYTES)))
     if problem:
         raise _ChunkRefused(f'{path}: the chunk at byte {offset} {problem}; refusing to read '
@@ -562,8 +563,8 @@ class McapSource:
         if stats.message_count and not summary.chunk_indexes:
             return False
         for index in summary.chunk_indexes:
-            problem = _size_problem(index.uncompressed_size, index.compressed_size,
-                                    index.compression)
+            problem = chunk_size_problem(index.uncompressed_size, index.compressed_size,
+                                         index.compression)
             if problem:
                 raise BagError(f'{self.path}: the chunk at byte {index.chunk_start_offset} '
                                f'{problem}; refusing to read the file')

@@ -8,23 +8,37 @@ beside it. Messages are CDR with their definitions in the file, in the concatena
 rosbag2 stores, so Foxglove, PlotJuggler, rosbags, mcap-ros2-support and
 :class:`~ctid_ros.files.bag_reader.BagReader` read them without ROS. Times are integer
 nanoseconds since the epoch.
+
+A recording keeps what it recorded when the process dies: with ``flush_interval`` the messages
+are written as a chunk at least that often, each followed by a provisional end of the file (a
+data-end record and a footer without summary, overwritten by the next chunk), so that a file
+cut off by SIGKILL or a power cut is a valid MCAP file up to its last flush, which the plain
+``mcap`` reader reads too. A failed write (a full disk) raises :class:`~ctid_ros.errors.BagError`
+naming the file and the cause, and the file keeps every chunk flushed before.
 """
 
+from contextlib import contextmanager
 import os
 from pathlib import Path
-from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, TypeVar
+import stat
+import threading
+import time
+from typing import Any, Dict, Iterable, Iterator, Mapping, Optional, Sequence, TypeVar
 
+from ctid_ros.core.limits import MIB
 from ctid_ros.errors import BagError, DataError
-from ctid_ros.files.mcap_source import PathLike, TopicSchema
+from ctid_ros.files.mcap_source import MCAP_MAGIC, PathLike, TopicSchema
 from ctid_ros.streaming.contract import (alarm_message, DEFAULT_NODE_NAME,
                                          diagnostics_message, estimate_messages, NodeTopics,
                                          OutputMessage, update_status)
+from mcap.data_stream import RecordBuilder
+from mcap.records import DataEnd, Footer
 from mcap.writer import Writer as McapWriter
 import numpy as np
 from rosbags.typesys import get_typestore, Stores, TypesysError
 from rosbags.typesys.base import Nodetype
 
-__all__ = ['EstimateWriter', 'RecordingWriter']
+__all__ = ['EstimateWriter', 'RecordingWriter', 'partial_path', 'special_file']
 
 # numpy types of the primitive ROS types that rosbags wants as arrays inside sequences.
 _ARRAY_TYPES = {
@@ -35,9 +49,37 @@ _ARRAY_TYPES = {
 }
 
 
+# What a path that is no regular file is, by the file type bits of its mode.
+_FILE_TYPES = ((stat.S_ISFIFO, 'a named pipe (FIFO)'), (stat.S_ISCHR, 'a character device'),
+               (stat.S_ISBLK, 'a block device'), (stat.S_ISSOCK, 'a socket'))
+
+
+def special_file(path: Path) -> Optional[str]:
+    """
+    Say what ``path`` is if it exists and is neither a regular file nor a directory.
+
+    A named pipe would block the writer until someone reads it, a device (``/dev/full``,
+    ``/dev/null``) would swallow or refuse the data: none is a file to write results into.
+    Symbolic links are followed.
+    """
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return None
+    kind = next((name for test, name in _FILE_TYPES if test(mode)), None)
+    if kind is None:
+        return None
+    target = path.resolve()
+    return kind + (f' ({target})' if target != path.absolute() else '')
+
+
 def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> None:
     if path.suffix != '.mcap':
         raise BagError(f'estimate output {path} must end in .mcap')
+    kind = special_file(path)
+    if kind is not None:
+        raise BagError(f'cannot write {path}: it is {kind}, not a regular file; give a file '
+                       'path')
     target = path.resolve()
     for source in inputs:
         source = Path(source).resolve()
@@ -52,6 +94,88 @@ def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> No
     if target.exists() and not overwrite:
         raise BagError(f'{path} already exists; choose another output file or allow '
                        'overwriting it')
+
+
+class _Output:
+    """
+    A writer's file: whole records held in memory until :meth:`commit` writes them.
+
+    Every commit leaves the file a valid MCAP file, whatever moment the process dies at: the
+    records and a new provisional end (:func:`_provisional_end`) are first written past the
+    old provisional end's first bytes, which keep the file ending there (a reader stops at
+    that footer); then those few bytes are overwritten with the records' first ones, one
+    small write. After a failed write (a full disk) the file is cut back to its last end.
+    """
+
+    def __init__(self, path: Path, overwrite: bool) -> None:
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+        self._fd = os.open(path, flags | getattr(os, 'O_CLOEXEC', 0), 0o666)
+        self._pending = bytearray()
+        self._committed = 0        # bytes of whole records on disk
+        self._end = 0              # bytes of the provisional end after them
+
+    def write(self, data: Any) -> int:
+        self._pending += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self._committed + len(self._pending)
+
+    def flush(self) -> None:
+        """Do nothing: :meth:`commit` writes (mcap's Writer.flush calls this)."""
+
+    @property
+    def pending(self) -> int:
+        """Return the bytes held in memory."""
+        return len(self._pending)
+
+    def commit(self, end: bytes) -> None:
+        """Write the records held and ``end`` after them (see the class)."""
+        data = bytes(self._pending) + end
+        keep = min(self._end, len(data))
+        self._write_at(data[keep:], self._committed + keep)
+        self._write_at(data[:keep], self._committed)
+        self._committed += len(self._pending)
+        self._end = len(end)
+        self._pending.clear()
+
+    def _write_at(self, data: bytes, offset: int) -> None:
+        view = memoryview(data)
+        while view:
+            written = os.pwrite(self._fd, view, offset)
+            view, offset = view[written:], offset + written
+
+    def restore(self) -> None:
+        """After a failed commit, cut the file back to its last valid end (frees space)."""
+        self._pending.clear()
+        os.ftruncate(self._fd, self._committed + self._end)
+
+    def finish(self) -> None:
+        """Write the records held (the file's real end) and nothing after them."""
+        self.commit(b'')
+        os.ftruncate(self._fd, self._committed)
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+def partial_path(path: Path) -> Path:
+    """Return where an atomic writer writes ``path`` until it is complete."""
+    return path.with_name(f'{path.stem}.partial{path.suffix}')
+
+
+def _provisional_end() -> bytes:
+    """Return a data-end record, a footer without summary and the magic: a file's valid end."""
+    builder = RecordBuilder()
+    DataEnd(data_section_crc=0).write(builder)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+    return bytes(builder.end()) + MCAP_MAGIC
+
+
+_PROVISIONAL_END = _provisional_end()
+# Bytes of whole records held in memory before they are written whatever the flush interval
+# (mcap writes a chunk of 1 MiB at a time).
+_COMMIT_BYTES = 4 * MIB
 
 
 def _time_ns(value: Any) -> int:
@@ -80,29 +204,78 @@ class RecordingWriter:
         ``overwrite``.
     overwrite : bool, optional
         Replace an existing file at ``path`` instead of refusing.
+    flush_interval : float, optional
+        Seconds: write the messages received so far as a chunk, followed by a provisional
+        end of the file, when this long has passed since the last such flush (checked at every
+        message and by :meth:`flush`); a killed process then loses at most about that long.
+        None (the default) writes chunks by size only, and the file is valid only once closed.
+    atomic : bool, optional
+        Write into ``<stem>.partial.mcap`` beside ``path`` and rename it to ``path`` when
+        :meth:`close` completes it, so that ``path`` is complete or absent (an existing one
+        untouched) whatever happens; :meth:`discard` removes the partial file. A process
+        killed meanwhile leaves only the ``.partial.mcap`` file, which the next one replaces.
+
+    Attributes
+    ----------
+    message_count : int
+        Messages written so far.
 
     Raises
     ------
     BagError
         If ``path`` is not a new ``.mcap`` file outside the inputs, or cannot be created.
 
+    Notes
+    -----
+    The methods may be called from several threads (a recorder's executor writes, the main
+    thread flushes and closes).
+
     """
 
     def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, flush_interval: Optional[float] = None,
+                 atomic: bool = False) -> None:
         self.path = Path(path)
         _check_output(self.path, inputs, overwrite)
+        self._file = partial_path(self.path) if atomic else self.path
+        if atomic:
+            _check_output(self._file, inputs, True)
         try:
-            self._stream = open(self.path, 'wb' if overwrite else 'xb')
+            self._stream = _Output(self._file, overwrite or atomic)
         except OSError as error:
-            raise BagError(f'cannot create {self.path}: {error.strerror}') from None
+            raise BagError(f'cannot create {self._file}: {error.strerror or error}') from None
         self._closed = False
+        self._failure: Optional[BagError] = None
+        self._lock = threading.RLock()
+        self._flush_interval = flush_interval
+        self._flushed_at = time.monotonic()
+        self._pending = False
+        self.message_count = 0
         self._writer = McapWriter(self._stream)
-        self._writer.start(profile='ros2', library='ctid_ros')
         self._typestore = get_typestore(Stores.ROS2_JAZZY)
         self._schemas: Dict[TopicSchema, int] = {}
         self._channels: Dict[str, int] = {}
         self._types: Dict[str, str] = {}
+        with self._lock, self._writing():
+            self._writer.start(profile='ros2', library='ctid_ros')
+            self._stream.commit(_PROVISIONAL_END)
+
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Turn a failed write into a BagError that every later write raises too."""
+        if self._failure is not None:
+            raise self._failure
+        try:
+            yield
+        except BagError:
+            raise
+        except OSError as error:
+            self._failure = BagError(f'cannot write {self.path}: {error.strerror or error}')
+            try:
+                self._stream.restore()
+            except OSError:     # the file keeps its cut: BagReader reads up to it
+                pass
+            raise self._failure from None
 
     def __enter__(self: _Writer) -> _Writer:
         """Return the writer; :meth:`close` it on leaving."""
@@ -113,13 +286,75 @@ class RecordingWriter:
         self.close()
 
     def close(self) -> None:
-        """Write the MCAP index and close the file (also after an error: messages so far stay)."""
-        if not self._closed:
+        """
+        Write the MCAP index and close the file (also after an error: messages so far stay).
+
+        Raises
+        ------
+        BagError
+            If the index cannot be written (a full disk): the file is closed, and holds every
+            message flushed before.
+
+        """
+        with self._lock:
+            if self._closed:
+                return
             self._closed = True
             try:
-                self._writer.finish()
+                if self._failure is None:
+                    with self._writing():
+                        self._writer.finish()
+                        self._stream.finish()
             finally:
                 self._stream.close()
+                if self._file != self.path and self._failure is not None:
+                    self._file.unlink(missing_ok=True)
+            if self._file != self.path and self._failure is None:
+                try:
+                    os.replace(self._file, self.path)
+                except OSError as error:
+                    raise BagError(f'cannot replace {self.path} with the finished '
+                                   f'{self._file.name}: {error.strerror or error}') from None
+
+    def discard(self) -> None:
+        """
+        Close the file without finishing it, after a failure.
+
+        An ``atomic`` writer removes its partial file (``path`` is left as it was); any other
+        keeps the file, readable up to its last flush.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._stream.close()
+            if self._file != self.path:
+                self._file.unlink(missing_ok=True)
+
+    def flush(self, force: bool = False) -> None:
+        """
+        Write the messages received so far as a chunk if ``flush_interval`` has passed.
+
+        With ``force``, whatever the interval. The chunk is followed by a provisional end of
+        the file, so that the file as it is on disk is a valid MCAP file.
+
+        Raises
+        ------
+        BagError
+            If the writing fails (a full disk).
+
+        """
+        with self._lock:
+            if self._closed or not self._pending:
+                return
+            if not force and (self._flush_interval is None or time.monotonic() <
+                              self._flushed_at + self._flush_interval):
+                return
+            with self._writing():
+                self._writer.flush()
+                self._stream.commit(_PROVISIONAL_END)
+            self._flushed_at = time.monotonic()
+            self._pending = False
 
     def _check_open(self) -> None:
         if self._closed:
@@ -150,7 +385,12 @@ class RecordingWriter:
             standard ROS 2 Jazzy type.
 
         """
-        self._check_open()
+        with self._lock:
+            self._check_open()
+            with self._writing():
+                self._declare(topic, msgtype, schema)
+
+    def _declare(self, topic: str, msgtype: str, schema: Optional[TopicSchema]) -> None:
         if topic in self._channels:
             raise BagError(f'topic {topic} is already recorded in {self.path}')
         if schema is None:
@@ -169,11 +409,19 @@ class RecordingWriter:
 
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Write one serialised message of a declared topic at its log (reception) time."""
-        self._check_open()
-        if topic not in self._channels:
-            raise BagError(f'topic {topic} was not declared with add_topic')
         time_ns = _time_ns(log_time_ns)
-        self._writer.add_message(self._channels[topic], time_ns, bytes(data), time_ns)
+        with self._lock:
+            self._check_open()
+            if topic not in self._channels:
+                raise BagError(f'topic {topic} was not declared with add_topic')
+            with self._writing():
+                self._writer.add_message(self._channels[topic], time_ns, bytes(data), time_ns)
+                if self._stream.pending > _COMMIT_BYTES:
+                    self._stream.commit(_PROVISIONAL_END)
+            self.message_count += 1
+            self._pending = True
+        if self._flush_interval is not None:
+            self.flush()
 
     def write_message(self, message: OutputMessage, log_time_ns: int) -> None:
         """
@@ -240,6 +488,9 @@ class EstimateWriter(RecordingWriter):
         ROS namespace of the node, e.g. ``'/plant1'``.
     overwrite : bool, optional
         Replace an existing file at ``path`` instead of refusing.
+    atomic : bool, optional
+        Write into a ``.partial.mcap`` file renamed to ``path`` when complete (see
+        :class:`RecordingWriter`).
 
     Attributes
     ----------
@@ -257,9 +508,9 @@ class EstimateWriter(RecordingWriter):
 
     def __init__(self, path: PathLike, *, inputs: Iterable[PathLike] = (),
                  node_name: str = DEFAULT_NODE_NAME, namespace: str = '',
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, atomic: bool = False) -> None:
         self.node = NodeTopics.of(node_name, namespace)
-        super().__init__(path, inputs=inputs, overwrite=overwrite)
+        super().__init__(path, inputs=inputs, overwrite=overwrite, atomic=atomic)
 
     def write_estimate(self, time_ns: int, names: Sequence[str], values: Sequence[float],
                        stds: Optional[Sequence[float]] = None,

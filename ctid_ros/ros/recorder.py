@@ -10,6 +10,7 @@ thread of its own, beside whatever else the process does.
 import functools
 from typing import Any, Callable, Dict, Mapping, Optional, TypeVar
 
+from ctid_ros.errors import BagError
 from ctid_ros.files.mcap_writer import RecordingWriter
 from ctid_ros.ros.messages import import_message
 from ctid_ros.ros.spinner import Spinner
@@ -46,6 +47,9 @@ class TopicRecorder:
         Messages written per topic so far.
     depth : int
         The queue depth of its subscriptions.
+    failure : BagError or None
+        Why writing failed (a full disk): from then on messages are dropped, not written; the
+        owner stops the recording and reports it.
 
     Notes
     -----
@@ -60,6 +64,7 @@ class TopicRecorder:
         self._writer = writer
         self.depth = depth
         self.counts: Dict[str, int] = {}
+        self.failure: Optional[BagError] = None
         self._context = Context()
         rclpy.init(context=self._context)
         self._executor: Optional[SingleThreadedExecutor] = None
@@ -101,7 +106,13 @@ class TopicRecorder:
         self.close()
 
     def _record(self, topic: str, data: bytes, info: Mapping[str, Any]) -> None:
-        self._writer.write(topic, info['received_timestamp'], data)
+        if self.failure is not None:
+            return
+        try:
+            self._writer.write(topic, info['received_timestamp'], data)
+        except BagError as error:   # raised in the executor's thread: kept for the owner
+            self.failure = error
+            return
         self.counts[topic] += 1
 
     def subscribe(self, topic: str, msgtype: str, callback: Callable[[Any], None]) -> None:

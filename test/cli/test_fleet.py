@@ -240,3 +240,66 @@ def test_the_command_with_spans(long_bags, tmp_path, capsys):
     lengths = [(row['span_end_ns'] - row['span_start_ns']) / 1e9 for row in rows]
     assert lengths[0] == 18.0 and lengths[1] == pytest.approx(21.99, abs=0.001)
     assert rows[1]['J'] == pytest.approx(TRUTH['J'], rel=0.005)
+
+
+def test_a_fleet_mixes_ros1_bags_with_rosbag2_and_mcap(client, tmp_path):
+    from replay_fixtures import convert_to_rosbag2, DELAY, params_file, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, 20.0)
+    bags = tmp_path / 'bags'
+    bags.mkdir()
+    ros1 = write_rosbag1(bags / 'old.bag', u, y)
+    converted = convert_to_rosbag2(ros1, bags / 'converted')
+    # The storage file of the conversion on its own: a standalone MCAP file.
+    (bags / 'single.mcap').write_bytes((converted / 'converted.mcap').read_bytes())
+    params = params_file(tmp_path, DELAY, input_topic='/plant/cmd', input_field='effort')
+    summary = run_fleet([str(bags)], params, tmp_path / 'results', client=client, plots=False)
+    assert summary['bags'] == 3 and summary['errors'] == 0
+    rows = {row['bag']: row for row in pq.read_table(tmp_path / 'results' / 'bags.parquet')
+            .to_pylist()}
+    assert set(rows) == {'old.bag', 'converted', 'single.mcap'}
+    for name in DELAY['truth']:
+        assert rows['old.bag'][name] == pytest.approx(rows['converted'][name], rel=1e-9)
+        assert rows['single.mcap'][name] == pytest.approx(rows['converted'][name], rel=1e-9)
+        assert rows['old.bag'][name] == pytest.approx(DELAY['truth'][name], rel=0.03)
+
+
+def test_a_byte_identical_copy_counts_once_and_a_cut_bag_says_so(tmp_path, capsys):
+    import shutil
+
+    from replay_fixtures import DELAY, params_file, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, 12.0)
+    bags = tmp_path / 'bags'
+    (bags / 'r0').mkdir(parents=True)
+    (bags / 'r1').mkdir()
+    original = write_rosbag1(bags / 'r0' / 'run.bag', u, y)
+    shutil.copy(original, bags / 'r1' / 'run.bag')                 # the same recording
+    content = original.read_bytes()
+    # Same size, other bytes: a different recording, kept.
+    (bags / 'r1' / 'other.bag').write_bytes(content.replace(b'prbs', b'PRBS'))
+    directory = bags / 'r2' / 'run'
+    shutil.copytree(_converted(original, tmp_path), directory)
+    shutil.copytree(directory, bags / 'r2' / 'run_copy')
+    cut = bags / 'r3' / 'cut.mcap'
+    cut.parent.mkdir()
+    cut.write_bytes((directory / 'run.mcap').read_bytes()[:2000])  # inside its first chunk
+    params = params_file(tmp_path, DELAY, input_topic='/plant/cmd', input_field='effort')
+    code = main(['fleet', str(bags), '--params-file', str(params), '--results',
+                 str(tmp_path / 'results'), '--threads', '--workers', '1', '--no-plots'])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert f'{bags}/r1/run.bag is a byte-identical copy of {bags}/r0/run.bag' in captured.err
+    assert f'{bags}/r2/run_copy is a byte-identical copy of {bags}/r2/run' in captured.err
+    assert 'ctid fleet: 4 bags (2 copies counted once): 4 analysed' in captured.out
+    rows = {row['bag']: row for row in pq.read_table(tmp_path / 'results' / 'bags.parquet')
+            .to_pylist()}
+    assert set(rows) == {'r0/run.bag', 'r1/other.bag', 'r2/run', 'r3/cut.mcap'}
+    assert rows['r3/cut.mcap']['status'] == 'error'
+    assert 'is truncated or damaged, and nothing is readable' in rows['r3/cut.mcap']['error']
+
+
+def _converted(bag, tmp_path):
+    from replay_fixtures import convert_to_rosbag2
+
+    return convert_to_rosbag2(bag, tmp_path / 'run')

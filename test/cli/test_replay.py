@@ -12,6 +12,7 @@ window misses by far more.
 
 import hashlib
 import json
+import re
 
 from bag_fixtures import Record
 from ctid_ros import Model
@@ -492,3 +493,101 @@ def test_sliding_replay_audits_a_recorded_shift(tmp_path, capsys):
     raised = next(alarm for time_s, alarm in alarms if alarm['level'] == 'ERROR')
     assert raised['parameters'] == ['J'] and set(raised) == {'level', 'parameters', 'since'}
     assert 37.5 < raised['since'] - T0_NS / 1e9 <= 40.5
+
+
+def test_a_ros1_bag_gives_the_estimate_of_its_rosbag2_conversion(tmp_path, capsys):
+    from replay_fixtures import convert_to_rosbag2, write_rosbag1
+
+    u, y = simulate(DELAY, 30.0)
+    ros1 = write_rosbag1(tmp_path / 'run.bag', u, y)
+    ros2 = convert_to_rosbag2(ros1, tmp_path / 'run_ros2')
+    params = params_file(tmp_path, DELAY, input_topic='/plant/cmd', input_field='effort')
+    results = {}
+    for bag in (ros1, ros2):
+        code, out, err = replay(capsys, bag, '--params-file', params, '--json')
+        assert code == 0, err
+        results[bag.name] = json.loads(out)
+    assert results['run.bag']['params'] == pytest.approx(results['run_ros2']['params'],
+                                                         rel=1e-9)
+    assert results['run.bag']['std'] == pytest.approx(results['run_ros2']['std'], rel=1e-9)
+    # The command is logged 3 ms after its header stamp: the stamp rule removes that from tau.
+    assert results['run.bag']['params'] == pytest.approx(DELAY['truth'], rel=0.03)
+    assert results['run.bag']['params']['tau'] == pytest.approx(DELAY['truth']['tau'],
+                                                                abs=0.0015)
+    # The per-message path (--output) gives the same estimate and copies ROS 2 messages.
+    output = tmp_path / 'est.mcap'
+    code, out, err = replay(capsys, ros1, '--params-file', params, '--json', '--output', output)
+    assert code == 0, err
+    assert json.loads(out)['params'] == pytest.approx(results['run.bag']['params'], rel=1e-9)
+    with open(output, 'rb') as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        efforts = [msg.effort for _, _, _, msg in
+                   reader.iter_decoded_messages(topics=['/plant/cmd'])]
+    assert efforts == pytest.approx(u.tolist())
+
+
+def test_output_is_complete_or_absent_and_never_a_pipe_or_device(tmp_path, capsys):
+    import os
+    import subprocess
+    import sys
+
+    u, y = simulate(DELAY, 5.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    fifo = tmp_path / 'pipe.mcap'
+    os.mkfifo(fifo)
+    full = tmp_path / 'full.mcap'
+    full.symlink_to('/dev/full')
+    for output, kind in ((fifo, r'a named pipe \(FIFO\)'),
+                         (full, r'a character device \(/dev/full\)')):
+        # In a process of its own: a regression would block on the pipe, not the test run.
+        done = subprocess.run([sys.executable, '-m', 'ctid_ros.cli.main', 'replay', str(bag),
+                               '--params-file', str(params), '--output', str(output),
+                               '--overwrite'], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and done.stderr.count('\n') == 1, done.stderr
+        assert re.search(f'error: cannot write {output}: it is {kind}', done.stderr)
+    # A replay that fails (here at the end: no estimate possible) leaves no file behind.
+    output = tmp_path / 'estimates.mcap'
+    code, _, err = replay(capsys, bag, '--params-file', params, '--output', output,
+                          '--start', '4.9')
+    assert code == 2 and not output.exists(), err
+    assert list(tmp_path.glob('*.partial.mcap')) == []
+
+
+def test_a_killed_replay_leaves_a_partial_file_that_a_rerun_replaces(tmp_path, capsys):
+    import subprocess
+    import sys
+    import time
+
+    u, y = simulate(DELAY, 120.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    output = tmp_path / 'estimates.mcap'
+    partial = tmp_path / 'estimates.partial.mcap'
+    process = subprocess.Popen([sys.executable, '-m', 'ctid_ros.cli.main', 'replay', str(bag),
+                                '--params-file', str(params), '--output', str(output),
+                                '--sliding'], stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not partial.exists():
+        assert process.poll() is None and time.monotonic() < deadline
+        time.sleep(0.005)
+    process.kill()
+    process.wait()
+    assert partial.exists() and not output.exists()
+    code, _, err = replay(capsys, bag, '--params-file', params, '--output', output, '--end', '20')
+    assert code == 0, err
+    assert output.read_bytes()[:5] == b'\x89MCAP' and not partial.exists()
+
+
+def test_a_full_disk_under_output_is_one_line_and_leaves_nothing(tmp_path, capsys):
+    from disk_fixtures import small_disk
+
+    u, y = simulate(DELAY, 30.0)
+    bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
+    params = params_file(tmp_path, DELAY)
+    with small_disk(tmp_path / 'disk', 64) as disk:
+        output = disk / 'estimates.mcap'
+        code, out, err = replay(capsys, bag, '--params-file', params, '--output', output)
+        assert code == 2 and out == '' and err.count('\n') == 1, err
+        assert f'error: cannot write {output}: No space left on device' in err
+        assert list(disk.iterdir()) == []

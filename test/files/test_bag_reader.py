@@ -327,3 +327,136 @@ def test_compressed_storage_files_are_checked_before_rosbags_decompresses_them(b
     with pytest.raises(BagError, match='decompresses to an unknown size from .* .the ratio '
                        'limit is 1000.: a decompression bomb'):
         BagReader(bag)
+
+
+def _ros1_bag(tmp_path, seconds=1.0):
+    from replay_fixtures import DELAY, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, seconds)
+    return write_rosbag1(tmp_path / 'run.bag', u, y), u, y
+
+
+def test_ros1_bag_yields_its_custom_type_as_the_ros2_message(tmp_path):
+    from replay_fixtures import COMMAND_TYPE, STEP_NS, T0_NS
+
+    path, u, y = _ros1_bag(tmp_path)
+    with BagReader(path) as bag:
+        assert bag.topics() == {'/plant/cmd': COMMAND_TYPE, '/plant/y': 'std_msgs/msg/Float64'}
+        assert bag.message_counts() == {'/plant/cmd': u.size, '/plant/y': y.size}
+        messages = list(bag.messages('/plant/cmd'))
+        schema = bag.topic_schema('/plant/cmd')
+        # The listing of a missing topic's error, as for every other bag.
+        with pytest.raises(BagError, match=r'it has: /plant/cmd \(plant_msgs/msg/Command, 100 '
+                                           r'messages\); /plant/y \(std_msgs/msg/Float64'):
+            bag.messages('/plant/u')
+        records = list(bag.records('/plant/cmd'))
+    assert [msg.msg.effort for msg in messages] == pytest.approx(u.tolist())
+    first = messages[1].msg
+    # The ROS 2 header: stamp and frame_id, without ROS 1's seq.
+    assert not hasattr(first.header, 'seq')
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == divmod(T0_NS + STEP_NS,
+                                                                          10 ** 9)
+    assert schema.encoding == 'ros2msg' and schema.message_encoding == 'cdr'
+    assert schema.definition.startswith(b'std_msgs/Header header\nfloat64 effort\n')
+    # The copied bytes are CDR that a ROS 2 decoder of that definition reads.
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(schema.definition.decode(), COMMAND_TYPE))
+    copy = store.deserialize_cdr(records[1].data, COMMAND_TYPE)
+    assert (copy.effort, copy.header.frame_id, copy.source) == (u[1], 'base', 'prbs')
+
+
+def test_files_that_are_no_bag_are_named(tmp_path):
+    path, _, _ = _ros1_bag(tmp_path)
+    cut = tmp_path / 'cut.bag'
+    cut.write_bytes(path.read_bytes()[:5000])
+    with pytest.raises(BagError, match=r'cannot read ROS 1 bag .*cut short before its index'):
+        BagReader(cut)
+    renamed = tmp_path / 'run.rosbag'
+    shutil.copy(path, renamed)
+    with pytest.raises(BagError, match=r'is a ROS 1 bag, .*ending in \.bag'):
+        BagReader(renamed)
+    old = tmp_path / 'old.bag'
+    old.write_bytes(b'#ROSBAG V1.2\n' + bytes(100))
+    with pytest.raises(BagError, match='ROS 1 bag of format version 1.2'):
+        BagReader(old)
+    kinds = {'log.csv': (b't,u,y\n0,1,2\n', r"a text file, CSV-like \('t,u,y'"),
+             'x.bag': (b'\x1f\x8b\x08\x00' + bytes(40), 'a gzip-compressed file'),
+             'empty.bag': (b'', 'an empty file'),
+             'notes.txt': (b'hello\n', r"a text file \('hello'\)"),
+             'run.db': (b'SQLite format 3\x00' + bytes(100), 'an SQLite database')}
+    for name, (content, kind) in kinds.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(BagError, match=f'is not a bag: it is {kind}'):
+            BagReader(tmp_path / name)
+
+
+def test_a_file_cut_inside_its_first_chunk_is_called_truncated(bags, tmp_path):
+    content = bags['mcap_file'].read_bytes()
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(content[:300])
+    with BagReader(cut) as bag:
+        assert bag.truncated and bag.topics() == {}
+        with pytest.raises(BagError, match=r'not in the readable part of .*cut.mcap: the file '
+                                           r'is truncated or damaged, and nothing is readable'):
+            bag.messages('/plant/u')
+
+
+def _zeros_bag(path, compression, megabytes):
+    """Write a ROS 1 bag with one message of ``megabytes`` of zeros, compressed."""
+    from rosbags.rosbag1 import Writer as Writer1
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    msgtype = 'std_msgs/msg/UInt8MultiArray'
+    layout = store.types['std_msgs/msg/MultiArrayLayout'](dim=[], data_offset=0)
+    msg = store.types[msgtype](layout=layout, data=np.zeros(megabytes << 20, dtype=np.uint8))
+    writer = Writer1(path)
+    writer.set_compression(getattr(Writer1.CompressionFormat, compression.upper()))
+    with writer:
+        connection = writer.add_connection('/blob', msgtype, typestore=store)
+        writer.write(connection, 10 ** 18, store.serialize_ros1(msg, msgtype))
+    return path
+
+
+@pytest.mark.parametrize('compression', ['bz2', 'lz4'])
+def test_compressed_ros1_chunks_are_read_within_bounds(tmp_path, compression):
+    from replay_fixtures import DELAY, simulate, write_rosbag1
+
+    u, y = simulate(DELAY, 2.0)
+    plain = write_rosbag1(tmp_path / 'plain.bag', u, y)
+    with BagReader(plain) as bag:
+        expected = [(msg.topic, msg.log_time_ns) for msg in bag.messages()]
+    # The same messages in compressed chunks (rosbags' writer), read through the bounds.
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer as Writer1
+
+    packed = tmp_path / 'packed.bag'
+    writer = Writer1(packed)
+    writer.set_compression(getattr(Writer1.CompressionFormat, compression.upper()))
+    with AnyReader([plain]) as source, writer:
+        connections = {conn.id: writer.add_connection(conn.topic, conn.msgtype,
+                                                      msgdef=conn.msgdef.data,
+                                                      md5sum=conn.digest)
+                       for conn in source.connections}
+        for conn, time_ns, data in source.messages():
+            writer.write(connections[conn.id], time_ns, data)
+    with BagReader(packed) as bag:
+        assert [(msg.topic, msg.log_time_ns) for msg in bag.messages()] == expected
+    # A chunk that declares less than it holds stops being decompressed there.
+    content = bytearray(packed.read_bytes())
+    field = content.index(b'\x09\x00\x00\x00size=') + 9
+    declared = int.from_bytes(content[field:field + 4], 'little')
+    content[field:field + 4] = (declared // 2).to_bytes(4, 'little')
+    lying = tmp_path / 'lying.bag'
+    lying.write_bytes(bytes(content))
+    with BagReader(lying) as bag:
+        with pytest.raises(BagError, match=f'a {compression} chunk decompresses to more than '
+                                           f'the {declared // 2} bytes it declares'):
+            list(bag.messages())
+
+
+def test_a_ros1_decompression_bomb_is_refused_before_decompressing(tmp_path):
+    # 8 MiB of zeros compress more than 1000-fold with bz2 (lz4 cannot exceed 255).
+    bomb = _zeros_bag(tmp_path / 'bomb.bag', 'bz2', 8)
+    with pytest.raises(BagError, match=r'the chunk at byte \d+ declares 8.* a decompression '
+                                       'bomb'):
+        BagReader(bomb)

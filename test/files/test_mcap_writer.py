@@ -214,3 +214,119 @@ def test_recorded_topics_are_copied_with_their_own_schemas(tmp_path):
         schema = bag.topic_schema('/plant/sample')
         assert schema.msgtype == SAMPLE_TYPE and schema.definition.startswith(SAMPLE_MSG.encode())
         assert bag.message_count('/ctid_node/estimate') == 1
+
+
+_JAZZY = get_typestore(Stores.ROS2_JAZZY)
+
+
+def _float64(value):
+    return bytes(_JAZZY.serialize_cdr(_JAZZY.types['std_msgs/msg/Float64'](data=value),
+                                      'std_msgs/msg/Float64'))
+
+
+def _plain_count(path):
+    """Read a file with the plain mcap reader; return its message count."""
+    with open(path, 'rb') as stream:
+        return sum(1 for _ in make_reader(stream).iter_messages())
+
+
+def test_a_recording_is_a_valid_file_after_every_flush(tmp_path):
+    path = tmp_path / 'run.mcap'
+    snapshots = []
+    with RecordingWriter(path, flush_interval=3600.0) as writer:
+        writer.add_topic('/u', 'std_msgs/msg/Float64')
+        snapshots.append(path.read_bytes())         # what a kill right now would leave
+        for k in range(10):
+            writer.write('/u', T0_NS + k, _float64(float(k)))
+            if k in (3, 6):
+                writer.flush(force=True)
+                snapshots.append(path.read_bytes())
+        snapshots.append(path.read_bytes())         # 3 messages after the last flush
+    # A flush writes its chunk and a new end past the old end's first bytes, then those: a
+    # kill between the two writes leaves the file as it was before, with bytes after its end.
+    torn = [before + after[len(before):] for before, after in zip(snapshots, snapshots[1:])]
+    for index, (content, expected) in enumerate(zip(snapshots + torn, [0, 4, 7, 7, 0, 4, 7])):
+        copy = tmp_path / f'killed{index}.mcap'
+        copy.write_bytes(content)
+        assert _plain_count(copy) == expected
+        with BagReader(copy) as bag:
+            assert not bag.truncated
+            assert [msg.msg.data for msg in bag.messages()] == list(map(float, range(expected)))
+    assert _plain_count(path) == 10
+
+
+def test_messages_are_flushed_once_the_interval_has_passed(tmp_path):
+    path = tmp_path / 'run.mcap'
+    with RecordingWriter(path, flush_interval=0.0) as writer:
+        writer.add_topic('/u', 'std_msgs/msg/Float64')
+        for k in range(5):
+            writer.write('/u', T0_NS + k, _float64(float(k)))
+            assert _plain_count(path) == k + 1
+
+
+def test_a_full_disk_fails_once_with_its_cause_and_keeps_a_readable_file(tmp_path):
+    from disk_fixtures import small_disk
+
+    with small_disk(tmp_path / 'disk', 64) as disk:
+        path = disk / 'run.mcap'
+        writer = RecordingWriter(path, flush_interval=0.0)
+        writer.add_topic('/u', 'std_msgs/msg/Float64')
+        written = 0
+        with pytest.raises(BagError, match=f'cannot write {path}: No space left on device'):
+            for k in range(100_000):
+                writer.write('/u', T0_NS + k, _float64(float(k)))
+                written += 1
+        assert 500 < written < 100_000
+        with pytest.raises(BagError, match='No space left on device'):
+            writer.write('/u', T0_NS, _float64(0.0))
+        writer.close()
+        # Every message written before the failure, in a file the plain reader reads.
+        assert _plain_count(path) == written
+        with BagReader(path) as bag:
+            assert bag.message_count() == written and not bag.truncated
+
+
+def test_no_writing_into_pipes_or_devices(tmp_path):
+    import os
+
+    fifo = tmp_path / 'pipe.mcap'
+    os.mkfifo(fifo)
+    with pytest.raises(BagError, match=r'pipe.mcap: it is a named pipe \(FIFO\), not a regular'):
+        RecordingWriter(fifo, overwrite=True)      # would block until someone reads it
+    full = tmp_path / 'full.mcap'
+    full.symlink_to('/dev/full')
+    with pytest.raises(BagError, match=r'it is a character device \(/dev/full\)'):
+        RecordingWriter(full, overwrite=True)
+
+
+def test_an_atomic_file_is_complete_or_absent(tmp_path):
+    path = tmp_path / 'est.mcap'
+    partial = tmp_path / 'est.partial.mcap'
+    path.write_bytes(b'the previous results')
+    writer = EstimateWriter(path, overwrite=True, atomic=True)
+    writer.write_status(T0_NS, OK, 'one')
+    assert partial.exists() and path.read_bytes() == b'the previous results'
+    writer.discard()
+    assert not partial.exists() and path.read_bytes() == b'the previous results'
+    partial.write_bytes(b'left by a killed replay')
+    with EstimateWriter(path, overwrite=True, atomic=True) as writer:
+        writer.write_status(T0_NS, OK, 'two')
+    assert not partial.exists()
+    with BagReader(path) as bag:
+        assert [msg.msg.status[0].message for msg in bag.messages()] == ['two']
+
+
+def test_an_atomic_file_that_fails_leaves_nothing(tmp_path):
+    from disk_fixtures import small_disk
+
+    rng = np.random.default_rng(5)
+    with small_disk(tmp_path / 'disk', 64) as disk:
+        path = disk / 'est.mcap'
+        writer = EstimateWriter(path, atomic=True)
+        writer.add_topic('/u', 'std_msgs/msg/Float64')
+        for k in range(20_000):         # 0.5 MB that zstd cannot shrink, held until the end
+            writer.write('/u', T0_NS + k, _float64(rng.normal()))
+        with pytest.raises(BagError, match=f'cannot write {path}: No space left on device'):
+            writer.close()
+        assert list(disk.iterdir()) == []
+        writer.close()      # closed already: nothing more to say
