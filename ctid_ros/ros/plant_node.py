@@ -32,7 +32,9 @@ from typing import Any, Dict, List, Mapping, Optional
 
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.errors import ConfigError, CtidError
-from ctid_ros.ros.node import parameter_value, run_node, wrap_text
+from ctid_ros.ros.parameter_table import wrap_text
+from ctid_ros.ros.parameters import parameter_value
+from ctid_ros.ros.runner import run_node
 from ctid_ros.streaming.contract import NANOSECONDS
 from geometry_msgs.msg import PointStamped
 import rclpy

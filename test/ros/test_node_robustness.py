@@ -15,8 +15,8 @@ whole sample buffer of this configuration is 1 MB).
 import threading
 
 from bench.node_storm import ATTACKS, run
-import ctid_ros.ros.node as node_module
-from ctid_ros.ros.node import VALIDATION_TIMEOUT
+import ctid_ros.ros.parameters as parameters_module
+from ctid_ros.ros.parameters import VALIDATION_TIMEOUT
 from ctid_ros.streaming.config import IdentificationConfig
 from diagnostic_msgs.msg import DiagnosticStatus
 from node_harness import Harness, keys, wait_for
@@ -147,7 +147,7 @@ def test_a_validation_that_never_ends_cannot_block_the_node(ros, monkeypatch):
         released.wait()
         return original(config, changes)
 
-    monkeypatch.setattr(node_module, 'VALIDATION_TIMEOUT', 0.5)
+    monkeypatch.setattr(parameters_module, 'VALIDATION_TIMEOUT', 0.5)
     monkeypatch.setattr(IdentificationConfig, 'updated', endless)
     client = AsyncParameterClient(ros.observer, f'{ros.namespace}/ctid_node')
     assert client.wait_for_services(timeout_sec=30.0)
