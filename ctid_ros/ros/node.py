@@ -63,9 +63,11 @@ from rclpy.lifecycle.node import LifecycleNodeMixin
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-__all__ = ['IdentificationNode', 'TOPIC_CHECK_PERIOD', 'VALIDATION_TIMEOUT', 'main',
-           'node_usage', 'parameter_value', 'run_node', 'wrap_text']
+__all__ = ['IdentificationNode', 'SHUTDOWN_GRACE', 'TOPIC_CHECK_PERIOD', 'VALIDATION_TIMEOUT',
+           'main', 'node_usage', 'parameter_value', 'run_node', 'wrap_text']
 
+# Seconds an estimate in progress at the exit may take to finish and be published.
+SHUTDOWN_GRACE = 0.5
 _SUCCESS = TransitionCallbackReturn.SUCCESS
 _FAILURE = TransitionCallbackReturn.FAILURE
 
@@ -295,9 +297,17 @@ class IdentificationNode(TopicIntake, ParameterHandling, Estimating, Reporting, 
         self._outputs.keep_only(output_topics(self._node_topics, config))
 
     def destroy_node(self) -> None:
-        """Stop the estimation thread, then destroy the node and its lifecycle state machine."""
+        """
+        Stop the estimation thread, then destroy the node and its lifecycle state machine.
+
+        An estimate in progress gets :data:`SHUTDOWN_GRACE` seconds to finish and be
+        published; after that it is abandoned (it publishes nothing more), so that a signal
+        ends the process at once whatever the estimate costs.
+        """
         self._active = False
-        self._worker.stop()
+        if not self._worker.stop(SHUTDOWN_GRACE):
+            self.get_logger().warning('exiting during an estimate: its result is not published')
+        self._outputs.close()
         super().destroy_node()
         # rclpy's LifecycleNode leaves its state machine to the garbage collector, whose
         # finaliser crashes a forked child (multiprocessing) that collects it: end it here.

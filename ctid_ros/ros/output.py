@@ -73,28 +73,42 @@ class Publishers:
         self._usable = usable
         self._lock = threading.Lock()
         self._publishers: Dict[str, Tuple[Any, type]] = {}
+        self._closed = False
 
     def ensure(self, message: OutputMessage) -> Optional[Tuple[Any, type]]:
         """Return the publisher of a message's topic and its class, None unconfigured."""
         with self._lock:
-            if message.topic not in self._publishers:
-                configured, active = self._usable()
-                if not configured:
-                    return None
-                message_class = import_message(message.msgtype)
-                publisher = self._node.create_lifecycle_publisher(
-                    message_class, message.topic, _qos_profile(message.qos))
-                if active:
-                    publisher.on_activate(None)
-                self._publishers[message.topic] = (publisher, message_class)
-            return self._publishers[message.topic]
+            return self._ensure(message)
+
+    def _ensure(self, message: OutputMessage) -> Optional[Tuple[Any, type]]:
+        if message.topic not in self._publishers:
+            configured, active = self._usable()
+            if not configured or self._closed:
+                return None
+            message_class = import_message(message.msgtype)
+            publisher = self._node.create_lifecycle_publisher(
+                message_class, message.topic, _qos_profile(message.qos))
+            if active:
+                publisher.on_activate(None)
+            self._publishers[message.topic] = (publisher, message_class)
+        return self._publishers[message.topic]
 
     def send(self, message: OutputMessage) -> None:
-        """Publish ``message`` (nothing while unconfigured)."""
-        found = self.ensure(message)
-        if found is not None:
-            publisher, message_class = found
-            publisher.publish(to_message(message_class, message.fields))
+        """Publish ``message`` (nothing while unconfigured or once closed)."""
+        with self._lock:
+            found = None if self._closed else self._ensure(message)
+            if found is not None:
+                publisher, message_class = found
+                publisher.publish(to_message(message_class, message.fields))
+
+    def close(self) -> None:
+        """
+        Publish nothing more, also from a thread still running (before the node goes).
+
+        Waits for a publication in progress; the publishers themselves go with the node.
+        """
+        with self._lock:
+            self._closed = True
 
     def keep_only(self, topics: Iterable[str]) -> None:
         """Remove the publishers of every topic not in ``topics`` (all with none)."""

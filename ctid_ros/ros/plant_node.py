@@ -26,6 +26,7 @@ header stamps fall on the estimator's grid. Optionally the parameters jump to
 Run it with ``ctid_plant --ros-args --params-file config/plant_sim.yaml``.
 """
 
+import signal
 import sys
 import time
 from typing import Any, Dict, List, Mapping, Optional
@@ -41,6 +42,7 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
@@ -213,7 +215,10 @@ def run_samples(params_file: str, overrides: Mapping[str, Any], samples: int,
         Seconds to wait for the subscribers.
 
     """
-    rclpy.init()
+    # The parent stops this process (terminate) when it is interrupted; Ctrl-C reaches every
+    # process of the terminal's group, and must not end this one with a traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = PlantNode(cli_args=['--ros-args', '--params-file', params_file],
                          parameter_overrides=[Parameter(name, value=value)
