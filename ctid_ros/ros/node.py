@@ -33,10 +33,11 @@ keeps the alarm's sums and baseline unless it changes the parameters' names (a n
 the baseline.
 """
 
+import functools
 import math
 import sys
 import threading
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from ctid_ros.errors import ConfigError, DataError
 from ctid_ros.ros.estimating import Estimating
@@ -55,6 +56,7 @@ from ctid_ros.streaming.contract import (alarm_message, DEFAULT_NODE_NAME, estim
                                          NodeTopics, OK)
 from ctid_ros.streaming.sampler import MessageSampler
 from ctid_ros.streaming.session import IdentificationSession, Update
+from lifecycle_msgs.srv import ChangeState
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.exceptions import ParameterException
@@ -129,7 +131,10 @@ class IdentificationNode(TopicIntake, ParameterHandling, Estimating, Reporting, 
         self._managed = bool(parameter_value(self, 'lifecycle', False))
         LifecycleNodeMixin.__init__(self, enable_communication_interface=self._managed,
                                     callback_group=MutuallyExclusiveCallbackGroup())
-        if not self._managed:
+        if self._managed:
+            service = self._service_change_state
+            service.callback = functools.partial(self._change_state, service.callback)
+        else:
             self._start()
 
     def _start(self) -> None:
@@ -160,6 +165,34 @@ class IdentificationNode(TopicIntake, ParameterHandling, Estimating, Reporting, 
         return self._active
 
     # Lifecycle -----------------------------------------------------------------------------
+
+    def _change_state(self, change_state: Callable[[Any, Any], Any],
+                      request: ChangeState.Request, response: ChangeState.Response
+                      ) -> ChangeState.Response:
+        """
+        Answer ``~/change_state`` through rclpy's ``change_state``, refusing what it cannot take.
+
+        rclpy (the Jazzy wheel) raises ``RCLError: Transition is not registered`` out of the
+        service for a transition id that is invalid in the current state (``4`` while
+        inactive), which ends the node; a label is checked. Here an id is checked against the
+        available transitions first, and any exception is answered with ``success=False``.
+        """
+        try:
+            transition = request.transition
+            available = {description[0]: description[1]
+                         for description in self._state_machine.available_transitions}
+            if transition.label or transition.id in available:
+                return change_state(request, response)
+            state = self._state_machine.current_state[1]
+            self.get_logger().warning(
+                f'~/change_state: transition id {transition.id} is not available in state '
+                f'{state!r} (available: ' + ', '.join(
+                    f'{number} {label}' for number, label in sorted(available.items()))
+                + '); refused')
+        except Exception as error:  # noqa: B902 - a service must answer, the node run on
+            self._internal_error('change_state', error)
+        response.success = False
+        return response
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Validate the parameters; build the buffer, session, publishers and services."""

@@ -8,12 +8,13 @@ only from configure, subscriptions only while active, the buffer gone after clea
 """
 
 import math
+import signal
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.ros.node import IdentificationNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from node_harness import converge, Harness, keys, wait_for
+from node_harness import converge, Harness, keys, NodeProcess, wait_for
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -152,3 +153,25 @@ def test_unmanaged_node_refuses_to_start_on_an_invalid_configuration(ros):
     with pytest.raises(ConfigError, match='samples per estimate, more than the limit'):
         IdentificationNode(context=ros.context, namespace=ros.namespace,
                            parameter_overrides=overrides)
+
+
+def test_a_transition_invalid_in_the_state_is_refused_and_the_node_runs_on(ros):
+    """Issue #25: rclpy's RCLError for such an id ended the process with status 1."""
+    node = NodeProcess(ros, parameters())
+    try:
+        assert node.state() == 'unconfigured'
+        assert not node.change(Transition.TRANSITION_ACTIVATE)
+        assert node.change(Transition.TRANSITION_CONFIGURE)
+        assert not node.change(Transition.TRANSITION_DEACTIVATE)    # id 4 while inactive
+        assert not node.change(99)
+        assert not node.change(0, label='no_such_transition')
+        assert node.state() == 'inactive'
+        assert node.change(Transition.TRANSITION_ACTIVATE)
+        assert not node.change(Transition.TRANSITION_ACTIVATE)      # id 3 while active
+        assert node.state() == 'active'
+        running = node.process.poll() is None
+    finally:
+        _, status, log = node.stop(signal.SIGTERM)
+    assert running and status == 0, log
+    assert 'Traceback' not in log and 'RCLError' not in log, log
+    assert log.count('is not available in state') == 4, log

@@ -9,15 +9,11 @@ to the exit. The target is 1 s; the assertion allows a loaded machine (:data:`DE
 """
 
 import signal
-import subprocess
-import sys
 import threading
-import time
 
 from builtin_interfaces.msg import Time
 from lifecycle_msgs.msg import Transition
-from lifecycle_msgs.srv import ChangeState, GetState
-from node_harness import Harness, named, wait_for, write_params
+from node_harness import Harness, named, NodeProcess, wait_for
 import pytest
 from rclpy.qos import QoSProfile
 from rosgraph_msgs.msg import Clock
@@ -41,44 +37,6 @@ def node_parameters(state):
     if state.startswith('sim_time'):
         values['use_sim_time'] = True
     return values
-
-
-class NodeProcess:
-    """ctid_node in a process of its own, driven and observed from the test's harness."""
-
-    def __init__(self, ros, state):
-        self.ros = ros
-        self.name = f'{ros.namespace}/ctid_node'
-        params = write_params(ros.tmp_path / 'node.yaml', ros.namespace, node_parameters(state))
-        # A file, not a pipe: a pipe nobody reads would block the node once full.
-        self.log = ros.tmp_path / 'node.log'
-        with open(self.log, 'w') as log:
-            self.process = subprocess.Popen(
-                [sys.executable, '-m', 'ctid_ros.ros.node', '--ros-args', '-r',
-                 f'__ns:={ros.namespace}', '--params-file', str(params)],
-                stdout=log, stderr=subprocess.STDOUT)
-
-    def call(self, service_type, service, request):
-        return self.ros.call(service_type, f'{self.name}/{service}', request, timeout=60.0)
-
-    def change(self, transition_id):
-        request = ChangeState.Request(transition=Transition(id=transition_id))
-        assert self.call(ChangeState, 'change_state', request).success
-
-    def state(self):
-        return self.call(GetState, 'get_state', GetState.Request()).current_state.label
-
-    def stop(self, number):
-        """Send signal ``number``; return the seconds to the exit, the status and the log."""
-        started = time.monotonic()
-        self.process.send_signal(number)
-        try:
-            self.process.wait(timeout=60.0)
-        finally:
-            if self.process.poll() is None:
-                self.process.kill()
-        elapsed = time.monotonic() - started
-        return elapsed, self.process.returncode, self.log.read_text()
 
 
 class ClockPublisher:
@@ -119,9 +77,9 @@ def bring_to(ros, node, state):
     if state in ('unconfigured', 'inactive', 'active'):
         assert node.state() == 'unconfigured'
     if state in ('inactive', 'active'):
-        node.change(Transition.TRANSITION_CONFIGURE)
+        assert node.change(Transition.TRANSITION_CONFIGURE)
     if state == 'active':
-        node.change(Transition.TRANSITION_ACTIVATE)
+        assert node.change(Transition.TRANSITION_ACTIVATE)
     if state in ('inactive', 'active'):
         assert node.state() == state
     clock = ClockPublisher(ros.observer) if state == 'sim_time_clock_stopped' else None
@@ -140,7 +98,7 @@ def bring_to(ros, node, state):
 @pytest.mark.parametrize('number', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
 @pytest.mark.parametrize('state', STATES)
 def test_a_signal_ends_the_node_at_once_with_status_0(ros, state, number):
-    node = NodeProcess(ros, state)
+    node = NodeProcess(ros, node_parameters(state))
     try:
         bring_to(ros, node, state)
     finally:
