@@ -126,7 +126,7 @@ class Harness:
         with self._lock:
             return into[-1] if into else None
 
-    def call(self, service_type, name, request, timeout=30.0):
+    def call(self, service_type, name, request, timeout=60.0):
         client = self.observer.create_client(service_type, name)
         assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
         future = client.call_async(request)

@@ -110,6 +110,8 @@ class PlantNode(Node):
         self._qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE
                                if value('reliable') else ReliabilityPolicy.BEST_EFFORT)
         self._topic_publishers: Dict[str, rclpy.publisher.Publisher] = {}
+        # Samples to publish at most (None: no end).
+        self.limit: Optional[int] = None
         self.create_publishers()
         self.restart()
         self._timer = self.create_timer(min(self.simulator.sample_time, 0.01), self._tick)
@@ -154,7 +156,8 @@ class PlantNode(Node):
 
     def _tick(self) -> None:
         now = self.get_clock().now().nanoseconds
-        while self._start_ns + self.published * self._step_ns <= now:
+        while self._start_ns + self.published * self._step_ns <= now and \
+                (self.limit is None or self.published < self.limit):
             stamp = self._start_ns + self.published * self._step_ns
             if self._drift and stamp - self._start_ns >= self._drift_time * NANOSECONDS:
                 self.simulator.retune({**self._params, **self._drift})
@@ -236,6 +239,8 @@ def run_samples(params_file: str, overrides: Mapping[str, Any], samples: int,
                                      f'{node.subscription_counts()}, expected {subscribers}'))
                 return
             time.sleep(0.01)
+        # Exactly ``samples``: a late timer tick catches up on several at once.
+        node.limit = samples
         node.restart()
         events.put(('started', node.start_ns))
         while node.published < samples:
