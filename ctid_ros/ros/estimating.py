@@ -93,6 +93,10 @@ class Estimating:
         self.last_update = update
         self._estimated_since_start = True
         self._publish(update, config)
+        current = self._config
+        if current is not config and current is not None:
+            # The model changed while this estimate ran: its ~/params/<old name> go again.
+            self._follow_outputs(current)
         values = update.diagnostics()
         values['publish_latency'] = time.perf_counter() - started
         origin = self._origin_ns if self._origin_ns is not None else update.start_ns

@@ -244,7 +244,7 @@ class ParameterHandling:
         if rebuild or not same_width:
             buffer = self._new_buffer(config, sampler)
             if same_width:
-                carry_samples(self._buffer, buffer)
+                carry_samples(old_buffer, buffer)
         fields_changed = (config.input_fields != old.input_fields
                           or config.output_field != old.output_field)
         with self._lock:
