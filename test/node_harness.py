@@ -17,6 +17,8 @@ from ctid_ros.ros.node import IdentificationNode
 from ctid_ros.ros.plant_node import PlantNode
 from ctid_ros.ros.spinner import Spinner
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -24,7 +26,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray
 import yaml
 
-__all__ = ['Harness', 'converge', 'keys', 'named', 'wait_for', 'write_params']
+__all__ = ['Harness', 'NodeProcess', 'converge', 'keys', 'named', 'wait_for', 'write_params']
 
 _COUNTER = itertools.count()
 
@@ -124,7 +126,7 @@ class Harness:
         with self._lock:
             return into[-1] if into else None
 
-    def call(self, service_type, name, request, timeout=30.0):
+    def call(self, service_type, name, request, timeout=60.0):
         client = self.observer.create_client(service_type, name)
         assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
         future = client.call_async(request)
@@ -140,6 +142,45 @@ class Harness:
             executor.shutdown()
             node.destroy_node()
         rclpy.shutdown(context=self.context)
+
+
+class NodeProcess:
+    """ctid_node in a process of its own, driven and observed from the test's harness."""
+
+    def __init__(self, ros, parameters):
+        self.ros = ros
+        self.name = f'{ros.namespace}/ctid_node'
+        params = write_params(ros.tmp_path / 'node.yaml', ros.namespace, parameters)
+        # A file, not a pipe: a pipe nobody reads would block the node once full.
+        self.log = ros.tmp_path / 'node.log'
+        with open(self.log, 'w') as log:
+            self.process = subprocess.Popen(
+                [sys.executable, '-m', 'ctid_ros.ros.node', '--ros-args', '-r',
+                 f'__ns:={ros.namespace}', '--params-file', str(params)],
+                stdout=log, stderr=subprocess.STDOUT)
+
+    def call(self, service_type, service, request):
+        return self.ros.call(service_type, f'{self.name}/{service}', request, timeout=60.0)
+
+    def change(self, transition_id, label=''):
+        """Request a transition through ~/change_state; return whether it succeeded."""
+        request = ChangeState.Request(transition=Transition(id=transition_id, label=label))
+        return self.call(ChangeState, 'change_state', request).success
+
+    def state(self):
+        return self.call(GetState, 'get_state', GetState.Request()).current_state.label
+
+    def stop(self, number):
+        """Send signal ``number``; return the seconds to the exit, the status and the log."""
+        started = time.monotonic()
+        self.process.send_signal(number)
+        try:
+            self.process.wait(timeout=60.0)
+        finally:
+            if self.process.poll() is None:
+                self.process.kill()
+        elapsed = time.monotonic() - started
+        return elapsed, self.process.returncode, self.log.read_text()
 
 
 def wait_for(predicate, timeout, what):

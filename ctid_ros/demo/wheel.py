@@ -33,14 +33,17 @@ imported only once the DDS environment is set.
 import argparse
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass, replace
+import gc
 import math
 import multiprocessing
 import os
 from pathlib import Path
 import queue
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from typing import Any, Dict, List, Optional, Sequence, TextIO, Tuple
 
@@ -73,6 +76,8 @@ DOCS_DIRECTORY = Path(__file__).resolve().parents[2] / 'docs' / 'images'
 STARTUP_TIMEOUT = 60.0
 # Seconds to wait for the last samples in flight after the plant has finished.
 DRAIN_TIMEOUT = 3.0
+# Set by SIGINT or SIGTERM during main().
+_INTERRUPTED = threading.Event()
 CELL_WIDTH = 19
 
 
@@ -345,6 +350,10 @@ def run_live(scenario: Scenario, node_file: Path, bag: Path, duration: float, lo
     try:
         table = LiveTable(scenario, config.names, stream or sys.stdout)
         published = _record(bag, scenario, table, events, (node, plant, log), duration)
+    except BaseException:
+        # Interrupted (Ctrl-C, SIGTERM) or failed: the plant has nothing left to publish for.
+        plant.terminate()
+        raise
     finally:
         _stop(node)
         plant.join(timeout=10.0)
@@ -569,6 +578,30 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--docs', action='store_true',
                         help=f'also copy the figures to {DOCS_DIRECTORY} for the README')
     arguments = parser.parse_args(argv)
+    # SIGTERM ends the demo as Ctrl-C does: the node and the plant are stopped on the way out.
+    # Ctrl-C reaches the node too, which may exit first: its exit is then no error.
+    _INTERRUPTED.clear()
+    previous = {number: signal.signal(number, _interrupt)
+                for number in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(arguments)
+    except KeyboardInterrupt:
+        print('\ndemo: interrupted; the node and the plant are stopped', file=sys.stderr)
+        # Skip the interpreter's last garbage collection over the whole heap (seconds).
+        gc.freeze()
+        return 0
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+def _interrupt(signal_number: int, frame: Any) -> None:
+    _INTERRUPTED.set()
+    raise KeyboardInterrupt
+
+
+def _run(arguments: argparse.Namespace) -> int:
+    """Run the demonstration with the parsed command line; return the exit status."""
     started = time.monotonic()
     scenario = Scenario.load(find_config(PLANT_CONFIG))
     duration = arguments.duration or 2 * scenario.drift_time
@@ -593,6 +626,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         replayed = read_estimates(output / 'replay_estimates.mcap', config.names,
                                   live.start_ns)
     except CtidError as error:
+        if _INTERRUPTED.is_set():
+            raise KeyboardInterrupt from None
         print(f'demo: error: {error}', file=sys.stderr)
         return 1
     figures = [output / name for name in DOC_FIGURES if name != 'parameters.png']

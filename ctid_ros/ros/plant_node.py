@@ -26,19 +26,23 @@ header stamps fall on the estimator's grid. Optionally the parameters jump to
 Run it with ``ctid_plant --ros-args --params-file config/plant_sim.yaml``.
 """
 
+import signal
 import sys
 import time
 from typing import Any, Dict, List, Mapping, Optional
 
 from ctid_ros.core.plant import excitation, PlantSimulator
 from ctid_ros.errors import ConfigError, CtidError
-from ctid_ros.ros.node import parameter_value, run_node, wrap_text
+from ctid_ros.ros.parameter_table import wrap_text
+from ctid_ros.ros.parameters import parameter_value
+from ctid_ros.ros.runner import run_node
 from ctid_ros.streaming.contract import NANOSECONDS
 from geometry_msgs.msg import PointStamped
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
@@ -106,6 +110,8 @@ class PlantNode(Node):
         self._qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE
                                if value('reliable') else ReliabilityPolicy.BEST_EFFORT)
         self._topic_publishers: Dict[str, rclpy.publisher.Publisher] = {}
+        # Samples to publish at most (None: no end).
+        self.limit: Optional[int] = None
         self.create_publishers()
         self.restart()
         self._timer = self.create_timer(min(self.simulator.sample_time, 0.01), self._tick)
@@ -150,7 +156,8 @@ class PlantNode(Node):
 
     def _tick(self) -> None:
         now = self.get_clock().now().nanoseconds
-        while self._start_ns + self.published * self._step_ns <= now:
+        while self._start_ns + self.published * self._step_ns <= now and \
+                (self.limit is None or self.published < self.limit):
             stamp = self._start_ns + self.published * self._step_ns
             if self._drift and stamp - self._start_ns >= self._drift_time * NANOSECONDS:
                 self.simulator.retune({**self._params, **self._drift})
@@ -211,7 +218,10 @@ def run_samples(params_file: str, overrides: Mapping[str, Any], samples: int,
         Seconds to wait for the subscribers.
 
     """
-    rclpy.init()
+    # The parent stops this process (terminate) when it is interrupted; Ctrl-C reaches every
+    # process of the terminal's group, and must not end this one with a traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = PlantNode(cli_args=['--ros-args', '--params-file', params_file],
                          parameter_overrides=[Parameter(name, value=value)
@@ -229,6 +239,8 @@ def run_samples(params_file: str, overrides: Mapping[str, Any], samples: int,
                                      f'{node.subscription_counts()}, expected {subscribers}'))
                 return
             time.sleep(0.01)
+        # Exactly ``samples``: a late timer tick catches up on several at once.
+        node.limit = samples
         node.restart()
         events.put(('started', node.start_ns))
         while node.published < samples:

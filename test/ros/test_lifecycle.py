@@ -8,12 +8,13 @@ only from configure, subscriptions only while active, the buffer gone after clea
 """
 
 import math
+import signal
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.ros.node import IdentificationNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from node_harness import converge, Harness, keys, wait_for
+from node_harness import converge, Harness, keys, NodeProcess, wait_for
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -89,13 +90,13 @@ def test_transitions(ros):
 
     assert manager.change(Transition.TRANSITION_ACTIVATE)
     assert manager.state() == 'active'
-    wait_for(lambda: manager.subscribers('u') == manager.subscribers('y') == 1, 20.0,
+    wait_for(lambda: manager.subscribers('u') == manager.subscribers('y') == 1, 60.0,
              'subscriptions while active')
-    converge(ros, TRUTH, TOLERANCE, timeout=30.0)
+    converge(ros, TRUTH, TOLERANCE, timeout=60.0)
 
     assert manager.change(Transition.TRANSITION_DEACTIVATE)
     assert manager.state() == 'inactive'
-    wait_for(lambda: manager.subscribers('u') == manager.subscribers('y') == 0, 20.0,
+    wait_for(lambda: manager.subscribers('u') == manager.subscribers('y') == 0, 60.0,
              'no subscriptions while inactive')
     status = ros.latest(ros.statuses)
     assert status.message == 'inactive: deactivated', status.message
@@ -108,7 +109,7 @@ def test_transitions(ros):
     assert manager.change(Transition.TRANSITION_CLEANUP)
     assert manager.state() == 'unconfigured'
     assert node.buffer is None                    # cleared with everything it held
-    wait_for(lambda: manager.publishers('estimate') == 0, 20.0, 'publishers removed')
+    wait_for(lambda: manager.publishers('estimate') == 0, 60.0, 'publishers removed')
     assert len(ros.estimates) == count
 
     # Configure and activate again: a fresh buffer, estimates again.
@@ -117,14 +118,14 @@ def test_transitions(ros):
     assert node.buffer.stats().y.received == 0
     assert manager.change(Transition.TRANSITION_ACTIVATE)
     wait_for(lambda: len(ros.estimates) > count, 30.0, 'estimates after re-activation')
-    converge(ros, TRUTH, TOLERANCE, timeout=30.0)
+    converge(ros, TRUTH, TOLERANCE, timeout=60.0)
     # Only samples published since the new configuration are counted: the old ones are gone.
     received = int(keys(ros.latest(ros.statuses))['output_received'])
     assert 0 < received <= plant.published - published
 
     assert manager.change(Transition.TRANSITION_ACTIVE_SHUTDOWN)
     assert manager.state() == 'finalized'
-    wait_for(lambda: manager.subscribers('y') == 0, 20.0, 'no subscription after shutdown')
+    wait_for(lambda: manager.subscribers('y') == 0, 60.0, 'no subscription after shutdown')
     assert node.buffer is None
     assert plant.published > 0
 
@@ -134,7 +135,7 @@ def test_unmanaged_node_has_no_lifecycle_services_and_starts_active(ros):
               message_type='point_stamped')
     node = ros.identifier(**parameters(lifecycle=False, initial=[math.nan, math.nan]))
     assert node.active and node.buffer is not None
-    converge(ros, TRUTH, TOLERANCE, timeout=30.0)
+    converge(ros, TRUTH, TOLERANCE, timeout=60.0)
     services = dict(ros.observer.get_service_names_and_types())
     assert f'{ros.namespace}/ctid_node/estimate_now' in services
     assert f'{ros.namespace}/ctid_node/change_state' not in services
@@ -152,3 +153,25 @@ def test_unmanaged_node_refuses_to_start_on_an_invalid_configuration(ros):
     with pytest.raises(ConfigError, match='samples per estimate, more than the limit'):
         IdentificationNode(context=ros.context, namespace=ros.namespace,
                            parameter_overrides=overrides)
+
+
+def test_a_transition_invalid_in_the_state_is_refused_and_the_node_runs_on(ros):
+    """Issue #25: rclpy's RCLError for such an id ended the process with status 1."""
+    node = NodeProcess(ros, parameters())
+    try:
+        assert node.state() == 'unconfigured'
+        assert not node.change(Transition.TRANSITION_ACTIVATE)
+        assert node.change(Transition.TRANSITION_CONFIGURE)
+        assert not node.change(Transition.TRANSITION_DEACTIVATE)    # id 4 while inactive
+        assert not node.change(99)
+        assert not node.change(0, label='no_such_transition')
+        assert node.state() == 'inactive'
+        assert node.change(Transition.TRANSITION_ACTIVATE)
+        assert not node.change(Transition.TRANSITION_ACTIVATE)      # id 3 while active
+        assert node.state() == 'active'
+        running = node.process.poll() is None
+    finally:
+        _, status, log = node.stop(signal.SIGTERM)
+    assert running and status == 0, log
+    assert 'Traceback' not in log and 'RCLError' not in log, log
+    assert log.count('is not available in state') == 4, log

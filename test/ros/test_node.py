@@ -61,10 +61,10 @@ def test_open_loop_fractional_delay(ros):
     ros.plant(parameter_values=[2.0, 0.5, 0.137], sample_time=0.005,
               message_type='point_stamped')
     ros.identifier(**first_order(input_field='point.x', output_field='point.x'))
-    estimate = converge(ros, truth, {'K': 0.02, 'T': 0.015, 'tau': 0.006}, timeout=20.0)
+    estimate = converge(ros, truth, {'K': 0.02, 'T': 0.015, 'tau': 0.006}, timeout=60.0)
     assert estimate.keys() == truth.keys()
     # The diagnostics of an update follow its estimate.
-    wait_for(lambda: 'fit_percent' in keys(ros.latest(ros.statuses)), 10.0, 'diagnostics')
+    wait_for(lambda: 'fit_percent' in keys(ros.latest(ros.statuses)), 60.0, 'diagnostics')
     values = keys(ros.latest(ros.statuses))
     assert float(values['fit_percent']) > 95.0
     assert int(values['input_received']) > 500 and int(values['output_received']) > 500
@@ -86,7 +86,7 @@ def test_dead_time_from_stamps_at_a_phase_of_the_sample(ros):
         update_period=2.0, lower=[0.001, 0.001, 0.0], upper=[100.0, 10.0, 0.5]))
     publishers = {topic: ros.observer.create_publisher(PointStamped, topic, 1000)
                   for topic in 'uy'}
-    wait_for(lambda: all(p.get_subscription_count() for p in publishers.values()), 20.0,
+    wait_for(lambda: all(p.get_subscription_count() for p in publishers.values()), 60.0,
              'ctid_node subscribed to u and y')
     start = (time.time_ns() // 10_000_000 + 20) * 10_000_000
     jitter = rng.uniform(-0.005, 0.005, (count, 2)) * ts
@@ -133,7 +133,7 @@ def test_closed_loop_pi(ros):
                    initial=[math.nan] * 3, lower=[0.001, 0.0, 0.0],
                    upper=[100.0, 100.0, 1000.0], sample_time=0.005, window=6.0,
                    update_period=1.0)
-    converge(ros, truth, {'m': 0.05, 'd': 0.1, 'k': 0.15}, timeout=20.0)
+    converge(ros, truth, {'m': 0.05, 'd': 0.1, 'k': 0.15}, timeout=60.0)
 
 
 def test_joint_state_single_topic_with_header_stamps(ros):
@@ -147,10 +147,10 @@ def test_joint_state_single_topic_with_header_stamps(ros):
                           sample_time=0.01, window=5.0, update_period=1.0, max_gap=0.1)
     # A message without an effort entry: the field path cannot be read, counted not fatal.
     broken = plant.create_publisher(JointState, 'joint_states', 10)
-    wait_for(lambda: broken.get_subscription_count() > 0, 20.0, 'subscriber of joint_states')
+    wait_for(lambda: broken.get_subscription_count() > 0, 60.0, 'subscriber of joint_states')
     for _ in range(3):
         broken.publish(JointState(name=['joint'], position=[0.0]))
-    converge(ros, truth, {'J': 0.004, 'b': 0.02, 'k': 0.04}, timeout=20.0)
+    converge(ros, truth, {'J': 0.004, 'b': 0.02, 'k': 0.04}, timeout=60.0)
     # Header stamps on the sample instants: input and output come in pairs, none refused.
     stats = node.buffer.stats()
     assert stats.u.duplicates == stats.u.late == stats.y.late == 0
@@ -193,22 +193,22 @@ def test_garbage_silence_and_publisher_restart(ros):
     node = ros.identifier(**first_order(model='K/(T*s + 1)', parameter_names=['K', 'T'],
                                         initial=[1.0, 1.0], lower=[0.001, 0.01],
                                         upper=[100.0, 100.0], window=5.0))
-    wait_for(lambda: ros.latest(ros.statuses) is not None, 20.0, 'diagnostics')
+    wait_for(lambda: ros.latest(ros.statuses) is not None, 60.0, 'diagnostics')
     silent = ros.latest(ros.statuses)
     assert silent.level == DiagnosticStatus.WARN
     assert f'no publisher on {ros.namespace}/u yet' in silent.message
     plant = {'model': 'K/(T*s + 1)', 'parameter_names': ['K', 'T'],
              'parameter_values': [2.0, 0.5]}
     process = ros.spawn_plant(**plant)
-    converge(ros, *FLOAT64_TRUTH, timeout=20.0)
+    converge(ros, *FLOAT64_TRUTH, timeout=60.0)
     # NaN on both topics from a second publisher: refused, counted, estimation goes on.
     garbage = {topic: ros.observer.create_publisher(Float64, topic, 10) for topic in 'uy'}
-    wait_for(lambda: all(p.get_subscription_count() for p in garbage.values()), 20.0, 'match')
+    wait_for(lambda: all(p.get_subscription_count() for p in garbage.values()), 60.0, 'match')
     for _ in range(5):
         for publisher in garbage.values():
             publisher.publish(Float64(data=math.nan))
     count = len(ros.estimates)
-    wait_for(lambda: len(ros.estimates) > count + 1, 20.0, 'estimates after NaN')
+    wait_for(lambda: len(ros.estimates) > count + 1, 60.0, 'estimates after NaN')
     values = keys(ros.latest(ros.statuses))
     assert int(values['input_non_finite']) == 5 and int(values['output_non_finite']) == 5
     # Float64 is stamped on publication: under load an estimate may carry a warning.
@@ -216,15 +216,15 @@ def test_garbage_silence_and_publisher_restart(ros):
     # The plant's publishers go away: the node reports the silence and keeps running.
     process.terminate()
     process.wait(timeout=10)
-    wait_for(lambda: 'silent: no message for' in ros.latest(ros.statuses).message, 20.0,
+    wait_for(lambda: 'silent: no message for' in ros.latest(ros.statuses).message, 60.0,
              'silence reported')
     assert ros.latest(ros.statuses).level == DiagnosticStatus.WARN
     received = node.buffer.stats().y.received
     ros.spawn_plant(**plant)
     count = len(ros.estimates)
-    wait_for(lambda: len(ros.estimates) > count, 20.0, 'estimates after the restart')
+    wait_for(lambda: len(ros.estimates) > count, 60.0, 'estimates after the restart')
     assert node.buffer.stats().y.received > received
-    converge(ros, *FLOAT64_TRUTH, timeout=20.0)
+    converge(ros, *FLOAT64_TRUTH, timeout=60.0)
 
 
 def test_reset_and_estimate_now(ros):
@@ -236,15 +236,15 @@ def test_reset_and_estimate_now(ros):
                                         update_period=100.0, input_field='point.x',
                                         output_field='point.x', publish_prediction=True))
     estimate_now = f'{ros.namespace}/ctid_node/estimate_now'
-    wait_for(lambda: node.buffer.stats().y.span > 5.5, 20.0, 'a window of data')
+    wait_for(lambda: node.buffer.stats().y.span > 5.5, 60.0, 'a window of data')
     response = ros.call(Trigger, estimate_now, Trigger.Request())
     assert response.success, response.message
     found = dict(re.findall(r'(\w+)=([-0-9.e]+)', response.message))
     assert abs(float(found['K']) - 2.0) < 0.02 and abs(float(found['T']) - 0.5) < 0.01, \
         response.message
-    wait_for(lambda: ros.estimates, 10.0, 'estimate published by estimate_now')
+    wait_for(lambda: ros.estimates, 60.0, 'estimate published by estimate_now')
     # The contract's prediction: one array per update over the window's grid instants.
-    wait_for(lambda: ros.predictions and ros.statuses, 10.0, 'prediction and diagnostics')
+    wait_for(lambda: ros.predictions and ros.statuses, 60.0, 'prediction and diagnostics')
     prediction, status = ros.latest(ros.predictions), ros.latest(ros.statuses)
     assert prediction.layout.dim[0].label == 'prediction'
     assert len(prediction.data) == prediction.layout.dim[0].size == int(keys(status)['samples'])
@@ -267,7 +267,7 @@ def test_late_subscriber_gets_the_last_estimate(ros):
                                         upper=[100.0, 100.0], window=4.0,
                                         update_period=100.0, input_field='point.x',
                                         output_field='point.x'))
-    wait_for(lambda: node.buffer.stats().y.span > 4.5, 20.0, 'a window of data')
+    wait_for(lambda: node.buffer.stats().y.span > 4.5, 60.0, 'a window of data')
     response = ros.call(Trigger, f'{ros.namespace}/ctid_node/estimate_now', Trigger.Request())
     assert response.success, response.message
     published = node.last_update
@@ -283,7 +283,7 @@ def test_late_subscriber_gets_the_last_estimate(ros):
             lambda message, topic=topic: received.setdefault(topic, message), latched)
     late.create_subscription(Float64, f'{ros.namespace}/ctid_node/params/K',
                              lambda message: received.setdefault('K', message), latched)
-    wait_for(lambda: len(received) == 4, 20.0, lambda: f'latched messages: {sorted(received)}')
+    wait_for(lambda: len(received) == 4, 60.0, lambda: f'latched messages: {sorted(received)}')
     assert named(received['estimate']) == dict(zip(published.names, published.values))
     assert named(received['estimate_std']) == dict(zip(published.names, published.stds))
     assert received['K'].data == published.values[0]
@@ -307,7 +307,7 @@ def test_joint_names_live_integer_doubles_and_hardware_id(ros):
                           sample_time=0.01, window=5, update_period=1, max_gap=0.1,
                           hardware_id='left_wheel_drive')
     assert (node.config.window, node.config.update_period) == (5.0, 1.0)
-    converge(ros, truth, {'J': 0.004, 'b': 0.02, 'k': 0.04}, timeout=20.0)
+    converge(ros, truth, {'J': 0.004, 'b': 0.02, 'k': 0.04}, timeout=60.0)
     status = ros.latest(ros.statuses)
     assert status.hardware_id == 'left_wheel_drive'
     assert keys(status)['output_field_errors'] == '0'

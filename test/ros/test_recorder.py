@@ -39,7 +39,7 @@ def test_recorded_messages_read_back(tmp_path):
             recorder.subscribe(f'{namespace}/u', 'std_msgs/msg/Float64', decoded.append)
             recorder.start()
             wait_for(lambda: points.get_subscription_count() and
-                     floats.get_subscription_count() == 2, 20.0, 'subscriptions')
+                     floats.get_subscription_count() == 2, 60.0, 'subscriptions')
             for k in range(5):
                 message = PointStamped()
                 message.header.stamp.sec, message.point.x = 100 + k, 0.5 * k

@@ -10,18 +10,23 @@ of data are below 0.1 %, so 3 % on K and T and 3 ms on tau are many of them.
 import itertools
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 from ctid_ros.cli.main import main
 from ctid_ros.ros.messages import import_message, to_message
+from ctid_ros.ros.spinner import Spinner
 from ctid_ros.streaming.contract import (diagnostics_message, estimate_messages, NodeTopics,
                                          OK)
+from node_harness import wait_for
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 TRUTH = {'K': 2.0, 'T': 0.5, 'tau': 0.137}
@@ -58,6 +63,52 @@ def node_params(tmp_path, space: str, **overrides) -> str:
     return str(path)
 
 
+class LineReader:
+    """The lines of a process's output, read by a thread, taken with a deadline."""
+
+    def __init__(self, stream):
+        self._lines = queue.Queue()
+        threading.Thread(target=lambda: [self._lines.put(line) for line in stream],
+                         daemon=True).start()
+
+    def take(self, timeout: float) -> str:
+        try:
+            return self._lines.get(timeout=max(timeout, 0.0))
+        except queue.Empty:
+            raise AssertionError(f'no line of output within {timeout:.1f} s') from None
+
+
+class Listener:
+    """Subscribe to a PointStamped topic in a context of its own; the stamps received."""
+
+    def __init__(self, topic: str):
+        self.stamps = []
+        self._context = Context()
+        rclpy.init(context=self._context)
+        self._node = rclpy.create_node('listener', context=self._context)
+        self._node.create_subscription(
+            import_message('geometry_msgs/msg/PointStamped'), topic,
+            lambda message: self.stamps.append(message.header.stamp.sec
+                                               + 1e-9 * message.header.stamp.nanosec), 1000)
+        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor.add_node(self._node)
+        self._spinner = Spinner(self._executor, 'listener')
+        self._spinner.start()
+
+    def span(self) -> float:
+        stamps = list(self.stamps)
+        return max(stamps) - min(stamps) if stamps else 0.0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info):
+        self._spinner.stop()
+        self._executor.shutdown()
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._context)
+
+
 def stop(*processes: subprocess.Popen) -> None:
     for process in processes:
         if process.poll() is None:
@@ -85,7 +136,10 @@ def test_record_until_ctrl_c_then_replay_recovers_the_plant(tmp_path, capsys):
         assert line.startswith(f'ctid record: recording {space}/u (geometry_msgs/msg/'
                                f'PointStamped), {space}/y (geometry_msgs/msg/PointStamped) into '
                                f'{bag}'), line
-        time.sleep(12.0)        # 12 s of data at 200 Hz
+        # 12 s of data at 200 Hz, by the stamps of the plant's messages as they come.
+        with Listener(f'{space}/y') as listener:
+            wait_for(lambda: listener.span() >= 12.0, 120.0,
+                     lambda: f'12 s of {space}/y, got {listener.span():.2f} s')
         record.send_signal(signal.SIGINT)   # Ctrl-C: the file is closed with its index
         rest = record.communicate(timeout=30)[1]
     finally:
@@ -128,9 +182,11 @@ def test_echo_follows_a_running_node(tmp_path, capsys):
         # windows are short (most of their data settle the model's state): take the first
         # estimate a whole window (6 s) after the first one.
         rows = []
+        lines = LineReader(echo.stdout)
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
-            rows.append(json.loads(echo.stdout.readline()))
+            # Never blocks past the deadline, even if echo stops writing.
+            rows.append(json.loads(lines.take(deadline - time.monotonic())))
             first = next((row['time'] for row in rows if row['params'] and row['time']), None)
             if rows[-1]['params'] and rows[-1]['time'] and rows[-1]['time'] - first >= 6.0:
                 break
