@@ -122,7 +122,7 @@ def run(arguments: argparse.Namespace) -> int:
                               end_ns or bag.end_time_ns, sys.stderr, _last_time)
             replay = replay_columns(blocks, config, sliding=arguments.sliding, topics=topics,
                                     capacity=_capacity(bag, config, selected),
-                                    detector=detector)
+                                    detector=detector, origin_ns=bag.start_time_ns)
         else:
             records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns),
                                 sys.stderr)
@@ -133,7 +133,7 @@ def run(arguments: argparse.Namespace) -> int:
                                 end_ns or bag.end_time_ns, sys.stderr)
             replay = replay_messages(messages, config, sliding=arguments.sliding,
                                      topics=topics, capacity=_capacity(bag, config, selected),
-                                     detector=detector)
+                                     detector=detector, origin_ns=bag.start_time_ns)
         origin_ns = bag.start_time_ns
         if writer is not None:
             _write_estimates(writer, replay, origin_ns)

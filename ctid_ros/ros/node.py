@@ -312,9 +312,10 @@ class IdentificationNode(TopicIntake, ParameterHandling, Estimating, Reporting, 
                                        self.resolve_topic_name(config.output_topic)))
 
     @staticmethod
-    def _new_buffer(config: IdentificationConfig, sampler: MessageSampler) -> SampleBuffer:
+    def _new_buffer(config: IdentificationConfig, sampler: MessageSampler,
+                    previous: Optional[SampleBuffer] = None) -> SampleBuffer:
         # Sized and limited by the configuration (MAX_BUFFER_BYTES) before it is allocated.
-        return sampler.buffer(config.buffer_capacity(), config)
+        return sampler.buffer(config.buffer_capacity(), config, previous=previous)
 
     def _create_update_timer(self):
         return self.create_timer(self._config.update_period, self._worker.tick,

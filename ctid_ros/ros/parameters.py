@@ -25,7 +25,6 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 from ctid_ros.errors import ConfigError
 from ctid_ros.ros.parameter_table import per_parameter_description
 from ctid_ros.streaming.baseline import Baseline, configured_baseline
-from ctid_ros.streaming.buffer import SampleBuffer
 from ctid_ros.streaming.config import (IdentificationConfig, PARAMETER_NAMES, PARAMETERS,
                                        ParameterSpec, PER_PARAMETER, per_parameter_name,
                                        split_per_parameter)
@@ -36,7 +35,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 __all__ = ['BUFFER_PARAMETERS', 'ParameterHandling', 'VALIDATION_TIMEOUT', 'bounded',
-           'carry_samples', 'changed_parameters', 'declare_parameters', 'declare_per_parameter',
+           'changed_parameters', 'declare_parameters', 'declare_per_parameter',
            'parameter_value', 'per_parameter_names']
 
 # Longest time a parameter update may take to validate (a model text is parsed and
@@ -138,20 +137,6 @@ def bounded(function: Callable[[], Any], timeout: float, busy: List[threading.Th
     return outcome['value']
 
 
-def carry_samples(old: SampleBuffer, new: SampleBuffer) -> None:
-    """
-    Put the newest samples of ``old`` that ``new`` can hold into ``new`` (a runtime change).
-
-    A new ``window`` (or another parameter that sizes the buffer) keeps the data: they are raw
-    stamped samples, which the new gap rules and grid read like any others. The new buffer
-    counts them as received. Messages taken by ``old`` while this copies are not carried.
-    """
-    (input_stamps, inputs), (output_stamps, outputs) = old.samples()
-    keep = new.capacity
-    new.add_inputs(input_stamps[-keep:], inputs[-keep:])
-    new.add_outputs(output_stamps[-keep:], outputs[-keep:])
-
-
 def changed_parameters(old: IdentificationConfig, new: IdentificationConfig) -> List[str]:
     """Return the names of the parameters whose values differ between two configurations."""
     plain = [name for name in PARAMETER_NAMES if getattr(old, name) != getattr(new, name)]
@@ -242,9 +227,8 @@ class ParameterHandling:
         same_width = len(config.input_fields) == len(old.input_fields)
         buffer = self._buffer
         if rebuild or not same_width:
-            buffer = self._new_buffer(config, sampler)
-            if same_width:
-                carry_samples(old_buffer, buffer)
+            # Each stream whose topic and fields are unchanged keeps the samples that fit.
+            buffer = self._new_buffer(config, sampler, previous=old_buffer)
         fields_changed = (config.input_fields != old.input_fields
                           or config.output_field != old.output_field)
         with self._lock:

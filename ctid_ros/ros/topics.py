@@ -26,6 +26,7 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple
 from ctid_ros.errors import ConfigError
 from ctid_ros.ros.messages import field_problem, import_message
 from ctid_ros.streaming.buffer import INPUT
+from ctid_ros.streaming.contract import count_change
 from ctid_ros.streaming.message_fields import parse_field_path
 from ctid_ros.streaming.sampler import ROLES
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
@@ -189,7 +190,7 @@ class TopicIntake:
     def _lost(self, topic: str, info: Any) -> None:
         with self._lock:
             for role in self._sampler.roles(topic) if self._sampler else ():
-                self._counters.lost[role] += int(getattr(info, 'total_count_change', 0))
+                self._counters.lost[role] += count_change(getattr(info, 'total_count_change', 0))
 
     def _receive_stamp(self, info: Mapping[str, Any]) -> int:
         clock = self.get_clock()

@@ -1056,20 +1056,6 @@ class SampleBuffer:
         with self._lock:
             self._output.extend(stamps, values)
 
-    def samples(self) -> Tuple[Tuple[np.ndarray, np.ndarray], Tuple[np.ndarray, np.ndarray]]:
-        """
-        Return copies of the stored samples, oldest first, to carry them into another buffer.
-
-        Returns
-        -------
-        ((ndarray, ndarray), (ndarray, ndarray))
-            The input's stamps (ns) and values, then the output's.
-
-        """
-        with self._lock:
-            return ((self._input.stamps.copy(), self._input.values.copy()),
-                    (self._output.stamps.copy(), self._output.values.copy()))
-
     def clear(self) -> None:
         """Forget all samples and reset the counters; the time origin is kept."""
         with self._lock:
