@@ -1,8 +1,8 @@
 """
 The package's layering, read from the imports of every module under ctid_ros (ast, no import).
 
-Layers, lowest first: core -> estimation -> design -> streaming -> files -> {ros, cli, demo}. A module
-imports only its own layer or lower ones; ``ctid_ros.errors`` is shared by all and imports
+Layers, lowest first: core -> estimation -> design -> streaming -> files -> {ros, cli, demo}.
+A module imports only its own layer or lower ones; ``ctid_ros.errors`` is shared by all and imports
 nothing of the package; the package root (the public API) imports core, estimation and errors.
 Within the top layer the ROS adapters (ros) import neither the command (cli) nor the demo, and
 the command does not import the demo. Every import counts, also one inside a function, and so

@@ -335,7 +335,7 @@ def configure_compare(parser: argparse.ArgumentParser) -> None:
                           'identifiability; recommend the simplest adequate one and say why.')
     _add_record_arguments(parser)
     parser.add_argument('--model', action='append', required=True, metavar='MODEL',
-                        help="a candidate transfer function; repeat, e.g. --model "
+                        help='a candidate transfer function; repeat, e.g. --model '
                         "'K*exp(-tau*s)/(T*s+1)' --model 'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'")
     parser.add_argument('--validate', default=None, metavar='CSV',
                         help='validation file (same columns); default: the last '
@@ -357,7 +357,7 @@ def configure_tune(parser: argparse.ArgumentParser) -> None:
                           '(margins, Ms, bandwidth with 95 % bands) and give ros2_control '
                           'params.')
     _add_record_arguments(parser)
-    parser.add_argument('--model', required=True, help="plant transfer function, e.g. "
+    parser.add_argument('--model', required=True, help='plant transfer function, e.g. '
                         "'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'")
     parser.add_argument('--controller', choices=CONTROLLERS, default='PI')
     parser.add_argument('--method', choices=DESIGN_METHODS, default='auto',

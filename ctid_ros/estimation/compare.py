@@ -157,6 +157,8 @@ class Comparison:
     held_out : bool
         True if ``validation`` is the held-out end of the record (scored after simulating
         the whole record), False for separate validation data.
+    record : Data
+        The whole record given.
 
     """
 
@@ -164,6 +166,13 @@ class Comparison:
     estimation: Data
     validation: Data
     held_out: bool
+    record: Data
+
+    def simulated(self, candidate: Candidate) -> np.ndarray:
+        """Return the output of a fitted candidate on the validation samples, as scored."""
+        if self.held_out:
+            return candidate.estimate.predict(self.record)[len(self.estimation):]
+        return candidate.estimate.predict(self.validation)
 
     @property
     def recommended(self) -> Candidate:
@@ -276,7 +285,6 @@ def compare(models: Sequence[Union[Model, str]], data: Data, *,
         cut = _split(data, holdout)
         estimation, scored = data.segment(0, cut), data.segment(cut, len(data))
     else:
-        cut = 0
         estimation, scored = data, validation
     bounds = options.pop('bounds', None) or {}
     order = sorted(range(len(candidates_models)),
@@ -297,22 +305,21 @@ def compare(models: Sequence[Union[Model, str]], data: Data, *,
     if all(item.estimate is None for item in fitted):
         raise EstimationError('no candidate model could be estimated: ' + '; '.join(
             f'{item.model.expression}: {item.error}' for item in fitted))
+    comparison = Comparison(fitted, estimation, scored, held_out, data)
     for candidate in fitted:
-        _score(candidate, data if held_out else scored, cut)
+        _score(candidate, comparison)
     _judge(fitted)
-    return Comparison(_ranked(fitted), estimation, scored, held_out)
+    comparison.candidates = _ranked(fitted)
+    return comparison
 
 
-def _score(candidate: Candidate, data: Data, cut: int) -> None:
+def _score(candidate: Candidate, comparison: Comparison) -> None:
     """Fill in the validation fit, criteria, consistency and residual of a fitted candidate."""
     result = candidate.estimate
     if result is None:
         return
     try:
-        if cut:
-            candidate.fit = fit_percent(data.y[cut:], result.predict(data)[cut:])
-        else:
-            candidate.fit = result.compare(data)
+        candidate.fit = fit_percent(comparison.validation.y, comparison.simulated(candidate))
     except CtidError as error:
         candidate.error = f'cannot simulate it on the validation data: {error}'
     criteria = information_criteria(result)
@@ -384,13 +391,13 @@ def _judge(candidates: List[Candidate]) -> None:
 
 def _decisively_better(item: Candidate, candidates: Sequence[Candidate]
                        ) -> Optional[Candidate]:
-    """Return the best candidate with more parameters that beats ``item`` decisively."""
+    """Return the simplest candidate with more parameters that beats ``item`` decisively."""
     richer = [other for other in candidates
               if other.estimate is not None and other.parameters > item.parameters
               and np.isfinite(other.fit) and other.fit > item.fit + FIT_MARGIN
               and np.isfinite(other.bic) and np.isfinite(item.bic)
               and other.bic < item.bic - BIC_MARGIN]
-    return max(richer, key=lambda other: other.fit) if richer else None
+    return min(richer, key=lambda other: (other.parameters, -other.fit)) if richer else None
 
 
 def _finite(value: float, default: float = np.inf) -> float:
