@@ -71,9 +71,14 @@ class Gains:
 
     def transfer_function(self) -> Tuple[np.ndarray, np.ndarray]:
         """Return ``(num, den)`` of ``C(s)``, highest power first."""
+        tf = self.tf
+        if not self.ki:
+            # No integrator, no pole at the origin to cancel.
+            if not self.kd:
+                return np.array([self.kp]), np.array([1.0])
+            return np.array([self.kp * tf + self.kd, self.kp]), np.array([tf, 1.0])
         if not self.kd:
             return np.array([self.kp, self.ki]), np.array([1.0, 0.0])
-        tf = self.tf
         return (np.array([self.kp * tf + self.kd, self.kp + self.ki * tf, self.ki]),
                 np.array([tf, 1.0, 0.0]))
 
@@ -81,7 +86,7 @@ class Gains:
         """Return ``C(j omega)``."""
         s = 1j * np.asarray(omega, dtype=float)
         derivative = self.kd * s / (self.tf * s + 1.0) if self.kd else 0.0
-        return self.kp + self.ki / s + derivative
+        return self.kp + (self.ki / s if self.ki else 0.0) + derivative
 
     def to_dict(self) -> Dict[str, float]:
         """Return ``{"kp", "ki"}``, with ``"kd"`` and ``"tf"`` for a PID."""

@@ -213,24 +213,32 @@ def simc(reduced: Reduced, controller: str = 'PI', tc: Optional[float] = None) -
             tau1 = reduced.lags[0]
             kc, ti = tau1 / (k * total), min(tau1, 4.0 * total)
         return Gains(float(kc), float(kc / ti))
-    if m == 2:
-        kc, ti, td = 1.0 / (4.0 * k * total ** 2), 4.0 * total, 4.0 * total
-    elif m == 1:
-        if not reduced.lags:
-            raise DesignError('SIMC gives an integrating plant without a lag a PI (the '
-                              "derivative acts on a lag): ask for 'PI'")
-        kc, ti, td = 1.0 / (k * total), 4.0 * total, reduced.lags[0]
-    else:
-        if len(reduced.lags) < 2:
-            raise DesignError("SIMC's derivative acts on a second lag and the model has one "
-                              "(a first-order plus dead time): ask for 'PI'")
-        tau1, tau2 = reduced.lags
-        kc, ti, td = tau1 / (k * total), min(tau1, 4.0 * total), tau2
+    if m == 1 and not reduced.lags:
+        raise DesignError('SIMC gives an integrating plant without a lag a PI (the '
+                          "derivative acts on a lag): ask for 'PI'")
+    if m == 0 and len(reduced.lags) < 2:
+        raise DesignError("SIMC's derivative acts on a second lag and the model has one "
+                          "(a first-order plus dead time): ask for 'PI'")
+    # The derivative filter is one more small lag: it joins the dead time (half rule), and
+    # the settings are computed again with it (once: it is a tenth of Td).
+    settings = _series_pid(reduced, tc, theta)
+    lag = settings[2] / (1.0 + settings[2] / settings[1]) / DERIVATIVE_FILTER
+    kc, ti, td = _series_pid(reduced, tc + (lag if tc == theta else 0.0), theta + lag)
     # Series (interacting) settings to the parallel form.
     factor = 1.0 + td / ti
     kp, ti_parallel, td_parallel = kc * factor, ti + td, td / factor
-    return Gains(float(kp), float(kp / ti_parallel), float(kp * td_parallel),
-                 float(td_parallel / DERIVATIVE_FILTER))
+    return Gains(float(kp), float(kp / ti_parallel), float(kp * td_parallel), float(lag))
+
+
+def _series_pid(reduced: Reduced, tc: float, theta: float) -> Tuple[float, float, float]:
+    """Return SIMC's series ``(Kc, tau_I, tau_D)`` for dead time ``theta``."""
+    k, total = reduced.gain, tc + theta
+    if reduced.integrators == 2:
+        return 1.0 / (4.0 * k * total ** 2), 4.0 * total, 4.0 * total
+    if reduced.integrators == 1:
+        return 1.0 / (k * total), 4.0 * total, reduced.lags[0]
+    tau1, tau2 = reduced.lags
+    return tau1 / (k * total), min(tau1, 4.0 * total), tau2
 
 
 def _design_grid(plant: Plant) -> np.ndarray:
