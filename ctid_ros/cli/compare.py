@@ -101,22 +101,32 @@ def compare_figure(comparison: Comparison, path: Optional[Path] = None):
     grids = [default_omega(item.model, item.estimate.params, max_omega=nyquist)
              for item in comparison.candidates if item.estimate is not None]
     omega = np.logspace(np.log10(min(grid[0] for grid in grids)), np.log10(nyquist), 300)
+    nominal = ([], [])
     for colour, item in zip(_COLOURS * 4, comparison.candidates):
         result = item.estimate
         if result is None:
             continue
         simulated = comparison.simulated(item)
         name = ('recommended: ' if item.recommended else '') + item.model.expression
-        outputs.plot(times, simulated, color=colour, linewidth=1.0,
-                     label=f'{name} ({_cell(item.fit, ".1f")} %)')
+        # The recommended one is drawn thicker and on top.
+        style = {'color': colour, 'linewidth': 1.8 if item.recommended else 1.0,
+                 'zorder': 3 if item.recommended else 2}
+        outputs.plot(times, simulated, label=f'{name} ({_cell(item.fit, ".1f")} %)', **style)
         bode = bode_data(result, omega)
-        magnitude.semilogx(bode.omega, bode.magnitude_db, color=colour)
-        phase.semilogx(bode.omega, bode.phase_deg, color=colour)
+        magnitude.semilogx(bode.omega, bode.magnitude_db, **style)
+        phase.semilogx(bode.omega, bode.phase_deg, **style)
+        nominal[0].extend(bode.magnitude_db)
+        nominal[1].extend(bode.phase_deg)
         if bode.magnitude_band is not None:
             magnitude.fill_between(bode.omega, *bode.magnitude_band, color=colour, alpha=0.25,
                                    linewidth=0)
             phase.fill_between(bode.omega, *bode.phase_band, color=colour, alpha=0.25,
                                linewidth=0)
+    # The axes follow the models, not a band the data do not bound (an unidentifiable
+    # candidate's band may span decades).
+    for axes, values, pad in ((magnitude, nominal[0], 10.0), (phase, nominal[1], 45.0)):
+        if values:
+            axes.set_ylim(min(values) - pad, max(values) + pad)
     outputs.set_xlabel('time in the validation data (s)')
     outputs.set_ylabel('output')
     outputs.set_title('validation: measured and simulated outputs (fit %)', fontsize='medium')

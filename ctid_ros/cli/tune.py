@@ -75,7 +75,7 @@ def format_tuning(tuning: Tuning, result: Estimate) -> str:
     return '\n'.join(lines)
 
 
-def tune_figure(tuning: Tuning, units: Optional[dict] = None, path: Optional[Path] = None):
+def tune_figure(tuning: Tuning, path: Optional[Path] = None):
     """
     Plot the unit step response of the loop on the identified model with its 95 % band.
 
@@ -85,10 +85,11 @@ def tune_figure(tuning: Tuning, units: Optional[dict] = None, path: Optional[Pat
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from ctid_ros.design.margins import closed_loop_step, Plant
+    from ctid_ros.design.margins import closed_loop_step
+    from ctid_ros.design.tune import with_hold
 
     times, nominal, band = step_band(tuning)
-    plant = Plant.from_model(tuning.model, tuning.params)
+    plant = with_hold(tuning.model, tuning.params, tuning.hold)
     _, _, command = closed_loop_step(plant, tuning.gains, float(times[-1]),
                                      steps=times.size - 1)
     figure = Figure(figsize=(8.0, 6.0), layout='constrained')

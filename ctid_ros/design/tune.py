@@ -15,8 +15,8 @@ The methods:
   the parameter names, so any parameterisation of these structures qualifies. The target is the
   closed-loop time constant ``tc`` (default ``tc = theta``, SIMC's tight but robust choice:
   Ms about 1.6-1.7); a controller that runs every ``sample_time`` adds half of it to the dead
-  time first. Series PID settings are converted to the parallel form, the derivative filtered
-  with ``tf = Td/10``.
+  time, for the design and for every verification. Series PID settings are converted to the
+  parallel form, the derivative filtered with ``tf = Td/10`` (a lag that joins the dead time).
 * ``'ms'``: a loop-shaping design on the exact continuous-time model with its dead time: the
   largest integral gain whose sensitivity peak stays below the target ``ms`` (default 1.6), as
   Astrom and Hagglund's MIGO; for PID over a few derivative times. Any stable or integrating
@@ -39,7 +39,7 @@ import numpy as np
 
 __all__ = ['CONTROLLERS', 'DEFAULT_MS', 'DERIVATIVE_FILTER', 'METHODS', 'Reduced', 'Tuning',
            'default_horizon', 'loop_shaping', 'parameter_draws', 'reduce', 'simc', 'step_band',
-           'tune', 'tune_from_settings']
+           'tune', 'tune_from_settings', 'with_hold']
 
 CONTROLLERS = ('PI', 'PID')
 METHODS = ('auto', 'simc', 'ms')
@@ -410,6 +410,9 @@ class Tuning:
         What a user should know (unstable draws, a weak margin).
     model, params, covariance
         The identified model the design used, for :func:`step_band`.
+    hold : float
+        Half the controller's sample time (s), added to the model's dead time wherever the
+        loop is verified (the hold's delay); 0 for a continuous controller.
 
     """
 
@@ -425,6 +428,7 @@ class Tuning:
     model: Optional[Model] = None
     params: Dict[str, float] = field(default_factory=dict)
     covariance: Optional[np.ndarray] = None
+    hold: float = 0.0
 
     def to_dict(self, joint: str = 'joint1') -> dict:
         """
@@ -518,8 +522,9 @@ def tune(estimate, controller: str = 'PI', method: str = 'auto',
         time); ``{'ms': peak}``: the loop-shaping design's sensitivity peak (default 1.6).
         Naming a target picks its method under ``'auto'``.
     sample_time : float, optional
-        Period of the digital controller: half of it is added to the dead time of the SIMC
-        rule (the hold's delay). Default: a continuous controller.
+        Period of the digital controller: half of it (the hold's delay) is added to the
+        model's dead time, for the design and wherever the loop is verified. Default: a
+        continuous controller.
     draws : int
         Covariance draws for the band (0: none).
     seed : int
@@ -549,17 +554,15 @@ def tune(estimate, controller: str = 'PI', method: str = 'auto',
         raise ConfigError(f'sample_time must be positive seconds, got {sample_time!r}')
     model, params = estimate.model, dict(estimate.params)
     text = model.expression
+    hold = 0.5 * sample_time if sample_time else 0.0
     try:
-        plant = Plant.from_model(model, params)
+        plant = with_hold(model, params, hold)
     except ModelError as error:
         raise DesignError(str(error)) from None
     if method == 'auto':
         method = 'ms' if 'ms' in goal else 'simc' if 'tc' in goal else _automatic(plant)
     if method == 'simc':
         reduced = reduce(plant, controller, text)
-        hold = 0.5 * sample_time if sample_time else 0.0
-        reduced = Reduced(reduced.gain, reduced.lags, reduced.delay + hold,
-                          reduced.integrators, reduced.note)
         tc = goal.get('tc', reduced.delay)
         gains = simc(reduced, controller, tc)
         goal = {'tc': float(tc)}
@@ -571,14 +574,15 @@ def tune(estimate, controller: str = 'PI', method: str = 'auto',
         ms = goal.get('ms', DEFAULT_MS)
         gains = loop_shaping(plant, controller, ms, text)
         goal = {'ms': float(ms)}
+        held = f' plus half the {sample_time:g} s sample time' if hold else ''
         description = (f'loop shaping {controller}: the largest integral gain with Ms <= '
-                       f'{ms:g} on the exact model {text} with its dead time (MIGO)')
+                       f'{ms:g} on the exact model {text} with its dead time{held} (MIGO)')
     margins = loop_margins(plant, gains)
     if not margins.stable:
         raise DesignError(f'the {controller} designed by {description} does not stabilise the '
                           f'identified model ({margins.unstable_poles} closed-loop poles in the '
                           'right half plane); choose a slower target')
-    band, count, unstable = _band(model, params, estimate.covariance, gains, draws, seed)
+    band, count, unstable = _band(model, params, estimate.covariance, gains, draws, seed, hold)
     notes = []
     if unstable:
         notes.append(f'{unstable} of {count} covariance draws give an unstable loop: the model '
@@ -587,7 +591,13 @@ def tune(estimate, controller: str = 'PI', method: str = 'auto',
     if margins.ms > 2.0:
         notes.append(f'Ms {margins.ms:.2f} on the identified model: above 2, little robustness')
     return Tuning(controller, gains, description, goal, margins, band, count, unstable, notes,
-                  model, params, np.asarray(estimate.covariance, dtype=float))
+                  model, params, np.asarray(estimate.covariance, dtype=float), hold)
+
+
+def with_hold(model: Model, params: Mapping[str, float], hold: float = 0.0) -> Plant:
+    """Return the plant of ``model`` at ``params`` with ``hold`` seconds more dead time."""
+    plant = Plant.from_model(model, params)
+    return Plant(plant.num, plant.den, plant.delay + hold) if hold else plant
 
 
 def _automatic(plant: Plant) -> str:
@@ -597,14 +607,14 @@ def _automatic(plant: Plant) -> str:
 
 
 def _band(model: Model, params: Mapping[str, float], covariance: np.ndarray, gains: Gains,
-          count: int, seed: int
+          count: int, seed: int, hold: float
           ) -> Tuple[Dict[str, Tuple[Optional[float], Optional[float]]], int, int]:
     """Return the 95 % band of the margins over covariance draws, the draws, the unstable."""
     rows = []
     unstable = 0
     for values in parameter_draws(model, params, covariance, count, seed):
         try:
-            margins = loop_margins(Plant.from_model(model, values), gains)
+            margins = loop_margins(with_hold(model, values, hold), gains)
         except ModelError:
             continue
         if not margins.stable:
@@ -649,14 +659,14 @@ def step_band(tuning: Tuning, horizon: Optional[float] = None, draws: int = 40,
         ``(2, len(times))``: 2.5 and 97.5 percentiles over the stable draws (None without).
 
     """
-    plant = Plant.from_model(tuning.model, tuning.params)
+    plant = with_hold(tuning.model, tuning.params, tuning.hold)
     if horizon is None:
         horizon = default_horizon(tuning.margins, plant)
     times, nominal, _ = closed_loop_step(plant, tuning.gains, horizon)
     outputs = []
     for values in parameter_draws(tuning.model, tuning.params, tuning.covariance, draws, seed):
         try:
-            draw = Plant.from_model(tuning.model, values)
+            draw = with_hold(tuning.model, values, tuning.hold)
         except ModelError:
             continue
         if not loop_margins(draw, tuning.gains).stable:
