@@ -678,9 +678,9 @@ def step_band(tuning: Tuning, horizon: Optional[float] = None, draws: int = 40,
 
 
 def default_horizon(margins: Margins, plant: Plant) -> float:
-    """Return the seconds a step response is shown for: 25 / crossover, at least 6 dead times."""
+    """Return the seconds a step response is shown for: 12 / crossover, at least 6 dead times."""
     crossover = margins.crossover if np.isfinite(margins.crossover) else margins.bandwidth
-    horizon = 25.0 / crossover if np.isfinite(crossover) and crossover > 0 else 10.0
+    horizon = 12.0 / crossover if np.isfinite(crossover) and crossover > 0 else 10.0
     return float(max(horizon, 6.0 * plant.delay))
 
 
