@@ -96,3 +96,38 @@ def test_a_bag_needs_its_params_file(tmp_path, capsys):
     bag = write_bag(tmp_path, float_records(u, y), 'mcap-file')
     assert main(['tune', str(bag), '--model', DELAY['model']]) == 2
     assert '--params-file' in capsys.readouterr().err
+
+
+HOSTILE = [
+    ['--target', 'x=1'], ['--target', 'tc=-1'], ['--target', 'ms=0.5'], ['--target', 'tc=nan'],
+    ['--target', 'tc=1,ms=2'], ['--draws', '-1'], ['--sample-time', '0'],
+    ['--sample-time', 'nan'], ['--controller', 'PD'], ['--method', 'magic'],
+    ['--model', 's'], ['--model', 'K/(T*s+1'], ['--model', 'K*exp(-tau*s)/(T*s - 1)'],
+    ['--method', 'ms', '--target', 'tc=1'], ['--joint', ''], ['--estimate-range', '1:5'],
+]
+
+
+@pytest.mark.parametrize('options', HOSTILE)
+def test_hostile_options_exit_cleanly(tmp_path, capsys, options):
+    csv = write_csv(tmp_path / 'sopdt.csv', two_lags_dead_time().data(1))
+    before = csv.read_bytes()
+    try:
+        status = main(['tune', str(csv), '--model', SOPDT, '--draws', '20', *options])
+    except SystemExit as exit_:          # argparse
+        status = exit_.code
+    err = capsys.readouterr().err
+    assert status in (0, 2) and 'Traceback' not in err and 'internal error' not in err, err
+    if status == 2:
+        assert len([line for line in err.splitlines() if ': error: ' in line]) == 1, err
+    assert csv.read_bytes() == before
+
+
+@pytest.mark.parametrize('path', ['missing.csv', '.', 'empty.csv'])
+def test_unreadable_records_are_user_errors(tmp_path, capsys, path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / 'empty.csv').write_text('')
+    for command in (['tune', path, '--model', SOPDT],
+                    ['compare', path, '--model', SOPDT, '--model', 'K/(T*s+1)']):
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert err.count(': error: ') == 1 and 'internal error' not in err, err
