@@ -29,23 +29,15 @@ from typing import Optional
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import json_default
-from ctid_ros.cli.sources import load_record, model_signals
+from ctid_ros.cli.sources import load_record, model_signals, plot_path
 from ctid_ros.errors import ConfigError
 from ctid_ros.estimation.compare import compare, Comparison
 import numpy as np
 
-__all__ = ['compare_figure', 'default_plot_path', 'format_comparison', 'run']
+__all__ = ['compare_figure', 'format_comparison', 'run']
 
 # Colours of the candidates, in ranking order (the recommended one first).
 _COLOURS = ('tab:blue', 'tab:orange', 'tab:green', 'tab:red', 'tab:purple', 'tab:brown')
-
-
-def default_plot_path(record: str, directory: Optional[Path] = None) -> Path:
-    """Return where ``--plot`` without a value writes: ``<record name>_compare.png``."""
-    name = Path(record).resolve().name
-    for suffix in ('.gz', '.csv', '.mcap'):
-        name = name[:-len(suffix)] if name.endswith(suffix) else name
-    return (directory or Path.cwd()) / f'{name or "record"}_compare.png'
 
 
 def _cell(value: Optional[float], digits: str) -> str:
@@ -157,7 +149,7 @@ def run(arguments: argparse.Namespace) -> int:
     if arguments.plot is not None:
         from ctid_ros.cli.plots import check_figure_paths
 
-        plot = default_plot_path(arguments.path) if arguments.plot is DEFAULT_PLOT \
+        plot = plot_path(arguments.path, 'compare') if arguments.plot is DEFAULT_PLOT \
             else Path(arguments.plot)
         inputs = [Path(item) for item in (arguments.path, arguments.validate,
                                           arguments.params_file) if item]

@@ -19,7 +19,7 @@ from ctid_ros.errors import ConfigError, DataError
 from ctid_ros.files.csv_file import load_csv, TIME_COLUMNS
 import numpy as np
 
-__all__ = ['is_bag', 'load_record', 'model_signals', 'split_validation']
+__all__ = ['is_bag', 'load_record', 'model_signals', 'plot_path']
 
 _BAG_SUFFIXES = ('.mcap', '.db3')
 
@@ -28,6 +28,14 @@ def is_bag(path: str) -> bool:
     """Return True for a rosbag2 directory or a ``.mcap``/``.db3`` file."""
     item = Path(path)
     return item.is_dir() or item.suffix.lower() in _BAG_SUFFIXES
+
+
+def plot_path(record: str, command: str, directory: Optional[Path] = None) -> Path:
+    """Return where ``--plot`` without a value writes: ``<record name>_<command>.png``."""
+    name = Path(record).resolve().name
+    for suffix in ('.gz', '.csv', '.mcap'):
+        name = name[:-len(suffix)] if name.endswith(suffix) else name
+    return (directory or Path.cwd()) / f'{name or "record"}_{command}.png'
 
 
 def _segment(data: Data, samples: Optional[Tuple[int, int]], detrend: str, what: str) -> Data:
@@ -97,25 +105,6 @@ def load_record(arguments: argparse.Namespace, equation: bool = False) -> Data:
                         output_column=columns.output_column, time_column=times,
                         ts=arguments.ts)
     return _segment(data, arguments.estimate_range, arguments.detrend, 'estimation')
-
-
-def split_validation(data: Data, fraction: float) -> Tuple[Data, Data]:
-    """
-    Return ``(estimation, validation)``: the record without and with its last ``fraction``.
-
-    Raises
-    ------
-    DataError
-        If either part would have fewer than 50 samples.
-
-    """
-    count = len(data)
-    cut = int(round(count * (1.0 - fraction)))
-    if cut < 50 or count - cut < 50:
-        raise DataError(f'holding out the last {fraction:.0%} of {count} samples leaves '
-                        f'{cut} to estimate on and {count - cut} to validate on; at least 50 '
-                        'each (give --validate FILE, or a longer record)')
-    return data.segment(0, cut), data.segment(cut, count)
 
 
 def model_signals(models: Sequence[str]) -> bool:

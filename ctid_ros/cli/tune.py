@@ -30,7 +30,7 @@ from typing import List, Optional
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import json_default
-from ctid_ros.cli.sources import load_record
+from ctid_ros.cli.sources import load_record, plot_path
 from ctid_ros.core.model import Model
 from ctid_ros.design.margins import Gains, Margins
 from ctid_ros.design.tune import step_band, tune, Tuning
@@ -38,15 +38,7 @@ from ctid_ros.errors import ConfigError
 from ctid_ros.estimation.estimate import Estimate, estimate
 import numpy as np
 
-__all__ = ['default_plot_path', 'format_tuning', 'run', 'tune_figure', 'write_atomically']
-
-
-def default_plot_path(record: str, directory: Optional[Path] = None) -> Path:
-    """Return where ``--plot`` without a value writes: ``<record name>_tune.png``."""
-    name = Path(record).resolve().name
-    for suffix in ('.gz', '.csv', '.mcap'):
-        name = name[:-len(suffix)] if name.endswith(suffix) else name
-    return (directory or Path.cwd()) / f'{name or "record"}_tune.png'
+__all__ = ['format_tuning', 'run', 'tune_figure', 'write_atomically']
 
 
 def _number(value: Optional[float], digits: str = '.3g') -> str:
@@ -85,13 +77,7 @@ def tune_figure(tuning: Tuning, path: Optional[Path] = None):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from ctid_ros.design.margins import closed_loop_step
-    from ctid_ros.design.tune import with_hold
-
-    times, nominal, band = step_band(tuning)
-    plant = with_hold(tuning.model, tuning.params, tuning.hold)
-    _, _, command = closed_loop_step(plant, tuning.gains, float(times[-1]),
-                                     steps=times.size - 1)
+    times, nominal, band, command = step_band(tuning)
     figure = Figure(figsize=(8.0, 6.0), layout='constrained')
     FigureCanvasAgg(figure)
     top, bottom = figure.subplots(2, 1, sharex=True)
@@ -105,7 +91,7 @@ def tune_figure(tuning: Tuning, path: Optional[Path] = None):
     top.set_title(f'{tuning.controller} {_gains_text(tuning.gains)}: '
                   f'{_margins_text(margins)}', fontsize='medium')
     top.legend(loc='lower right', fontsize='small')
-    bottom.plot(times[:command.size], command, color='tab:green')
+    bottom.plot(times, command, color='tab:green')
     bottom.set_ylabel(f'command {tuning.model.inputs[0]}')
     bottom.set_xlabel('time (s)')
     for axes in (top, bottom):
@@ -154,7 +140,7 @@ def _check_outputs(arguments: argparse.Namespace) -> Optional[Path]:
         return None
     from ctid_ros.cli.plots import check_figure_paths
 
-    plot = default_plot_path(arguments.path) if arguments.plot is DEFAULT_PLOT \
+    plot = plot_path(arguments.path, 'tune') if arguments.plot is DEFAULT_PLOT \
         else Path(arguments.plot)
     check_figure_paths(plot, [plot], inputs + ([target] if target is not None else []))
     return plot

@@ -32,7 +32,7 @@ import numpy as np
 from scipy import signal
 
 __all__ = ['Gains', 'Margins', 'Plant', 'closed_loop_step', 'frequency_grid',
-           'integral_absolute_error', 'loop_margins']
+           'integral_absolute_error', 'json_number', 'loop_margins']
 
 # Points per decade of the frequency grid, before refinement.
 _DENSITY = 1000
@@ -224,12 +224,14 @@ class Margins:
 
     def to_dict(self) -> Dict[str, Optional[float]]:
         """Return the margins as JSON numbers: infinite or undefined ones as null."""
-        def number(value: float) -> Optional[float]:
-            return float(value) if np.isfinite(value) else None
+        return {'gain_db': json_number(self.gain_db), 'phase_deg': json_number(self.phase_deg),
+                'ms': json_number(self.ms), 'crossover': json_number(self.crossover),
+                'bandwidth': json_number(self.bandwidth), 'stable': bool(self.stable)}
 
-        return {'gain_db': number(self.gain_db), 'phase_deg': number(self.phase_deg),
-                'ms': number(self.ms), 'crossover': number(self.crossover),
-                'bandwidth': number(self.bandwidth), 'stable': bool(self.stable)}
+
+def json_number(value: Optional[float]) -> Optional[float]:
+    """Return ``value`` as a float for JSON, or None if it is None, infinite or NaN."""
+    return float(value) if value is not None and np.isfinite(value) else None
 
 
 def _loop_polynomials(plant: Plant, gains: Gains) -> Tuple[np.ndarray, np.ndarray]:

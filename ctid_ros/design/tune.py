@@ -33,7 +33,8 @@ import math
 from typing import Dict, List, Mapping, Optional, Tuple
 
 from ctid_ros.core.model import Model
-from ctid_ros.design.margins import (closed_loop_step, Gains, loop_margins, Margins, Plant)
+from ctid_ros.design.margins import (closed_loop_step, Gains, json_number, loop_margins, Margins,
+                                     Plant)
 from ctid_ros.errors import ConfigError, DesignError, ModelError
 import numpy as np
 
@@ -437,11 +438,8 @@ class Tuning:
         ``gains``, ``margins`` (nominal, with ``band``), ``method``, ``target``, ``draws``,
         ``unstable_draws``, ``warnings`` and ``ros2_control``: the params YAML for ``joint``.
         """
-        def number(value):
-            return float(value) if value is not None and np.isfinite(value) else None
-
         margins = self.margins.to_dict()
-        margins['band'] = {name: [number(low), number(high)]
+        margins['band'] = {name: [json_number(low), json_number(high)]
                            for name, (low, high) in self.band.items()}
         return {'controller': self.controller, 'gains': self.gains.to_dict(),
                 'margins': margins, 'method': self.method, 'target': dict(self.target),
@@ -642,12 +640,11 @@ def _percentile(values: np.ndarray, percent: float) -> Optional[float]:
     """Return the percentile (nearest rank) of ``values``, infinite ones included; None for inf."""
     ordered = np.sort(values)
     index = int(np.clip(round(percent / 100.0 * (ordered.size - 1)), 0, ordered.size - 1))
-    value = ordered[index]
-    return float(value) if np.isfinite(value) else None
+    return json_number(ordered[index])
 
 
 def step_band(tuning: Tuning, horizon: Optional[float] = None, draws: int = 40,
-              seed: int = 0) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+              seed: int = 0) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray], np.ndarray]:
     """
     Return the closed-loop unit step response on the model and its 95 % band over draws.
 
@@ -657,12 +654,14 @@ def step_band(tuning: Tuning, horizon: Optional[float] = None, draws: int = 40,
         Seconds and the output on the identified model.
     band : ndarray or None
         ``(2, len(times))``: 2.5 and 97.5 percentiles over the stable draws (None without).
+    command : ndarray
+        The controller output on the identified model.
 
     """
     plant = with_hold(tuning.model, tuning.params, tuning.hold)
     if horizon is None:
         horizon = default_horizon(tuning.margins, plant)
-    times, nominal, _ = closed_loop_step(plant, tuning.gains, horizon)
+    times, nominal, command = closed_loop_step(plant, tuning.gains, horizon)
     outputs = []
     for values in parameter_draws(tuning.model, tuning.params, tuning.covariance, draws, seed):
         try:
@@ -674,7 +673,7 @@ def step_band(tuning: Tuning, horizon: Optional[float] = None, draws: int = 40,
         _, output, _ = closed_loop_step(draw, tuning.gains, horizon, steps=times.size - 1)
         outputs.append(np.interp(times, np.linspace(0.0, horizon, output.size), output))
     band = np.percentile(outputs, _BAND, axis=0) if outputs else None
-    return times, nominal, band
+    return times, nominal, band, command
 
 
 def default_horizon(margins: Margins, plant: Plant) -> float:

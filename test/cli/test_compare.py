@@ -4,18 +4,11 @@ import json
 
 from ctid_ros.cli.main import main
 from ctid_ros.core.reference_systems import first_order_dead_time, two_lags_dead_time
-import numpy as np
+from record_fixtures import write_csv
 from replay_fixtures import DELAY, float_records, params_file, simulate, write_bag
 
 FOPDT = 'K*exp(-tau*s)/(T*s+1)'
 SOPDT = 'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'
-
-
-def write_csv(path, data):
-    times = data.ts * np.arange(len(data))
-    np.savetxt(path, np.column_stack([times, data.u, data.y]), delimiter=',', header='t,u,y',
-               comments='')
-    return path
 
 
 def test_json_is_a_ranked_list_with_one_recommendation(tmp_path, capsys):

@@ -9,19 +9,12 @@ from ctid_ros.design import tune as design
 from ctid_ros.design.margins import (closed_loop_step, Gains, integral_absolute_error,
                                      loop_margins, Plant)
 from ctid_ros.design.tune import reduce, simc
-import numpy as np
 import pytest
+from record_fixtures import write_csv
 from replay_fixtures import DELAY, float_records, params_file, simulate, write_bag
 import yaml
 
 SOPDT = 'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'
-
-
-def write_csv(path, data):
-    times = data.ts * np.arange(len(data))
-    np.savetxt(path, np.column_stack([times, data.u, data.y]), delimiter=',', header='t,u,y',
-               comments='')
-    return path
 
 
 def test_choices_are_the_designs():
