@@ -25,6 +25,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'node_storm': ['--json', 'bench/results-node-storm.json'],
     'fleet': [],
     'alarm': ['--json', 'bench/results-alarm.json'],
+    'design': ['--runs', '40', '--json', 'bench/results-design.json'],
 }
 
 

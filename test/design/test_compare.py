@@ -7,7 +7,7 @@ from ctid_ros.core.excitation import prbs
 from ctid_ros.core.model import Model
 from ctid_ros.core.reference_systems import first_order_dead_time, two_lags_dead_time
 from ctid_ros.errors import ConfigError, DataError
-from ctid_ros.estimation.compare import compare, information_criteria
+from ctid_ros.estimation.compare import compare, information_criteria, paired_improvement
 from ctid_ros.files.csv_file import load_csv
 import numpy as np
 import pytest
@@ -102,3 +102,27 @@ def test_bad_requests():
         compare([FOPDT, SOPDT], data.segment(0, 100))
     with pytest.raises(ConfigError, match='holdout'):
         compare([FOPDT, SOPDT], data, holdout=1.5)
+
+
+def test_a_time_varying_plant_gets_the_simplest_structure_with_a_warning():
+    # The gain steps up 10 % halfway: no structure holds over the record.
+    model = Model(FOPDT)
+    u = prbs(9, 8)[:4000]
+    before = model.simulate({'K': 2.0, 'T': 1.0, 'tau': 0.3}, u, 0.05)
+    after = model.simulate({'K': 2.2, 'T': 1.0, 'tau': 0.3}, u, 0.05)
+    clean = np.where(np.arange(u.size) < 2000, before, after)
+    noise = np.random.default_rng(0).standard_normal(u.size)
+    comparison = compare([SOPDT, FOPDT], Data(u, clean + 0.1 * np.std(clean) * noise, 0.05))
+    best = recommended(comparison)
+    assert best.model.expression == FOPDT and best.consistent is False
+    assert best.why.startswith('no candidate is adequate; the simplest adequate but for '
+                               'consistency') and 'may change over the record' in best.why
+
+
+def test_paired_improvement_sees_a_small_certain_gain_and_no_gain():
+    rng = np.random.default_rng(5)
+    noise = rng.standard_normal(800)
+    missing = 0.3 * np.sin(np.arange(800) / 7.0)
+    assert paired_improvement(noise + missing, noise) > 5.0
+    assert abs(paired_improvement(noise, rng.standard_normal(800))) < 3.0
+    assert paired_improvement(None, noise) == 0.0
