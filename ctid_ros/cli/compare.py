@@ -29,7 +29,7 @@ from typing import Optional
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import json_default
-from ctid_ros.cli.sources import load_record, model_signals, plot_path
+from ctid_ros.cli.sources import load_record, model_signals, models, plot_path
 from ctid_ros.errors import ConfigError
 from ctid_ros.estimation.compare import compare, Comparison
 import numpy as np
@@ -90,9 +90,13 @@ def compare_figure(comparison: Comparison, path: Optional[Path] = None):
     outputs.plot(times, validation.y, color='black', linewidth=0.8, label='measured')
     # One grid for all, up to the Nyquist frequency: the data say nothing above it.
     nyquist = np.pi / validation.ts
+    # A Bode plot needs one input and no constant term (a model equation may have more).
+    drawn = [item for item in comparison.candidates if item.estimate is not None
+             and len(item.model.inputs) == 1 and not item.model.constant_input]
     grids = [default_omega(item.model, item.estimate.params, max_omega=nyquist)
-             for item in comparison.candidates if item.estimate is not None]
-    omega = np.logspace(np.log10(min(grid[0] for grid in grids)), np.log10(nyquist), 300)
+             for item in drawn]
+    omega = np.logspace(np.log10(min(grid[0] for grid in grids)), np.log10(nyquist), 300) \
+        if grids else None
     nominal = ([], [])
     for colour, item in zip(_COLOURS * 4, comparison.candidates):
         result = item.estimate
@@ -104,6 +108,8 @@ def compare_figure(comparison: Comparison, path: Optional[Path] = None):
         style = {'color': colour, 'linewidth': 1.8 if item.recommended else 1.0,
                  'zorder': 3 if item.recommended else 2}
         outputs.plot(times, simulated, label=f'{name} ({_cell(item.fit, ".1f")} %)', **style)
+        if item not in drawn:
+            continue
         bode = bode_data(result, omega)
         magnitude.semilogx(bode.omega, bode.magnitude_db, **style)
         phase.semilogx(bode.omega, bode.phase_deg, **style)
@@ -156,7 +162,8 @@ def run(arguments: argparse.Namespace) -> int:
         check_figure_paths(plot, [plot], inputs)
     equation = model_signals(arguments.model)
     data = load_record(arguments, equation)
-    comparison = compare(arguments.model, data, validation=_validation(arguments, equation),
+    comparison = compare(models(arguments, arguments.model), data,
+                         validation=_validation(arguments, equation),
                          holdout=arguments.holdout, initial_state=arguments.initial_state,
                          output_offset=arguments.output_offset)
     if arguments.json:

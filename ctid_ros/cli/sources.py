@@ -11,15 +11,16 @@ on the grid exactly as the live node would (:func:`~ctid_ros.streaming.buffer.re
 import argparse
 from pathlib import Path
 import sys
-from typing import Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 from ctid_ros.cli.fit import signals
 from ctid_ros.core.data import Data
+from ctid_ros.core.model import Model
 from ctid_ros.errors import ConfigError, DataError
 from ctid_ros.files.csv_file import load_csv, TIME_COLUMNS
 import numpy as np
 
-__all__ = ['is_bag', 'load_record', 'model_signals', 'plot_path']
+__all__ = ['is_bag', 'load_record', 'model_signals', 'models', 'plot_path']
 
 _BAG_SUFFIXES = ('.mcap', '.db3')
 
@@ -110,3 +111,18 @@ def load_record(arguments: argparse.Namespace, equation: bool = False) -> Data:
 def model_signals(models: Sequence[str]) -> bool:
     """Return True if any model is an equation (names its signals after the columns)."""
     return any('=' in text for text in models)
+
+
+def models(arguments: argparse.Namespace, texts: Sequence[str]) -> List[Model]:
+    """
+    Return the models of ``texts`` with the signal names of the record.
+
+    A CSV record names its signals after ``--input``/``--output`` (as ``ctid fit``); a bag's
+    are ``u`` (``u1``, ``u2``, ... for several input fields) and ``y``.
+    """
+    equation = model_signals(texts)
+    if is_bag(arguments.path):
+        return [Model(text) for text in texts]
+    columns = signals(arguments.input, arguments.output, equation)
+    return [Model(text, inputs=columns.input_names, output=columns.output_name)
+            for text in texts]

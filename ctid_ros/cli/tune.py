@@ -30,8 +30,7 @@ from typing import List, Optional
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import json_default
-from ctid_ros.cli.sources import load_record, plot_path
-from ctid_ros.core.model import Model
+from ctid_ros.cli.sources import load_record, models, plot_path
 from ctid_ros.design.margins import Gains, Margins
 from ctid_ros.design.tune import step_band, tune, Tuning
 from ctid_ros.errors import ConfigError
@@ -152,7 +151,7 @@ def run(arguments: argparse.Namespace) -> int:
     if arguments.draws < 0:
         raise ConfigError(f'--draws must be 0 or more, got {arguments.draws}')
     data = load_record(arguments)
-    model = Model(arguments.model)
+    model, = models(arguments, [arguments.model])
     result = estimate(model, data, arguments.initial or 'auto', bounds=arguments.bounds,
                       delay_range=arguments.delay_range,
                       initial_state=arguments.initial_state,

@@ -53,3 +53,28 @@ def test_one_model_is_a_user_error(tmp_path, capsys):
     csv = write_csv(tmp_path / 'fopdt.csv', first_order_dead_time().data(1))
     assert main(['compare', str(csv), '--model', FOPDT]) == 2
     assert 'at least two' in capsys.readouterr().err
+
+
+def test_model_equations_with_two_inputs(tmp_path, capsys):
+    from ctid_ros.core.excitation import prbs
+    from ctid_ros.core.model import Model
+    import numpy as np
+
+    u1, u2 = prbs(8, 5)[:1200], np.roll(prbs(9, 3)[:1200], 37)
+    model = Model('T*s*y + y = K1*u1 + K2*u2', inputs=('u1', 'u2'))
+    y = model.simulate({'T': 1.0, 'K1': 2.0, 'K2': -1.0}, np.column_stack([u1, u2]), 0.05)
+    y = y + 0.05 * np.random.default_rng(0).standard_normal(y.size)
+    csv = tmp_path / 'two.csv'
+    np.savetxt(csv, np.column_stack([0.05 * np.arange(y.size), u1, u2, y]), delimiter=',',
+               header='t,u1,u2,y', comments='')
+    plot = tmp_path / 'two.png'
+    assert main(['compare', str(csv), '--input', 'u1', '--input', 'u2', '--json', '--plot',
+                 str(plot), '--model', 'T*s*y + y = K1*u1 + K2*u2',
+                 '--model', 'T*s*y + y = K1*u1 + K2*u2 + c']) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert listed[0]['model'] == 'T*s*y + y = K1*u1 + K2*u2' and listed[0]['recommended']
+    assert abs(listed[0]['params']['K2'] + 1.0) < 0.03 and plot.exists()
+    # A loop is designed for one input: tune refuses the same model in one line.
+    assert main(['tune', str(csv), '--input', 'u1', '--input', 'u2', '--model',
+                 'T*s*y + y = K1*u1 + K2*u2']) == 2
+    assert 'one input' in capsys.readouterr().err
