@@ -30,6 +30,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'replay_startup': [],
     'alarm': ['--json', 'bench/results-alarm.json'],
     'memory': ['--minutes', '20', '--json', 'bench/results-memory.json'],
+    'design': ['--runs', '40', '--json', 'bench/results-design.json'],
 }
 
 

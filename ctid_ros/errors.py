@@ -10,8 +10,8 @@ message itself.
 
 import reprlib
 
-__all__ = ['BagError', 'ConfigError', 'CtidError', 'DataError', 'EstimationError', 'ModelError',
-           'bounded_repr']
+__all__ = ['BagError', 'ConfigError', 'CtidError', 'DataError', 'DesignError', 'EstimationError',
+           'ModelError', 'bounded_repr']
 
 _REPR = reprlib.Repr()
 _REPR.maxlevel = 3
@@ -59,3 +59,7 @@ class ConfigError(CtidError, ValueError):
 
 class BagError(CtidError, OSError):
     """A rosbag2 directory or MCAP file cannot be read, or lacks what the configuration needs."""
+
+
+class DesignError(CtidError, ValueError):
+    """No controller of the kind asked for can be designed from the model by the rule asked for."""

@@ -1,8 +1,8 @@
 """
 The package's layering, read from the imports of every module under ctid_ros (ast, no import).
 
-Layers, lowest first: core -> estimation -> streaming -> files -> {ros, cli, demo}. A module
-imports only its own layer or lower ones; ``ctid_ros.errors`` is shared by all and imports
+Layers, lowest first: core -> estimation -> design -> streaming -> files -> {ros, cli, demo}.
+A module imports only its own layer or lower ones; ``ctid_ros.errors`` is shared by all and imports
 nothing of the package; the package root (the public API) imports core, estimation and errors.
 Within the top layer the ROS adapters (ros) import neither the command (cli) nor the demo, and
 the command does not import the demo. Every import counts, also one inside a function, and so
@@ -21,7 +21,8 @@ from typing import Dict, Iterator, List, NamedTuple, Set, Tuple
 
 PACKAGE = 'ctid_ros'
 ROOT = Path(__file__).resolve().parents[1] / PACKAGE
-RANKS = {'core': 0, 'estimation': 1, 'streaming': 2, 'files': 3, 'ros': 4, 'cli': 4, 'demo': 4}
+RANKS = {'core': 0, 'estimation': 1, 'design': 2, 'streaming': 3, 'files': 4, 'ros': 5, 'cli': 5,
+         'demo': 5}
 # Imports within the top layer that are refused although the ranks are equal.
 FORBIDDEN = {('ros', 'cli'), ('ros', 'demo'), ('cli', 'demo')}
 SHARED = 'errors'

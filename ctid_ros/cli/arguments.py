@@ -16,15 +16,19 @@ import argparse
 from pathlib import Path
 from typing import Dict, Optional, Tuple
 
-__all__ = ['DEFAULT_NODE_NAME', 'DEFAULT_PLOT', 'INITIAL_STATES', 'INTERSAMPLE', 'METHODS',
-           'configure_echo', 'configure_fit', 'configure_fleet', 'configure_node',
-           'configure_record', 'configure_replay', 'parse_bounds', 'parse_fixed',
-           'parse_initial', 'parse_interval', 'parse_range', 'parse_units']
+__all__ = ['CONTROLLERS', 'DEFAULT_NODE_NAME', 'DEFAULT_PLOT', 'DESIGN_METHODS',
+           'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_compare', 'configure_echo',
+           'configure_fit', 'configure_fleet', 'configure_node', 'configure_record',
+           'configure_replay', 'configure_tune', 'parse_bounds', 'parse_fixed', 'parse_initial',
+           'parse_interval', 'parse_range', 'parse_target', 'parse_units']
 
 METHODS = ('iv', 'ls', 'gn')
 INITIAL_STATES = ('zero', 'estimate')
 INTERSAMPLE = ('zoh', 'foh')
 DEFAULT_NODE_NAME = 'ctid_node'
+# ctid_ros.design.tune.CONTROLLERS and METHODS (checked by test/cli/test_tune.py).
+CONTROLLERS = ('PI', 'PID')
+DESIGN_METHODS = ('auto', 'simc', 'ms')
 # The value of ``--plot`` given without a file name (each command picks its default path).
 DEFAULT_PLOT = object()
 
@@ -286,3 +290,107 @@ def configure_fleet(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--rerun', action='store_true',
                         help='recompute bags (spans) whose results are already in --results')
     parser.add_argument('--no-plots', action='store_true', help='write no figures')
+
+
+def parse_target(text: str) -> Dict[str, float]:
+    """Parse ``tc=0.5`` (SIMC's closed-loop time constant) or ``ms=1.4`` (loop shaping)."""
+    values = _values(text, '--target')
+    if len(values) != 1 or not set(values) <= {'tc', 'ms'}:
+        raise argparse.ArgumentTypeError(f'--target expects tc=SECONDS or ms=PEAK, got {text!r}')
+    return values
+
+
+def _add_record_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the arguments that select the record: a CSV file's columns or a bag's topics."""
+    parser.add_argument('path', metavar='CSV|BAG',
+                        help='CSV file with a header line, or a rosbag2 directory / .mcap file '
+                        '(with --params-file); never modified')
+    parser.add_argument('--input', action='append', default=None, metavar='[SIGNAL=]COLUMN',
+                        help='CSV input column (default u)')
+    parser.add_argument('--output', default='y', metavar='[SIGNAL=]COLUMN',
+                        help='CSV output column (default y)')
+    parser.add_argument('--ts', type=float, default=None,
+                        help='CSV sample time if there is no time column')
+    parser.add_argument('--time', default=None, metavar='COLUMN',
+                        help='CSV time column in seconds (default t, else __time)')
+    parser.add_argument('--params-file', default=None,
+                        help='bag: the params YAML of the node (topics, fields, sample time; '
+                        'its model is not used)')
+    parser.add_argument('--node-name', default=DEFAULT_NODE_NAME,
+                        help='bag: node section of the params file')
+    parser.add_argument('--start', type=float, default=None,
+                        help='bag: start of the span, seconds from its first message')
+    parser.add_argument('--end', type=float, default=None,
+                        help='bag: end of the span, seconds from its first message')
+    parser.add_argument('--estimate-range', type=parse_range, default=None,
+                        metavar='FIRST:LAST', help='use these samples only (1-based, inclusive)')
+    parser.add_argument('--detrend', choices=('none', 'mean', 'initial'), default='none',
+                        help='remove the operating point: means or first samples (default none)')
+    parser.add_argument('--initial-state', choices=INITIAL_STATES, default='zero',
+                        help='zero: data start at rest (default); estimate: fit the initial state')
+    parser.add_argument('--output-offset', action='store_true',
+                        help='estimate a constant offset of the output')
+    parser.add_argument('--json', action='store_true', help='print JSON instead of a table')
+
+
+def configure_compare(parser: argparse.ArgumentParser) -> None:
+    """Add the ``ctid compare`` arguments to ``parser``."""
+    parser.description = ('Fit every candidate model on the same record and rank them on what a '
+                          'control engineer weighs: the fit on validation data, an information '
+                          'criterion, consistency across the record, the residual, '
+                          'identifiability; recommend the simplest adequate one and say why.')
+    _add_record_arguments(parser)
+    parser.add_argument('--model', action='append', required=True, metavar='MODEL',
+                        help='a candidate transfer function; repeat, e.g. --model '
+                        "'K*exp(-tau*s)/(T*s+1)' --model 'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'")
+    parser.add_argument('--validate', default=None, metavar='CSV',
+                        help='validation file (same columns); default: the last '
+                        '--holdout of the record is held out')
+    parser.add_argument('--holdout', type=float, default=0.3, metavar='FRACTION',
+                        help='share of the record held out for validation without --validate '
+                        '(default 0.3)')
+    parser.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
+                        metavar='PNG',
+                        help='side-by-side figure: validation outputs and Bode plots with '
+                        'bands. Without a value: <record name>_compare.png')
+
+
+def configure_tune(parser: argparse.ArgumentParser) -> None:
+    """Add the ``ctid tune`` arguments to ``parser``."""
+    parser.description = ('Identify the model on the record, design a PI or PID from it by a '
+                          'stated method (SIMC, or loop shaping on the exact model with its '
+                          'dead time), verify it on the model and across its uncertainty '
+                          '(margins, Ms, bandwidth with 95 % bands) and give ros2_control '
+                          'params.')
+    _add_record_arguments(parser)
+    parser.add_argument('--model', required=True, help='plant transfer function, e.g. '
+                        "'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'")
+    parser.add_argument('--controller', choices=CONTROLLERS, default='PI')
+    parser.add_argument('--method', choices=DESIGN_METHODS, default='auto',
+                        help='simc: Skogestad rules (lags + dead time); ms: largest integral '
+                        'gain with Ms below the target; auto: simc where it applies')
+    parser.add_argument('--target', type=parse_target, default=None, metavar='tc=S|ms=PEAK',
+                        help="SIMC's closed-loop time constant (default: the effective dead "
+                        'time) or the loop-shaping sensitivity peak (default 1.6)')
+    parser.add_argument('--sample-time', type=_positive, default=None, metavar='SECONDS',
+                        help='period of the digital controller: half of it is added to the dead '
+                        'time (default: a continuous controller)')
+    parser.add_argument('--initial', type=parse_initial, default=None,
+                        help='initial values NAME=VALUE,... of the identification')
+    parser.add_argument('--bounds', type=parse_bounds, default=None,
+                        help='bounds NAME=LOW:HIGH,... of the identification')
+    parser.add_argument('--delay-range', type=parse_interval, default=None, metavar='MIN:MAX',
+                        help='search range of the dead time in seconds')
+    parser.add_argument('--draws', type=int, default=200,
+                        help='covariance draws for the bands (default 200, seeded)')
+    parser.add_argument('--joint', default='joint1',
+                        help='joint (dof) name of the ros2_control params (default joint1)')
+    parser.add_argument('--params-out', type=Path, default=None, metavar='YAML',
+                        help='write the ros2_control pid_controller params here (only when '
+                        'everything succeeded)')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace an existing --params-out file')
+    parser.add_argument('--plot', type=Path, nargs='?', const=DEFAULT_PLOT, default=None,
+                        metavar='PNG',
+                        help='step response on the model with its band over covariance draws, '
+                        'and the loop Bode plot. Without a value: <record name>_tune.png')

@@ -90,6 +90,10 @@ COMMANDS: Dict[str, Command] = {
                       command_lines.configure_record, 'ctid_ros.cli.record', uses_ros=True),
     'fleet': Command('estimate on every bag of a fleet with Dask; Parquet results and a fleet '
                      'report', command_lines.configure_fleet, 'ctid_ros.cli.fleet'),
+    'compare': Command('fit candidate models on one record and recommend the simplest adequate',
+                       command_lines.configure_compare, 'ctid_ros.cli.compare'),
+    'tune': Command('PI/PID gains from an identified model, verified across its uncertainty',
+                    command_lines.configure_tune, 'ctid_ros.cli.tune'),
 }
 
 # The pip extra that provides each optional dependency, for the message when it is missing.

@@ -40,6 +40,8 @@ def format_table(result: Estimate, fixed: Optional[Mapping[str, float]] = None) 
                  f'converged {"yes" if result.converged else "no"} ({result.stop_reason})')
     if result.residuals is not None:
         lines.append(f'residual: {result.residuals.verdict}')
+    if result.consistency is not None:
+        lines.append(f'consistency: {result.consistency.verdict}')
     lines.extend(f'warning: {note}' for note in result.warnings)
     return '\n'.join(lines)
 

@@ -21,6 +21,8 @@ those listed before it (the method is described in ``docs/algorithm.md``):
 * :mod:`~ctid_ros.estimation.delay_search`: the dead-time profile;
 * :mod:`~ctid_ros.estimation.estimate`: :func:`~ctid_ros.estimation.estimate.estimate` and
   :class:`~ctid_ros.estimation.estimate.Estimate`.
+* :mod:`~ctid_ros.estimation.compare`: candidate structures fitted on one record and ranked,
+  the simplest adequate one recommended.
 """
 
 # The package exports nothing itself: import from its modules.

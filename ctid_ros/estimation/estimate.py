@@ -35,6 +35,7 @@ import warnings
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
 from ctid_ros.errors import DataError, EstimationError
+from ctid_ros.estimation.consistency import Consistency, with_consistency
 from ctid_ros.estimation.identifiability import (blind_combination, BlindCombination,
                                                  Sensitivities, structurally_blind)
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
@@ -115,6 +116,12 @@ class Estimate:
         bounds and a one-line ``verdict`` (``white`` / ``input_correlated`` / ``feedback``), as
         MATLAB's ``resid``; also the order of the residual's noise model behind the
         covariance and how many samples apart the output was measured.
+    consistency : Consistency or None
+        Whether one parameter vector holds over the whole record (the halves' and quarters'
+        estimates against the whole, :mod:`~ctid_ros.estimation.consistency`). If not, ``std``
+        covers the scatter of the quarter estimates and ``covariance`` is scaled to match.
+    std_noise : dict
+        The standard deviations the noise alone implies (equal to ``std`` when consistent).
 
     """
 
@@ -138,6 +145,8 @@ class Estimate:
     output_offset: bool = False
     integrator_cutoff: Optional[float] = None
     residuals: Optional[ResidualAnalysis] = None
+    consistency: Optional[Consistency] = None
+    std_noise: Dict[str, float] = field(default_factory=dict)
 
     @property
     def theta(self) -> np.ndarray:
@@ -196,6 +205,10 @@ class Estimate:
         }
         if self.residuals is not None:
             summary['residual'] = self.residuals.to_dict()
+        if self.consistency is not None:
+            summary['consistency'] = self.consistency.to_dict()
+            summary['std_noise'] = {name: float(value) if np.isfinite(value) else None
+                                    for name, value in self.std_noise.items()}
         return summary
 
 
@@ -421,7 +434,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     std = np.sqrt(np.abs(np.diag(parameter_covariance)))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
-    return Estimate(
+    result = Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
         covariance=parameter_covariance, fit=fit, converged=final.converged,
         iterations=len(history), cost=final.state.cost, stop_reason=final.message,
@@ -429,6 +442,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
+    return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

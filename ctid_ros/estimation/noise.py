@@ -23,7 +23,7 @@ from typing import Optional, Tuple
 from ctid_ros.core.simulation import all_pole
 import numpy as np
 
-__all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model']
+__all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model', 'noise_root']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -139,10 +139,23 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     if model.order == 0:
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
-    scale = count / max(count - parameters, 1)
-    filtered = all_pole(model.ar, left[::-1])[::-1]
-    middle = scale * model.innovation_variance * (filtered.T @ filtered)
-    return mapping @ middle @ mapping.T, model
+    filtered = noise_root(left, model, count / max(count - parameters, 1))
+    return mapping @ (filtered.T @ filtered) @ mapping.T, model
+
+
+def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np.ndarray:
+    """
+    Return ``Z`` with ``Z^T Z = X^T Sigma X`` for the columns ``X`` (rows: samples).
+
+    ``Sigma = scale sigma_w^2 H H^T`` is the covariance of ``model`` (``H`` the causal
+    impulse-response matrix of ``1/A``), so ``Z = sqrt(scale) sigma_w H^T X``: ``X`` filtered
+    through ``1/A`` backwards in time. ``scale`` is ``N / (N - n)`` for the covariance of an
+    estimate (:func:`coloured_covariance`).
+    """
+    columns = np.asarray(columns, dtype=float)
+    if model.order:
+        columns = all_pole(model.ar, columns[::-1])[::-1]
+    return np.sqrt(scale * model.innovation_variance) * columns
 
 
 def measured_every(y: np.ndarray) -> int:

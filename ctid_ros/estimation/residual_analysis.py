@@ -125,11 +125,24 @@ class ResidualAnalysis:
     noise_order: int = 0
     noise_power_ratio: float = 1.0
     measured_every: int = 1
+    # False when the parameters move across the record (``Estimate.consistency``).
+    consistent: bool = True
     # The estimator's state the residual belongs to (not part of the summary).
     state: Optional[Any] = field(default=None, repr=False, compare=False)
     # The residual's autocorrelation over the longer range of Bartlett's sum (lags 0, 1, ...).
     long_autocorrelation: Optional[np.ndarray] = field(default=None, repr=False,
                                                        compare=False)
+
+    def mark_inconsistent(self) -> None:
+        """
+        Say in the verdict that one parameter vector does not hold over the record.
+
+        A coloured residual then no longer reads as noise the standard deviations account for:
+        the model does not hold over the record (``docs/algorithm.md`` section 18).
+        """
+        self.consistent = False
+        self.verdict = _verdict(self.white, self.correlated_inputs, self.worst_lags,
+                                self.feedback, consistent=False)
 
     def to_dict(self) -> dict:
         """Return the summary as JSON-serialisable types (the ``--json`` ``residual`` object)."""
@@ -217,15 +230,23 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
 
 
 def _verdict(white: bool, correlated: List[str], worst: List[Tuple[str, int, float]],
-             feedback: bool) -> str:
-    """Return the verdict line."""
+             feedback: bool, consistent: bool = True) -> str:
+    """Return the verdict line (``consistent``: one parameter vector holds over the record)."""
     if correlated:
         where = ', '.join(f'{name} (lag {lag}: {value:+.2f})' for name, lag, value in worst)
         text = (f'correlated with input {where}: missing dynamics or a wrong dead time; the '
                 'standard deviations do not cover this model error')
+    elif not white and not consistent:
+        text = ('coloured but independent of the input, and the parameters move across the '
+                'record: the model does not hold over it (time-varying, nonlinear, or a '
+                'missing lag / different structure); the noise alone does not account for it')
     elif not white:
         text = ('coloured but independent of the input: noise or disturbances the model does '
                 'not describe; the standard deviations account for it')
+    elif not consistent:
+        text = ('white and independent of the input, but the parameters move across the '
+                'record: the model does not hold over it (time-varying, nonlinear, or a '
+                'missing lag / different structure)')
     else:
         text = 'white and independent of the input: nothing left to model'
     if feedback:

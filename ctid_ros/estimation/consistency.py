@@ -1,0 +1,303 @@
+"""
+Model adequacy across the record: does one parameter vector hold over the whole record.
+
+An estimate's covariance (:mod:`~ctid_ros.estimation.noise`) says how far noise alone could
+move it. Where the plant is time-varying or nonlinear, or the model misses a lag or has another
+structure, the parameters that fit one part of the record differ from those that fit another by
+far more than that, and the residual may still look like coloured noise independent of the
+input. The check here (``docs/algorithm.md`` section 18) estimates the parameters on blocks of
+the record (two halves and four quarters) and compares each block with the whole:
+
+* each block's estimate is one Gauss-Newton step from the full estimate, with the full-record
+  sensitivities ``Psi`` and residual ``e`` restricted to the block's rows:
+  ``d_b = (Psi_b^T Psi_b)^-1 Psi_b^T e_b``. The simulation runs over the whole record, so every
+  block starts from the state the model reaches there: no initial transient to handle;
+* ``d_b = (A_b - A) v`` to first order, ``A_b = (Psi_b^T Psi_b)^-1 Psi_b^T S_b`` and
+  ``A = (Psi^T Psi)^-1 Psi^T`` the maps from the noise ``v`` to the block's and the whole
+  record's estimate; its covariance ``(A_b - A) Sigma (A_b - A)^T``, ``Sigma`` the estimate's
+  own noise model, is exact for that model and positive semi-definite (the difference
+  ``C_b - C`` of the two covariances is equal to it only for white noise);
+* ``z = d_b,i / sqrt(cov(d_b)_ii)`` for every free parameter and block; the model is
+  consistent if ``max |z|`` stays below a Bonferroni bound over the parameters and blocks
+  tested at about 1 % false alarms.
+
+Cost: the sensitivities are the covariance's (cached by the problem); per block one small SVD
+and one backward filter of ``p`` columns. Only a flagged estimate is refined: each quarter's
+estimate is iterated (Gauss-Newton on the block's rows of the full-record simulation, at most
+:data:`REFINE_ITERATIONS` updates) and the reported standard deviations become at least the
+scatter of the quarter estimates.
+"""
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Tuple
+
+from ctid_ros.estimation.noise import noise_root, NoiseModel
+from ctid_ros.estimation.problem import Problem, State
+import numpy as np
+from scipy import special
+
+__all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'check_consistency',
+           'consistency_bound', 'with_consistency']
+
+# Halves and quarters.
+BLOCKS = (2, 4)
+# Family-wise probability of no alarm on an adequate model (Bonferroni over the tests).
+FAMILY = 0.99
+# Gauss-Newton updates of each quarter's estimate when the model is flagged.
+REFINE_ITERATIONS = 4
+# A block whose scaled sensitivities are worse conditioned than this determines no parameter.
+_BLOCK_CONDITION = 1e8
+# Fewest fitted samples per parameter in a block.
+_SAMPLES_PER_PARAMETER = 10
+
+
+@dataclass
+class Consistency:
+    """
+    Outcome of :func:`check_consistency`.
+
+    Attributes
+    ----------
+    consistent : bool
+        No block's estimate differs from the whole record's by more than the bound.
+    max_z : float
+        Largest ``|d_b,i| / std(d_b,i)`` over blocks and parameters (0 if none was tested).
+    blocks : int
+        Blocks tested (up to six: two halves and four quarters).
+    verdict : str
+        One line in words.
+    bound : float
+        The threshold ``max_z`` was compared with.
+    worst : (str, str) or None
+        Parameter and block (e.g. ``'quarter 3'``) of ``max_z``.
+    z : dict
+        ``{block name: {parameter: z}}`` for the blocks tested.
+    quarter_params : list of dict
+        The quarter estimates (refined if the model was flagged), in time order.
+    spread : dict
+        Sample standard deviation of the quarter estimates, by parameter.
+    std_noise : dict
+        The standard deviations the noise alone implies (the covariance of section 15).
+
+    """
+
+    consistent: bool
+    max_z: float
+    blocks: int
+    verdict: str
+    bound: float = float('inf')
+    worst: Optional[Tuple[str, str]] = None
+    z: Dict[str, Dict[str, float]] = field(default_factory=dict)
+    quarter_params: List[Dict[str, float]] = field(default_factory=list)
+    spread: Dict[str, float] = field(default_factory=dict)
+    std_noise: Dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """Return the ``--json`` ``consistency`` object."""
+        return {
+            'consistent': bool(self.consistent),
+            'max_z': float(self.max_z),
+            'blocks': int(self.blocks),
+            'verdict': self.verdict,
+            'bound': float(self.bound),
+            'spread': {name: _finite(value) for name, value in self.spread.items()},
+        }
+
+
+def _finite(value: float) -> Optional[float]:
+    return float(value) if np.isfinite(value) else None
+
+
+def consistency_bound(tests: int) -> float:
+    """Return the normal quantile for :data:`FAMILY` over ``tests`` two-sided tests."""
+    return float(special.ndtri(1.0 - (1.0 - FAMILY) / (2.0 * max(tests, 1))))
+
+
+def _block_rows(count: int) -> List[Tuple[str, slice]]:
+    names = {2: ('first half', 'second half'),
+             4: ('quarter 1', 'quarter 2', 'quarter 3', 'quarter 4')}
+    rows = []
+    for parts in BLOCKS:
+        edges = np.linspace(0, count, parts + 1).round().astype(int)
+        rows += [(names[parts][i], slice(edges[i], edges[i + 1])) for i in range(parts)]
+    return rows
+
+
+def _sensitivities(problem: Problem, state: State, free: np.ndarray
+                   ) -> Tuple[np.ndarray, np.ndarray]:
+    """Return the free columns of ``Psi`` (mean one-sided at a kink) and the residual."""
+    lin = problem.linearize(state.coefficients, regressors=False)
+    psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
+    return psi[:, free], problem.measured - lin.output
+
+
+def _pseudo_inverse(psi: np.ndarray) -> Optional[np.ndarray]:
+    """Return ``(Psi^T Psi)^-1 Psi^T`` by the SVD, or None if ``Psi`` is (nearly) singular."""
+    left, singular, right_t = np.linalg.svd(psi, full_matrices=False)
+    if singular.size == 0 or singular[-1] <= singular[0] / _BLOCK_CONDITION:
+        return None
+    return (right_t.T / singular) @ left.T
+
+
+def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
+                      std: np.ndarray) -> Consistency:
+    """
+    Test whether one parameter vector holds over the record (module docstring).
+
+    Parameters
+    ----------
+    problem : Problem
+        The estimation problem (its fitted samples, sensitivities and bounds).
+    state : State
+        The final estimate.
+    noise : NoiseModel
+        The residual's noise model behind the estimate's covariance.
+    free : ndarray of bool
+        Parameters not held at a bound (only these are tested).
+    std : ndarray
+        The noise-only standard deviations, ``model.parameters`` order.
+
+    """
+    names = problem.model.parameters
+    std_noise = {name: float(value) for name, value in zip(names, std)}
+    free = np.asarray(free, dtype=bool) & np.isfinite(std)
+    params = int(np.sum(free))
+    if params == 0:
+        return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
+                           std_noise=std_noise)
+    psi, error = _sensitivities(problem, state, free)
+    count = error.size
+    scales = np.linalg.norm(psi, axis=0)
+    scales = np.where(scales > 0.0, scales, 1.0)
+    scaled = psi / scales
+    whole = _pseudo_inverse(scaled)
+    if whole is None:
+        return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
+                           std_noise=std_noise)
+    scale = count / max(count - params, 1)
+    free_names = [name for name, keep in zip(names, free) if keep]
+    z_table: Dict[str, Dict[str, float]] = {}
+    worst: Optional[Tuple[str, str]] = None
+    max_z = 0.0
+    for block, rows in _block_rows(count):
+        if rows.stop - rows.start < _SAMPLES_PER_PARAMETER * params:
+            continue
+        local = _pseudo_inverse(scaled[rows])
+        if local is None:
+            continue
+        # A_b - A as a p x N map of the noise, A_b acting on the block's rows only.
+        difference = -whole
+        difference[:, rows] += local
+        deviation = difference @ error
+        root = noise_root(difference.T, noise, scale)
+        variance = np.einsum('ij,ij->j', root, root)
+        z = np.where(variance > 0.0, deviation / np.sqrt(np.maximum(variance, 1e-300)), 0.0)
+        z_table[block] = dict(zip(free_names, map(float, z)))
+        top = int(np.argmax(np.abs(z)))
+        if abs(z[top]) > max_z:
+            max_z, worst = float(abs(z[top])), (free_names[top], block)
+    tests = sum(len(values) for values in z_table.values())
+    bound = consistency_bound(tests)
+    consistent = max_z <= bound
+    result = Consistency(consistent, max_z, len(z_table), '', bound, worst, z_table,
+                         std_noise=std_noise)
+    if not consistent:
+        result.quarter_params = _quarter_estimates(problem, state, free)
+        for index, name in enumerate(names):
+            values = [quarter[name] for quarter in result.quarter_params]
+            result.spread[name] = float(np.std(values, ddof=1)) if free[index] and \
+                len(values) > 1 else float('nan')
+    result.verdict = _verdict(result)
+    return result
+
+
+def _quarter_estimates(problem: Problem, state: State, free: np.ndarray
+                       ) -> List[Dict[str, float]]:
+    """
+    Return each quarter's estimate: Gauss-Newton on its rows of the full-record simulation.
+
+    From the full estimate, at most :data:`REFINE_ITERATIONS` updates, each halved (up to five
+    times) until the quarter's cost falls and the model is admissible; parameters held at a
+    bound stay there.
+    """
+    names = problem.model.parameters
+    count = problem.measured.size
+    edges = np.linspace(0, count, 5).round().astype(int)
+    quarters = []
+    for first, last in zip(edges[:-1], edges[1:]):
+        rows = slice(first, last)
+        theta, coefficients = state.theta.copy(), state.coefficients
+        psi, error = _sensitivities(problem, _point(theta, coefficients), free)
+        cost = float(error[rows] @ error[rows])
+        for _ in range(REFINE_ITERATIONS):
+            step = np.linalg.lstsq(psi[rows], error[rows], rcond=None)[0]
+            accepted = False
+            for _ in range(6):
+                trial = theta.copy()
+                trial[free] = np.clip(theta[free] + step, problem.lower[free],
+                                      problem.upper[free])
+                trial_coefficients = problem.admissible(trial)
+                if trial_coefficients is not None:
+                    trial_psi, trial_error = _sensitivities(
+                        problem, _point(trial, trial_coefficients), free)
+                    trial_cost = float(trial_error[rows] @ trial_error[rows])
+                    if trial_cost < cost:
+                        theta, coefficients, cost = trial, trial_coefficients, trial_cost
+                        psi, error = trial_psi, trial_error
+                        accepted = True
+                        break
+                step = 0.5 * step
+            if not accepted:
+                break
+        quarters.append(dict(zip(names, map(float, theta))))
+    return quarters
+
+
+def _point(theta: np.ndarray, coefficients: Any) -> State:
+    # A quarter's point: its cost is not the record's (NaN), and it is not a point seen.
+    return State(theta, coefficients, float('nan'))
+
+
+def _verdict(result: Consistency) -> str:
+    """Return the verdict line."""
+    if result.blocks == 0:
+        return 'no block of the record determines the parameters: adequacy not tested'
+    if result.consistent:
+        return (f'consistent over the record: the estimates of its halves and quarters agree '
+                f'with the whole within the noise (largest {result.max_z:.1f} std, bound '
+                f'{result.bound:.1f})')
+    name, block = result.worst
+    return (f'the model does not hold over the record: {name} of the {block} differs from the '
+            f"whole record's by {result.max_z:.1f} of its std (bound {result.bound:.1f}); the "
+            'plant is time-varying or nonlinear, or the model misses a lag or has a different '
+            'structure; the reported std covers the scatter of the quarter estimates')
+
+
+def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
+                     free: np.ndarray) -> Any:
+    """
+    Return the estimate ``result`` with its consistency checked and reported.
+
+    Sets ``result.consistency`` and ``result.std_noise`` (the noise-only standard deviations).
+    If the model does not hold over the record, each standard deviation becomes the larger of
+    the noise-only one and the scatter of the quarter estimates (the covariance is scaled to
+    match, correlations kept), a warning says so, and the residual verdict no longer claims
+    that the standard deviations account for what is left.
+    """
+    names = problem.model.parameters
+    std = np.array([result.std[name] for name in names], dtype=float)
+    consistency = check_consistency(problem, state, noise, free, std)
+    result.consistency = consistency
+    result.std_noise = dict(consistency.std_noise)
+    if consistency.consistent:
+        return result
+    spread = np.array([consistency.spread.get(name, np.nan) for name in names])
+    widened = np.where(np.isfinite(spread) & (spread > std), spread, std)
+    ratio = np.where(std > 0.0, widened / np.where(std > 0.0, std, 1.0), 1.0)
+    ratio = np.where(np.isfinite(ratio), ratio, 1.0)
+    result.covariance = result.covariance * np.outer(ratio, ratio)
+    result.std = dict(zip(names, map(float, widened)))
+    result.warnings = list(result.warnings) + [consistency.verdict]
+    if result.residuals is not None:
+        result.residuals.mark_inconsistent()
+    return result
