@@ -100,6 +100,7 @@ class Update:
     def diagnostics(self) -> Dict[str, Any]:
         """Return the key/value pairs published on ``/diagnostics`` (see its contract)."""
         residual = self.result.residuals
+        consistency = self.result.consistency
         return {
             'fit_percent': self.result.fit,
             'iterations': self.result.iterations,
@@ -117,6 +118,10 @@ class Update:
             'residual': residual.verdict if residual else '',
             'residual_white': bool(residual.white) if residual else False,
             'residual_input_correlated': bool(residual.input_correlated) if residual else False,
+            # One parameter vector across the window's halves and quarters (issue 24 a).
+            'consistent': bool(consistency.consistent) if consistency else True,
+            'consistency': consistency.verdict if consistency else 'not checked',
+            'consistency_max_z': float(consistency.max_z) if consistency else 0.0,
             'warnings': list(self.warnings),
         }
 

@@ -41,7 +41,11 @@ def test_successive_windows_recover_the_parameters_in_published_order():
         assert np.all(update.stds > 0)
         assert update.prediction.size == update.prediction_times_ns.size
         assert update.diagnostics()['fit_percent'] > 90.0
+        # The plant is the model: one parameter vector holds over each window.
+        assert update.diagnostics()['consistent'] is True
+        assert update.diagnostics()['consistency_max_z'] > 0.0
         summary = update.to_dict()
+        assert summary['consistency']['consistent'] is True
         assert list(summary['params']) == ['tau', 'K', 'T']
     assert updates[1].result.iterations <= updates[0].result.iterations + 2   # warm start
     # Each warm start explains its window after a few iterations: no start search, no profile.
