@@ -21,12 +21,14 @@ Run with ``.venv/bin/python -m bench.coverage [--runs 200]``.
 import argparse
 import json
 import time
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
-from ctid_ros import Data, estimate, EstimationError
+from ctid_ros import Data, estimate, EstimationError, Model
 from ctid_ros.core import reference_systems
+from ctid_ros.core.excitation import prbs
 from ctid_ros.core.reference_systems import ReferenceSystem
 from ctid_ros.estimation.estimate import build_problem
+from ctid_ros.estimation.noise import coloured_covariance
 import numpy as np
 from scipy import signal
 from threadpoolctl import threadpool_limits
@@ -68,12 +70,66 @@ def fine_grid_data(system: ReferenceSystem, rng: np.random.Generator) -> Data:
     return Data(u, y, system.ts / FINER)
 
 
+def arma_noise(rng: np.random.Generator, count: int) -> np.ndarray:
+    """Return stationary ARMA noise ``(1 + 0.5 q^-1) / (1 - 0.9 q^-1)`` of unit variance."""
+    white = rng.standard_normal(count + 500)
+    coloured = signal.lfilter([1.0, 0.5], [1.0, -0.9], white)[500:]
+    # The filter's power gain: 1 + (0.5 + 0.9)^2 / (1 - 0.81).
+    return coloured / np.sqrt(1.0 + 1.4 ** 2 / (1.0 - 0.81))
+
+
+def arma_data(system: ReferenceSystem, rng: np.random.Generator) -> Data:
+    """Return the system's data with ARMA output noise of the same variance."""
+    clean = system.noise_free()
+    sigma = np.std(clean) / 10.0 ** (system.snr_db / 20.0)
+    return Data(system.u, clean + sigma * arma_noise(rng, clean.size), system.ts)
+
+
+def fed_back_data(system: ReferenceSystem, rng: np.random.Generator) -> Data:
+    """
+    Return closed-loop data whose measured output, noise included, is fed back.
+
+    The model is the closed loop ``T`` from ``r`` to ``y``: the noise ``v`` enters where the
+    measurement is subtracted from ``r``, so ``y = T r + (1 - T) v``, ``1 - T`` the sensitivity
+    ``1 / (1 + C G)``; white ``v`` at the system's SNR.
+    """
+    clean = system.noise_free()
+    sigma = np.std(clean) / 10.0 ** (system.snr_db / 20.0)
+    noise = sigma * rng.standard_normal(clean.size)
+    return Data(system.u, clean + noise - system.model.simulate(system.truth, noise, system.ts),
+                system.ts)
+
+
+def closed_loop_integrator() -> ReferenceSystem:
+    """Return the plant ``K/(s (T s + 1))`` under a known PI, r -> y, at 10 dB."""
+    return ReferenceSystem(
+        'integrator + lag under PI', Model('K/(s*(T*s + 1))', controller='(0.8*s + 0.2)/s'),
+        {'K': 2.0, 'T': 0.5}, prbs(9, 8)[:4000], 0.05,
+        bounds={'K': (1e-3, None), 'T': (1e-3, None)})
+
+
+def short_dead_time() -> ReferenceSystem:
+    """Return a 300-sample first order with a fractional dead time (3.7 samples), 10 dB."""
+    return ReferenceSystem(
+        'short record, FOPDT', Model('K*exp(-tau*s)/(T*s + 1)'),
+        {'K': 2.0, 'T': 1.0, 'tau': 0.37}, prbs(6, 5)[:300], 0.1,
+        bounds={'T': (1e-3, None), 'tau': (0.0, 3.0)})
+
+
 CASES: Dict[str, Callable[[ReferenceSystem, np.random.Generator], Data]] = {
     'white': white_data,
     'AR(1) 0.9': coloured_data,
     'grid 4x': fine_grid_data,
+    'ARMA': arma_data,
+    'fed back': fed_back_data,
 }
-SYSTEMS = (reference_systems.first_order_dead_time, reference_systems.second_order_nonaffine)
+# Each system with its cases.
+SYSTEMS: Tuple[Tuple[Callable[[], ReferenceSystem], Tuple[str, ...]], ...] = (
+    (reference_systems.first_order_dead_time, ('white', 'AR(1) 0.9', 'grid 4x', 'ARMA')),
+    (reference_systems.second_order_nonaffine, ('white', 'AR(1) 0.9', 'grid 4x', 'ARMA')),
+    (closed_loop_integrator, ('fed back',)),
+    (short_dead_time, ('ARMA',)),
+)
 
 
 def white_formula_std(system: ReferenceSystem, data: Data, theta: np.ndarray) -> np.ndarray:
@@ -85,6 +141,16 @@ def white_formula_std(system: ReferenceSystem, data: Data, theta: np.ndarray) ->
     return np.sqrt(np.diag(variance * np.linalg.inv(lin.psi.T @ lin.psi)))
 
 
+def bic_noise_std(system: ReferenceSystem, data: Data, theta: np.ndarray) -> np.ndarray:
+    """Return the standard deviations with the noise model's order chosen by BIC at ``theta``."""
+    problem, _ = build_problem(system.model, data, bounds=system.bounds)
+    lin = problem.linearize(problem.model.coefficients(theta), regressors=False)
+    scales = np.linalg.norm(lin.psi, axis=0)
+    scaled, _ = coloured_covariance(lin.psi / scales, problem.measured - lin.output,
+                                    theta.size, criterion='bic')
+    return np.sqrt(np.diag(scaled)) / scales
+
+
 def run_case(system: ReferenceSystem, case: str, runs: int, seed: int) -> dict:
     """Return the coverage of every parameter over ``runs`` estimates."""
     make = CASES[case]
@@ -93,8 +159,10 @@ def run_case(system: ReferenceSystem, case: str, runs: int, seed: int) -> dict:
     truth = system.model.vector(system.truth)
     inside = np.zeros(len(names))
     inside_white = np.zeros(len(names))
+    inside_bic = np.zeros(len(names))
+    inside_noise = np.zeros(len(names))
     errors, stds, times, verdicts = [], [], [], {'white': 0, 'coloured': 0, 'input': 0}
-    failures = 0
+    failures = flagged = 0
     for _ in range(runs):
         data = make(system, rng)
         began = time.perf_counter()
@@ -109,6 +177,10 @@ def run_case(system: ReferenceSystem, case: str, runs: int, seed: int) -> dict:
         std = np.array([result.std[name] for name in names])
         inside += np.abs(theta - truth) <= Z95 * std
         inside_white += np.abs(theta - truth) <= Z95 * white_formula_std(system, data, theta)
+        inside_bic += np.abs(theta - truth) <= Z95 * bic_noise_std(system, data, theta)
+        noise_only = np.array([result.std_noise[name] for name in names])
+        inside_noise += np.abs(theta - truth) <= Z95 * noise_only
+        flagged += not result.consistency.consistent
         if np.all(np.isfinite(std)):
             errors.append(theta - truth)
             stds.append(std)
@@ -120,6 +192,9 @@ def run_case(system: ReferenceSystem, case: str, runs: int, seed: int) -> dict:
     return {'system': system.name, 'case': case, 'runs': runs, 'failures': failures,
             'parameters': list(names), 'coverage': list(inside / done),
             'white_formula_coverage': list(inside_white / done),
+            'bic_noise_coverage': list(inside_bic / done),
+            'noise_only_coverage': list(inside_noise / done),
+            'inconsistent': flagged,
             'spread_over_std': list(spread / np.mean(np.array(stds), axis=0)),
             'median_time': float(np.median(times)), 'verdicts': verdicts}
 
@@ -127,16 +202,18 @@ def run_case(system: ReferenceSystem, case: str, runs: int, seed: int) -> dict:
 def print_table(results: List[dict]) -> None:
     """Print one line per system and case."""
     print(f'{"system":<30} {"case":<10} {"runs":>5} {"time s":>7}  coverage of 95 % intervals '
-          '(MC spread / reported std) [white formula]   verdicts white/coloured/input')
+          '(MC spread / reported std) [BIC noise model | white formula]   verdicts '
+          'white/coloured/input   inconsistent')
     for result in results:
-        cells = '  '.join(f'{name} {100 * value:5.1f}% ({ratio:.2f}) [{100 * white:4.1f}%]'
-                          for name, value, ratio, white in
+        cells = '  '.join(f'{name} {100 * value:5.1f}% ({ratio:.2f}) [{100 * bic:4.1f}% | '
+                          f'{100 * white:4.1f}%]' for name, value, ratio, bic, white in
                           zip(result['parameters'], result['coverage'],
-                              result['spread_over_std'], result['white_formula_coverage']))
+                              result['spread_over_std'], result['bic_noise_coverage'],
+                              result['white_formula_coverage']))
         verdicts = result['verdicts']
         print(f'{result["system"]:<30} {result["case"]:<10} {result["runs"]:>5} '
               f'{result["median_time"]:>7.3f}  {cells}   {verdicts["white"]}/'
-              f'{verdicts["coloured"]}/{verdicts["input"]}'
+              f'{verdicts["coloured"]}/{verdicts["input"]}   {result["inconsistent"]}'
               + (f'  ({result["failures"]} failed)' if result['failures'] else ''))
 
 
@@ -146,14 +223,18 @@ def main(argv: Optional[List[str]] = None) -> List[dict]:
     parser.add_argument('--runs', type=int, default=200, help='runs per case (default 200)')
     parser.add_argument('--seed', type=int, default=1)
     parser.add_argument('--json', default=None, help='also write the results to this file')
+    parser.add_argument('--only', nargs='*', default=None, metavar='SYSTEM',
+                        help='only these systems (by name)')
     arguments = parser.parse_args(argv)
     results = []
     with threadpool_limits(limits=1, user_api='blas'):
-        for factory in SYSTEMS:
+        for factory, cases in SYSTEMS:
             system = factory()
-            for index, case in enumerate(CASES):
+            for case in cases:
+                if arguments.only and system.name not in arguments.only:
+                    continue
                 results.append(run_case(system, case, arguments.runs,
-                                        arguments.seed * 100 + index))
+                                        arguments.seed * 100 + list(CASES).index(case)))
                 print_table(results[-1:])
     print()
     print_table(results)

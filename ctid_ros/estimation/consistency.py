@@ -41,8 +41,11 @@ __all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'check_consis
 
 # Halves and quarters.
 BLOCKS = (2, 4)
-# Family-wise probability of no alarm on an adequate model (Bonferroni over the tests).
-FAMILY = 0.99
+# Family-wise probability of no alarm on an adequate model (Bonferroni over the tests), set
+# above the 0.99 the z statistics would need if they were exactly standard normal: with the
+# noise fed back through a controller their spread is 1.1-1.3 (the AR noise model only
+# approximates the sensitivity-shaped spectrum), and the false alarms stay below 2 %.
+FAMILY = 0.998
 # Gauss-Newton updates of each quarter's estimate when the model is flagged.
 REFINE_ITERATIONS = 4
 # A block whose scaled sensitivities are worse conditioned than this determines no parameter.

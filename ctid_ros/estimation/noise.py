@@ -7,7 +7,7 @@ The output-error estimate stops where the residual ``e`` is orthogonal to the se
 ``sigma^2 (Psi^T Psi)^-1`` is that for white noise only; real records (unmodelled dynamics,
 drifting disturbances) and outputs interpolated onto a finer grid than they were measured on
 have coloured residuals, and that formula then claims far too much. Here the residual's colour
-is an autoregressive model ``A(q) e = w`` whose order is chosen by BIC (order 0 for a white
+is an autoregressive model ``A(q) e = w`` whose order is chosen by AICc (order 0 for a white
 residual: then the formula above is recovered), and ``Psi^T Sigma Psi`` is computed exactly
 for that model by filtering ``Psi`` backwards through ``1/A`` (``docs/algorithm.md``
 section 15).
@@ -23,7 +23,8 @@ from typing import Optional, Tuple
 import numpy as np
 from scipy import signal
 
-__all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model', 'noise_root']
+__all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'measured_every',
+           'noise_model', 'noise_root']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -32,6 +33,12 @@ _PATIENCE = 10
 # Interpolation is recognised when this share of an output's bends falls on one phase.
 _PHASE_SHARE = 0.99
 _MAX_FACTOR = 64
+# How the noise model's order is chosen (noise_model).
+DEFAULT_CRITERION = 'aicc'
+_PENALTIES = {
+    'aicc': lambda order, count: 2.0 * order * count / max(count - order - 1, 1),
+    'bic': lambda order, count: order * math.log(count),
+}
 
 
 @dataclass
@@ -68,16 +75,24 @@ class NoiseModel:
 
 
 def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
-                autocorrelation: Optional[np.ndarray] = None) -> NoiseModel:
+                autocorrelation: Optional[np.ndarray] = None,
+                criterion: str = DEFAULT_CRITERION) -> NoiseModel:
     """
-    Fit an autoregressive model to ``residual`` (Levinson-Durbin, order by BIC).
+    Fit an autoregressive model to ``residual`` (Levinson-Durbin, order by AICc or BIC).
 
     The Yule-Walker estimate from the biased autocovariance, whose polynomial is always stable.
     Orders ``0..min(max_order, 5 % of the samples)`` are compared by
-    ``N log(innovation variance) + p log N``; the search ends ten orders after the best.
-    ``autocorrelation``: the residual's normalised autocorrelation at lags 0, 1, ... if the
-    caller has it (the residual analysis does), so it is not computed again.
+    ``N log(innovation variance) + penalty(p)``: ``'aicc'`` (default) ``2 p N / (N - p - 1)``,
+    the corrected Akaike criterion, efficient for a spectrum that no finite order describes
+    (noise fed back through a controller, ``docs/algorithm.md`` section 15); ``'bic'``
+    ``p log N``, which stops at the first orders and misses a peak of such a spectrum. The
+    search ends ten orders after the best. ``autocorrelation``: the residual's normalised
+    autocorrelation at lags 0, 1, ... if the caller has it (the residual analysis does), so it
+    is not computed again.
     """
+    if criterion not in _PENALTIES:
+        raise ValueError(f'criterion must be one of {", ".join(_PENALTIES)}, got {criterion!r}')
+    penalty = _PENALTIES[criterion]
     residual = np.asarray(residual, dtype=float)
     count = residual.size
     centred = residual - np.mean(residual)
@@ -104,20 +119,20 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
         error *= 1.0 - reflection ** 2
         if error <= 0.0:
             break
-        criterion = count * math.log(error) + order * math.log(count)
-        if criterion < best[0]:
-            best = (criterion, order, error)
+        score = count * math.log(error) + penalty(order, count)
+        if score < best[0]:
+            best = (score, order, error)
             kept = ar[:order + 1].copy()
         elif order - best[1] >= _PATIENCE:
-            # Each further order costs log N in BIC; ten without a gain end the search.
+            # Each further order costs at least 2; ten without a gain end the search.
             break
     return NoiseModel(kept, float(best[2]), variance)
 
 
 def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                        autocorrelation: Optional[np.ndarray] = None
-                        ) -> Tuple[np.ndarray, NoiseModel]:
+                        autocorrelation: Optional[np.ndarray] = None,
+                        criterion: str = DEFAULT_CRITERION) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
 
@@ -128,10 +143,11 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     with ``H`` the (causal) impulse-response matrix of ``1/A``: ``Z`` is ``U`` filtered through
     ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
     normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``,
-    ``autocorrelation``: that of the residual, if the caller has them.
+    ``autocorrelation``: that of the residual, if the caller has them; ``criterion``: how the
+    noise model's order is chosen (:func:`noise_model`).
     """
     count = residual.size
-    model = noise_model(residual, autocorrelation=autocorrelation)
+    model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model

@@ -588,7 +588,12 @@ def explains_data(problem: Problem, state: State, delay_index: Optional[int],
     if delay_index is not None:
         horizon += problem.delay_bracket(delay_index, delay_range)[1]
     lags = int(np.ceil(horizon / data.ts))
-    return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4))
+    # The bound accounts for the colour of residual and input; the sensitivities let the
+    # parameters' own noise-sized error pass (correlation.independent_of_input).
+    sensitivities = np.zeros((len(data), state.theta.size))
+    sensitivities[problem.skip:] = problem.linearize(state.coefficients, regressors=False).psi
+    return independent_of_input(residual, problem.bank.channels, min(lags, len(data) // 4),
+                                sensitivities=sensitivities)
 
 
 def resembles_output(problem: Problem, state: State) -> bool:
