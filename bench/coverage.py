@@ -2,7 +2,7 @@
 Coverage of the reported uncertainty: how often the 95 % intervals contain the truth.
 
 For reference systems with known parameters, Monte Carlo runs (fresh noise each) of
-``estimate(..., 'auto')`` in three cases:
+``estimate(..., 'auto')`` in these cases:
 
 * ``white``: white Gaussian output noise at the system's SNR;
 * ``AR(1) 0.9``: the same variance, coloured by ``1/(1 - 0.9 q^-1)``;
@@ -10,10 +10,21 @@ For reference systems with known parameters, Monte Carlo runs (fresh noise each)
   grid four times finer (input held, output linearly interpolated) and estimated there, as a
   resampler with a too-fine ``sample_time`` would.
 
+and for two systems of issue #24:
+
+* ``fed back``: the plant ``K/(s (T s + 1))`` under a known PI (the model is the closed loop
+  from ``r``), white measurement noise at 10 dB fed back through the controller;
+* ``ARMA`` on a 300-sample first order with a fractional dead time (also on the systems
+  above): noise ``(1 + 0.5 q^-1)/(1 - 0.9 q^-1)``.
+
 Reported per case and parameter: the fraction of runs whose interval ``estimate +- 1.96 std``
 contains the truth (target 90-98 %), the Monte Carlo spread over the mean reported std, the
 same fraction for the white-noise formula ``sigma^2 (Psi^T Psi)^-1`` at the same estimates
-(what the estimator reported before issue #13), and the median time per estimate.
+(what the estimator reported before issue #13), the same for the noise model's order chosen
+by BIC (before issue #24), the median time per estimate and how many fits the consistency check
+flagged (false alarms: these models are adequate). Then (``adequacy``) a FOPDT fitted to
+records it does not describe over their whole length (a missed lag, a drifting gain, a
+saturation, on an input whose character changes halfway): how often the check flags it.
 
 Run with ``.venv/bin/python -m bench.coverage [--runs 200]``.
 """
@@ -132,6 +143,66 @@ SYSTEMS: Tuple[Tuple[Callable[[], ReferenceSystem], Tuple[str, ...]], ...] = (
 )
 
 
+FOPDT = Model('K*exp(-tau*s)/(T*s + 1)')
+FOPDT_BOUNDS = {'T': (1e-3, None), 'tau': (0.0, 10.0)}
+FOPDT_TRUTH = {'K': 2.0, 'T': 5.0, 'tau': 1.234}
+
+
+def operating_input(slow: float = 1.0, fast: float = 1.0) -> np.ndarray:
+    """Return an input that is not stationary: slow moves, then faster ones (Ts 0.1 s)."""
+    return np.concatenate([slow * prbs(7, 30), fast * prbs(8, 6)])
+
+
+def missing_lag(rng: np.random.Generator) -> Data:
+    """Return a second order plus dead time (the FOPDT misses a lag), ARMA noise at 20 dB."""
+    u = operating_input()
+    clean = Model('K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))').simulate(
+        {'K': 2.0, 'T1': 1.5, 'T2': 0.6, 'tau': 0.7}, u, 0.1)
+    return Data(u, clean + np.std(clean) / 10.0 * arma_noise(rng, u.size), 0.1)
+
+
+def drifting_gain(rng: np.random.Generator) -> Data:
+    """Return a FOPDT whose gain drifts from -15 % to +15 % over the record, ARMA at 20 dB."""
+    u = operating_input()
+    clean = FOPDT.simulate(FOPDT_TRUTH, u, 0.1) * np.linspace(0.85, 1.15, u.size)
+    return Data(u, clean + np.std(clean) / 10.0 * arma_noise(rng, u.size), 0.1)
+
+
+def saturating(rng: np.random.Generator) -> Data:
+    """Return a FOPDT followed by a saturation ``0.7 tanh(x / 0.7)``, small then large moves."""
+    u = operating_input(0.3, 1.5)
+    clean = 0.7 * np.tanh(FOPDT.simulate(FOPDT_TRUTH, u, 0.1) / 0.7)
+    return Data(u, clean + np.std(clean) / 10.0 * arma_noise(rng, u.size), 0.1)
+
+
+# Records a FOPDT does not describe over their whole length (docs/algorithm.md section 18).
+INADEQUATE: Dict[str, Callable[[np.random.Generator], Data]] = {
+    'missing lag': missing_lag,
+    'drifting gain': drifting_gain,
+    'saturation': saturating,
+}
+
+
+def adequacy(runs: int, seed: int) -> List[dict]:
+    """Return how often the FOPDT fitted to each :data:`INADEQUATE` record is flagged."""
+    results = []
+    for index, (name, make) in enumerate(INADEQUATE.items()):
+        rng = np.random.default_rng(seed + index)
+        flagged, max_z, widened = 0, [], []
+        for _ in range(runs):
+            result = estimate(FOPDT, make(rng), 'auto', bounds=FOPDT_BOUNDS)
+            flagged += not result.consistency.consistent
+            max_z.append(result.consistency.max_z)
+            widened.append(max(result.std[key] / result.std_noise[key] for key in result.std))
+        results.append({'case': name, 'runs': runs, 'flagged': flagged,
+                        'max_z_median': float(np.median(max_z)),
+                        'std_over_noise_std_median': float(np.median(widened))})
+        print(f'FOPDT on {name:<14} flagged {flagged}/{runs}, median max z '
+              f'{np.median(max_z):.2f}, median std / noise-only std {np.median(widened):.2f}',
+              flush=True)
+    return results
+
+
 def white_formula_std(system: ReferenceSystem, data: Data, theta: np.ndarray) -> np.ndarray:
     """Return the standard deviations of ``sigma^2 (Psi^T Psi)^-1`` at ``theta``."""
     problem, _ = build_problem(system.model, data, bounds=system.bounds)
@@ -238,9 +309,11 @@ def main(argv: Optional[List[str]] = None) -> List[dict]:
                 print_table(results[-1:])
     print()
     print_table(results)
+    inadequate = [] if arguments.only else adequacy(max(arguments.runs // 4, 10),
+                                                    arguments.seed * 100 + 50)
     if arguments.json:
         with open(arguments.json, 'w') as handle:
-            json.dump(results, handle, indent=2)
+            json.dump({'coverage': results, 'inadequate': inadequate}, handle, indent=2)
     return results
 
 

@@ -99,14 +99,18 @@ def chance_spread(residual_autocorrelation: np.ndarray, input_autocorrelation: n
 
 
 def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
-                         confidence: float = CONFIDENCE, coloured: bool = True,
+                         confidence: float = CONFIDENCE, bound: str = 'prewhitened',
                          sensitivities: Optional[np.ndarray] = None) -> bool:
     """
     Return True if the residual shows no correlation with past inputs beyond chance.
 
-    ``coloured`` (default): the residual is prewhitened by its own autoregressive model (least
-    squares, order 10: :func:`whitening_filter`) and every input filtered by the same
-    polynomial, as a noise model's innovations are tested; the correlations of the filtered
+    ``bound='bartlett'``: the correlations of the raw series within ``confidence`` of
+    Bartlett's standard deviations for them (:func:`chance_spread`), as the residual analysis
+    tests: calibrated at an output-error optimum under any colour of input and noise, blind to
+    a model error whose ringing the input shares (a resonance in closed loop).
+    ``bound='prewhitened'`` (default): the residual is prewhitened by its own autoregressive
+    model (least squares, order 10: :func:`whitening_filter`) and every input filtered by the
+    same polynomial, as a noise model's innovations are tested; the correlations of the filtered
     series (:func:`input_correlation`) must stay within ``confidence`` of Bartlett's standard
     deviations for them (:func:`chance_spread`: the input's colour, and what the filter left of
     the residual's, counted; ``1/sqrt(N)`` for white series). A held input and coloured noise
@@ -119,7 +123,8 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     estimate is the optimum of the unfiltered residual, and its (noise-sized) parameter error
     would otherwise show against the whitened input as a model error (a dead time a fraction of
     its standard deviation off correlates at its lag). The test then asks whether any
-    parameters of the structure explain the data. ``coloured=False``: the white-series bound
+    parameters of the structure explain the data (at a point that is not an optimum, a small
+    error of any parameter is explained too). ``bound='white'``: the white-series bound
     ``confidence/sqrt(N)`` on the raw series (for comparison: it calls a perfect model with
     coloured noise and a held input a model error in most records). ``N`` counts the residual
     samples from its first nonzero one.
@@ -132,9 +137,18 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     first = used[0]
     count = residual.size - first
     inputs = np.asarray(inputs, dtype=float).reshape(residual.size, -1)
-    if not coloured:
+    if bound not in ('prewhitened', 'bartlett', 'white'):
+        raise ValueError(f"bound must be 'prewhitened', 'bartlett' or 'white', got {bound!r}")
+    if bound != 'prewhitened':
         correlation = input_correlation(residual, inputs, max_lag)
-        return bool(np.max(np.abs(correlation)) <= confidence / np.sqrt(count))
+        if bound == 'white':
+            return bool(np.max(np.abs(correlation)) <= confidence / np.sqrt(count))
+        span = bartlett_span(count, max_lag)
+        rho_e = autocorrelations(residual[first:], span)[:, 0]
+        rho_u = autocorrelations(inputs[first:], span)
+        spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
+                            for j in range(inputs.shape[1])])
+        return bool(np.all(np.max(np.abs(correlation), axis=0) <= confidence * spreads))
     polynomial = whitening_filter(residual[first:])
     start = polynomial.size - 1
     filtered = np.convolve(residual[first:] - np.mean(residual[first:]), polynomial)[start:count]

@@ -239,8 +239,11 @@ def model_check(update: Update, window: float, transient: float = -1.0,
     inputs = np.asarray(data.u, dtype=float).reshape(len(data), -1)[-count:]
     if not np.all(np.isfinite(residual)):
         return False, 'the model output is not finite'
+    if not np.any(residual):
+        return True, 'residual independent of the input'
     sensitivities = output_sensitivities(result, data)[-count:] if coloured else None
-    if independent_of_input(residual, inputs, min(_CHECK_LAGS, count // 4), coloured=coloured,
+    if independent_of_input(residual, inputs, min(_CHECK_LAGS, count // 4),
+                            bound='prewhitened' if coloured else 'white',
                             sensitivities=sensitivities):
         return True, 'residual independent of the input'
     return False, ('residual correlated with the input: missing dynamics (e.g. a new resonance) '

@@ -89,17 +89,19 @@ def test_a_held_input_and_arma_noise_are_no_model_error_but_a_missed_lag_is():
     # 1 %; a lag the model misses is still found.
     u = prbs(8, 20)
     rng = np.random.default_rng(8)
-    fixed = aware = 0
+    fixed = aware = bartlett = 0
     for _ in range(20):
         white = rng.standard_normal(u.size + 500)
         noise = np.convolve(white, [1.0, 0.5])[:white.size]
         noise = signal.lfilter([1.0], [1.0, -0.95], noise)[500:]
-        fixed += not independent_of_input(noise, u, 100, coloured=False)
+        fixed += not independent_of_input(noise, u, 100, bound='white')
+        bartlett += not independent_of_input(noise, u, 100, bound='bartlett')
         aware += not independent_of_input(noise, u, 100)
     assert fixed >= 10
-    assert aware <= 1
-    two_lags = Model('K/((T1*s + 1)*(T2*s + 1))').simulate({'K': 2.0, 'T1': 5.0, 'T2': 1.0},
-                                                            u, 0.1)
+    assert aware <= 1 and bartlett <= 1
+    two_lags = Model('K/((T1*s + 1)*(T2*s + 1))').simulate(
+        {'K': 2.0, 'T1': 5.0, 'T2': 1.0}, u, 0.1)
     missed = two_lags - Model('K/(T*s + 1)').simulate({'K': 2.0, 'T': 5.0}, u, 0.1)
-    assert not independent_of_input(missed + 0.3 * np.std(missed) * noise / np.std(noise), u,
-                                    100)
+    residual = missed + 0.3 * np.std(missed) * noise / np.std(noise)
+    assert not independent_of_input(residual, u, 100)
+    assert not independent_of_input(residual, u, 100, bound='bartlett')
