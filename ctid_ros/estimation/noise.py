@@ -24,7 +24,7 @@ import numpy as np
 from scipy import signal
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'measured_every',
-           'noise_model', 'noise_root']
+           'model_score', 'noise_model', 'noise_root', 'shaped_noise_model']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -54,12 +54,17 @@ class NoiseModel:
         Variance of ``w``.
     variance : float
         Variance of the residual itself.
+    shaping : ndarray or None
+        Impulse response ``h`` (``h[0] = 1``) of a known filter the autoregressive noise passes
+        through, ``e = H A^-1 w``: the loop's sensitivity ``1 - T`` when the measured output is
+        fed back through a known controller (:func:`shaped_noise_model`); None: ``e = A^-1 w``.
 
     """
 
     ar: np.ndarray
     innovation_variance: float
     variance: float
+    shaping: Optional[np.ndarray] = None
 
     @property
     def order(self) -> int:
@@ -71,7 +76,8 @@ class NoiseModel:
         """Return the low-frequency noise power over that of white noise of equal variance."""
         if self.variance <= 0.0:
             return 1.0          # a residual of exact zeros: no noise to colour
-        return float(self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
+        gain = 1.0 if self.shaping is None else float(np.sum(self.shaping)) ** 2
+        return float(gain * self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
 
 
 def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
@@ -129,10 +135,45 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     return NoiseModel(kept, float(best[2]), variance)
 
 
+def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERION) -> float:
+    """
+    Return ``N log(innovation variance) + penalty(order)`` of a noise model (lower: better).
+
+    A shaping filter with ``h[0] = 1`` has a unit determinant: it adds nothing to the
+    likelihood's normalisation, so shaped and plain models compare on this score directly.
+    """
+    if model.innovation_variance <= 0.0 or not np.isfinite(model.innovation_variance):
+        return math.inf
+    penalty = _PENALTIES[criterion](model.order, count)
+    return count * math.log(model.innovation_variance) + penalty
+
+
+def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
+                       criterion: str = DEFAULT_CRITERION) -> NoiseModel:
+    """
+    Fit ``e = H A^-1 w``: an autoregressive model of ``H^-1 e`` for a known filter ``H``.
+
+    ``shaping`` is the impulse response of ``H`` (``h[0] = 1``, negligible beyond its length);
+    ``H^-1 e`` is computed by forward substitution (``lfilter`` with ``h`` as denominator).
+    Where ``H`` has zeros on the unit circle (the sensitivity of a loop with integrators) the
+    substitution is marginally stable: a residual it does not fit blows up, and
+    :func:`model_score` then prefers the plain model.
+    """
+    residual = np.asarray(residual, dtype=float)
+    with np.errstate(all='ignore'):
+        prewhitened = signal.lfilter([1.0], shaping, residual - np.mean(residual))
+    if not np.all(np.isfinite(prewhitened)):
+        return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
+    inner = noise_model(prewhitened, criterion=criterion)
+    return NoiseModel(inner.ar, inner.innovation_variance, float(np.var(residual)),
+                      np.asarray(shaping, dtype=float))
+
+
 def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                         autocorrelation: Optional[np.ndarray] = None,
-                        criterion: str = DEFAULT_CRITERION) -> Tuple[np.ndarray, NoiseModel]:
+                        criterion: str = DEFAULT_CRITERION,
+                        shaping: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
 
@@ -144,15 +185,21 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
     normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``,
     ``autocorrelation``: that of the residual, if the caller has them; ``criterion``: how the
-    noise model's order is chosen (:func:`noise_model`).
+    noise model's order is chosen (:func:`noise_model`); ``shaping``: the impulse response of a
+    known filter the noise may pass through (:func:`shaped_noise_model`), used if its model
+    scores better than the plain one (:func:`model_score`).
     """
     count = residual.size
     model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
+    if shaping is not None:
+        shaped = shaped_noise_model(residual, shaping, criterion)
+        if model_score(shaped, count, criterion) < model_score(model, count, criterion):
+            model = shaped
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
     mapping = right_t.T / singular                       # V S^-1
-    if model.order == 0:
+    if model.order == 0 and model.shaping is None:
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
     filtered = noise_root(left, model, count / max(count - parameters, 1))
@@ -169,6 +216,12 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     estimate (:func:`coloured_covariance`).
     """
     columns = np.asarray(columns, dtype=float)
+    if model.shaping is not None:
+        # H^T X: the columns filtered through H backwards in time.
+        reversed_columns = columns[::-1].reshape(columns.shape[0], -1)
+        filtered = signal.fftconvolve(reversed_columns, model.shaping[:, None],
+                                      axes=0)[:columns.shape[0]]
+        columns = filtered[::-1].reshape(columns.shape)
     if model.order:
         columns = signal.lfilter([1.0], model.ar, columns[::-1], axis=0)[::-1]
     return np.sqrt(scale * model.innovation_variance) * columns

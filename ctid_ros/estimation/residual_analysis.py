@@ -126,6 +126,8 @@ class ResidualAnalysis:
     noise_order: int = 0
     noise_power_ratio: float = 1.0
     measured_every: int = 1
+    # True when the noise model behind the covariance passes through the loop's sensitivity.
+    noise_shaped: bool = False
     # False when the parameters move across the record (``Estimate.consistency``).
     consistent: bool = True
     # The estimator's state the residual belongs to (not part of the summary).
@@ -164,6 +166,7 @@ class ResidualAnalysis:
                              for name, bound in zip(self.inputs, self.cross_bounds)},
             'noise_order': int(self.noise_order),
             'noise_power_ratio': float(self.noise_power_ratio),
+            'noise_shaped_by_loop': bool(self.noise_shaped),
             'measured_every': int(self.measured_every),
         }
 
