@@ -34,7 +34,7 @@ from typing import Any, Dict, List, Optional, Tuple
 from ctid_ros.estimation.noise import coloured_covariance, noise_root, NoiseModel
 from ctid_ros.estimation.problem import Problem, State
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
 __all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'check_consistency',
            'consistency_bound', 'loop_sensitivity', 'small_sample_factor',
@@ -333,9 +333,12 @@ def small_sample_factor(count: int, parameters: int, noise: NoiseModel) -> float
     deviations scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or
     white noise it is 1 to within a per cent (``docs/algorithm.md`` section 15).
     """
+    # Imported here: scipy.stats is slow to import and only this needs it.
+    from scipy.stats import t as student
+
     ratio = max(float(noise.variance_ratio), 1.0)
     freedom = max(count / ratio - parameters, 1.0)
-    return float(stats.t.ppf(0.975, freedom) / special.ndtri(0.975))
+    return float(student.ppf(0.975, freedom) / special.ndtri(0.975))
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,

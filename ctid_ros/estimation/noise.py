@@ -159,9 +159,12 @@ def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
     substitution is marginally stable: a residual it does not fit blows up, and
     :func:`model_score` then prefers the plain model.
     """
+    # Imported here: only closed-loop models need it, and scipy.signal is slow to import.
+    from scipy.signal import lfilter
+
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
-        prewhitened = signal.lfilter([1.0], shaping, residual - np.mean(residual))
+        prewhitened = lfilter([1.0], shaping, residual - np.mean(residual))
     if not np.all(np.isfinite(prewhitened)):
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)
@@ -218,9 +221,11 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     columns = np.asarray(columns, dtype=float)
     if model.shaping is not None:
         # H^T X: the columns filtered through H backwards in time.
-        reversed_columns = columns[::-1].reshape(columns.shape[0], -1)
-        filtered = signal.fftconvolve(reversed_columns, model.shaping[:, None],
-                                      axes=0)[:columns.shape[0]]
+        count = columns.shape[0]
+        size = 1 << int(np.ceil(np.log2(count + model.shaping.size)))
+        spectrum = np.fft.rfft(columns[::-1].reshape(count, -1), size, axis=0)
+        filtered = np.fft.irfft(spectrum * np.fft.rfft(model.shaping, size)[:, None], size,
+                                axis=0)[:count]
         columns = filtered[::-1].reshape(columns.shape)
     if model.order:
         columns = signal.lfilter([1.0], model.ar, columns[::-1], axis=0)[::-1]
