@@ -26,6 +26,11 @@ at its own point of the PRBS and its own noise.
   ``(s^2 + 2 zeta_z w s + w^2)/(s^2 + 2 zeta_p w s + w^2)`` factor whose zeros stop cancelling
   its poles: a 14 dB peak); the parameters of the unchanged model move by more than their
   thresholds, and the acceptance is a model warning, not a parameter alarm.
+* **coloured**: the unchanged drive with ARMA measurement noise (outside the loop) for at most
+  an hour: windows failing the model check and model warnings per hour with the colour-aware
+  check and with the fixed ``4/sqrt(N)`` bound on the same windows, then ``--runs``/3 steps of
+  the gain ``1/b`` by +8 % and their delays with each check (acceptance: <= 1 WARN per hour,
+  raised within 6 periods).
 * ``--calibrate``: the Monte Carlo behind the overshoot table of
   :mod:`ctid_ros.streaming.alarm` (CUSUM on Gaussian estimates with the autocorrelation of
   overlapping windows).
@@ -54,9 +59,11 @@ from ctid_ros.streaming.contract import ERROR, NANOSECONDS, WARN
 from ctid_ros.streaming.params_file import find_config, load_params_file
 from ctid_ros.streaming.session import IdentificationSession, Update
 import numpy as np
+from scipy import signal
 import yaml
 
-__all__ = ['Plant', 'StepResult', 'main', 'plant', 'run_windows', 'step_delays']
+__all__ = ['ArmaNoise', 'Plant', 'StepResult', 'coloured_noise', 'main', 'plant', 'run_windows',
+           'step_delays']
 
 T0_NS = 1_700_000_000 * NANOSECONDS
 # The new mode of the resonance scenario: w = 60 rad/s, poles damped 0.05; zeros damped like
@@ -119,12 +126,36 @@ def node_config() -> IdentificationConfig:
 
 
 ParamsAt = Callable[[float], Mapping[str, float]]
+# Colour of the coloured-noise scenario: (1 + 0.5 q^-1) / (1 - 0.9 q^-1), unit variance.
+ARMA_NOISE = ((1.0, 0.5), (1.0, -0.9))
+# The gain step of the coloured-noise scenario: the drive's gain 1/b up 8 %.
+GAIN_STEP = 0.08
+
+
+class ArmaNoise:
+    """Endless ARMA noise :data:`ARMA_NOISE` of standard deviation ``std``, drawn in pieces."""
+
+    def __init__(self, std: float, seed: int):
+        numerator, denominator = (np.array(part) for part in ARMA_NOISE)
+        # Power gain of the filter for unit white noise: sum of its impulse response squared.
+        impulse = signal.lfilter(numerator, denominator, np.eye(1, 2000)[0])
+        self._scale = std / math.sqrt(float(impulse @ impulse))
+        self._filter = (numerator, denominator)
+        self._rng = np.random.default_rng(seed)
+        self._state = signal.lfilter_zi(numerator, denominator) * 0.0
+        self.draw(2000)                  # start stationary
+
+    def draw(self, count: int) -> np.ndarray:
+        """Return the next ``count`` samples."""
+        values, self._state = signal.lfilter(*self._filter, self._rng.standard_normal(count),
+                                             zi=self._state)
+        return self._scale * values
 
 
 def run_windows(config: IdentificationConfig, seconds: float, seed: int,
                 params_at: Optional[ParamsAt] = None, source: Optional[Plant] = None,
-                model: Optional[str] = None, extra: Optional[Mapping[str, float]] = None
-                ) -> Iterator[Tuple[float, Optional[Update]]]:
+                model: Optional[str] = None, extra: Optional[Mapping[str, float]] = None,
+                coloured: bool = False) -> Iterator[Tuple[float, Optional[Update]]]:
     """
     Yield ``(time s, update or None)`` every ``update_period`` of simulated plant time.
 
@@ -133,11 +164,15 @@ def run_windows(config: IdentificationConfig, seconds: float, seed: int,
     the node's :class:`SampleBuffer` stamped at their instants, and each tick estimates on
     ``session.take_window`` as the node does (None where the window gave no estimate).
     ``params_at(t)`` gives the parameters from time ``t`` on (checked every :data:`RETUNE`).
+    ``coloured``: the measurement noise (same variance) is ARMA (:data:`ARMA_NOISE`) and is
+    added to the measured output outside the loop instead of white noise inside it.
     """
     source = source or plant()
     params = {**source.params, **(extra or {})}
     simulator = PlantSimulator(model or source.model, params, source.sample_time,
-                               pi_gains=source.pi_gains, noise_std=source.noise_std, seed=seed)
+                               pi_gains=source.pi_gains,
+                               noise_std=0.0 if coloured else source.noise_std, seed=seed)
+    colour = ArmaNoise(source.noise_std, seed + 104729) if coloured else None
     bits, clock, amplitude, offset = source.prbs
     reference = excitation(bits, clock, amplitude, offset)
     # Each run at its own point of the PRBS.
@@ -163,6 +198,8 @@ def run_windows(config: IdentificationConfig, seconds: float, seed: int,
                     simulator.retune(wanted)
                     current = wanted
             u[k], y[k] = simulator.step(next(reference))
+        if colour is not None:
+            y = y + colour.draw(per_tick)
         stamps = T0_NS + (done + np.arange(per_tick)) * step_ns
         buffer.add_inputs(stamps, u)
         buffer.add_outputs(stamps, y)
@@ -304,8 +341,14 @@ class StepResult:
 
 
 def changed_run(config: IdentificationConfig, name: str, seed: int, size: float,
-                ramp_s: float = 0.0, after_s: float = 30.0) -> StepResult:
-    """Run one step (``ramp_s`` 0) or ramp of ``size`` in ``name``; return when it alarmed."""
+                ramp_s: float = 0.0, after_s: float = 30.0, coloured: bool = False,
+                fixed_bound: bool = False) -> StepResult:
+    """
+    Run one step (``ramp_s`` 0) or ramp of ``size`` in ``name``; return when it alarmed.
+
+    ``coloured``: ARMA measurement noise (:func:`run_windows`); ``fixed_bound``: the windows'
+    model check with the white-series bound ``4/sqrt(N)`` instead of the colour-aware one.
+    """
     rng = np.random.default_rng(seed)
     change = SETTLE + float(rng.uniform(0.0, config.update_period))
     base = plant().params[name]
@@ -319,10 +362,12 @@ def changed_run(config: IdentificationConfig, name: str, seed: int, size: float,
     alarm = since = value = None
     others = 0
     for time_s, update in run_windows(config, change + ramp_s + after_s, seed,
-                                      lambda t: {name: base * (1.0 + size * fraction(t))}):
+                                      lambda t: {name: base * (1.0 + size * fraction(t))},
+                                      coloured=coloured):
         if update is None:
             continue
-        status = watch.update(update)
+        status = watch.update(update, check=model_check(
+            update, config.window, config.transient, coloured=not fixed_bound))
         if status.level == ERROR and name in status.parameters and alarm is None \
                 and time_s >= change:
             alarm, value = time_s, size * fraction(time_s)
@@ -367,6 +412,48 @@ def steps(config: IdentificationConfig, runs: int, names: Sequence[str], size: f
             'false_alarms_before': int(sum(result.other_alarms for result in results)),
             'seconds': time.perf_counter() - started}
     return summary
+
+
+def coloured_noise(config: IdentificationConfig, hours: float, runs: int, seed: int = 23
+                   ) -> Dict[str, object]:
+    """
+    Healthy drive with ARMA measurement noise: model checks, WARNs per hour, a gain step.
+
+    The windows' model check with the colour-aware bound against the fixed ``4/sqrt(N)`` one on
+    the same windows: how many windows fail it and how many model warnings (WARN) the demo's
+    detector raises per hour; then ``runs`` steps of the drive's gain ``1/b`` by +8 %
+    (:data:`GAIN_STEP`) and the delay to the alarm in update periods with each check
+    (acceptance: <= 1 WARN per hour, the step raised within 6 periods).
+    """
+    started = time.perf_counter()
+    windows = [update for _, update in run_windows(config, hours * 3600.0, seed, coloured=True)
+               if update is not None]
+    results: Dict[str, object] = {'hours': hours, 'windows': len(windows)}
+    for label, fixed in (('colour_aware', False), ('fixed_bound', True)):
+        checks = [model_check(update, config.window, config.transient, coloured=not fixed)
+                  for update in windows]
+        watch = detector(config)
+        levels = [watch.update(update, check=check).level
+                  for update, check in zip(windows, checks)]
+        results[label] = {
+            'model_check_failed_windows': int(sum(not ok for ok, _ in checks)),
+            'failed_share': float(np.mean([not ok for ok, _ in checks])),
+            'warn_per_hour': _raised([WARN if level == WARN else 0 for level in levels],
+                                     WARN) / hours,
+            'alarms': _raised(levels)}
+    size = 1.0 / (1.0 + GAIN_STEP) - 1.0
+    for label, fixed in (('colour_aware', False), ('fixed_bound', True)):
+        outcome = [changed_run(config, 'b', 7000 + run, size, coloured=True, fixed_bound=fixed)
+                   for run in range(runs)]
+        delays = step_delays(outcome, config.update_period)
+        found = delays[np.isfinite(delays)]
+        results[label]['gain_step'] = {
+            'runs': runs, 'detected': int(found.size),
+            'within_6_periods': float(np.mean(delays <= 6.0)),
+            'delay_periods': {'median': float(np.median(found)),
+                              'max': float(found.max())} if found.size else {}}
+    results['seconds'] = time.perf_counter() - started
+    return results
 
 
 def ramps(config: IdentificationConfig, runs: int, name: str = 'J', size: float = 0.10,
@@ -490,7 +577,7 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, object]:
     parser.add_argument('--ramps', type=int, default=None, help='ramp runs (10)')
     parser.add_argument('--resonances', type=int, default=None, help='resonance runs (10)')
     parser.add_argument('--only', nargs='*', default=None,
-                        choices=('stationary', 'step', 'ramp', 'resonance'),
+                        choices=('stationary', 'step', 'ramp', 'resonance', 'coloured'),
                         help='run only these scenarios')
     parser.add_argument('--calibrate', action='store_true',
                         help='only the Monte Carlo of the overshoot table')
@@ -506,7 +593,7 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, object]:
     ramp_runs = arguments.ramps if arguments.ramps is not None else (3 if quick else 10)
     resonance_runs = arguments.resonances if arguments.resonances is not None else (
         3 if quick else 10)
-    only = set(arguments.only or ('stationary', 'step', 'ramp', 'resonance'))
+    only = set(arguments.only or ('stationary', 'step', 'ramp', 'resonance', 'coloured'))
     config = node_config()
     settings = AlarmSettings.from_config(config)
     results = {'mode': 'quick' if quick else 'full',
@@ -528,6 +615,10 @@ def main(argv: Optional[List[str]] = None) -> Dict[str, object]:
     if 'resonance' in only:
         results['resonance'] = resonances(config, resonance_runs)
         _show('new resonance', results['resonance'])
+    if 'coloured' in only:
+        # An hour at most: the model checks of its windows are the figure, not rare alarms.
+        results['coloured'] = coloured_noise(config, min(hours, 1.0), max(runs // 3, 5))
+        _show('ARMA noise: model check and +8 % gain step', results['coloured'])
     if arguments.json:
         with open(arguments.json, 'w', encoding='utf-8') as stream:
             json.dump(results, stream, indent=2)

@@ -31,18 +31,22 @@ scatter of the quarter estimates.
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
-from ctid_ros.estimation.noise import noise_root, NoiseModel
+from ctid_ros.estimation.noise import coloured_covariance, noise_root, NoiseModel
 from ctid_ros.estimation.problem import Problem, State
 import numpy as np
 from scipy import special
 
 __all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'check_consistency',
-           'consistency_bound', 'with_consistency']
+           'consistency_bound', 'loop_sensitivity', 'small_sample_factor',
+           'with_consistency']
 
 # Halves and quarters.
 BLOCKS = (2, 4)
-# Family-wise probability of no alarm on an adequate model (Bonferroni over the tests).
-FAMILY = 0.99
+# Family-wise probability of no alarm on an adequate model (Bonferroni over the tests), set
+# above the 0.99 the z statistics would need if they were exactly standard normal: with the
+# noise fed back through a controller their spread is 1.1-1.3 (the AR noise model only
+# approximates the sensitivity-shaped spectrum), and the false alarms stay below 2 %.
+FAMILY = 0.998
 # Gauss-Newton updates of each quarter's estimate when the model is flagged.
 REFINE_ITERATIONS = 4
 # A block whose scaled sensitivities are worse conditioned than this determines no parameter.
@@ -273,10 +277,81 @@ def _verdict(result: Consistency) -> str:
             'structure; the reported std covers the scatter of the quarter estimates')
 
 
+def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
+    """
+    Return the impulse response of the loop's sensitivity ``1 - T`` for a closed-loop model.
+
+    With a known controller the model is the closed loop ``T`` from the reference, and noise on
+    the measured output that the controller feeds back reaches the output through ``1 - T``
+    (``docs/algorithm.md`` section 15). ``T``'s pulse response is simulated over the fitted
+    samples and cut where it has decayed below 1e-12 of its peak. None for an open-loop model.
+    """
+    if getattr(problem.model, 'controller', None) is None:
+        return None
+    count = problem.measured.size
+    pulse = np.zeros(count)
+    pulse[0] = 1.0
+    shaping = -np.asarray(problem.model.simulate(state.theta, pulse, problem.data.ts),
+                          dtype=float)
+    shaping[0] += 1.0
+    significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.max(np.abs(shaping)))
+    return shaping[:significant[-1] + 1]
+
+
+def _fed_back_noise(problem: Problem, state: State, free: np.ndarray
+                    ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
+    """
+    Return the covariance and noise model with the noise shaped by the loop, if that fits better.
+
+    For a closed-loop model the residual's noise model may be the plain autoregressive one or
+    one passed through the loop's sensitivity (:func:`loop_sensitivity`), whichever scores
+    better (:func:`~ctid_ros.estimation.noise.coloured_covariance`). None if the model is open
+    loop or the plain one wins (the estimate's covariance stands).
+    """
+    shaping = loop_sensitivity(problem, state)
+    if shaping is None or not np.any(free):
+        return None
+    psi, error = _sensitivities(problem, state, free)
+    scales = np.linalg.norm(psi, axis=0)
+    scales = np.where(scales > 0.0, scales, 1.0)
+    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)),
+                                        shaping=shaping)
+    if model.shaping is None:
+        return None
+    covariance = np.full((free.size, free.size), np.nan)
+    covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    return covariance, model
+
+
+def small_sample_factor(count: int, parameters: int, noise: NoiseModel) -> float:
+    """
+    Return ``t_0.975(nu) / z_0.975``: the 95 % t quantile over the normal one.
+
+    ``nu = N / r - p`` effective degrees of freedom: ``r`` the noise model's low-frequency
+    power over that of white noise of equal variance (at least 1), so ``N / r`` is the number
+    of effectively independent samples (exact for the mean of an AR(1) process). The standard
+    deviations scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or
+    white noise it is 1 to within a per cent (``docs/algorithm.md`` section 15).
+    """
+    # Imported here: scipy.stats is slow to import and only this needs it.
+    from scipy.stats import t as student
+
+    ratio = max(float(noise.variance_ratio), 1.0)
+    freedom = max(count / ratio - parameters, 1.0)
+    return float(student.ppf(0.975, freedom) / special.ndtri(0.975))
+
+
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
                      free: np.ndarray) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
+
+    First, for a closed-loop model, the noise may be described better as passed through the
+    loop's sensitivity (noise on the measured output fed back by the controller): then the
+    covariance, standard deviations and the residual's noise order are recomputed with that
+    description (:func:`loop_sensitivity`, ``docs/algorithm.md`` section 15). Then the
+    standard deviations are scaled for a small effective sample
+    (:func:`small_sample_factor`).
 
     Sets ``result.consistency`` and ``result.std_noise`` (the noise-only standard deviations).
     If the model does not hold over the record, each standard deviation becomes the larger of
@@ -285,6 +360,18 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     that the standard deviations account for what is left.
     """
     names = problem.model.parameters
+    fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool))
+    if fed_back is not None:
+        result.covariance, noise = fed_back
+        result.std = dict(zip(names, map(float, np.sqrt(np.abs(np.diag(result.covariance))))))
+        if result.residuals is not None:
+            result.residuals.noise_order = noise.order
+            result.residuals.noise_power_ratio = noise.variance_ratio
+            result.residuals.noise_shaped = True
+    factor = small_sample_factor(problem.measured.size, int(np.sum(free)), noise)
+    if factor != 1.0:
+        result.covariance = result.covariance * factor ** 2
+        result.std = {name: value * factor for name, value in result.std.items()}
     std = np.array([result.std[name] for name in names], dtype=float)
     consistency = check_consistency(problem, state, noise, free, std)
     result.consistency = consistency

@@ -7,7 +7,7 @@ The output-error estimate stops where the residual ``e`` is orthogonal to the se
 ``sigma^2 (Psi^T Psi)^-1`` is that for white noise only; real records (unmodelled dynamics,
 drifting disturbances) and outputs interpolated onto a finer grid than they were measured on
 have coloured residuals, and that formula then claims far too much. Here the residual's colour
-is an autoregressive model ``A(q) e = w`` whose order is chosen by BIC (order 0 for a white
+is an autoregressive model ``A(q) e = w`` whose order is chosen by AICc (order 0 for a white
 residual: then the formula above is recovered), and ``Psi^T Sigma Psi`` is computed exactly
 for that model by filtering ``Psi`` backwards through ``1/A`` (``docs/algorithm.md``
 section 15).
@@ -23,7 +23,8 @@ from typing import Optional, Tuple
 from ctid_ros.core.simulation import all_pole
 import numpy as np
 
-__all__ = ['NoiseModel', 'coloured_covariance', 'measured_every', 'noise_model', 'noise_root']
+__all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'measured_every',
+           'model_score', 'noise_model', 'noise_root', 'shaped_noise_model']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -32,6 +33,12 @@ _PATIENCE = 10
 # Interpolation is recognised when this share of an output's bends falls on one phase.
 _PHASE_SHARE = 0.99
 _MAX_FACTOR = 64
+# How the noise model's order is chosen (noise_model).
+DEFAULT_CRITERION = 'aicc'
+_PENALTIES = {
+    'aicc': lambda order, count: 2.0 * order * count / max(count - order - 1, 1),
+    'bic': lambda order, count: order * math.log(count),
+}
 
 
 @dataclass
@@ -47,12 +54,17 @@ class NoiseModel:
         Variance of ``w``.
     variance : float
         Variance of the residual itself.
+    shaping : ndarray or None
+        Impulse response ``h`` (``h[0] = 1``) of a known filter the autoregressive noise passes
+        through, ``e = H A^-1 w``: the loop's sensitivity ``1 - T`` when the measured output is
+        fed back through a known controller (:func:`shaped_noise_model`); None: ``e = A^-1 w``.
 
     """
 
     ar: np.ndarray
     innovation_variance: float
     variance: float
+    shaping: Optional[np.ndarray] = None
 
     @property
     def order(self) -> int:
@@ -64,20 +76,29 @@ class NoiseModel:
         """Return the low-frequency noise power over that of white noise of equal variance."""
         if self.variance <= 0.0:
             return 1.0          # a residual of exact zeros: no noise to colour
-        return float(self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
+        gain = 1.0 if self.shaping is None else float(np.sum(self.shaping)) ** 2
+        return float(gain * self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
 
 
 def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
-                autocorrelation: Optional[np.ndarray] = None) -> NoiseModel:
+                autocorrelation: Optional[np.ndarray] = None,
+                criterion: str = DEFAULT_CRITERION) -> NoiseModel:
     """
-    Fit an autoregressive model to ``residual`` (Levinson-Durbin, order by BIC).
+    Fit an autoregressive model to ``residual`` (Levinson-Durbin, order by AICc or BIC).
 
     The Yule-Walker estimate from the biased autocovariance, whose polynomial is always stable.
     Orders ``0..min(max_order, 5 % of the samples)`` are compared by
-    ``N log(innovation variance) + p log N``; the search ends ten orders after the best.
-    ``autocorrelation``: the residual's normalised autocorrelation at lags 0, 1, ... if the
-    caller has it (the residual analysis does), so it is not computed again.
+    ``N log(innovation variance) + penalty(p)``: ``'aicc'`` (default) ``2 p N / (N - p - 1)``,
+    the corrected Akaike criterion, efficient for a spectrum that no finite order describes
+    (noise fed back through a controller, ``docs/algorithm.md`` section 15); ``'bic'``
+    ``p log N``, which stops at the first orders and misses a peak of such a spectrum. The
+    search ends ten orders after the best. ``autocorrelation``: the residual's normalised
+    autocorrelation at lags 0, 1, ... if the caller has it (the residual analysis does), so it
+    is not computed again.
     """
+    if criterion not in _PENALTIES:
+        raise ValueError(f'criterion must be one of {", ".join(_PENALTIES)}, got {criterion!r}')
+    penalty = _PENALTIES[criterion]
     residual = np.asarray(residual, dtype=float)
     count = residual.size
     centred = residual - np.mean(residual)
@@ -104,20 +125,58 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
         error *= 1.0 - reflection ** 2
         if error <= 0.0:
             break
-        criterion = count * math.log(error) + order * math.log(count)
-        if criterion < best[0]:
-            best = (criterion, order, error)
+        score = count * math.log(error) + penalty(order, count)
+        if score < best[0]:
+            best = (score, order, error)
             kept = ar[:order + 1].copy()
         elif order - best[1] >= _PATIENCE:
-            # Each further order costs log N in BIC; ten without a gain end the search.
+            # Each further order costs at least 2; ten without a gain end the search.
             break
     return NoiseModel(kept, float(best[2]), variance)
 
 
+def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERION) -> float:
+    """
+    Return ``N log(innovation variance) + penalty(order)`` of a noise model (lower: better).
+
+    A shaping filter with ``h[0] = 1`` has a unit determinant: it adds nothing to the
+    likelihood's normalisation, so shaped and plain models compare on this score directly.
+    """
+    if model.innovation_variance <= 0.0 or not np.isfinite(model.innovation_variance):
+        return math.inf
+    penalty = _PENALTIES[criterion](model.order, count)
+    return count * math.log(model.innovation_variance) + penalty
+
+
+def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
+                       criterion: str = DEFAULT_CRITERION) -> NoiseModel:
+    """
+    Fit ``e = H A^-1 w``: an autoregressive model of ``H^-1 e`` for a known filter ``H``.
+
+    ``shaping`` is the impulse response of ``H`` (``h[0] = 1``, negligible beyond its length);
+    ``H^-1 e`` is computed by forward substitution (``lfilter`` with ``h`` as denominator).
+    Where ``H`` has zeros on the unit circle (the sensitivity of a loop with integrators) the
+    substitution is marginally stable: a residual it does not fit blows up, and
+    :func:`model_score` then prefers the plain model.
+    """
+    # Imported here: only closed-loop models need it, and scipy.signal is slow to import.
+    from scipy.signal import lfilter
+
+    residual = np.asarray(residual, dtype=float)
+    with np.errstate(all='ignore'):
+        prewhitened = lfilter([1.0], shaping, residual - np.mean(residual))
+    if not np.all(np.isfinite(prewhitened)):
+        return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
+    inner = noise_model(prewhitened, criterion=criterion)
+    return NoiseModel(inner.ar, inner.innovation_variance, float(np.var(residual)),
+                      np.asarray(shaping, dtype=float))
+
+
 def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                        autocorrelation: Optional[np.ndarray] = None
-                        ) -> Tuple[np.ndarray, NoiseModel]:
+                        autocorrelation: Optional[np.ndarray] = None,
+                        criterion: str = DEFAULT_CRITERION,
+                        shaping: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
 
@@ -128,15 +187,22 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     with ``H`` the (causal) impulse-response matrix of ``1/A``: ``Z`` is ``U`` filtered through
     ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
     normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``,
-    ``autocorrelation``: that of the residual, if the caller has them.
+    ``autocorrelation``: that of the residual, if the caller has them; ``criterion``: how the
+    noise model's order is chosen (:func:`noise_model`); ``shaping``: the impulse response of a
+    known filter the noise may pass through (:func:`shaped_noise_model`), used if its model
+    scores better than the plain one (:func:`model_score`).
     """
     count = residual.size
-    model = noise_model(residual, autocorrelation=autocorrelation)
+    model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
+    if shaping is not None:
+        shaped = shaped_noise_model(residual, shaping, criterion)
+        if model_score(shaped, count, criterion) < model_score(model, count, criterion):
+            model = shaped
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
     mapping = right_t.T / singular                       # V S^-1
-    if model.order == 0:
+    if model.order == 0 and model.shaping is None:
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
     filtered = noise_root(left, model, count / max(count - parameters, 1))
@@ -153,6 +219,14 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     estimate (:func:`coloured_covariance`).
     """
     columns = np.asarray(columns, dtype=float)
+    if model.shaping is not None:
+        # H^T X: the columns filtered through H backwards in time.
+        count = columns.shape[0]
+        size = 1 << int(np.ceil(np.log2(count + model.shaping.size)))
+        spectrum = np.fft.rfft(columns[::-1].reshape(count, -1), size, axis=0)
+        filtered = np.fft.irfft(spectrum * np.fft.rfft(model.shaping, size)[:, None], size,
+                                axis=0)[:count]
+        columns = filtered[::-1].reshape(columns.shape)
     if model.order:
         columns = all_pole(model.ar, columns[::-1])[::-1]
     return np.sqrt(scale * model.innovation_variance) * columns

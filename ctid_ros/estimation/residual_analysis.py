@@ -20,6 +20,7 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Sequence, Tuple
 
+from ctid_ros.estimation.correlation import bartlett_span, chance_spread
 import numpy as np
 from scipy import special
 
@@ -125,6 +126,8 @@ class ResidualAnalysis:
     noise_order: int = 0
     noise_power_ratio: float = 1.0
     measured_every: int = 1
+    # True when the noise model behind the covariance passes through the loop's sensitivity.
+    noise_shaped: bool = False
     # False when the parameters move across the record (``Estimate.consistency``).
     consistent: bool = True
     # The estimator's state the residual belongs to (not part of the summary).
@@ -163,6 +166,7 @@ class ResidualAnalysis:
                              for name, bound in zip(self.inputs, self.cross_bounds)},
             'noise_order': int(self.noise_order),
             'noise_power_ratio': float(self.noise_power_ratio),
+            'noise_shaped_by_loop': bool(self.noise_shaped),
             'measured_every': int(self.measured_every),
         }
 
@@ -193,7 +197,7 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     count = residual.size
     inputs = np.asarray(inputs, dtype=float).reshape(count, -1)
     lags = int(max(1, min(lags, count // 4)))
-    span = int(min(count // 4, max(4 * lags, 50)))
+    span = bartlett_span(count, lags)
     error = _Spectrum(residual, span)
     rho_e = error.correlation(error, span)
     auto = rho_e[span:span + lags + 1]
@@ -205,8 +209,7 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     for j in range(inputs.shape[1]):
         signal = _Spectrum(inputs[:, j], span)
         cross[:, j] = error.correlation(signal, lags)
-        rho_u = signal.correlation(signal, span)
-        spreads[j] = np.sqrt(max(float(rho_e @ rho_u), 1.0) / count)
+        spreads[j] = chance_spread(rho_e, signal.correlation(signal, span), count)
     cross_bounds = z_lag * spreads
     z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
     white = bool(np.all(np.abs(auto[1:]) <= z_all / np.sqrt(count)))

@@ -71,8 +71,8 @@ import numpy as np
 __all__ = ['AlarmSettings', 'AlarmStatus', 'BASELINE_QUANTILE', 'CAP', 'ChangeDetector',
            'LEVEL_NAMES', 'MODEL_FAILURES', 'ParameterChange', 'REFERENCE', 'SCALE_HISTORY',
            'SCALE_MIN_WINDOWS', 'brownian_arl', 'brownian_barrier', 'cusum_threshold',
-           'long_run_variance', 'robust_scale',
-           'model_check', 'overshoot']
+           'long_run_variance', 'model_check', 'output_sensitivities', 'overshoot',
+           'robust_scale']
 
 LEVEL_NAMES = {level: name for name, level in LEVELS.items()}
 # CUSUM reference, in window standard deviations beyond the dead zone: the sums grow while
@@ -203,7 +203,8 @@ def robust_scale(differences: Sequence[float]) -> float:
     return max(1.0, spread * (1.0 + 1.0 / math.sqrt(kept.size)))
 
 
-def model_check(update: Update, window: float, transient: float = -1.0) -> Tuple[bool, str]:
+def model_check(update: Update, window: float, transient: float = -1.0,
+                coloured: bool = True) -> Tuple[bool, str]:
     """
     Return whether the window's model explains its data, and the verdict in words.
 
@@ -211,8 +212,12 @@ def model_check(update: Update, window: float, transient: float = -1.0) -> Tuple
     with the input, or else when the residual test of docs/algorithm.md section 11 does, on the
     fitted samples (after ``transient`` seconds, or for an automatic one after the settling time
     of the estimate, and at most the last ``window`` seconds, as the session fits them): their
-    correlation with the input at lags up to :data:`_CHECK_LAGS` (and a quarter of them)
-    within ``4/sqrt(N)``. The second test looks further back than the verdict's lags: a new
+    correlation with the input at lags up to :data:`_CHECK_LAGS` (and a quarter of them),
+    prewhitened by the residual's own AR model, the estimate's sensitivities
+    (:func:`output_sensitivities`) projected out, within four of Bartlett's standard
+    deviations for the colour of both (``4/sqrt(N)`` for white ones; ``coloured=False`` keeps
+    that fixed bound on the raw series, for comparison: a held input with coloured noise fails
+    it in most windows). The second test looks further back than the verdict's lags: a new
     lightly damped mode rings longer than they reach, and in closed loop the verdict may call
     it coloured noise. Integrating models (fitted on a high-passed output) get the verdict only.
     """
@@ -234,10 +239,37 @@ def model_check(update: Update, window: float, transient: float = -1.0) -> Tuple
     inputs = np.asarray(data.u, dtype=float).reshape(len(data), -1)[-count:]
     if not np.all(np.isfinite(residual)):
         return False, 'the model output is not finite'
-    if independent_of_input(residual, inputs, min(_CHECK_LAGS, count // 4)):
+    if not np.any(residual):
+        return True, 'residual independent of the input'
+    sensitivities = output_sensitivities(result, data)[-count:] if coloured else None
+    if independent_of_input(residual, inputs, min(_CHECK_LAGS, count // 4),
+                            bound='prewhitened' if coloured else 'white',
+                            sensitivities=sensitivities):
         return True, 'residual independent of the input'
     return False, ('residual correlated with the input: missing dynamics (e.g. a new resonance) '
                    'or a wrong dead time')
+
+
+def output_sensitivities(result: Any, data: Any) -> np.ndarray:
+    """
+    Return the derivatives of the estimate's simulated output on ``data`` by its parameters.
+
+    Central differences of :meth:`Estimate.simulate` (steps of 1e-5 of each value, at least
+    1e-9), one column per parameter in ``result.model.parameters`` order.
+    """
+    names = result.model.parameters
+    columns = []
+    for name in names:
+        step = max(1e-5 * abs(result.params[name]), 1e-9)
+        shifted = []
+        for sign in (1.0, -1.0):
+            params = dict(result.params)
+            params[name] = params[name] + sign * step
+            shifted.append(result.model.simulate(params, data.u, data.ts,
+                                                 intersample=result.intersample,
+                                                 output_skew=data.output_skew))
+        columns.append((shifted[0] - shifted[1]) / (2.0 * step))
+    return np.column_stack(columns)
 
 
 @dataclass(frozen=True)

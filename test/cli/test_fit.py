@@ -59,6 +59,10 @@ def test_json_estimates_within_tolerance_of_the_truth(record, validation, capsys
     assert result['params'] == pytest.approx(TRUTH, rel=0.03)
     assert all(0 < result['std'][name] < 0.01 * value for name, value in TRUTH.items())
     assert result['converged'] and result['fit'] > 95.0 and result['validation_fit'] > 95.0
+    # One parameter vector holds over this simulated record (docs/algorithm.md section 18).
+    assert result['consistency']['consistent'] is True
+    assert {'max_z', 'blocks', 'verdict'} <= set(result['consistency'])
+    assert result['std_noise'] == pytest.approx(result['std'])
 
 
 def test_table(record, capsys):
@@ -68,6 +72,7 @@ def test_table(record, capsys):
     assert lines[0].split() == ['parameter', 'estimate', 'std', '95%', 'interval']
     rows = {line.split()[0]: float(line.split()[1]) for line in lines[1:4]}
     assert rows == pytest.approx(TRUTH, rel=0.03)       # automatic start
+    assert any(line.startswith('consistency: consistent over the record') for line in lines)
     assert 'converged yes' in out
 
 

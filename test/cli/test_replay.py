@@ -49,7 +49,9 @@ def test_fractional_delay_recovered_from_every_storage(tmp_path, capsys, kind):
     code, out, _ = replay(capsys, bag, '--params-file', params_file(tmp_path, DELAY), '--json')
     assert code == 0
     result = json.loads(out)
-    assert set(result) >= {'params', 'std', 'fit', 'converged', 'warnings', 'time'}
+    assert set(result) >= {'params', 'std', 'fit', 'converged', 'warnings', 'time',
+                           'consistency'}
+    assert result['consistency']['blocks'] == 6
     assert result['params'] == pytest.approx(DELAY['truth'], rel=0.03)
     assert result['fit'] > 95.0
     # One estimate over the whole span, not the configured 10 s window.

@@ -7,6 +7,7 @@ from ctid_ros.estimation.correlation import (CONFIDENCE, independent_of_input,
                                              input_correlation, prewhitened_delay)
 import numpy as np
 import pytest
+from scipy import signal
 
 
 def test_white_noise_is_independent_of_a_held_input():
@@ -41,8 +42,9 @@ def test_missed_dynamics_are_detected_under_noise():
 
 
 def test_leading_zeros_mark_samples_left_out():
+    # (Seed 4 of earlier versions drew a 4.1 sigma correlation by chance.)
     u = prbs(9, 4)
-    noise = np.random.default_rng(4).standard_normal(u.size)
+    noise = np.random.default_rng(5).standard_normal(u.size)
     noise[:300] = 0.0
     assert independent_of_input(noise, u, 30)
     assert not independent_of_input(noise + np.where(np.arange(u.size) >= 300, u, 0.0), u, 30)
@@ -79,3 +81,27 @@ def test_prewhitened_delay_of_a_held_prbs():
 def test_prewhitened_delay_without_information_is_zero():
     assert prewhitened_delay(Data(np.ones(200), np.arange(200.0), 0.1)) == 0.0       # flat u
     assert prewhitened_delay(Data(prbs(3), np.arange(7.0), 0.1)) == 0.0             # too short
+
+
+def test_a_held_input_and_arma_noise_are_no_model_error_but_a_missed_lag_is():
+    # A perfect model's residual is ARMA noise; the input a PRBS held 20 samples. The fixed
+    # bound 4/sqrt(N) calls that a model error in most records, the colour-aware one in about
+    # 1 %; a lag the model misses is still found.
+    u = prbs(8, 20)
+    rng = np.random.default_rng(8)
+    fixed = aware = bartlett = 0
+    for _ in range(20):
+        white = rng.standard_normal(u.size + 500)
+        noise = np.convolve(white, [1.0, 0.5])[:white.size]
+        noise = signal.lfilter([1.0], [1.0, -0.95], noise)[500:]
+        fixed += not independent_of_input(noise, u, 100, bound='white')
+        bartlett += not independent_of_input(noise, u, 100, bound='bartlett')
+        aware += not independent_of_input(noise, u, 100)
+    assert fixed >= 10
+    assert aware <= 1 and bartlett <= 1
+    two_lags = Model('K/((T1*s + 1)*(T2*s + 1))').simulate(
+        {'K': 2.0, 'T1': 5.0, 'T2': 1.0}, u, 0.1)
+    missed = two_lags - Model('K/(T*s + 1)').simulate({'K': 2.0, 'T': 5.0}, u, 0.1)
+    residual = missed + 0.3 * np.std(missed) * noise / np.std(noise)
+    assert not independent_of_input(residual, u, 100)
+    assert not independent_of_input(residual, u, 100, bound='bartlett')
