@@ -333,12 +333,10 @@ def small_sample_factor(count: int, parameters: int, noise: NoiseModel) -> float
     deviations scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or
     white noise it is 1 to within a per cent (``docs/algorithm.md`` section 15).
     """
-    # Imported here: scipy.stats is slow to import and only this needs it.
-    from scipy.stats import t as student
-
     ratio = max(float(noise.variance_ratio), 1.0)
     freedom = max(count / ratio - parameters, 1.0)
-    return float(student.ppf(0.975, freedom) / special.ndtri(0.975))
+    # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
+    return float(special.stdtrit(freedom, 0.975) / special.ndtri(0.975))
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
