@@ -12,6 +12,7 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
+from ctid_ros.core.model import Coefficients
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
 from ctid_ros.estimation.problem import DelayRange, Problem, State
@@ -311,13 +312,16 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
     The cost's basins in the dead time are often a sample apart (a kink on every sample for a
     model of relative degree one, section 3; a lag traded for dead time): a local fit ends in
     one of them, and the neighbour can be lower. Each neighbour ``tau -+ ts`` (within the
-    search bracket) is screened first: its cost as it is, then after one Gauss-Newton update
-    of the other parameters with the sensitivities of ``best`` shifted by that sample
-    (:func:`_linearised_refit`; one simulation each, no new sensitivities). Only a neighbour
-    whose screened cost comes within the linearisation's own error of the cost of ``best``
-    is iterated jointly (:data:`_JOINT`); the lowest end is returned if it is below ``best``.
+    bounds and the given delay range) is screened first: its cost as it is, then after one
+    Gauss-Newton update of the other parameters with the sensitivities of ``best`` shifted by
+    that sample (:func:`_linearised_refit`; two simulations, no new sensitivities). Only a
+    neighbour whose screened cost comes within the linearisation's own error of the cost of
+    ``best`` is iterated jointly (:data:`_JOINT`); the lowest end is returned if it is below
+    ``best``.
     """
-    low, high = problem.delay_bracket(delay_index, delay_range)
+    # The automatic bracket would compute the data's dead-time guess, only to cap the search.
+    low, high = (problem.lower[delay_index], problem.upper[delay_index]) \
+        if delay_range is None else problem.delay_bracket(delay_index, delay_range)
     others = np.ones(best.theta.size, dtype=bool)
     others[delay_index] = False
     # The warm start's last update linearised at best already: usually no new simulation.
@@ -331,13 +335,8 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
-        neighbour = problem.state(theta, coefficients)
-        refit, predicted = _linearised_refit(problem, neighbour, others,
-                                             _shifted(sensitivities, int(offset)))
-        screened = neighbour if refit is None or neighbour.cost <= refit.cost else refit
-        # Where the update's cost differs from its linear prediction, the profile's minimum
-        # at this dead time may lie that much below the screened cost.
-        error = 0.0 if refit is None else abs(refit.cost - predicted)
+        screened, error = _linearised_refit(problem, theta, coefficients, others,
+                                            _shifted(sensitivities, int(offset)))
         if screened.cost - error >= best.cost:
             continue
         joint = iterate(problem, screened, _JOINT)
@@ -358,23 +357,29 @@ def _shifted(columns: np.ndarray, samples: int) -> np.ndarray:
     return moved
 
 
-def _linearised_refit(problem: Problem, state: State, others: np.ndarray,
-                      sensitivities: np.ndarray) -> Tuple[Optional[State], float]:
+def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coefficients,
+                      others: np.ndarray,
+                      sensitivities: np.ndarray) -> Tuple[State, float]:
     """
-    One Gauss-Newton update of the ``others`` parameters of ``state``; the state and its prediction.
+    Screen ``theta`` by one Gauss-Newton update of its ``others`` parameters.
 
-    ``sensitivities`` are the output's derivatives by the ``others`` on the fitted samples. The
-    update is clipped into the bounds; None if it leaves an inadmissible model. The prediction
-    is the cost the linearised output promises, ``0.5 |e - S d|^2``.
+    ``sensitivities`` are the output's derivatives by the ``others`` on the fitted samples.
+    Returns the lower of ``theta`` itself and the updated point (clipped into the bounds,
+    dropped if inadmissible), and the update's linearisation error: the difference between
+    its cost and the cost ``0.5 |e - S d|^2`` the linearised output promised (zero without an
+    admissible update). The point itself is a screen only, not a candidate
+    (:attr:`Problem.best`); the updated one is.
     """
-    error = problem.measured - problem.prediction(state.coefficients)
+    error = problem.measured - problem.prediction(coefficients)
+    itself = State(np.array(theta, dtype=float), coefficients, 0.5 * float(error @ error))
     step = np.linalg.lstsq(sensitivities, error, rcond=None)[0]
     remaining = error - sensitivities @ step
-    predicted = 0.5 * float(remaining @ remaining)
-    theta = state.theta.copy()
-    theta[others] += step
-    theta = np.clip(theta, problem.lower, problem.upper)
-    coefficients = problem.admissible(theta)
-    if coefficients is None or not np.all(np.isfinite(theta)):
-        return None, predicted
-    return problem.state(theta, coefficients), predicted
+    updated = theta.copy()
+    updated[others] += step
+    updated = np.clip(updated, problem.lower, problem.upper)
+    moved = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
+    if moved is None:
+        return itself, 0.0
+    refit = problem.state(updated, moved)
+    mismatch = abs(refit.cost - 0.5 * float(remaining @ remaining))
+    return (itself if itself.cost < refit.cost else refit), mismatch
