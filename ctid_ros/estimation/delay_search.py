@@ -312,12 +312,11 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
     The cost's basins in the dead time are often a sample apart (a kink on every sample for a
     model of relative degree one, section 3; a lag traded for dead time): a local fit ends in
     one of them, and the neighbour can be lower. Each neighbour ``tau -+ ts`` (within the
-    bounds and the given delay range) is screened first: its cost as it is, then after one
-    Gauss-Newton update of the other parameters with the sensitivities of ``best`` shifted by
-    that sample (:func:`_linearised_refit`; two simulations, no new sensitivities). Only a
-    neighbour whose screened cost comes within the linearisation's own error of the cost of
-    ``best`` is iterated jointly (:data:`_JOINT`); the lowest end is returned if it is below
-    ``best``.
+    bounds and the given delay range) is screened first by one Gauss-Newton update of the
+    other parameters, from the output and sensitivities of ``best`` shifted by that sample
+    (:func:`_linearised_refit`: one simulation, no new sensitivities). Only a neighbour whose
+    screened cost, less the update's own linearisation error, is below the cost of ``best``
+    is iterated jointly (:data:`_JOINT`); the lowest end is returned if it is below ``best``.
     """
     # The automatic bracket would compute the data's dead-time guess, only to cap the search.
     low, high = (problem.lower[delay_index], problem.upper[delay_index]) \
@@ -325,7 +324,8 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
     others = np.ones(best.theta.size, dtype=bool)
     others[delay_index] = False
     # The warm start's last update linearised at best already: usually no new simulation.
-    sensitivities = problem.linearize(best.coefficients, regressors=False).psi[:, others]
+    linearised = problem.linearize(best.coefficients, regressors=False)
+    sensitivities = linearised.psi[:, others]
     lowest = None
     for offset in _PROBE_OFFSETS:
         theta = best.theta.copy()
@@ -335,8 +335,10 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
+        samples = int(offset)
         screened, error = _linearised_refit(problem, theta, coefficients, others,
-                                            _shifted(sensitivities, int(offset)))
+                                            _shifted(linearised.output[:, None], samples)[:, 0],
+                                            _shifted(sensitivities, samples))
         if screened.cost - error >= best.cost:
             continue
         joint = iterate(problem, screened, _JOINT)
@@ -358,20 +360,20 @@ def _shifted(columns: np.ndarray, samples: int) -> np.ndarray:
 
 
 def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coefficients,
-                      others: np.ndarray,
-                      sensitivities: np.ndarray) -> Tuple[State, float]:
+                      others: np.ndarray, output: np.ndarray, sensitivities: np.ndarray
+                      ) -> Tuple[State, float]:
     """
     Screen ``theta`` by one Gauss-Newton update of its ``others`` parameters.
 
-    ``sensitivities`` are the output's derivatives by the ``others`` on the fitted samples.
-    Returns the lower of ``theta`` itself and the updated point (clipped into the bounds,
-    dropped if inadmissible), and the update's linearisation error: the difference between
-    its cost and the cost ``0.5 |e - S d|^2`` the linearised output promised (zero without an
-    admissible update). The point itself is a screen only, not a candidate
-    (:attr:`Problem.best`); the updated one is.
+    ``output`` and ``sensitivities`` approximate the model output at ``theta`` and its
+    derivatives by the ``others`` on the fitted samples (those of a dead time a sample away,
+    shifted: exact for a model at rest before the record, a screen otherwise). Returns the
+    updated point (clipped into the bounds), a candidate (:attr:`Problem.best`), and its
+    linearisation error: the difference between its cost and the cost ``0.5 |e - S d|^2`` the
+    linearised output promised. If the update leaves an inadmissible model, ``theta`` itself
+    with no error.
     """
-    error = problem.measured - problem.prediction(coefficients)
-    itself = State(np.array(theta, dtype=float), coefficients, 0.5 * float(error @ error))
+    error = problem.measured - output
     step = np.linalg.lstsq(sensitivities, error, rcond=None)[0]
     remaining = error - sensitivities @ step
     updated = theta.copy()
@@ -379,7 +381,6 @@ def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coeffic
     updated = np.clip(updated, problem.lower, problem.upper)
     moved = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
     if moved is None:
-        return itself, 0.0
+        return problem.state(theta, coefficients), 0.0
     refit = problem.state(updated, moved)
-    mismatch = abs(refit.cost - 0.5 * float(remaining @ remaining))
-    return (itself if itself.cost < refit.cost else refit), mismatch
+    return refit, abs(refit.cost - 0.5 * float(remaining @ remaining))
