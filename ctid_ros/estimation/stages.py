@@ -63,9 +63,9 @@ _WARM_START_PROGRESS = 0.01
 # A warm start gives way to the data's guess when that reaches a cost lower by this share: below
 # it the two are the same basin up to unfinished digits (the requirement is 0.5 %).
 _SAME_BASIN = 1e-3
-# A warm start whose guess the data cannot tell from its end at this significance (the cost
-# rise in noise units, chi-square with twice the parameters' degrees of freedom) came from the
-# same basin: the data's guess is not computed for it.
+# A warm start whose guess the data cannot tell from its end at this significance (its cost
+# rise in noise units against twice a chi-square with as many degrees of freedom as
+# parameters) came from the same basin: the data's guess is not computed for it.
 _SAME_PLACE = 1e-3
 # Iterations that fit a nested structure without a dead time to search.
 _NESTED_ITERATIONS = 10
@@ -232,8 +232,8 @@ def _came_from_far(problem: Problem, start: Start) -> bool:
     (``2 (J_guess - J_end) / sigma^2``, ``sigma^2 = 2 J_end / (N - p)``), is about
     ``|Psi (theta_guess - theta_end)|^2 / sigma^2``: for the estimate of an independent
     record of the same plant (the node's previous window) twice a chi-square with ``p``
-    degrees of freedom. Below its :data:`_SAME_PLACE` quantile the guess was an estimate of
-    the same basin already, and the data's own guess was checked when that one was made (the
+    degrees of freedom. Below the bound that exceeds with probability :data:`_SAME_PLACE`
+    the guess was an estimate of the same basin already, and the data's own guess was checked when that one was made (the
     first window, or a start from afar). A coloured noise widens the true spread of the
     estimates beyond this white bound: the check then runs more often, never less.
     """
