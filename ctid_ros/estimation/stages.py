@@ -233,9 +233,10 @@ def _came_from_far(problem: Problem, start: Start) -> bool:
     ``|Psi (theta_guess - theta_end)|^2 / sigma^2``: for the estimate of an independent
     record of the same plant (the node's previous window) twice a chi-square with ``p``
     degrees of freedom. Below the bound that exceeds with probability :data:`_SAME_PLACE`
-    the guess was an estimate of the same basin already, and the data's own guess was checked when that one was made (the
-    first window, or a start from afar). A coloured noise widens the true spread of the
-    estimates beyond this white bound: the check then runs more often, never less.
+    the guess was an estimate of the same basin already, and the data's own guess was
+    checked when that one was made (the first window, or a start from afar). A coloured
+    noise widens the true spread of the estimates beyond this white bound: the check then
+    runs more often, never less.
     """
     count = start.state.theta.size
     samples = problem.measured.size
