@@ -12,6 +12,7 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
+from ctid_ros.core.model import Coefficients
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
 from ctid_ros.estimation.problem import DelayRange, Problem, State
@@ -310,16 +311,21 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
 
     The cost's basins in the dead time are often a sample apart (a kink on every sample for a
     model of relative degree one, section 3; a lag traded for dead time): a local fit ends in
-    one of them, and the neighbour can be lower. At ``tau -+ ts`` (within the search bracket)
-    the other parameters get the profile's refinement with the dead time frozen (the first
-    least-squares step trusted); a neighbour that ends below ``best`` is iterated jointly
-    (:data:`_JOINT`) and the lowest end is returned if it is below ``best``.
+    one of them, and the neighbour can be lower. Each neighbour ``tau -+ ts`` (within the
+    bounds and the given delay range) is screened first by one Gauss-Newton update of the
+    other parameters, from the output and sensitivities of ``best`` shifted by that sample
+    (:func:`_linearised_refit`: one simulation, no new sensitivities). Only a neighbour whose
+    screened cost, less the update's own linearisation error, is below the cost of ``best``
+    is iterated jointly (:data:`_JOINT`); the lowest end is returned if it is below ``best``.
     """
-    low, high = problem.delay_bracket(delay_index, delay_range)
-    frozen = np.zeros(best.theta.size, dtype=bool)
-    frozen[delay_index] = True
-    profiled_policy = IterationPolicy(max_iterations=2 if problem.model.is_affine else 3,
-                                      opening=Opening.TRUSTED_LEAST_SQUARES)
+    # The automatic bracket would compute the data's dead-time guess, only to cap the search.
+    low, high = (problem.lower[delay_index], problem.upper[delay_index]) \
+        if delay_range is None else problem.delay_bracket(delay_index, delay_range)
+    others = np.ones(best.theta.size, dtype=bool)
+    others[delay_index] = False
+    # The warm start's last update linearised at best already: usually no new simulation.
+    linearised = problem.linearize(best.coefficients, regressors=False)
+    sensitivities = linearised.psi[:, others]
     lowest = None
     for offset in _PROBE_OFFSETS:
         theta = best.theta.copy()
@@ -329,11 +335,52 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
-        probe = iterate(problem, problem.state(theta, coefficients), profiled_policy,
-                        frozen).state
-        if probe.cost >= best.cost:
+        samples = int(offset)
+        screened, error = _linearised_refit(problem, theta, coefficients, others,
+                                            _shifted(linearised.output[:, None], samples)[:, 0],
+                                            _shifted(sensitivities, samples))
+        if screened.cost - error >= best.cost:
             continue
-        joint = iterate(problem, probe, _JOINT)
+        joint = iterate(problem, screened, _JOINT)
         if joint.state.cost < (best.cost if lowest is None else lowest.state.cost):
             lowest = joint
     return lowest
+
+
+def _shifted(columns: np.ndarray, samples: int) -> np.ndarray:
+    """Return ``columns`` delayed by ``samples`` (advanced if negative), zeros shifted in."""
+    moved = np.zeros_like(columns)
+    if samples > 0:
+        moved[samples:] = columns[:-samples]
+    elif samples < 0:
+        moved[:samples] = columns[-samples:]
+    else:
+        moved[:] = columns
+    return moved
+
+
+def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coefficients,
+                      others: np.ndarray, output: np.ndarray, sensitivities: np.ndarray
+                      ) -> Tuple[State, float]:
+    """
+    Screen ``theta`` by one Gauss-Newton update of its ``others`` parameters.
+
+    ``output`` and ``sensitivities`` approximate the model output at ``theta`` and its
+    derivatives by the ``others`` on the fitted samples (those of a dead time a sample away,
+    shifted: exact for a model at rest before the record, a screen otherwise). Returns the
+    updated point (clipped into the bounds), a candidate (:attr:`Problem.best`), and its
+    linearisation error: the difference between its cost and the cost ``0.5 |e - S d|^2`` the
+    linearised output promised. If the update leaves an inadmissible model, ``theta`` itself
+    with no error.
+    """
+    error = problem.measured - output
+    step = np.linalg.lstsq(sensitivities, error, rcond=None)[0]
+    remaining = error - sensitivities @ step
+    updated = theta.copy()
+    updated[others] += step
+    updated = np.clip(updated, problem.lower, problem.upper)
+    moved = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
+    if moved is None:
+        return problem.state(theta, coefficients), 0.0
+    refit = problem.state(updated, moved)
+    return refit, abs(refit.cost - 0.5 * float(remaining @ remaining))

@@ -60,6 +60,31 @@ def test_a_warm_start_in_the_right_basin_stays_a_warm_start(factory):
     assert warm.cost == pytest.approx(automatic.cost, rel=1e-6)
 
 
+@pytest.mark.parametrize('factory', [systems.first_order_dead_time, systems.two_lags_dead_time])
+def test_a_warm_start_from_the_previous_window_ends_at_the_automatic_estimate(factory):
+    # The node's warm start: the estimate of an independent record of the same plant. The
+    # data's guess is skipped for it; the neighbouring dead times are still screened.
+    system = factory()
+    previous = estimate(system.model, system.data(seed=1), 'auto', bounds=system.bounds)
+    data = system.data(seed=0)
+    automatic = estimate(system.model, data, 'auto', bounds=system.bounds)
+    warm = estimate(system.model, data, previous.params, bounds=system.bounds)
+    assert warm.start == 'initial'
+    assert warm.converged
+    assert warm.cost == pytest.approx(automatic.cost, rel=1e-6)
+
+
+@pytest.mark.parametrize('seed', [0, 4, 6])
+def test_a_start_from_the_previous_window_never_ends_above_the_data_guess(seed):
+    # The same warm start on the noisy two-lag records, whose FOPDT basins lie a sample apart.
+    previous = estimate(FOPDT, two_lag_plant_record(seed + 50), 'auto')
+    data = two_lag_plant_record(seed)
+    automatic = estimate(FOPDT, data, 'auto')
+    result = estimate(FOPDT, data, previous.params)
+    assert result.converged
+    assert result.cost <= 1.005 * automatic.cost, (result.params, automatic.params)
+
+
 def optimum(problem, starts):
     """Return the least_squares optimum of the output-error cost from ``starts``."""
     def residual(theta):
