@@ -71,7 +71,7 @@ import numpy as np
 __all__ = ['AlarmSettings', 'AlarmStatus', 'BASELINE_QUANTILE', 'CAP', 'ChangeDetector',
            'LEVEL_NAMES', 'MODEL_FAILURES', 'ParameterChange', 'REFERENCE', 'SCALE_HISTORY',
            'SCALE_MIN_WINDOWS', 'brownian_arl', 'brownian_barrier', 'cusum_threshold',
-           'long_run_variance', 'model_check', 'output_sensitivities', 'overshoot',
+           'long_run_variance', 'model_check', 'noise_only', 'output_sensitivities', 'overshoot',
            'robust_scale']
 
 LEVEL_NAMES = {level: name for name, level in LEVELS.items()}
@@ -270,6 +270,27 @@ def output_sensitivities(result: Any, data: Any) -> np.ndarray:
                                                  output_skew=data.output_skew))
         columns.append((shifted[0] - shifted[1]) / (2.0 * step))
     return np.column_stack(columns)
+
+
+def noise_only(update: Update, covariance: np.ndarray) -> np.ndarray:
+    """
+    Return the window's covariance as the noise alone implies it.
+
+    Where the window's parameters move across it (its consistency check flagged it, section
+    18) the estimate reports standard deviations that cover the scatter of its quarters: the
+    honest spread of the answer, but for the change test a window that straddles a change
+    would then hide the change behind it. The test compares each window with the baseline on
+    the noise-only covariance (the correlations kept); that an adequate model's windows agree
+    with it is what :func:`robust_scale` learns anyway.
+    """
+    result = update.result
+    consistency = getattr(result, 'consistency', None)
+    if consistency is None or consistency.consistent or not result.std_noise:
+        return covariance
+    ratio = np.array([result.std_noise.get(name, math.nan) / result.std[name]
+                      if result.std.get(name) else 1.0 for name in update.names])
+    ratio = np.where(np.isfinite(ratio) & (ratio > 0.0) & (ratio < 1.0), ratio, 1.0)
+    return covariance * np.outer(ratio, ratio)
 
 
 @dataclass(frozen=True)
@@ -732,8 +753,9 @@ class ChangeDetector:
         model_ok, verdict = check if check is not None else \
             model_check(update, settings.window, settings.transient)
         values = np.asarray(update.values, dtype=float)
-        covariance = np.diag(np.asarray(update.stds, dtype=float) ** 2) \
-            if update.covariance is None else np.asarray(update.covariance, dtype=float)
+        covariance = noise_only(update, np.diag(np.asarray(update.stds, dtype=float) ** 2)
+                                if update.covariance is None else
+                                np.asarray(update.covariance, dtype=float))
         usable = bool(update.result.converged) and bool(np.all(np.isfinite(values)))
         if not model_ok:
             if self._failures == 0:
