@@ -12,7 +12,7 @@ recorder's log time).
 """
 
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import functools
 import heapq
 from io import BytesIO
@@ -694,6 +694,8 @@ class McapSource:
     def _scan(self, size: int, complete: bool) -> None:
         """Index the file by reading it from the start, stopping at the first bad record."""
         offset = len(MCAP_MAGIC)
+        # Where message index records of the last chunk read start or go on (None: no chunk).
+        index_at: Optional[int] = None
         while True:
             self._stream.seek(offset)
             head = self._stream.read(_RECORD_HEADER.size)
@@ -716,7 +718,15 @@ class McapSource:
             except BagError as error:
                 self._stop(offset, size, str(error))
                 return
-            self._add_block(offset, records)
+            if opcode == Opcode.MESSAGE_INDEX and offset == index_at:
+                block = self._blocks[-1]
+                start = offset if block.message_index is None else block.message_index[0]
+                self._blocks[-1] = replace(block, message_index=(start, end - start))
+                index_at = end
+            else:
+                blocks = len(self._blocks)
+                self._add_block(offset, records)
+                index_at = end if opcode == Opcode.CHUNK and len(self._blocks) > blocks else None
             offset = end
         if not complete:
             self.truncated = True

@@ -228,3 +228,24 @@ def test_raw_blocks_from_the_message_index_match_the_record_walk(tmp_path, monke
         assert any(one[1] == other[1] for one, other in zip(indexed, indexed[1:]))
         assert end_ns is None or end_ns in {time_ns for _, time_ns, _ in walked} | {
             record.time_ns // 10**7 * 10**7 for record in RECORDS if record.topic in topics}
+
+
+def test_raw_blocks_of_a_truncated_mcap_use_the_message_indexes_read_by_the_scan(
+        mcap_file, tmp_path, monkeypatch):
+    # The scan of a file cut short notes each chunk's message index records as well.
+    walks = []
+    original = mcap_source._message_positions
+    monkeypatch.setattr(mcap_source, '_message_positions',
+                        lambda *args: walks.append(1) or original(*args))
+    path = tmp_path / 'cut.mcap'
+    shutil.copy(mcap_file, path)
+    truncate(path, 0.6)
+    topics = ['/joint_states', '/plant/u']
+    indexed = _raw_messages(path, topics)
+    with BagReader(path) as bag:
+        assert bag.truncated
+        streamed = [(record.topic, record.log_time_ns, record.data)
+                    for record in bag.records(topics)]
+    assert indexed == streamed and len(indexed) > 50
+    # Only a chunk whose index the cut left incomplete is walked record by record.
+    assert len(walks) <= 1
