@@ -58,6 +58,8 @@ _MESSAGE_INDEX_FIELDS = struct.Struct('<HI')
 # A message record as it lies in a chunk, up to its data (opcode and length, then the fields).
 _MESSAGE_HEAD = np.dtype([('opcode', 'u1'), ('length', '<u8'), ('channel', '<u2'),
                           ('sequence', '<u4'), ('log_time', '<u8'), ('publish_time', '<u8')])
+# Message heads read from a chunk at once, from the offsets its message index gives.
+_GATHERED_HEADS = 1 << 16
 _RECORDS_LENGTH = struct.Struct('<Q')
 # Bytes read at the start of compressed records: enough for a zstd or lz4 frame header.
 _FRAME_HEADER_BYTES = 32
@@ -415,7 +417,12 @@ def _indexed_positions(data: bytes, offsets: np.ndarray, wanted: Mapping[int, in
         offsets = np.sort(offsets)
         offsets = offsets[np.concatenate(([True], offsets[1:] != offsets[:-1]))]
     buffer = np.frombuffer(data, dtype=np.uint8)
-    heads = buffer[offsets[:, None] + np.arange(head)].view(_MESSAGE_HEAD)[:, 0]
+    heads = np.empty(offsets.size, dtype=_MESSAGE_HEAD)
+    # In slices: the byte positions of a whole chunk of tiny messages would take gigabytes.
+    for first in range(0, offsets.size, _GATHERED_HEADS):
+        part = offsets[first:first + _GATHERED_HEADS]
+        heads[first:first + part.size] = buffer[part[:, None] + np.arange(head)].view(
+            _MESSAGE_HEAD)[:, 0]
     if np.any(heads['opcode'] != Opcode.MESSAGE) or \
             np.any(heads['length'] < _MESSAGE_FIELDS.size) or \
             np.any(heads['length'] > size) or np.any(heads['log_time'] >= 1 << 63):
