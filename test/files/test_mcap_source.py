@@ -17,6 +17,7 @@ import hostile_corpus
 import lz4.frame
 from mcap.reader import make_reader
 from mcap.records import Chunk
+from mcap.writer import Writer as McapWriter
 import pytest
 import zstandard
 
@@ -249,3 +250,32 @@ def test_raw_blocks_of_a_truncated_mcap_use_the_message_indexes_read_by_the_scan
     assert indexed == streamed and len(indexed) > 50
     # Only a chunk whose index the cut left incomplete is walked record by record.
     assert len(walks) <= 1
+
+
+def test_a_chunk_of_more_messages_than_one_gather_is_located_exactly(tmp_path, monkeypatch):
+    # 70 000 messages of two channels and varying sizes in one chunk: more message heads than
+    # are gathered at once.
+    walks = []
+    original = mcap_source._message_positions
+    monkeypatch.setattr(mcap_source, '_message_positions',
+                        lambda *args: walks.append(1) or original(*args))
+    path = tmp_path / 'big_chunk.mcap'
+    with open(path, 'wb') as stream:
+        writer = McapWriter(stream, chunk_size=64 << 20)
+        writer.start(profile='ros2', library='test')
+        schema = writer.register_schema('std_msgs/msg/Float64', 'ros2msg', b'float64 data\n')
+        channels = [writer.register_channel(topic, 'cdr', schema) for topic in ('/u', '/y')]
+        for k in range(70_000):
+            writer.add_message(channels[k % 2], T0_NS + k // 3 * 1000,
+                               b'\x00\x01\x00\x00' + struct.pack('<d', k) + bytes(k % 5),
+                               T0_NS)
+        writer.finish()
+    damaged = tmp_path / 'damaged_index.mcap'
+    shutil.copy(path, damaged)
+    _rewrite_message_indexes(damaged, _shift_offsets)
+    window = (T0_NS + 1000, T0_NS + 20_000 * 1000)
+    indexed = _raw_messages(path, ['/u', '/y'], *window)
+    assert walks == []
+    assert indexed == _raw_messages(damaged, ['/u', '/y'], *window) and len(walks) == 1
+    assert [(topic, struct.unpack_from('<d', data, 4)[0]) for topic, _, data in indexed] == [
+        (('/u', '/y')[k % 2], k) for k in range(3, 60_000)]
