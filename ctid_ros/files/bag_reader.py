@@ -78,13 +78,26 @@ def _quoted(error: BaseException) -> str:
     return text if len(text) <= _QUOTE_LIMIT else text[:_QUOTE_LIMIT - 3] + '...'
 
 
+class _StandardTypes:
+    """
+    The standard ROS 2 Jazzy types as AnyReader's ``default_typestore``, loaded on first use.
+
+    AnyReader reads only their ``fielddefs``, and only for a bag that stores no definitions
+    (pre-Iron sqlite3); loading the store imports the types of every ROS 2 distribution, which
+    other bags never need.
+    """
+
+    @property
+    def fielddefs(self) -> Mapping[str, Any]:
+        return get_typestore(Stores.ROS2_JAZZY).fielddefs
+
+
 def _open_reader(paths: Sequence[Path], path: Path) -> AnyReader:
-    # The Jazzy store is only used by bags without stored definitions (pre-Iron sqlite3).
     what = (f'cannot read ROS 1 bag {path} (damaged, or cut short before its index was '
             'written: `rosbag reindex` on ROS 1 rebuilds it)' if path.suffix == '.bag' else
             f'cannot read bag {path} (damaged, or a format rosbags does not support)')
     with reading_errors(what):
-        reader = AnyReader(list(paths), default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader = AnyReader(list(paths), default_typestore=_StandardTypes())
         reader.open()
     if not reader.is2:
         try:

@@ -12,7 +12,7 @@ recorder's log time).
 """
 
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import functools
 import heapq
 from io import BytesIO
@@ -52,6 +52,14 @@ _MESSAGE_FIELDS = struct.Struct('<HIQQ')
 # A chunk record's fixed fields: message start and end time, uncompressed size and CRC.
 _CHUNK_FIELDS = struct.Struct('<QQQI')
 _LENGTH = struct.Struct('<I')
+# A message index record's fixed fields: channel id and byte length of its (log time, offset)
+# pairs.
+_MESSAGE_INDEX_FIELDS = struct.Struct('<HI')
+# A message record as it lies in a chunk, up to its data (opcode and length, then the fields).
+_MESSAGE_HEAD = np.dtype([('opcode', 'u1'), ('length', '<u8'), ('channel', '<u2'),
+                          ('sequence', '<u4'), ('log_time', '<u8'), ('publish_time', '<u8')])
+# Message heads read from a chunk at once, from the offsets its message index gives.
+_GATHERED_HEADS = 1 << 16
 _RECORDS_LENGTH = struct.Struct('<Q')
 # Bytes read at the start of compressed records: enough for a zstd or lz4 frame header.
 _FRAME_HEADER_BYTES = 32
@@ -261,7 +269,9 @@ class _Block:
     """
     A chunk (or one message stored outside chunks) of an MCAP file.
 
-    ``channel_ids`` is None when the file does not say which channels the chunk holds.
+    ``channel_ids`` is None when the file does not say which channels the chunk holds;
+    ``message_index`` is the (file offset, length) of the chunk's message index records, None
+    when the file has none for it.
 
     """
 
@@ -269,6 +279,7 @@ class _Block:
     start_ns: int
     end_ns: int
     channel_ids: Optional[FrozenSet[int]]
+    message_index: Optional[Tuple[int, int]] = None
 
 
 class _ChunkRefused(BagError):
@@ -384,6 +395,111 @@ def _message_positions(data: bytes, wanted: Mapping[int, int], lo: int, hi: floa
         position = end
     columns = np.array(found, dtype=np.int64).reshape(-1, 5)
     return tuple(columns[:, column] for column in range(5))
+
+
+def _indexed_positions(data: bytes, offsets: np.ndarray, wanted: Mapping[int, int], lo: int,
+                       hi: float) -> Optional[Tuple[np.ndarray, ...]]:
+    """
+    Find the message records of the wanted channels in a chunk's records from its index.
+
+    ``offsets`` are where the chunk's message index records say its messages start, for every
+    channel in the chunk. They are checked against the records, with numpy: each must hold a
+    message record, and those records with the few other records between them (schema and
+    channel records, walked one by one) must fill the chunk exactly, end to end. Then the result
+    is that of :func:`_message_positions`; None if the index does not fit the records (damaged,
+    or written by another rule), for the sequential walk to decide.
+    """
+    size = len(data)
+    head = _MESSAGE_HEAD.itemsize
+    if offsets.size == 0 or offsets.min() < 0 or offsets.max() > size - head:
+        return None
+    if np.any(offsets[1:] <= offsets[:-1]):    # several channels, or a repeated entry
+        offsets = np.sort(offsets)
+        offsets = offsets[np.concatenate(([True], offsets[1:] != offsets[:-1]))]
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    heads = np.empty(offsets.size, dtype=_MESSAGE_HEAD)
+    # In slices: the byte positions of a whole chunk of tiny messages would take gigabytes.
+    for first in range(0, offsets.size, _GATHERED_HEADS):
+        part = offsets[first:first + _GATHERED_HEADS]
+        heads[first:first + part.size] = buffer[part[:, None] + np.arange(head)].view(
+            _MESSAGE_HEAD)[:, 0]
+    if np.any(heads['opcode'] != Opcode.MESSAGE) or \
+            np.any(heads['length'] < _MESSAGE_FIELDS.size) or \
+            np.any(heads['length'] > size) or np.any(heads['log_time'] >= 1 << 63):
+        return None
+    lengths = heads['length'].astype(np.int64)
+    ends = offsets + _RECORD_HEADER.size + lengths
+    # Between consecutive messages (and before the first, after the last): other records.
+    gap_starts = np.concatenate(([0], ends))
+    gap_ends = np.concatenate((offsets, [size]))
+    if np.any(gap_starts > gap_ends):
+        return None
+    others = np.zeros(gap_starts.size, dtype=np.int64)
+    for gap in np.flatnonzero(gap_starts < gap_ends).tolist():
+        count = _other_records(data, int(gap_starts[gap]), int(gap_ends[gap]))
+        if count is None:
+            return None
+        others[gap] = count
+    index = np.arange(offsets.size, dtype=np.int64) + np.cumsum(others)[:-1]
+    channels = heads['channel']
+    topic = np.zeros(offsets.size, dtype=np.int64)
+    selected = np.zeros(offsets.size, dtype=bool)
+    for channel, topic_index in wanted.items():
+        on_channel = channels == channel
+        topic[on_channel] = topic_index
+        selected |= on_channel
+    log_time = heads['log_time'].astype(np.int64)
+    selected &= (log_time >= lo) & (log_time < hi)
+    return (index[selected], offsets[selected] + head, lengths[selected] - _MESSAGE_FIELDS.size,
+            log_time[selected], topic[selected])
+
+
+def _other_records(data: bytes, position: int, stop: int) -> Optional[int]:
+    """
+    Count the records from ``position`` to ``stop`` of a chunk, which hold no message.
+
+    Returns the number of schema and channel records among them; None if a record is invalid,
+    a message, or does not end exactly at ``stop``.
+    """
+    count = 0
+    while position < stop:
+        if stop - position < _RECORD_HEADER.size:
+            return None
+        opcode, length = _RECORD_HEADER.unpack_from(data, position)
+        position += _RECORD_HEADER.size + length
+        if opcode in (0, Opcode.MESSAGE) or position > stop:
+            return None
+        count += opcode in (Opcode.SCHEMA, Opcode.CHANNEL)
+    return count
+
+
+def _index_offsets(records: bytes) -> Optional[np.ndarray]:
+    """
+    Return the message offsets that a chunk's message index records list, of every channel.
+
+    None if ``records`` are not message index records end to end.
+    """
+    found = []
+    position = 0
+    header, fields = _RECORD_HEADER.size, _MESSAGE_INDEX_FIELDS.size
+    while position < len(records):
+        if len(records) - position < header + fields:
+            return None
+        opcode, length = _RECORD_HEADER.unpack_from(records, position)
+        _, pairs = _MESSAGE_INDEX_FIELDS.unpack_from(records, position + header)
+        start = position + header + fields
+        position += header + length
+        if opcode != Opcode.MESSAGE_INDEX or pairs % 16 or length != fields + pairs or \
+                position > len(records):
+            return None
+        found.append(np.frombuffer(records, dtype='<u8', count=pairs // 8,
+                                   offset=start)[1::2])
+    if not found:
+        return None
+    offsets = np.concatenate(found)
+    if np.any(offsets >= 1 << 62):
+        return None
+    return offsets.astype(np.int64)
 
 
 def chunk_records(chunk: Chunk) -> List[Any]:
@@ -573,7 +689,10 @@ class McapSource:
         self._counts = dict(stats.channel_message_counts)
         self._blocks = [_Block(index.chunk_start_offset, index.message_start_time,
                                index.message_end_time,
-                               frozenset(index.message_index_offsets) or None)
+                               frozenset(index.message_index_offsets) or None,
+                               (min(index.message_index_offsets.values()),
+                                index.message_index_length)
+                               if index.message_index_offsets else None)
                         for index in summary.chunk_indexes]
         if stats.message_count:
             self.start_ns, self.end_ns = stats.message_start_time, stats.message_end_time
@@ -582,6 +701,8 @@ class McapSource:
     def _scan(self, size: int, complete: bool) -> None:
         """Index the file by reading it from the start, stopping at the first bad record."""
         offset = len(MCAP_MAGIC)
+        # Where message index records of the last chunk read start or go on (None: no chunk).
+        index_at: Optional[int] = None
         while True:
             self._stream.seek(offset)
             head = self._stream.read(_RECORD_HEADER.size)
@@ -604,7 +725,15 @@ class McapSource:
             except BagError as error:
                 self._stop(offset, size, str(error))
                 return
-            self._add_block(offset, records)
+            if opcode == Opcode.MESSAGE_INDEX and offset == index_at:
+                block = self._blocks[-1]
+                start = offset if block.message_index is None else block.message_index[0]
+                self._blocks[-1] = replace(block, message_index=(start, end - start))
+                index_at = end
+            else:
+                blocks = len(self._blocks)
+                self._add_block(offset, records)
+                index_at = end if opcode == Opcode.CHUNK and len(self._blocks) > blocks else None
             offset = end
         if not complete:
             self.truncated = True
@@ -718,9 +847,25 @@ class McapSource:
             if block is None:
                 break
             data = self._read_raw(block.offset)
-            positions = _message_positions(data, wanted, lo, hi)
+            positions = self._indexed(block, data, wanted, lo, hi)
+            if positions is None:
+                positions = _message_positions(data, wanted, lo, hi)
             if positions[0].size:
                 pool.append((np.frombuffer(data, dtype=np.uint8), positions, block.offset))
+
+    def _indexed(self, block: _Block, data: bytes, wanted: Mapping[int, int], lo: int,
+                 hi: float) -> Optional[Tuple[np.ndarray, ...]]:
+        """Find the wanted messages of a chunk from its message index; None without one."""
+        if block.message_index is None:
+            return None
+        offset, length = block.message_index
+        try:
+            self._stream.seek(offset)
+            records = self._stream.read(length)
+        except (OSError, ValueError, OverflowError):
+            return None
+        offsets = _index_offsets(records)
+        return None if offsets is None else _indexed_positions(data, offsets, wanted, lo, hi)
 
     def _read_raw(self, offset: int) -> bytes:
         """Return the records of the chunk (or the one message record) at ``offset``."""

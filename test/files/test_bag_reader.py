@@ -4,6 +4,7 @@ import hashlib
 import os
 from pathlib import Path
 import shutil
+import sqlite3
 
 from bag_fixtures import (assert_fields, DURATION_S, make_records, readable_prefix, SAMPLE_MSG,
                           SAMPLE_TYPE, T0_NS, TOPICS, truncate, write_mcap, write_rosbag2)
@@ -460,3 +461,21 @@ def test_a_ros1_decompression_bomb_is_refused_before_decompressing(tmp_path):
     with pytest.raises(BagError, match=r'the chunk at byte \d+ declares 8.* a decompression '
                                        'bomb'):
         BagReader(bomb)
+
+
+def test_a_bag_without_stored_definitions_is_decoded_with_the_standard_types(bags, tmp_path):
+    # Bags from before Iron store no definitions: the standard ROS 2 types decode them.
+    path = tmp_path / 'pre_iron'
+    shutil.copytree(bags['sqlite3'], path)
+    with sqlite3.connect(next(path.glob('*.db3'))) as database:
+        database.execute('DELETE FROM message_definitions')
+    standard = [topic for topic, msgtype in TOPICS.items() if msgtype != SAMPLE_TYPE]
+    with BagReader(path) as bag:
+        pairs = [(message, record) for message, record in zip(
+            bag.messages(standard), [r for r in RECORDS if r.topic in standard])]
+        assert len(pairs) == sum(r.topic in standard for r in RECORDS) > 100
+        for message, record in pairs:
+            assert (message.topic, message.log_time_ns) == (record.topic, record.time_ns)
+            assert_fields(message.msg, record.fields)
+        with pytest.raises(BagError, match='not a standard ROS 2 Jazzy type'):
+            bag.messages('/plant/sample')

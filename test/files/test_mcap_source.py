@@ -1,5 +1,6 @@
 """Tests of ctid_ros.files.mcap_source: standalone MCAP files, complete, unchunked or damaged."""
 
+import dataclasses
 import re
 import shutil
 import struct
@@ -9,11 +10,14 @@ import zlib
 from bag_fixtures import (assert_fields, make_records, readable_prefix, T0_NS, TOPICS, truncate,
                           write_mcap, write_unchunked_mcap)
 from ctid_ros.errors import BagError
+from ctid_ros.files import mcap_source
 from ctid_ros.files.bag_reader import BagReader
 from ctid_ros.files.mcap_source import chunk_records, McapSource, TopicSchema
 import hostile_corpus
 import lz4.frame
+from mcap.reader import make_reader
 from mcap.records import Chunk
+from mcap.writer import Writer as McapWriter
 import pytest
 import zstandard
 
@@ -152,3 +156,126 @@ def test_chunk_records_of_a_good_chunk(tmp_path):
         chunk_records(Chunk(compression='', data=content, message_end_time=2,
                             message_start_time=0, uncompressed_crc=1,
                             uncompressed_size=len(content)))
+
+
+def _raw_messages(path, topics, start_ns=None, end_ns=None):
+    """Return (topic, log time, bytes) of every message ``raw_blocks`` yields, in order."""
+    source = McapSource(path)
+    try:
+        streams = source.raw_streams(topics)
+        return [(streams[int(block.topic[row])].topic, int(block.log_time_ns[row]),
+                 block.message(row))
+                for block in source.raw_blocks(streams, start_ns, end_ns)
+                for row in range(len(block))]
+    finally:
+        source.close()
+
+
+def _rewrite_message_indexes(path, change):
+    """Apply ``change`` to the (log time, offset) pairs of every message index record."""
+    data = bytearray(path.read_bytes())
+    with open(path, 'rb') as stream:
+        indexes = make_reader(stream).get_summary().chunk_indexes
+    for index in indexes:
+        for offset in index.message_index_offsets.values():
+            (size,) = struct.unpack_from('<I', data, offset + 11)
+            pairs = [list(struct.unpack_from('<QQ', data, offset + 15 + 16 * k))
+                     for k in range(size // 16)]
+            change(pairs)
+            for k, pair in enumerate(pairs):
+                struct.pack_into('<QQ', data, offset + 15 + 16 * k, *pair)
+    path.write_bytes(bytes(data))
+
+
+def _shift_offsets(pairs):
+    for pair in pairs:
+        pair[1] += 1
+
+
+def _repeat_an_entry(pairs):
+    if len(pairs) > 1:
+        pairs[1] = list(pairs[0])
+
+
+@pytest.mark.parametrize('change', [_shift_offsets, _repeat_an_entry])
+def test_raw_blocks_from_the_message_index_match_the_record_walk(tmp_path, monkeypatch,
+                                                                 change):
+    # The chunks are located by the message index records after them; an index that does not
+    # fit the records falls back to walking them, with the same messages in the same order.
+    walks = []
+    original = mcap_source._message_positions
+    monkeypatch.setattr(mcap_source, '_message_positions',
+                        lambda *args: walks.append(1) or original(*args))
+    # Log times on a 10 ms grid: messages of both topics share times, inside one chunk.
+    path = tmp_path / 'ties.mcap'
+    write_mcap(path, [dataclasses.replace(record, time_ns=record.time_ns // 10**7 * 10**7)
+                      for record in RECORDS])
+    damaged = tmp_path / 'damaged_index.mcap'
+    shutil.copy(path, damaged)
+    _rewrite_message_indexes(damaged, change)
+    topics = ['/joint_states', '/plant/y']
+    window = (T0_NS + 3 * 10**8, T0_NS + 9 * 10**8)     # times of messages: the end excluded
+    for start_ns, end_ns in ((None, None), window):
+        walks.clear()
+        indexed = _raw_messages(path, topics, start_ns, end_ns)
+        assert walks == []
+        walked = _raw_messages(damaged, topics, start_ns, end_ns)
+        assert len(walks) > 1
+        assert indexed == walked
+        with BagReader(path) as bag:
+            streamed = [(record.topic, record.log_time_ns, record.data) for record in
+                        bag.records(topics, start_ns=start_ns, end_ns=end_ns)]
+        assert indexed == streamed and len(indexed) > 50
+        assert any(one[1] == other[1] for one, other in zip(indexed, indexed[1:]))
+        assert end_ns is None or end_ns in {time_ns for _, time_ns, _ in walked} | {
+            record.time_ns // 10**7 * 10**7 for record in RECORDS if record.topic in topics}
+
+
+def test_raw_blocks_of_a_truncated_mcap_use_the_message_indexes_read_by_the_scan(
+        mcap_file, tmp_path, monkeypatch):
+    # The scan of a file cut short notes each chunk's message index records as well.
+    walks = []
+    original = mcap_source._message_positions
+    monkeypatch.setattr(mcap_source, '_message_positions',
+                        lambda *args: walks.append(1) or original(*args))
+    path = tmp_path / 'cut.mcap'
+    shutil.copy(mcap_file, path)
+    truncate(path, 0.6)
+    topics = ['/joint_states', '/plant/u']
+    indexed = _raw_messages(path, topics)
+    with BagReader(path) as bag:
+        assert bag.truncated
+        streamed = [(record.topic, record.log_time_ns, record.data)
+                    for record in bag.records(topics)]
+    assert indexed == streamed and len(indexed) > 50
+    # Only a chunk whose index the cut left incomplete is walked record by record.
+    assert len(walks) <= 1
+
+
+def test_a_chunk_of_more_messages_than_one_gather_is_located_exactly(tmp_path, monkeypatch):
+    # 70 000 messages of two channels and varying sizes in one chunk: more message heads than
+    # are gathered at once.
+    walks = []
+    original = mcap_source._message_positions
+    monkeypatch.setattr(mcap_source, '_message_positions',
+                        lambda *args: walks.append(1) or original(*args))
+    path = tmp_path / 'big_chunk.mcap'
+    with open(path, 'wb') as stream:
+        writer = McapWriter(stream, chunk_size=64 << 20)
+        writer.start(profile='ros2', library='test')
+        schema = writer.register_schema('std_msgs/msg/Float64', 'ros2msg', b'float64 data\n')
+        channels = [writer.register_channel(topic, 'cdr', schema) for topic in ('/u', '/y')]
+        for k in range(70_000):
+            writer.add_message(channels[k % 2], T0_NS + k // 3 * 1000,
+                               b'\x00\x01\x00\x00' + struct.pack('<d', k) + bytes(k % 5),
+                               T0_NS)
+        writer.finish()
+    damaged = tmp_path / 'damaged_index.mcap'
+    shutil.copy(path, damaged)
+    _rewrite_message_indexes(damaged, _shift_offsets)
+    window = (T0_NS + 1000, T0_NS + 20_000 * 1000)
+    indexed = _raw_messages(path, ['/u', '/y'], *window)
+    assert walks == []
+    assert indexed == _raw_messages(damaged, ['/u', '/y'], *window) and len(walks) == 1
+    assert [(topic, struct.unpack_from('<d', data, 4)[0]) for topic, _, data in indexed] == [
+        (('/u', '/y')[k % 2], k) for k in range(3, 60_000)]
