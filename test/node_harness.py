@@ -126,12 +126,32 @@ class Harness:
         with self._lock:
             return into[-1] if into else None
 
-    def call(self, service_type, name, request, timeout=60.0):
-        client = self.observer.create_client(service_type, name)
+    def call(self, service_type, name, request, timeout=60.0, repeatable=False):
+        """
+        Call a service and return its response.
+
+        One client per service, kept: a new client's response reader may not be matched by
+        the server when its first request arrives (DDS discovery runs both ways), and that
+        response is then lost. A ``repeatable`` request (a query that changes nothing) is
+        sent again every few seconds until it is answered.
+        """
+        clients = self.__dict__.setdefault('_clients', {})
+        client = clients.get((service_type, name))
+        if client is None:
+            client = clients[(service_type, name)] = \
+                self.observer.create_client(service_type, name)
         assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
-        future = client.call_async(request)
-        wait_for(future.done, timeout, f'no answer from {name}')
-        return future.result()
+        deadline = time.monotonic() + timeout
+        while True:
+            future = client.call_async(request)
+            give_up = min(deadline, time.monotonic() + 5.0) if repeatable else deadline
+            while not future.done() and time.monotonic() < give_up:
+                time.sleep(0.05)
+            if future.done():
+                return future.result()
+            assert time.monotonic() < deadline, \
+                f'timed out after {timeout} s: no answer from {name}'
+            client.remove_pending_request(future)
 
     def close(self):
         for process in self.processes:
@@ -159,8 +179,9 @@ class NodeProcess:
                  f'__ns:={ros.namespace}', '--params-file', str(params)],
                 stdout=log, stderr=subprocess.STDOUT)
 
-    def call(self, service_type, service, request):
-        return self.ros.call(service_type, f'{self.name}/{service}', request, timeout=60.0)
+    def call(self, service_type, service, request, repeatable=False):
+        return self.ros.call(service_type, f'{self.name}/{service}', request, timeout=60.0,
+                             repeatable=repeatable)
 
     def change(self, transition_id, label=''):
         """Request a transition through ~/change_state; return whether it succeeded."""
@@ -168,7 +189,8 @@ class NodeProcess:
         return self.call(ChangeState, 'change_state', request).success
 
     def state(self):
-        return self.call(GetState, 'get_state', GetState.Request()).current_state.label
+        return self.call(GetState, 'get_state', GetState.Request(),
+                         repeatable=True).current_state.label
 
     def stop(self, number):
         """Send signal ``number``; return the seconds to the exit, the status and the log."""

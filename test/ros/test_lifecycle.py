@@ -53,8 +53,8 @@ class Manager:
         return self.ros.call(ChangeState, f'{self.node}/change_state', request).success
 
     def state(self):
-        return self.ros.call(GetState, f'{self.node}/get_state',
-                             GetState.Request()).current_state.label
+        return self.ros.call(GetState, f'{self.node}/get_state', GetState.Request(),
+                             repeatable=True).current_state.label
 
     def subscribers(self, topic):
         return self.ros.observer.count_subscribers(f'{self.ros.namespace}/{topic}')
