@@ -44,6 +44,7 @@ import re
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ctid_ros.errors import ConfigError, CtidError, DataError
+from ctid_ros.streaming.parameter_specs import DEFAULT_NODE_NAME
 import numpy as np
 
 __all__ = [
@@ -58,7 +59,6 @@ __all__ = [
 ]
 
 NANOSECONDS = 1_000_000_000
-DEFAULT_NODE_NAME = 'ctid_node'
 
 # Topic suffixes below the node's name, and the one absolute topic.
 ESTIMATE = 'estimate'
