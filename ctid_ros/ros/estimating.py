@@ -20,8 +20,9 @@ configuration, buffer, session and detector under ``_lock`` and keeps ``last_upd
 
 import math
 import time
-from typing import Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
+from ctid_ros.design.tune import tune_from_settings
 from ctid_ros.errors import ConfigError, CtidError, DataError
 from ctid_ros.ros.output import ERROR_LOG_PERIOD
 from ctid_ros.streaming.alarm import AlarmSettings, ChangeDetector
@@ -29,13 +30,15 @@ from ctid_ros.streaming.baseline import Baseline, write_baseline_file
 from ctid_ros.streaming.buffer import Gap, SampleBuffer
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import (estimate_summary, failure_status, NANOSECONDS, OK,
-                                         update_status, warm_up_text, WARN)
+                                         tuning_message, update_status, warm_up_text, WARN)
 from ctid_ros.streaming.sampler import ROLES
 from ctid_ros.streaming.session import IdentificationSession, Update
 from std_srvs.srv import Trigger
 
 __all__ = ['Estimating']
 
+# The key of the tuning's note on /diagnostics and of its warning logged once.
+_TUNING = 'tuning'
 # A capture whose windows scatter more than this (in variance, against their covariance) is
 # reported with a warning: the plant was probably changing.
 _SCATTER_LIMIT = 9.0
@@ -103,6 +106,7 @@ class Estimating:
         values['time'] = (update.end_ns - origin) / NANOSECONDS
         values['window'] = config.window
         values.update(alarm.diagnostics(origin))
+        values.update(self._tune(update, config, values['time']))
         self._publish_alarm(alarm)
         self._log_alarm(previous, alarm)
         level, text = update_status(update.names, update.values, update.stds, values)
@@ -118,6 +122,40 @@ class Estimating:
         self._publish_status(level, text, values)
         self._log_estimate(update, values['time'])
         return update, estimate_summary(update.names, update.values, update.stds)
+
+    def _tune(self, update: Update, config: IdentificationConfig, time_s: float
+              ) -> Dict[str, Any]:
+        """
+        Tune ``tune.controller`` on the estimate and publish it on ``~/tuning`` (latched).
+
+        Returns the values it adds to ``/diagnostics``. A design the model does not allow
+        (e.g. SIMC on an unstable model) is logged as a warning once per change of its text
+        and shown on ``/diagnostics`` until a tuning succeeds; the last recommendation
+        published stays on the topic.
+        """
+        settings = config.tune_settings()
+        if settings is None:
+            with self._lock:
+                self._notes.pop(_TUNING, None)
+            return {}
+        try:
+            tuning = tune_from_settings(update.result, settings)
+        except CtidError as error:
+            text = f'tuning {config.tune_controller} failed: {error}'
+            self._log_once(_TUNING, text, error=False)
+            with self._lock:
+                self._notes[_TUNING] = text
+            return {}
+        with self._lock:
+            self._notes.pop(_TUNING, None)
+            self._logged.pop(_TUNING, None)
+        recommendation = {'time': time_s, 'model': update.result.model.expression,
+                          **tuning.to_dict(config.tune_joint)}
+        self._outputs.send(tuning_message(self._node_topics, recommendation))
+        gains = tuning.gains.to_dict()
+        return {'tuning': ', '.join(f'{name} {value:.4g}' for name, value in gains.items()),
+                'tuning_ms': tuning.margins.ms,
+                'tuning_unstable_draws': f'{tuning.unstable_draws} of {tuning.draws}'}
 
     def _follow_configuration(self, detector: ChangeDetector, config: IdentificationConfig,
                               pending: Optional[Tuple[Optional[Baseline], str]]) -> None:

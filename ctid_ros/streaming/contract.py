@@ -40,6 +40,7 @@ messages, log lines) counts seconds since the first sample (:func:`estimate_line
 """
 
 from dataclasses import dataclass
+import json
 import re
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
@@ -55,7 +56,7 @@ __all__ = [
     'PREDICTION_LABEL', 'PublisherQos', 'STREAM', 'WARN', 'diagnostics_message',
     'estimate_line', 'estimate_messages', 'estimate_summary', 'failure_status',
     'format_diagnostic', 'matrix_multiarray', 'multiarray', 'resolve_topic', 'time_fields',
-    'update_status', 'warm_up_text',
+    'update_status', 'warm_up_text', 'STRING', 'TUNING', 'tuning_message',
 ]
 
 NANOSECONDS = 1_000_000_000
@@ -67,10 +68,12 @@ ESTIMATE_COVARIANCE = 'estimate_covariance'
 PARAMS = 'params'
 PREDICTION = 'prediction'
 ALARM = 'alarm'
+TUNING = 'tuning'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 PREDICTION_LABEL = 'prediction'
 
 FLOAT64 = 'std_msgs/msg/Float64'
+STRING = 'std_msgs/msg/String'
 FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 DIAGNOSTIC_STATUS = 'diagnostic_msgs/msg/DiagnosticStatus'
@@ -185,6 +188,11 @@ class NodeTopics:
     def alarm(self) -> str:
         """Return the topic of the change alarm."""
         return f'{self.node}/{ALARM}'
+
+    @property
+    def tuning(self) -> str:
+        """Return the topic of the controller recommendation (``tune.controller``)."""
+        return f'{self.node}/{TUNING}'
 
     @property
     def diagnostics(self) -> str:
@@ -478,6 +486,19 @@ def alarm_message(topics: NodeTopics, level: int, message: str, values: Mapping[
     return OutputMessage(topics.alarm, DIAGNOSTIC_STATUS,
                          _status(topics.alarm_name, level, message, values,
                                  hardware_id or topics.name), LATCHED)
+
+
+def tuning_message(topics: NodeTopics, recommendation: Mapping[str, Any]) -> OutputMessage:
+    """
+    Return the ``~/tuning`` message: a ``std_msgs/String`` of JSON, latched (depth 1).
+
+    ``recommendation`` is :meth:`ctid_ros.design.tune.Tuning.to_dict` (``gains``, ``margins``
+    with their ``band``, ``method``, ``target``, ``warnings``, ``ros2_control``: the params
+    YAML of a ros2_control ``pid_controller``) with what it was tuned on (``time``, the
+    window's end in seconds, and ``model``); a late subscriber gets the latest.
+    """
+    return OutputMessage(topics.tuning, STRING,
+                         {'data': json.dumps(recommendation, allow_nan=False)}, LATCHED)
 
 
 def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: str,
