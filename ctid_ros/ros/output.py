@@ -53,7 +53,8 @@ def output_topics(topics: NodeTopics, config: IdentificationConfig) -> Tuple[str
     return (topics.estimate, topics.estimate_std, topics.estimate_covariance, topics.alarm,
             topics.diagnostics, *(topics.prediction for _ in range(config.publish_prediction)),
             *(topics.param(name) for name in config.names),
-            *(topics.tuning for _ in range(bool(config.tune_controller))))
+            *(topics.tuning for _ in range(bool(config.tune_controller))),
+            *(topics.model_recommendation for _ in range(bool(config.candidate_models))))
 
 
 class Publishers:

@@ -42,11 +42,11 @@ from ctid_ros.errors import bounded_repr, ConfigError, ModelError
 from ctid_ros.streaming.buffer import capacity_for
 from ctid_ros.streaming.message_fields import parse_field_path
 from ctid_ros.streaming.parameter_specs import (
-    field_name, MAX_BASELINE_WINDOWS, MAX_BUFFER_BYTES, MAX_DURATION, MAX_FALSE_ALARM_PER_HOUR,
-    MAX_ITERATIONS, MAX_MESSAGE_RATE, MAX_QOS_DEPTH, MAX_RELATIVE_CHANGE, MAX_TUNE_DRAWS,
-    MIN_FALSE_ALARM_PER_HOUR, MIN_MAX_GAP, MIN_UPDATE_PERIOD, MIN_WINDOW_SAMPLES,
-    PARAMETER_NAMES, PARAMETERS, ParameterSpec, PER_PARAMETER, per_parameter_name,
-    RELIABILITIES, STAMP_SOURCES)
+    field_name, MAX_BASELINE_WINDOWS, MAX_BUFFER_BYTES, MAX_COMPARE_EVERY, MAX_DURATION,
+    MAX_FALSE_ALARM_PER_HOUR, MAX_ITERATIONS, MAX_MESSAGE_RATE, MAX_QOS_DEPTH,
+    MAX_RELATIVE_CHANGE, MAX_TUNE_DRAWS, MIN_FALSE_ALARM_PER_HOUR, MIN_MAX_GAP,
+    MIN_UPDATE_PERIOD, MIN_WINDOW_SAMPLES, PARAMETER_NAMES, PARAMETERS, ParameterSpec,
+    PER_PARAMETER, per_parameter_name, RELIABILITIES, STAMP_SOURCES)
 import numpy as np
 
 __all__ = ['IdentificationConfig', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
@@ -141,6 +141,8 @@ class IdentificationConfig:
     baseline_windows: int = _param('baseline_windows')
     false_alarm_per_hour: float = _param('false_alarm_per_hour')
     min_relative_change: float = _param('min_relative_change')
+    candidate_models: Tuple[str, ...] = _param('candidate_models')
+    compare_every: int = _param('compare_every')
     tune_controller: str = _param('tune.controller')
     tune_method: str = _param('tune.method')
     tune_tc: float = _param('tune.tc')
@@ -342,7 +344,33 @@ class IdentificationConfig:
         self._check_resources()
         self._check_alarm(self.parameter_names or model.parameters)
         self._check_tune()
+        self._check_candidates()
         return model
+
+    def _check_candidates(self) -> None:
+        if not 1 <= self.compare_every <= MAX_COMPARE_EVERY:
+            raise ConfigError(f'compare_every must be between 1 and {MAX_COMPARE_EVERY}, got '
+                              f'{self.compare_every}')
+        if not self.candidate_models:
+            return
+        if len(self.candidate_models) < 2:
+            raise ConfigError('candidate_models needs at least two structures to compare, got '
+                              f'{len(self.candidate_models)}')
+        if self.controller:
+            raise ConfigError('candidate_models compares plant structures on open-loop data: '
+                              'not with a controller (closed loop)')
+        for text in self.candidate_models:
+            try:
+                _compile_model(text, '', self.input_names, self.output_name)
+            except ConfigError as error:
+                raise ConfigError(f'candidate_models: {error}') from None
+
+    def compare_options(self) -> Dict[str, Any]:
+        """Return the options of :func:`ctid_ros.estimation.compare.compare` for the window."""
+        return {'intersample': self.intersample,
+                'transient': 'auto' if self.transient < 0 else self.transient,
+                'initial_state': self.initial_state, 'output_offset': self.output_offset,
+                'max_iterations': self.max_iterations, 'tolerance': self.tolerance}
 
     def _check_tune(self) -> None:
         for name, value in (('tune.tc', self.tune_tc), ('tune.ms', self.tune_ms),

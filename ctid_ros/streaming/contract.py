@@ -56,7 +56,8 @@ __all__ = [
     'PREDICTION_LABEL', 'PublisherQos', 'STREAM', 'WARN', 'diagnostics_message',
     'estimate_line', 'estimate_messages', 'estimate_summary', 'failure_status',
     'format_diagnostic', 'matrix_multiarray', 'multiarray', 'resolve_topic', 'time_fields',
-    'update_status', 'warm_up_text', 'STRING', 'TUNING', 'tuning_message',
+    'update_status', 'warm_up_text', 'MODEL_RECOMMENDATION', 'STRING', 'TUNING',
+    'comparison_message', 'tuning_message',
 ]
 
 NANOSECONDS = 1_000_000_000
@@ -69,6 +70,7 @@ PARAMS = 'params'
 PREDICTION = 'prediction'
 ALARM = 'alarm'
 TUNING = 'tuning'
+MODEL_RECOMMENDATION = 'model_recommendation'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 PREDICTION_LABEL = 'prediction'
 
@@ -193,6 +195,11 @@ class NodeTopics:
     def tuning(self) -> str:
         """Return the topic of the controller recommendation (``tune.controller``)."""
         return f'{self.node}/{TUNING}'
+
+    @property
+    def model_recommendation(self) -> str:
+        """Return the topic of the comparison of ``candidate_models``."""
+        return f'{self.node}/{MODEL_RECOMMENDATION}'
 
     @property
     def diagnostics(self) -> str:
@@ -499,6 +506,17 @@ def tuning_message(topics: NodeTopics, recommendation: Mapping[str, Any]) -> Out
     """
     return OutputMessage(topics.tuning, STRING,
                          {'data': json.dumps(recommendation, allow_nan=False)}, LATCHED)
+
+
+def comparison_message(topics: NodeTopics, comparison: Mapping[str, Any]) -> OutputMessage:
+    """
+    Return the ``~/model_recommendation`` message: a ``std_msgs/String`` of JSON, latched.
+
+    ``comparison``: ``time`` (the window's end, s), ``recommended`` (the model text) and
+    ``candidates``, the ``ctid compare --json`` list (best first, exactly one recommended).
+    """
+    return OutputMessage(topics.model_recommendation, STRING,
+                         {'data': json.dumps(comparison, allow_nan=False)}, LATCHED)
 
 
 def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: str,

@@ -27,7 +27,8 @@ from ctid_ros.core.limits import MAX_SAMPLES
 __all__ = ['DEFAULT_NODE_NAME', 'ESTIMATION_METHODS', 'INITIAL_STATES', 'INTERSAMPLE',
            'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
            'MAX_FALSE_ALARM_PER_HOUR', 'MAX_ITERATIONS', 'MAX_MESSAGE_RATE', 'MAX_QOS_DEPTH',
-           'MAX_RELATIVE_CHANGE', 'MAX_TUNE_DRAWS', 'MIN_FALSE_ALARM_PER_HOUR', 'MIN_MAX_GAP',
+           'MAX_COMPARE_EVERY', 'MAX_RELATIVE_CHANGE', 'MAX_TUNE_DRAWS',
+           'MIN_FALSE_ALARM_PER_HOUR', 'MIN_MAX_GAP',
            'MIN_UPDATE_PERIOD', 'MIN_WINDOW_SAMPLES', 'PARAMETER_NAMES', 'PARAMETERS',
            'PER_PARAMETER', 'ParameterSpec', 'RELIABILITIES', 'STAMP_SOURCES',
            'TUNE_CONTROLLERS', 'TUNE_METHODS', 'field_name', 'per_parameter_name']
@@ -67,6 +68,7 @@ MAX_BASELINE_WINDOWS = 1000
 # Covariance draws of a tuning's verification: each is a margin computation, and the node
 # tunes after every estimate.
 MAX_TUNE_DRAWS = 1000
+MAX_COMPARE_EVERY = 1_000_000
 # Parameters set per model parameter, as ROS flattens a nested mapping of a params file
 # (``baseline: {J: 0.05}`` arrives as ``baseline.J``): the prefix and what it means.
 PER_PARAMETER = {
@@ -303,6 +305,18 @@ PARAMETERS: Tuple[ParameterSpec, ...] = (
         0.02, 'double', f'Smallest change of a parameter, relative to its baseline, that is an '
         f'alarm (0 to {MAX_RELATIVE_CHANGE:g}): a real but smaller change is not; per parameter '
         'as min_relative_change.<name> (a mapping in a params file).', minimum=0.0),
+    _spec(
+        'candidate_models',
+        (), 'string_array', 'Model structures to compare on the window every compare_every '
+        "estimates, as 'ctid compare' does (e.g. ['K*exp(-tau*s)/(T*s + 1)', "
+        "'K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))']): the ranking and the simplest adequate "
+        'structure are published on the latched ~/model_recommendation. Open loop only; '
+        'empty (default) = no comparison; else at least two.'),
+    _spec(
+        'compare_every',
+        10, 'integer', f'Estimates between two comparisons of candidate_models (1 to '
+        f'{MAX_COMPARE_EVERY}); a comparison fits every candidate, so it costs their estimates.',
+        minimum=1),
     _spec(
         'tune.controller',
         '', 'string', 'Controller to tune after every estimate, from the identified model '

@@ -40,7 +40,9 @@ def parameters(model, names, tune, **extra):
               'output_field': 'point.x', 'model': model, 'parameter_names': names,
               'initial': [1.0, 1.0, math.nan][:count], 'lower': [0.001, 0.01, 0.0][:count],
               'upper': [100.0, 100.0, 1.0][:count], 'sample_time': 0.005, 'window': 6.0,
-              'update_period': 1.0, 'qos_reliability': 'reliable', 'tune': tune}
+              'update_period': 1.0, 'qos_reliability': 'reliable'}
+    if tune:
+        values['tune'] = tune           # (rcl refuses an empty mapping)
     values.update(extra)
     return values
 
@@ -121,3 +123,30 @@ def test_a_design_error_is_reported_and_the_node_runs_on(ros):
     assert received[-1]['target'] == {'tc': 0.2} and received[-1]['gains']['kp'] > 0
     wait_for(lambda: 'tuning PI failed' not in ros.latest(ros.statuses).message, 60.0,
              'the tuning error stays on /diagnostics')
+
+
+def test_candidate_models_are_compared_and_the_simplest_adequate_is_latched(ros):
+    fopdt = 'K*exp(-tau*s)/(T*s + 1)'
+    sopdt = 'K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))'
+    ros.plant(parameter_values=list(TRUTH.values()), sample_time=0.005,
+              message_type='point_stamped')
+    node = ros.identifier(**parameters(fopdt, ['K', 'T', 'tau'], {}, update_period=100.0,
+                                       candidate_models=[fopdt, sopdt], compare_every=1))
+    wait_for(lambda: node.buffer.stats().y.span > 6.5, 60.0, 'a window of data')
+    response = ros.call(Trigger, f'{ros.namespace}/ctid_node/estimate_now', Trigger.Request(),
+                        timeout=120.0)
+    assert response.success, response.message
+    late = ros.spin(rclpy.create_node('late_models', namespace=ros.namespace,
+                                      context=ros.context))
+    received = []
+    late.create_subscription(String, f'{ros.namespace}/ctid_node/model_recommendation',
+                             lambda message: received.append(json.loads(message.data)), LATCHED)
+    wait_for(lambda: received, 60.0, 'no latched message on ~/model_recommendation')
+    comparison = received[-1]
+    # The plant is first order with dead time: the simpler structure is adequate.
+    assert comparison['recommended'] == fopdt
+    candidates = comparison['candidates']
+    assert [item['model'] for item in candidates] == [fopdt, sopdt]
+    assert [item['recommended'] for item in candidates] == [True, False]
+    assert candidates[0]['params']['K'] == pytest.approx(TRUTH['K'], rel=0.02)
+    assert candidates[0]['why']

@@ -15,8 +15,8 @@ CONTRACT = (
     'max_gap', 'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance',
     'transient', 'initial_state', 'output_offset', 'warm_start', 'publish_prediction',
     'hardware_id', 'lifecycle', 'baseline_file', 'baseline_windows', 'false_alarm_per_hour',
-    'min_relative_change', 'tune.controller', 'tune.method', 'tune.tc', 'tune.ms',
-    'tune.sample_time', 'tune.draws', 'tune.joint')
+    'min_relative_change', 'candidate_models', 'compare_every', 'tune.controller', 'tune.method',
+    'tune.tc', 'tune.ms', 'tune.sample_time', 'tune.draws', 'tune.joint')
 FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
 
 
@@ -29,7 +29,8 @@ def test_parameter_specs_follow_the_contract():
     assert PARAMETER_NAMES == CONTRACT
     kinds = {spec.name: spec.kind for spec in PARAMETERS}
     assert {name for name, kind in kinds.items() if kind == 'integer'} == {
-        'qos_depth', 'max_iterations', 'baseline_windows', 'tune.draws'}
+        'qos_depth', 'max_iterations', 'baseline_windows', 'compare_every',
+        'tune.draws'}
     assert {name for name, kind in kinds.items() if kind == 'bool'} == {
         'output_offset', 'warm_start', 'publish_prediction', 'lifecycle'}
     assert {name for name, kind in kinds.items() if kind == 'double_array'} == {
@@ -263,3 +264,16 @@ def test_tune_settings_come_from_the_nested_tune_mapping(base):
                              ({'tune.draws': 5000}, 'tune.draws must be between')):
         with pytest.raises(ConfigError, match=message):
             config.updated(changes)
+
+
+def test_candidate_models_are_checked(base):
+    candidates = ['K*exp(-tau*s)/(T*s + 1)', 'K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))']
+    assert base.updated({'candidate_models': candidates}).candidate_models == tuple(candidates)
+    for changes, message in (({'candidate_models': candidates[:1]}, 'at least two'),
+                             ({'candidate_models': [candidates[0], 'K/(T*s +']},
+                              'candidate_models: model'),
+                             ({'candidate_models': candidates, 'controller': '2 + 1/s',
+                               'model': 'K/(T*s + 1)'}, 'open-loop'),
+                             ({'compare_every': 0}, 'compare_every must be between')):
+        with pytest.raises(ConfigError, match=message):
+            base.updated(changes)
