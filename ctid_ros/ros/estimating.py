@@ -111,6 +111,8 @@ class Estimating:
         values.update(alarm.diagnostics(origin))
         values.update(self._tune(update, config, values['time']))
         values.update(self._compare(update, config, values['time']))
+        # The tuning and the comparison count in the estimate's share of the CPU.
+        self._worker.spent(started)
         self._publish_alarm(alarm)
         self._log_alarm(previous, alarm)
         level, text = update_status(update.names, update.values, update.stds, values)
