@@ -66,7 +66,7 @@ setup(
     entry_points={
         'console_scripts': [
             'ctid = ctid_ros.cli.main:main',
-            'ctid_node = ctid_ros.ros.node:main',
+            'ctid_node = ctid_ros.ros.launcher:main',
             'ctid_plant = ctid_ros.ros.plant_node:main',
         ],
     },

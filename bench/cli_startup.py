@@ -62,7 +62,7 @@ def commands(csv: Path) -> Dict[str, List[str]]:
         'python -c "import numpy"': [sys.executable, '-c', 'import numpy'],
         'ctid --help': ctid + ['--help'],
         'ctid fit --help': ctid + ['fit', '--help'],
-        'ctid_node --help': _script('ctid_node', 'ctid_ros.ros.node') + ['--help'],
+        'ctid_node --help': _script('ctid_node', 'ctid_ros.ros.launcher') + ['--help'],
         'ctid fit (2000 samples)': ctid + ['fit', str(csv), '--model', MODEL, '--time', 't',
                                            '--input', 'u', '--output', 'y'],
         'hand-written scipy fit script': [

@@ -25,10 +25,11 @@ import importlib
 import os
 import re
 import sys
-from typing import Callable, Dict, List, Mapping, NamedTuple, Optional
+from typing import Callable, Dict, List, NamedTuple, Optional
 
 from ctid_ros.cli import arguments as command_lines
-from ctid_ros.errors import ConfigError, CtidError, ModelError
+from ctid_ros.errors import CtidError, ModelError
+from ctid_ros.ros.environment import check_ros_environment, SHORT_PATH, shown_path
 
 __all__ = ['COMMANDS', 'Command', 'DEBUG_VARIABLE', 'build_parser', 'check_ros_environment',
            'error_text', 'main', 'os_error_text']
@@ -43,11 +44,9 @@ _USER_ERRNOS = frozenset((errno.ENAMETOOLONG, errno.ENOENT, errno.ENOTDIR, errno
                           errno.ELOOP, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC,
                           errno.EDQUOT, errno.EFBIG, errno.EEXIST, errno.ENXIO, errno.ETXTBSY))
 # Characters of a path quoted in an error, from its start and from its end.
-_PATH_HEAD, _PATH_TAIL = 60, 40
-# A word of an error message that _shown_path shortens.
-_LONG_WORD = re.compile(r'[^\s,;:]{%d,}' % (_PATH_HEAD + _PATH_TAIL + 21))
+# A word of an error message that shown_path shortens.
+_LONG_WORD = re.compile(r'[^\s,;:]{%d,}' % (SHORT_PATH + 1))
 # The largest domain id for which DDS's port numbers fit (with the default port base).
-_MAX_DOMAIN_ID = 232
 
 
 class Command(NamedTuple):
@@ -116,48 +115,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def check_ros_environment(environment: Mapping[str, str]) -> None:
-    """
-    Refuse what rcl and DDS would fail on, before anything joins the graph.
-
-    rcl refuses a ``ROS_DOMAIN_ID`` that is not a number only when the context starts, and
-    Fast DDS one above 232 (its ports would exceed 65535) when the first node is created, with
-    a log line and exit status 1; rcl cannot start either where it cannot create its log
-    directory (``ROS_LOG_DIR``, else ``$ROS_HOME/log``, else ``~/.ros/log``), which this
-    creates as rcl would.
-
-    Raises
-    ------
-    ConfigError
-        If ``ROS_DOMAIN_ID`` is set and is not an integer from 0 to 232, or the log directory
-        cannot be created or written.
-
-    """
-    value = environment.get('ROS_DOMAIN_ID', '').strip()
-    if value and not (value.isdigit() and int(value) <= _MAX_DOMAIN_ID):
-        shown = value if len(value) <= 40 else value[:37] + '...'
-        raise ConfigError(f'the environment variable ROS_DOMAIN_ID={shown!r} is not a ROS '
-                          f'domain: give an integer from 0 to {_MAX_DOMAIN_ID} (0 to 101 are '
-                          'safe on every platform), or unset it for domain 0')
-    if environment.get('ROS_LOG_DIR'):
-        variable, directory = 'ROS_LOG_DIR', environment['ROS_LOG_DIR']
-    elif environment.get('ROS_HOME'):
-        variable, directory = 'ROS_HOME', os.path.join(environment['ROS_HOME'], 'log')
-    else:
-        variable, directory = 'HOME', os.path.join(os.path.expanduser('~'), '.ros', 'log')
-    try:
-        os.makedirs(os.path.expanduser(directory), exist_ok=True)
-        writable = os.access(os.path.expanduser(directory), os.W_OK)
-    except OSError as error:
-        problem = error.strerror or str(error)
-    else:
-        problem = None if writable else 'not writable'
-    if problem is not None:
-        raise ConfigError(f'ROS cannot write its log files in {_shown_path(directory)} ('
-                          f'{problem}; from the environment variable {variable}): set '
-                          'ROS_LOG_DIR to a writable directory')
-
-
 def _missing_dependency(error: ImportError) -> str:
     """Return what to install for an optional dependency that could not be imported."""
     module = (error.name or '').split('.')[0]
@@ -169,14 +126,6 @@ def _missing_dependency(error: ImportError) -> str:
             f"'ctid_ros[{extra}]'{hint}")
 
 
-def _shown_path(name: object) -> str:
-    """Return a path for an error message: a long one cut in the middle, with its length."""
-    text = os.fsdecode(name) if isinstance(name, (str, bytes, os.PathLike)) else str(name)
-    if len(text) <= _PATH_HEAD + _PATH_TAIL + 20:
-        return text
-    return f'{text[:_PATH_HEAD]}...{text[-_PATH_TAIL:]} ({len(text)} characters)'
-
-
 def os_error_text(error: OSError) -> str:
     """
     Return one line for a system call that failed on a user's path: what failed, and where.
@@ -185,9 +134,9 @@ def os_error_text(error: OSError) -> str:
     """
     text = error.strerror or str(error)
     if error.filename is not None:
-        text += f': {_shown_path(error.filename)}'
+        text += f': {shown_path(error.filename)}'
     if error.filename2 is not None:
-        text += f' -> {_shown_path(error.filename2)}'
+        text += f' -> {shown_path(error.filename2)}'
     if error.errno == errno.ENAMETOOLONG:
         text += (f' (the system allows {os.pathconf("/", "PC_NAME_MAX")} bytes per name and '
                  f'{os.pathconf("/", "PC_PATH_MAX")} per path)')
@@ -207,7 +156,7 @@ def error_text(error: BaseException) -> str:
         first, context = lines[0], lines[1:]
     else:
         first = ' '.join(' '.join(lines).split())
-        first, context = _LONG_WORD.sub(lambda match: _shown_path(match.group()), first), []
+        first, context = _LONG_WORD.sub(lambda match: shown_path(match.group()), first), []
     if len(first) > _MESSAGE_LIMIT:
         first = first[:_MESSAGE_LIMIT - 3] + '...'
     return '\n'.join([first] + [line[:_MESSAGE_LIMIT] for line in context])

@@ -20,22 +20,28 @@ configuration, buffer, session and detector under ``_lock`` and keeps ``last_upd
 
 import math
 import time
-from typing import Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
+from ctid_ros.design.tune import tune_from_settings
 from ctid_ros.errors import ConfigError, CtidError, DataError
+from ctid_ros.estimation.compare import compare
 from ctid_ros.ros.output import ERROR_LOG_PERIOD
 from ctid_ros.streaming.alarm import AlarmSettings, ChangeDetector
 from ctid_ros.streaming.baseline import Baseline, write_baseline_file
 from ctid_ros.streaming.buffer import Gap, SampleBuffer
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.contract import (estimate_summary, failure_status, NANOSECONDS, OK,
-                                         update_status, warm_up_text, WARN)
+from ctid_ros.streaming.contract import (comparison_message, estimate_summary, failure_status,
+                                         NANOSECONDS, OK, tuning_message, update_status,
+                                         warm_up_text, WARN)
 from ctid_ros.streaming.sampler import ROLES
 from ctid_ros.streaming.session import IdentificationSession, Update
 from std_srvs.srv import Trigger
 
 __all__ = ['Estimating']
 
+# The key of the tuning's note on /diagnostics and of its warning logged once.
+_TUNING = 'tuning'
+_COMPARISON = 'comparison'
 # A capture whose windows scatter more than this (in variance, against their covariance) is
 # reported with a warning: the plant was probably changing.
 _SCATTER_LIMIT = 9.0
@@ -103,6 +109,10 @@ class Estimating:
         values['time'] = (update.end_ns - origin) / NANOSECONDS
         values['window'] = config.window
         values.update(alarm.diagnostics(origin))
+        values.update(self._tune(update, config, values['time']))
+        values.update(self._compare(update, config, values['time']))
+        # The tuning and the comparison count in the estimate's share of the CPU.
+        self._worker.spent(started)
         self._publish_alarm(alarm)
         self._log_alarm(previous, alarm)
         level, text = update_status(update.names, update.values, update.stds, values)
@@ -118,6 +128,75 @@ class Estimating:
         self._publish_status(level, text, values)
         self._log_estimate(update, values['time'])
         return update, estimate_summary(update.names, update.values, update.stds)
+
+    def _tune(self, update: Update, config: IdentificationConfig, time_s: float
+              ) -> Dict[str, Any]:
+        """
+        Tune ``tune.controller`` on the estimate and publish it on ``~/tuning`` (latched).
+
+        Returns the values it adds to ``/diagnostics``. A design the model does not allow
+        (e.g. SIMC on an unstable model) is logged as a warning once per change of its text
+        and shown on ``/diagnostics`` until a tuning succeeds; the last recommendation
+        published stays on the topic.
+        """
+        settings = config.tune_settings()
+        if settings is None:
+            with self._lock:
+                self._notes.pop(_TUNING, None)
+            return {}
+        try:
+            tuning = tune_from_settings(update.result, settings)
+        except CtidError as error:
+            text = f'tuning {config.tune_controller} failed: {error}'
+            self._log_once(_TUNING, text, error=False)
+            with self._lock:
+                self._notes[_TUNING] = text
+            return {}
+        with self._lock:
+            self._notes.pop(_TUNING, None)
+            self._logged.pop(_TUNING, None)
+        recommendation = {'time': time_s, 'model': update.result.model.expression,
+                          **tuning.to_dict(config.tune_joint)}
+        self._outputs.send(tuning_message(self._node_topics, recommendation))
+        gains = tuning.gains.to_dict()
+        return {'tuning': ', '.join(f'{name} {value:.4g}' for name, value in gains.items()),
+                'tuning_ms': tuning.margins.ms,
+                'tuning_unstable_draws': f'{tuning.unstable_draws} of {tuning.draws}'}
+
+    def _compare(self, update: Update, config: IdentificationConfig, time_s: float
+                 ) -> Dict[str, Any]:
+        """
+        Every ``compare_every`` estimates, compare ``candidate_models`` on the window.
+
+        Publishes the ranking on ``~/model_recommendation`` (latched) and returns the values
+        it adds to ``/diagnostics``; a comparison that fails is reported as the tuning is.
+        """
+        if not config.candidate_models:
+            self._estimates_since_comparison = 0
+            with self._lock:
+                self._notes.pop(_COMPARISON, None)
+            return {}
+        self._estimates_since_comparison += 1
+        if self._estimates_since_comparison < config.compare_every:
+            return {}
+        self._estimates_since_comparison = 0
+        try:
+            comparison = compare(config.candidate_models, update.window.data,
+                                 **config.compare_options())
+        except CtidError as error:
+            text = f'comparing candidate_models failed: {error}'
+            self._log_once(_COMPARISON, text, error=False)
+            with self._lock:
+                self._notes[_COMPARISON] = text
+            return {}
+        with self._lock:
+            self._notes.pop(_COMPARISON, None)
+            self._logged.pop(_COMPARISON, None)
+        best = comparison.recommended
+        self._outputs.send(comparison_message(self._node_topics, {
+            'time': time_s, 'recommended': best.model.expression,
+            'candidates': [candidate.to_dict() for candidate in comparison.candidates]}))
+        return {'recommended_model': best.model.expression, 'recommended_why': best.why}
 
     def _follow_configuration(self, detector: ChangeDetector, config: IdentificationConfig,
                               pending: Optional[Tuple[Optional[Baseline], str]]) -> None:

@@ -123,6 +123,7 @@ class IdentificationNode(TopicIntake, ParameterHandling, Estimating, Reporting, 
         self._active = False
         self._transition_error = ''
         self._estimated_since_start = False
+        self._estimates_since_comparison = 0
         self.last_update: Optional[Update] = None
         self._estimation_group = MutuallyExclusiveCallbackGroup()
         self.add_on_set_parameters_callback(self._on_set_parameters)

@@ -3,7 +3,8 @@ The node's output: its publishers, the estimates, the change alarm and ``/diagno
 
 The topics, types, layouts, QoS and status levels are those of
 :mod:`ctid_ros.streaming.contract` (``~/estimate``, ``~/estimate_std``,
-``~/estimate_covariance``, ``~/params/<name>`` and ``~/alarm`` transient-local,
+``~/estimate_covariance``, ``~/params/<name>``, ``~/alarm`` and ``~/tuning`` (with
+``tune.controller``) transient-local,
 ``~/prediction`` if ``publish_prediction``, ``/diagnostics`` with the per-stream counters and
 the alarm added), built there as plain data and converted here to rclpy messages;
 ``ctid replay --output`` writes the same. One INFO line per estimate, at most one a second
@@ -51,7 +52,9 @@ def output_topics(topics: NodeTopics, config: IdentificationConfig) -> Tuple[str
     """Return every topic a node with ``config`` publishes on."""
     return (topics.estimate, topics.estimate_std, topics.estimate_covariance, topics.alarm,
             topics.diagnostics, *(topics.prediction for _ in range(config.publish_prediction)),
-            *(topics.param(name) for name in config.names))
+            *(topics.param(name) for name in config.names),
+            *(topics.tuning for _ in range(bool(config.tune_controller))),
+            *(topics.model_recommendation for _ in range(bool(config.candidate_models))))
 
 
 class Publishers:

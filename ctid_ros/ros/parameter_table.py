@@ -18,8 +18,8 @@ what this table says cannot drift apart:
 import textwrap
 from typing import Any, NamedTuple, Optional, Sequence, Tuple
 
-from ctid_ros.streaming.config import PARAMETERS, PER_PARAMETER, per_parameter_name
-from ctid_ros.streaming.contract import DEFAULT_NODE_NAME
+from ctid_ros.streaming.parameter_specs import (DEFAULT_NODE_NAME, PARAMETERS, PER_PARAMETER,
+                                                per_parameter_name)
 
 __all__ = ['DeclaredParameter', 'MODEL_NAME_PLACEHOLDER', 'declared_parameters', 'node_usage',
            'per_parameter_description', 'wrap_text']

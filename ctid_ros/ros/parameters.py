@@ -139,7 +139,7 @@ def bounded(function: Callable[[], Any], timeout: float, busy: List[threading.Th
 
 def changed_parameters(old: IdentificationConfig, new: IdentificationConfig) -> List[str]:
     """Return the names of the parameters whose values differ between two configurations."""
-    plain = [name for name in PARAMETER_NAMES if getattr(old, name) != getattr(new, name)]
+    plain = [name for name in PARAMETER_NAMES if old.value(name) != new.value(name)]
     before, after = dict(old.per_parameter), dict(new.per_parameter)
     return plain + sorted(name for name in set(before) | set(after)
                           if before.get(name) != after.get(name))

@@ -24,12 +24,12 @@ import threading
 from typing import Callable, List, Optional
 
 from ctid_ros.errors import ConfigError
+from ctid_ros.ros.command_line import command_line
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 
 __all__ = ['SIGNAL_LATENCY', 'run_node']
 
@@ -44,20 +44,16 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
     Spin the node made by ``factory`` until SIGINT or SIGTERM; return the exit status.
 
     ``-h``/``--help`` before ``--ros-args`` prints ``usage()`` and returns 0 without starting;
-    any other argument outside ``--ros-args`` is an error (status 2), and so is a
-    configuration the node refuses to start with. A signal returns 0 within
+    any other argument outside ``--ros-args`` is an error (status 2), and so are an
+    environment ROS cannot start in and a configuration the node refuses to start with
+    (:func:`~ctid_ros.ros.command_line.command_line`). A signal returns 0 within
     :data:`SIGNAL_LATENCY` plus the callback in progress and the node's own
     ``destroy_node``; the handlers of both signals are restored on return.
     """
     arguments = list(sys.argv if args is None else args)
-    own = remove_ros_args(arguments)[1:]
-    if '-h' in own or '--help' in own:
-        print(usage() if usage else f'usage: {name} [--ros-args ...]')
-        return 0
-    if own:
-        print(f'{name}: error: unrecognised argument(s) {" ".join(own)}: ROS arguments go after '
-              f'--ros-args (see {name} --help)', file=sys.stderr)
-        return 2
+    status = command_line(arguments, name, usage)
+    if status is not None:
+        return status
     stop = threading.Event()
     previous = {number: signal.signal(number, lambda number, frame: stop.set())
                 for number in _SIGNALS}

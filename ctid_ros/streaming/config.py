@@ -3,9 +3,10 @@ Configuration shared by the live identification node and the offline replay.
 
 Reading it from a ROS 2 params file is :mod:`ctid_ros.streaming.params_file`.
 
-Every parameter is declared once, as a field of :class:`IdentificationConfig` with its default,
-ROS type, help text and range; :data:`PARAMETERS` exposes them as :class:`ParameterSpec`
-records so that the node can declare its ROS parameters in a loop::
+Every parameter is declared once, in :mod:`ctid_ros.streaming.parameter_specs` (plain data,
+importable without the numerical stack) with its default, ROS type, help text and range;
+:class:`IdentificationConfig` has one field per :data:`PARAMETERS` entry (``tune.controller``
+is the field ``tune_controller``) and the node declares its ROS parameters in a loop::
 
     for spec in PARAMETERS:
         descriptor = ParameterDescriptor(
@@ -37,11 +38,15 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 
 from ctid_ros.core.limits import MAX_SAMPLES, MIN_SAMPLE_TIME
 from ctid_ros.core.model import Model
-from ctid_ros.core.simulation import INTERSAMPLE
 from ctid_ros.errors import bounded_repr, ConfigError, ModelError
-from ctid_ros.estimation.options import INITIAL_STATES, METHODS
 from ctid_ros.streaming.buffer import capacity_for
 from ctid_ros.streaming.message_fields import parse_field_path
+from ctid_ros.streaming.parameter_specs import (
+    field_name, MAX_BASELINE_WINDOWS, MAX_BUFFER_BYTES, MAX_COMPARE_EVERY, MAX_DURATION,
+    MAX_FALSE_ALARM_PER_HOUR, MAX_ITERATIONS, MAX_MESSAGE_RATE, MAX_QOS_DEPTH,
+    MAX_RELATIVE_CHANGE, MAX_TUNE_DRAWS, MIN_FALSE_ALARM_PER_HOUR, MIN_MAX_GAP,
+    MIN_UPDATE_PERIOD, MIN_WINDOW_SAMPLES, PARAMETER_NAMES, PARAMETERS, ParameterSpec,
+    PER_PARAMETER, per_parameter_name, RELIABILITIES, STAMP_SOURCES)
 import numpy as np
 
 __all__ = ['IdentificationConfig', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
@@ -51,41 +56,8 @@ __all__ = ['IdentificationConfig', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', '
            'PARAMETER_NAMES', 'PARAMETERS', 'PER_PARAMETER', 'ParameterSpec', 'RELIABILITIES',
            'STAMP_SOURCES', 'buffer_bytes', 'per_parameter_name', 'split_per_parameter']
 
-STAMP_SOURCES = ('header', 'receive')
-RELIABILITIES = ('best_effort', 'reliable')
-MIN_WINDOW_SAMPLES = 10
-
-# Resource limits (README, "Limits of the live node"). Stamps are integer nanoseconds, so a
-# grid or a gap below a microsecond means nothing.
-MIN_MAX_GAP = 1e-6
-# Memory of the live node's sample buffer (both streams, stamps and values).
-MAX_BUFFER_BYTES = 256 << 20
-# Highest message rate the buffer may be sized for (per topic).
-MAX_MESSAGE_RATE = 100_000.0
-# Estimates are at least this far apart; the node also keeps half a core free (node.py).
-MIN_UPDATE_PERIOD = 0.1
-# Longest update_period: 11.6 days, far below the int64 nanosecond range of a timer. (Window,
-# transient and max_gap are bounded by the samples and buffer limits.)
-MAX_DURATION = 1e6
-MAX_ITERATIONS = 10_000
-MAX_QOS_DEPTH = 10_000
-# Change alarms (streaming/alarm.py): a false-alarm rate between one in 114 years and one every
-# 36 s; a practical threshold of at most 1000 % of the baseline; at most 1000 windows averaged
-# into a captured baseline.
-MIN_FALSE_ALARM_PER_HOUR = 1e-6
-MAX_FALSE_ALARM_PER_HOUR = 100.0
-MAX_RELATIVE_CHANGE = 10.0
-MAX_BASELINE_WINDOWS = 1000
 # Parameters that change the model's parameter names.
 _MODEL_PARAMETERS = ('model', 'controller', 'input_names', 'output_name', 'parameter_names')
-# Parameters set per model parameter, as ROS flattens a nested mapping of a params file
-# (``baseline: {J: 0.05}`` arrives as ``baseline.J``): the prefix and what it means.
-PER_PARAMETER = {
-    'baseline': 'baseline value of the parameter, against which changes are alarmed',
-    'baseline_std': 'standard deviation of that baseline value (0 or unset: exact)',
-    'min_relative_change': 'smallest relative change of the parameter that is an alarm '
-                           '(unset: min_relative_change)',
-}
 # The ring buffer keeps twice its capacity (see buffer._Stream) and capacity_for adds a
 # safety factor of 2 against bursts.
 _STORAGE_FACTOR = 2
@@ -94,60 +66,13 @@ _BURST_MARGIN = 2.0
 _TOPIC = re.compile(r'(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
 
 
-@dataclass(frozen=True)
-class ParameterSpec:
-    """
-    One configuration parameter, as the node declares it.
-
-    Attributes
-    ----------
-    name : str
-        Parameter name (a field of :class:`IdentificationConfig`).
-    kind : str
-        One of ``string``, ``double``, ``integer``, ``bool``, ``string_array``,
-        ``double_array``.
-    default : object
-        Default value (arrays as tuples).
-    description : str
-        Help text.
-    minimum : float or None
-        Inclusive lower limit (for a descriptor range); stricter rules such as > 0 are in the
-        description and enforced by validation.
-    choices : tuple of str
-        Allowed values of a string parameter (empty: any).
-    read_only : bool
-        True for parameters that only take effect at start-up (topics, QoS).
-
-    """
-
-    name: str
-    kind: str
-    default: Any
-    description: str
-    minimum: Optional[float] = None
-    choices: Tuple[str, ...] = ()
-    read_only: bool = False
-
-    @property
-    def type_name(self) -> str:
-        """Return the ``rcl_interfaces/ParameterType`` constant name, e.g. PARAMETER_DOUBLE."""
-        return 'PARAMETER_' + self.kind.upper()
-
-    @property
-    def constraints(self) -> str:
-        """Return the constraints in words, for ``ParameterDescriptor.additional_constraints``."""
-        if self.choices:
-            return 'one of: ' + ', '.join(self.choices)
-        if self.minimum is not None:
-            return f'value >= {self.minimum}'
-        return ''
+_SPECS = {spec.name: spec for spec in PARAMETERS}
 
 
-def _param(default: Any, kind: str, description: str, *, minimum: Optional[float] = None,
-           choices: Tuple[str, ...] = (), read_only: bool = False):
-    spec = {'kind': kind, 'description': description, 'minimum': minimum, 'choices': choices,
-            'read_only': read_only}
-    return field(default=default, metadata={'spec': spec})
+def _param(name: str):
+    """Return the field of the parameter ``name`` (:data:`PARAMETERS`), its spec the metadata."""
+    spec = _SPECS[name]
+    return field(default=spec.default, metadata={'spec': spec})
 
 
 @functools.lru_cache(maxsize=16)
@@ -177,137 +102,54 @@ class IdentificationConfig:
     The field metadata (see :data:`PARAMETERS`) documents each parameter.
     """
 
-    input_topic: str = _param(
-        'u', 'string', 'Topic of the input u (the reference r in closed loop); relative names '
-        'follow the node namespace.', read_only=True)
-    input_field: str = _param(
-        'data', 'string', "Field of the input message holding the value, e.g. 'data', "
-        "'effort[0]', 'twist.linear.x'.")
-    output_topic: str = _param(
-        'y', 'string', 'Topic of the measured output y; may equal input_topic when one '
-        'message carries both (e.g. /joint_states).', read_only=True)
-    output_field: str = _param(
-        'data', 'string', "Field of the output message holding the value, e.g. 'position[0]'.")
-    extra_input_fields: Tuple[str, ...] = _param(
-        (), 'string_array', 'Fields of the input message holding the further inputs of a '
-        "model equation, in input_names order after the first, e.g. ['effort[1]'].")
-    model: str = _param(
-        '', 'string', 'Plant transfer function in s; every other name is a parameter, e.g. '
-        "'K*exp(-tau*s)/(T*s + 1)'; or a model equation such as "
-        "'M*s**2*y + Fv*s*y = 35.2*u - Fc*w - off' with its signals named by input_names and "
-        'output_name. Required.')
-    input_names: Tuple[str, ...] = _param(
-        ('u',), 'string_array', 'Names of the inputs in a model equation: the first is read '
-        'from input_field, the others from extra_input_fields.')
-    output_name: str = _param(
-        'y', 'string', 'Name of the output in a model equation.')
-    controller: str = _param(
-        '', 'string', "Known controller K(s) with numeric coefficients, e.g. '20 + 10/s': the "
-        "data are then the closed loop from the reference (input_topic) to y. '' = open loop.")
-    parameter_names: Tuple[str, ...] = _param(
-        (), 'string_array', 'Order of the parameters in initial/lower/upper and in all published '
-        'arrays; a permutation of the model parameters. Empty = order of first appearance in '
-        'the model.')
-    initial: Tuple[float, ...] = _param(
-        (), 'double_array', 'Initial values in parameter_names order; NaN entries (and an empty '
-        'array) are initialised automatically.')
-    lower: Tuple[float, ...] = _param(
-        (), 'double_array', 'Lower bounds in parameter_names order (-.inf = none); empty = '
-        'no bounds.')
-    upper: Tuple[float, ...] = _param(
-        (), 'double_array', 'Upper bounds in parameter_names order (.inf = none); empty = '
-        'no bounds.')
-    sample_time: float = _param(
-        0.01, 'double', 'Sample time (s, at least 1e-6) of the grid the messages are resampled '
-        "onto, normally the actuator update period; the grid follows the input's own instants "
-        "when it is a whole multiple or fraction of the input's period (finer than the data's "
-        "own rate: the data's period, with a warning), else the multiples of sample_time.",
-        minimum=0.0)
-    window: float = _param(
-        10.0, 'double', f'Length (s) of the data window used by each estimate; at least '
-        f'{MIN_WINDOW_SAMPLES} sample times, and with its settling transient at most '
-        f'{MAX_SAMPLES} samples.', minimum=0.0)
-    update_period: float = _param(
-        1.0, 'double', f'Seconds ({MIN_UPDATE_PERIOD:g} to {MAX_DURATION:g}) between successive '
-        'estimates.', minimum=0.0)
-    method: str = _param(
-        'iv', 'string', "'iv': least squares then instrumental-variable iterations "
-        "(consistent under noise); 'ls': least-squares iterations only; 'gn': Gauss-Newton on "
-        'the output error.', choices=METHODS)
-    intersample: str = _param(
-        'zoh', 'string', "Input behaviour between samples: 'zoh' (held, e.g. a digital "
-        "actuator command) or 'foh' (linear).", choices=INTERSAMPLE)
-    stamp_source: str = _param(
-        'header', 'string', "'header': use header.stamp when the message has a non-zero one, "
-        "else the receive time; 'receive': always the receive time.", choices=STAMP_SOURCES,
-        read_only=True)
-    qos_reliability: str = _param(
-        'best_effort', 'string', 'Subscription reliability; best_effort also matches reliable '
-        'publishers.', choices=RELIABILITIES, read_only=True)
-    qos_depth: int = _param(
-        500, 'integer', f'Subscription queue depth (keep last, at most {MAX_QOS_DEPTH}); deep, so '
-        'bursts are not lost.', minimum=1, read_only=True)
-    max_message_rate: float = _param(
-        1000.0, 'double', 'Highest message rate (Hz) per topic the live sample buffer is sized '
-        'for (1/sample_time if that is higher); faster messages shorten the history it holds. '
-        'With window, transient and max_gap it sets the buffer memory, which is limited.',
-        minimum=0.0)
-    max_gap: float = _param(
-        0.5, 'double', 'Seconds (at least 1e-6) without a sample after which a stream counts as '
-        'missing: data are never interpolated or held across such a gap.', minimum=0.0)
-    reorder_horizon: float = _param(
-        0.05, 'double', 'Seconds a sample may arrive out of order and still be used; older '
-        'late samples are dropped and counted.', minimum=0.0)
-    delay_min: float = _param(
-        0.0, 'double', 'Lower end (s) of the dead-time search range; delay_min = delay_max = 0 '
-        'means automatic.', minimum=0.0)
-    delay_max: float = _param(
-        0.0, 'double', 'Upper end (s) of the dead-time search range (see delay_min).',
-        minimum=0.0)
-    max_iterations: int = _param(
-        100, 'integer', f'Largest number of iterations of one estimate (at most '
-        f'{MAX_ITERATIONS}).', minimum=1)
-    tolerance: float = _param(
-        1e-8, 'double', 'Stop when the largest relative parameter change falls below it (> 0).',
-        minimum=0.0)
-    transient: float = _param(
-        -1.0, 'double', 'Seconds at the start of each window that are simulated but not fitted, '
-        'because a window cut from a running plant does not start at rest. Negative = '
-        'automatic (five slowest time constants plus the dead time, at most half the window).')
-    initial_state: str = _param(
-        'zero', 'string', "'zero': each window is treated as starting at rest (with the "
-        "transient excluded); 'estimate': the initial state is estimated as well.",
-        choices=INITIAL_STATES)
-    output_offset: bool = _param(
-        False, 'bool', 'Estimate a constant offset of the output (an unknown operating point).')
-    warm_start: bool = _param(
-        True, 'bool', 'Start each estimate from the previous one instead of initial.')
-    publish_prediction: bool = _param(
-        False, 'bool', 'Publish the model output predicted over the window.')
-    hardware_id: str = _param(
-        '', 'string', "hardware_id of the node's status on /diagnostics, e.g. the drive being "
-        "identified; '' = the node's name.")
-    lifecycle: bool = _param(
-        False, 'bool', 'Live node only: true = a managed (lifecycle) node that starts '
-        'unconfigured and follows configure/activate/deactivate/cleanup/shutdown transitions, '
-        'as nav2 nodes do; false = configure and activate at start-up.', read_only=True)
-    baseline_file: str = _param(
-        '', 'string', 'YAML file of the baseline the change alarm compares with: written by '
-        'the ~/capture_baseline service, read at configure (so a restart keeps it) and when '
-        'this parameter changes; when it exists it takes precedence over baseline.<name> '
-        "parameters. '' = none.")
-    baseline_windows: int = _param(
-        5, 'integer', f'Windows averaged by ~/capture_baseline into a baseline (1 to '
-        f'{MAX_BASELINE_WINDOWS}).', minimum=1)
-    false_alarm_per_hour: float = _param(
-        0.1, 'double', f'Change alarms a stationary plant raises per hour, on average '
-        f'({MIN_FALSE_ALARM_PER_HOUR:g} to {MAX_FALSE_ALARM_PER_HOUR:g}); sets the threshold of '
-        'the sequential test on the windows (with update_period and the overlap of the '
-        'windows).', minimum=0.0)
-    min_relative_change: float = _param(
-        0.02, 'double', f'Smallest change of a parameter, relative to its baseline, that is an '
-        f'alarm (0 to {MAX_RELATIVE_CHANGE:g}): a real but smaller change is not; per parameter '
-        'as min_relative_change.<name> (a mapping in a params file).', minimum=0.0)
+    input_topic: str = _param('input_topic')
+    input_field: str = _param('input_field')
+    output_topic: str = _param('output_topic')
+    output_field: str = _param('output_field')
+    extra_input_fields: Tuple[str, ...] = _param('extra_input_fields')
+    model: str = _param('model')
+    input_names: Tuple[str, ...] = _param('input_names')
+    output_name: str = _param('output_name')
+    controller: str = _param('controller')
+    parameter_names: Tuple[str, ...] = _param('parameter_names')
+    initial: Tuple[float, ...] = _param('initial')
+    lower: Tuple[float, ...] = _param('lower')
+    upper: Tuple[float, ...] = _param('upper')
+    sample_time: float = _param('sample_time')
+    window: float = _param('window')
+    update_period: float = _param('update_period')
+    method: str = _param('method')
+    intersample: str = _param('intersample')
+    stamp_source: str = _param('stamp_source')
+    qos_reliability: str = _param('qos_reliability')
+    qos_depth: int = _param('qos_depth')
+    max_message_rate: float = _param('max_message_rate')
+    max_gap: float = _param('max_gap')
+    reorder_horizon: float = _param('reorder_horizon')
+    delay_min: float = _param('delay_min')
+    delay_max: float = _param('delay_max')
+    max_iterations: int = _param('max_iterations')
+    tolerance: float = _param('tolerance')
+    transient: float = _param('transient')
+    initial_state: str = _param('initial_state')
+    output_offset: bool = _param('output_offset')
+    warm_start: bool = _param('warm_start')
+    publish_prediction: bool = _param('publish_prediction')
+    hardware_id: str = _param('hardware_id')
+    lifecycle: bool = _param('lifecycle')
+    baseline_file: str = _param('baseline_file')
+    baseline_windows: int = _param('baseline_windows')
+    false_alarm_per_hour: float = _param('false_alarm_per_hour')
+    min_relative_change: float = _param('min_relative_change')
+    candidate_models: Tuple[str, ...] = _param('candidate_models')
+    compare_every: int = _param('compare_every')
+    tune_controller: str = _param('tune.controller')
+    tune_method: str = _param('tune.method')
+    tune_tc: float = _param('tune.tc')
+    tune_ms: float = _param('tune.ms')
+    tune_sample_time: float = _param('tune.sample_time')
+    tune_draws: int = _param('tune.draws')
+    tune_joint: str = _param('tune.joint')
     # Values per model parameter (PER_PARAMETER: baseline.J, baseline_std.J,
     # min_relative_change.J), in name order; not a ROS parameter of its own (the node declares
     # one per name once the model is known).
@@ -315,9 +157,9 @@ class IdentificationConfig:
 
     def __post_init__(self):
         for item in _spec_fields():
+            spec = item.metadata['spec']
             object.__setattr__(self, item.name,
-                               _coerce(item.name, item.metadata['spec']['kind'],
-                                       getattr(self, item.name)))
+                               _coerce(spec.name, spec.kind, getattr(self, item.name)))
         object.__setattr__(self, 'per_parameter', _per_parameter_values(self.per_parameter))
         object.__setattr__(self, '_model', self._validate())
 
@@ -337,7 +179,7 @@ class IdentificationConfig:
 
         """
         plain, per_parameter = _split(values)
-        return cls(**plain, per_parameter=tuple(per_parameter.items()))
+        return cls(**_fields_of(plain), per_parameter=tuple(per_parameter.items()))
 
     def updated(self, changes: Mapping[str, Any]) -> 'IdentificationConfig':
         """
@@ -351,14 +193,14 @@ class IdentificationConfig:
         merged = {**dict(self.per_parameter), **per_parameter}
         if set(plain) & set(_MODEL_PARAMETERS) and self.per_parameter:
             # Another model: the values of parameters it does not have are dropped.
-            names = replace(self, **plain, per_parameter=()).names
+            names = replace(self, **_fields_of(plain), per_parameter=()).names
             merged = {key: value for key, value in merged.items()
                       if key in per_parameter or split_per_parameter(key)[1] in names}
-        return replace(self, **plain, per_parameter=tuple(merged.items()))
+        return replace(self, **_fields_of(plain), per_parameter=tuple(merged.items()))
 
     def to_dict(self) -> Dict[str, Any]:
         """Return ``{name: value}`` with arrays as lists, as in a params file (flattened)."""
-        values = {item.name: list(value) if isinstance(value, tuple) else value
+        values = {item.metadata['spec'].name: list(value) if isinstance(value, tuple) else value
                   for item in _spec_fields() for value in [getattr(self, item.name)]}
         values.update(self.per_parameter)
         return values
@@ -501,7 +343,77 @@ class IdentificationConfig:
         self._check_times(model)
         self._check_resources()
         self._check_alarm(self.parameter_names or model.parameters)
+        self._check_tune()
+        self._check_candidates()
         return model
+
+    def _check_candidates(self) -> None:
+        if not 1 <= self.compare_every <= MAX_COMPARE_EVERY:
+            raise ConfigError(f'compare_every must be between 1 and {MAX_COMPARE_EVERY}, got '
+                              f'{self.compare_every}')
+        if not self.candidate_models:
+            return
+        if len(self.candidate_models) < 2:
+            raise ConfigError('candidate_models needs at least two structures to compare, got '
+                              f'{len(self.candidate_models)}')
+        if self.controller:
+            raise ConfigError('candidate_models compares plant structures on open-loop data: '
+                              'not with a controller (closed loop)')
+        for text in self.candidate_models:
+            try:
+                _compile_model(text, '', self.input_names, self.output_name)
+            except ConfigError as error:
+                raise ConfigError(f'candidate_models: {error}') from None
+
+    def compare_options(self) -> Dict[str, Any]:
+        """Return the options of :func:`ctid_ros.estimation.compare.compare` for the window."""
+        return {'intersample': self.intersample,
+                'transient': 'auto' if self.transient < 0 else self.transient,
+                'initial_state': self.initial_state, 'output_offset': self.output_offset,
+                'max_iterations': self.max_iterations, 'tolerance': self.tolerance}
+
+    def _check_tune(self) -> None:
+        for name, value in (('tune.tc', self.tune_tc), ('tune.ms', self.tune_ms),
+                            ('tune.sample_time', self.tune_sample_time)):
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ConfigError(f'{name} must be non-negative and finite (0 = default), got '
+                                  f'{value}')
+        if self.tune_tc and self.tune_ms:
+            raise ConfigError('tune.tc (SIMC) and tune.ms (loop shaping) are both set: give one')
+        if 0.0 < self.tune_ms <= 1.0:
+            raise ConfigError(f'tune.ms must be above 1 (a sensitivity peak), got '
+                              f'{self.tune_ms:g}')
+        for name, value, method in (('tune.tc', self.tune_tc, 'simc'),
+                                    ('tune.ms', self.tune_ms, 'ms')):
+            if value and self.tune_method not in ('auto', method):
+                raise ConfigError(f"{name} belongs to tune.method '{method}', not "
+                                  f"'{self.tune_method}'")
+        if not 0 <= self.tune_draws <= MAX_TUNE_DRAWS:
+            raise ConfigError(f'tune.draws must be between 0 and {MAX_TUNE_DRAWS}, got '
+                              f'{self.tune_draws}')
+
+    def tune_settings(self) -> Optional[Dict[str, Any]]:
+        """
+        Return the settings of :func:`ctid_ros.design.tune.tune_from_settings`, None untuned.
+
+        ``controller``, ``method``, ``tc`` or ``ms`` (when set), ``sample_time`` (when set),
+        ``draws`` and ``seed`` 0 (the same draws for every window, so two windows' bands
+        differ by the data alone).
+        """
+        if not self.tune_controller:
+            return None
+        settings: Dict[str, Any] = {'controller': self.tune_controller,
+                                    'method': self.tune_method, 'draws': self.tune_draws,
+                                    'seed': 0}
+        for key, value in (('tc', self.tune_tc), ('ms', self.tune_ms),
+                           ('sample_time', self.tune_sample_time)):
+            if value:
+                settings[key] = value
+        return settings
+
+    def value(self, name: str) -> Any:
+        """Return the value of the parameter ``name`` of :data:`PARAMETER_NAMES`."""
+        return getattr(self, field_name(name))
 
     def _check_alarm(self, names: Tuple[str, ...]) -> None:
         far = self.false_alarm_per_hour
@@ -576,10 +488,10 @@ class IdentificationConfig:
 
     def _check_choices(self) -> None:
         for item in _spec_fields():
-            choices = item.metadata['spec']['choices']
-            value = getattr(self, item.name)
-            if choices and value not in choices:
-                raise ConfigError(f'{item.name} must be one of {", ".join(choices)}; got '
+            spec, value = item.metadata['spec'], getattr(self, item.name)
+            if spec.choices and value not in spec.choices:
+                allowed = ', '.join(choice or "''" for choice in spec.choices)
+                raise ConfigError(f'{spec.name} must be one of {allowed}; got '
                                   f'{bounded_repr(value)}')
 
     def _check_times(self, model: Model) -> None:
@@ -711,21 +623,17 @@ def _is_number(value: Any) -> bool:
             and not isinstance(value, (bool, np.bool_)))
 
 
+def _fields_of(values: Mapping[str, Any]) -> Dict[str, Any]:
+    """Return ``{field name: value}`` of ``{parameter name: value}`` (``tune.tc``: tune_tc)."""
+    return {field_name(name): value for name, value in values.items()}
+
+
 def _spec_fields():
     """Return the fields of :class:`IdentificationConfig` that are ROS parameters."""
     return [item for item in fields(IdentificationConfig) if 'spec' in item.metadata]
 
 
-PARAMETERS: Tuple[ParameterSpec, ...] = tuple(
-    ParameterSpec(name=item.name, default=item.default, **item.metadata['spec'])
-    for item in _spec_fields())
-PARAMETER_NAMES: Tuple[str, ...] = tuple(spec.name for spec in PARAMETERS)
 _PER_PARAMETER_NAME = re.compile(r'(%s)\.([A-Za-z_][A-Za-z0-9_]*)\Z' % '|'.join(PER_PARAMETER))
-
-
-def per_parameter_name(prefix: str, name: str) -> str:
-    """Return the ROS name of a per-parameter value, e.g. ``baseline.J``."""
-    return f'{prefix}.{name}'
 
 
 def split_per_parameter(name: str) -> Optional[Tuple[str, str]]:

@@ -40,10 +40,12 @@ messages, log lines) counts seconds since the first sample (:func:`estimate_line
 """
 
 from dataclasses import dataclass
+import json
 import re
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ctid_ros.errors import ConfigError, CtidError, DataError
+from ctid_ros.streaming.parameter_specs import DEFAULT_NODE_NAME
 import numpy as np
 
 __all__ = [
@@ -54,11 +56,11 @@ __all__ = [
     'PREDICTION_LABEL', 'PublisherQos', 'STREAM', 'WARN', 'diagnostics_message',
     'estimate_line', 'estimate_messages', 'estimate_summary', 'failure_status',
     'format_diagnostic', 'matrix_multiarray', 'multiarray', 'resolve_topic', 'time_fields',
-    'update_status', 'warm_up_text',
+    'update_status', 'warm_up_text', 'MODEL_RECOMMENDATION', 'STRING', 'TUNING',
+    'comparison_message', 'tuning_message',
 ]
 
 NANOSECONDS = 1_000_000_000
-DEFAULT_NODE_NAME = 'ctid_node'
 
 # Topic suffixes below the node's name, and the one absolute topic.
 ESTIMATE = 'estimate'
@@ -67,10 +69,13 @@ ESTIMATE_COVARIANCE = 'estimate_covariance'
 PARAMS = 'params'
 PREDICTION = 'prediction'
 ALARM = 'alarm'
+TUNING = 'tuning'
+MODEL_RECOMMENDATION = 'model_recommendation'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 PREDICTION_LABEL = 'prediction'
 
 FLOAT64 = 'std_msgs/msg/Float64'
+STRING = 'std_msgs/msg/String'
 FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 DIAGNOSTIC_STATUS = 'diagnostic_msgs/msg/DiagnosticStatus'
@@ -185,6 +190,16 @@ class NodeTopics:
     def alarm(self) -> str:
         """Return the topic of the change alarm."""
         return f'{self.node}/{ALARM}'
+
+    @property
+    def tuning(self) -> str:
+        """Return the topic of the controller recommendation (``tune.controller``)."""
+        return f'{self.node}/{TUNING}'
+
+    @property
+    def model_recommendation(self) -> str:
+        """Return the topic of the comparison of ``candidate_models``."""
+        return f'{self.node}/{MODEL_RECOMMENDATION}'
 
     @property
     def diagnostics(self) -> str:
@@ -478,6 +493,30 @@ def alarm_message(topics: NodeTopics, level: int, message: str, values: Mapping[
     return OutputMessage(topics.alarm, DIAGNOSTIC_STATUS,
                          _status(topics.alarm_name, level, message, values,
                                  hardware_id or topics.name), LATCHED)
+
+
+def tuning_message(topics: NodeTopics, recommendation: Mapping[str, Any]) -> OutputMessage:
+    """
+    Return the ``~/tuning`` message: a ``std_msgs/String`` of JSON, latched (depth 1).
+
+    ``recommendation`` is :meth:`ctid_ros.design.tune.Tuning.to_dict` (``gains``, ``margins``
+    with their ``band``, ``method``, ``target``, ``warnings``, ``ros2_control``: the params
+    YAML of a ros2_control ``pid_controller``) with what it was tuned on (``time``, the
+    window's end in seconds, and ``model``); a late subscriber gets the latest.
+    """
+    return OutputMessage(topics.tuning, STRING,
+                         {'data': json.dumps(recommendation, allow_nan=False)}, LATCHED)
+
+
+def comparison_message(topics: NodeTopics, comparison: Mapping[str, Any]) -> OutputMessage:
+    """
+    Return the ``~/model_recommendation`` message: a ``std_msgs/String`` of JSON, latched.
+
+    ``comparison``: ``time`` (the window's end, s), ``recommended`` (the model text) and
+    ``candidates``, the ``ctid compare --json`` list (best first, exactly one recommended).
+    """
+    return OutputMessage(topics.model_recommendation, STRING,
+                         {'data': json.dumps(comparison, allow_nan=False)}, LATCHED)
 
 
 def diagnostics_message(topics: NodeTopics, stamp_ns: int, level: int, message: str,

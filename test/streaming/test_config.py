@@ -15,7 +15,8 @@ CONTRACT = (
     'max_gap', 'reorder_horizon', 'delay_min', 'delay_max', 'max_iterations', 'tolerance',
     'transient', 'initial_state', 'output_offset', 'warm_start', 'publish_prediction',
     'hardware_id', 'lifecycle', 'baseline_file', 'baseline_windows', 'false_alarm_per_hour',
-    'min_relative_change')
+    'min_relative_change', 'candidate_models', 'compare_every', 'tune.controller', 'tune.method',
+    'tune.tc', 'tune.ms', 'tune.sample_time', 'tune.draws', 'tune.joint')
 FOPDT = 'K*exp(-tau*s)/(T*s + 1)'
 
 
@@ -28,7 +29,8 @@ def test_parameter_specs_follow_the_contract():
     assert PARAMETER_NAMES == CONTRACT
     kinds = {spec.name: spec.kind for spec in PARAMETERS}
     assert {name for name, kind in kinds.items() if kind == 'integer'} == {
-        'qos_depth', 'max_iterations', 'baseline_windows'}
+        'qos_depth', 'max_iterations', 'baseline_windows', 'compare_every',
+        'tune.draws'}
     assert {name for name, kind in kinds.items() if kind == 'bool'} == {
         'output_offset', 'warm_start', 'publish_prediction', 'lifecycle'}
     assert {name for name, kind in kinds.items() if kind == 'double_array'} == {
@@ -42,7 +44,7 @@ def test_parameter_specs_follow_the_contract():
     for spec in PARAMETERS:
         assert len(spec.description) > 20, spec.name
         if spec.name != 'model':
-            assert getattr(defaults, spec.name) == spec.default
+            assert defaults.value(spec.name) == spec.default
     by_name = {spec.name: spec for spec in PARAMETERS}
     assert by_name['input_field'].default == 'data' and by_name['qos_depth'].default == 500
     assert by_name['stamp_source'].default == 'header'
@@ -245,3 +247,33 @@ def test_buffer_size_follows_the_message_rate(base):
     edge = base.updated({'window': 5000.0, 'sample_time': 0.01, 'max_message_rate': 100.0})
     assert edge.window_samples == pytest.approx(1_000_000)
     assert base.updated({'update_period': 0.1}).update_period == 0.1
+
+
+def test_tune_settings_come_from_the_nested_tune_mapping(base):
+    assert base.tune_settings() is None
+    config = IdentificationConfig.from_dict({**base.to_dict(), 'tune.controller': 'PI',
+                                            'tune.tc': 2.5})
+    assert config.tune_settings() == {'controller': 'PI', 'method': 'auto', 'draws': 50,
+                                      'seed': 0, 'tc': 2.5}
+    assert config.to_dict()['tune.tc'] == 2.5 and config.value('tune.tc') == 2.5
+    assert config.updated({'tune.controller': ''}).tune_settings() is None
+    for changes, message in (({'tune.tc': 1.0, 'tune.ms': 1.5}, 'both set'),
+                             ({'tune.tc': 0.0, 'tune.ms': 0.5}, 'above 1'),
+                             ({'tune.controller': 'P'}, "one of '', PI, PID"),
+                             ({'tune.method': 'ms', 'tune.tc': 1.0}, 'belongs to tune.method'),
+                             ({'tune.draws': 5000}, 'tune.draws must be between')):
+        with pytest.raises(ConfigError, match=message):
+            config.updated(changes)
+
+
+def test_candidate_models_are_checked(base):
+    candidates = ['K*exp(-tau*s)/(T*s + 1)', 'K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))']
+    assert base.updated({'candidate_models': candidates}).candidate_models == tuple(candidates)
+    for changes, message in (({'candidate_models': candidates[:1]}, 'at least two'),
+                             ({'candidate_models': [candidates[0], 'K/(T*s +']},
+                              'candidate_models: model'),
+                             ({'candidate_models': candidates, 'controller': '2 + 1/s',
+                               'model': 'K/(T*s + 1)'}, 'open-loop'),
+                             ({'compare_every': 0}, 'compare_every must be between')):
+        with pytest.raises(ConfigError, match=message):
+            base.updated(changes)
