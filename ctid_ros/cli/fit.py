@@ -37,12 +37,15 @@ from ctid_ros.estimation.estimate import Estimate, estimate
 from ctid_ros.files.csv_file import load_csv, TIME_COLUMNS
 import numpy as np
 
-__all__ = ['Signals', 'default_plot_path', 'fit_figure_paths', 'run', 'signals']
+__all__ = ['Signals', 'default_plot_path', 'fit_figure_paths', 'run', 'select_samples',
+           'signals']
 
 _IDENTIFIER = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
 
 
-def _select(data: Data, samples: Optional[Tuple[int, int]], detrend: str, what: str) -> Data:
+def select_samples(data: Data, samples: Optional[Tuple[int, int]], detrend: str,
+                   what: str) -> Data:
+    """Return the 1-based inclusive ``samples`` of ``data`` (all if None), detrended."""
     if samples is not None:
         first, last = samples
         if last > len(data):
@@ -179,7 +182,7 @@ def run(arguments: argparse.Namespace) -> int:
     data = load_csv(arguments.csv, input_column=columns.input_columns,
                     output_column=columns.output_column, time_column=times, ts=arguments.ts,
                     notes=notes)
-    estimation = _select(data, arguments.estimate_range, arguments.detrend, 'estimation')
+    estimation = select_samples(data, arguments.estimate_range, arguments.detrend, 'estimation')
     result = estimate(model, estimation, arguments.initial or 'auto', bounds=arguments.bounds,
                       method=arguments.method, intersample=arguments.intersample,
                       max_iterations=arguments.max_iterations,
@@ -193,7 +196,8 @@ def run(arguments: argparse.Namespace) -> int:
         source = data if arguments.validate is None else load_csv(
             arguments.validate, input_column=columns.input_columns,
             output_column=columns.output_column, time_column=times, ts=arguments.ts)
-        validation = _select(source, arguments.validate_range, arguments.detrend, 'validation')
+        validation = select_samples(source, arguments.validate_range, arguments.detrend,
+                                    'validation')
         summary['validation_fit'] = result.compare(validation)
     if arguments.json:
         print(json.dumps(summary, indent=2, default=json_default))

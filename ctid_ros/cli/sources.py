@@ -11,9 +11,9 @@ on the grid exactly as the live node would (:func:`~ctid_ros.streaming.buffer.re
 import argparse
 from pathlib import Path
 import sys
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence
 
-from ctid_ros.cli.fit import signals
+from ctid_ros.cli.fit import select_samples, signals
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
 from ctid_ros.errors import ConfigError, DataError
@@ -37,16 +37,6 @@ def plot_path(record: str, command: str, directory: Optional[Path] = None) -> Pa
     for suffix in ('.gz', '.csv', '.mcap'):
         name = name[:-len(suffix)] if name.endswith(suffix) else name
     return (directory or Path.cwd()) / f'{name or "record"}_{command}.png'
-
-
-def _segment(data: Data, samples: Optional[Tuple[int, int]], detrend: str, what: str) -> Data:
-    """Return the 1-based inclusive ``samples`` of ``data``, detrended."""
-    if samples is not None:
-        first, last = samples
-        if last > len(data):
-            raise DataError(f'{what} range {first}:{last} exceeds the {len(data)} samples')
-        data = data.segment(first - 1, last)
-    return data if detrend == 'none' else data.detrend(detrend)
 
 
 def _bag_data(arguments: argparse.Namespace) -> Data:
@@ -105,7 +95,7 @@ def load_record(arguments: argparse.Namespace, equation: bool = False) -> Data:
         data = load_csv(arguments.path, input_column=columns.input_columns,
                         output_column=columns.output_column, time_column=times,
                         ts=arguments.ts)
-    return _segment(data, arguments.estimate_range, arguments.detrend, 'estimation')
+    return select_samples(data, arguments.estimate_range, arguments.detrend, 'estimation')
 
 
 def model_signals(models: Sequence[str]) -> bool:
