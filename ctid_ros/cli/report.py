@@ -1,14 +1,18 @@
 """Text reports of estimates: the tables and JSON of ``ctid fit`` and ``ctid replay``."""
 
-from dataclasses import replace
-from typing import Mapping, Optional, Sequence
+from __future__ import annotations
 
-from ctid_ros.estimation.estimate import Estimate
-from ctid_ros.streaming.alarm import AlarmStatus
-from ctid_ros.streaming.buffer import BufferStats
+from dataclasses import replace
+from typing import Mapping, Optional, Sequence, TYPE_CHECKING
+
 from ctid_ros.streaming.contract import NANOSECONDS, WARN
-from ctid_ros.streaming.session import Update
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only: ctid fit need not import the streaming layer
+    from ctid_ros.estimation.estimate import Estimate
+    from ctid_ros.streaming.alarm import AlarmStatus
+    from ctid_ros.streaming.buffer import BufferStats
+    from ctid_ros.streaming.session import Update
 
 __all__ = ['alarm_cell', 'format_estimate', 'format_series', 'format_stats', 'format_table',
            'format_update', 'json_default', 'series_header', 'series_row']
