@@ -154,15 +154,19 @@ def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
     Fit ``e = H A^-1 w``: an autoregressive model of ``H^-1 e`` for a known filter ``H``.
 
     ``shaping`` is the impulse response of ``H`` (``h[0] = 1``, negligible beyond its length);
-    ``H^-1 e`` is computed by forward substitution
-    (:func:`~ctid_ros.core.simulation.all_pole` with ``h`` as denominator).
+    ``H^-1 e`` is computed by forward substitution (``lfilter`` with ``h`` as denominator).
     Where ``H`` has zeros on the unit circle (the sensitivity of a loop with integrators) the
     substitution is marginally stable: a residual it does not fit blows up, and
     :func:`model_score` then prefers the plain model.
     """
+    # Imported here: only closed-loop models need it, and scipy.signal is slow to import.
+    # all_pole's banded solve would do the same, but with a band as long as the shaping
+    # response it is tens of times slower than lfilter's recursion.
+    from scipy.signal import lfilter
+
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
-        prewhitened = all_pole(shaping, residual - np.mean(residual))
+        prewhitened = lfilter([1.0], shaping, residual - np.mean(residual))
     if not np.all(np.isfinite(prewhitened)):
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)
