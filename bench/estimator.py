@@ -22,7 +22,7 @@ ratios show how close to the bound any estimator gets with this record length an
 import argparse
 import json
 import time
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 import warnings
 
 from ctid_ros import estimate, EstimationError, ModelError
@@ -184,9 +184,18 @@ def print_table(results: List[dict]) -> None:
                   f'{joint:>19}  {ratio_text}')
 
 
-def main(argv=None) -> List[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0].strip())
-    parser.add_argument('--runs', type=int, default=50, help='runs per system (default 50)')
+def run_on_reference_systems(argv: Optional[List[str]], description: str, default_runs: int,
+                             run_system: Callable[[ReferenceSystem, int, int], dict],
+                             print_table: Callable[[List[dict]], None]) -> List[dict]:
+    """
+    Parse ``--runs --seed --json --systems``, run ``run_system`` on each reference system.
+
+    Each system's row is printed as it finishes and the whole table at the end; the results
+    go to ``--json`` if given. BLAS is single-threaded for every method alike.
+    """
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument('--runs', type=int, default=default_runs,
+                        help=f'runs per system (default {default_runs})')
     parser.add_argument('--seed', type=int, default=1)
     parser.add_argument('--json', default=None, help='also write the results to this file')
     parser.add_argument('--systems', nargs='*', default=None,
@@ -195,7 +204,6 @@ def main(argv=None) -> List[dict]:
     factories = [f for f in reference_systems.ALL
                  if arguments.systems is None or f.__name__ in arguments.systems]
     results = []
-    # Same threading for every method: the baseline gets single-threaded BLAS too.
     with threadpool_limits(limits=1, user_api='blas'):
         for factory in factories:
             results.append(run_system(factory(), arguments.runs, arguments.seed))
@@ -206,6 +214,12 @@ def main(argv=None) -> List[dict]:
         with open(arguments.json, 'w') as handle:
             json.dump(results, handle, indent=2)
     return results
+
+
+def main(argv=None) -> List[dict]:
+    """Run the benchmark and print its table."""
+    return run_on_reference_systems(argv, __doc__.split('\n\n')[0].strip(), 50, run_system,
+                                    print_table)
 
 
 if __name__ == '__main__':

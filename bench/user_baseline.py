@@ -15,20 +15,16 @@ limited to one thread), which other load on the machine inflates far less than w
 Run with ``python -m bench user_baseline --runs N`` or ``python -m bench.user_baseline``.
 """
 
-import argparse
-import json
 import time
 from typing import Callable, Dict, List, Optional, Tuple
 import warnings
 
-from bench.estimator import draw_start, FAR
+from bench.estimator import draw_start, FAR, run_on_reference_systems
 from bench.user_simulator import user_simulate
 from ctid_ros import estimate, EstimationError
-from ctid_ros.core import reference_systems
 from ctid_ros.core.reference_systems import ReferenceSystem
 import numpy as np
 from scipy import optimize
-from threadpoolctl import threadpool_limits
 
 __all__ = ['USER_MODELS', 'ctid_fit', 'main', 'print_table', 'run_system', 'user_fit']
 
@@ -127,26 +123,8 @@ def print_table(results: List[dict]) -> None:
 
 def main(argv: Optional[List[str]] = None) -> List[dict]:
     """Run the benchmark and print its table."""
-    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0].strip())
-    parser.add_argument('--runs', type=int, default=20, help='runs per system (default 20)')
-    parser.add_argument('--seed', type=int, default=1)
-    parser.add_argument('--json', default=None, help='also write the results to this file')
-    parser.add_argument('--systems', nargs='*', default=None,
-                        help='subset of: ' + ', '.join(f.__name__ for f in reference_systems.ALL))
-    arguments = parser.parse_args(argv)
-    factories = [f for f in reference_systems.ALL
-                 if arguments.systems is None or f.__name__ in arguments.systems]
-    results = []
-    with threadpool_limits(limits=1, user_api='blas'):
-        for factory in factories:
-            results.append(run_system(factory(), arguments.runs, arguments.seed))
-            print_table(results[-1:])
-    print()
-    print_table(results)
-    if arguments.json:
-        with open(arguments.json, 'w') as handle:
-            json.dump(results, handle, indent=2)
-    return results
+    return run_on_reference_systems(argv, __doc__.split('\n\n')[0].strip(), 20, run_system,
+                                    print_table)
 
 
 if __name__ == '__main__':
