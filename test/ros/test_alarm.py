@@ -11,7 +11,7 @@ import math
 
 from ctid_ros.streaming.params_file import find_config, load_params_file
 from diagnostic_msgs.msg import DiagnosticStatus
-from node_harness import Harness, keys, wait_for
+from node_harness import keys, wait_for
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -22,13 +22,6 @@ import yaml
 pytestmark = pytest.mark.ros
 
 STEP_TIME = 14.0
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 def wheel_plant(ros, **changes):

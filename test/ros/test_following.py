@@ -13,9 +13,8 @@ import time
 
 from ctid_ros import Model
 from ctid_ros.core.excitation import prbs
-from node_harness import converge, Harness, keys, named, wait_for
+from node_harness import converge, keys, named, wait_for
 import numpy as np
-import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.parameter import Parameter
@@ -23,13 +22,6 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float32, Float64
 
 TRUTH = {'K': 2.0, 'T': 0.5}
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 def parameters(**extra):

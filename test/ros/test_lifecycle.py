@@ -14,7 +14,7 @@ from ctid_ros.errors import ConfigError
 from ctid_ros.ros.node import IdentificationNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from node_harness import converge, Harness, keys, NodeProcess, wait_for
+from node_harness import converge, keys, NodeProcess, wait_for
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -22,13 +22,6 @@ from std_srvs.srv import Trigger
 
 TRUTH = {'K': 2.0, 'T': 0.5}
 TOLERANCE = {'K': 0.02, 'T': 0.01}
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 def parameters(**extra):

@@ -20,7 +20,7 @@ from ctid_ros import Model
 from ctid_ros.core.excitation import prbs
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PointStamped
-from node_harness import converge, Harness, keys, named, wait_for
+from node_harness import converge, keys, named, wait_for
 import numpy as np
 import pytest
 import rclpy
@@ -30,13 +30,6 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
 from std_srvs.srv import Trigger
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 def first_order(**extra):

@@ -19,7 +19,7 @@ import ctid_ros.ros.parameters as parameters_module
 from ctid_ros.ros.parameters import VALIDATION_TIMEOUT
 from ctid_ros.streaming.config import IdentificationConfig
 from diagnostic_msgs.msg import DiagnosticStatus
-from node_harness import Harness, keys, wait_for
+from node_harness import keys, wait_for
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -87,13 +87,6 @@ def test_diagnostics_report_each_condition(storm):
 def test_stamps_an_hour_ahead_do_not_capture_the_node(storm):
     # The buffer holds a stamp far ahead of its stream's clock, then refuses it.
     assert storm['future_recovery'] is not None
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 class Unreadable:

@@ -13,7 +13,7 @@ import threading
 
 from builtin_interfaces.msg import Time
 from lifecycle_msgs.msg import Transition
-from node_harness import Harness, named, NodeProcess, wait_for
+from node_harness import named, NodeProcess, wait_for
 import pytest
 from rclpy.qos import QoSProfile
 from rosgraph_msgs.msg import Clock
@@ -58,13 +58,6 @@ class ClockPublisher:
     def stop(self):
         self._stop.set()
         self._thread.join()
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 def bring_to(ros, node, state):

@@ -13,7 +13,7 @@ import math
 
 from ctid_ros.design.tune import tune_from_settings
 from diagnostic_msgs.msg import DiagnosticStatus
-from node_harness import Harness, keys, wait_for
+from node_harness import keys, wait_for
 import pytest
 import rclpy
 from rclpy.parameter import Parameter
@@ -24,13 +24,6 @@ from std_srvs.srv import Trigger
 TRUTH = {'K': 2.0, 'T': 0.5, 'tau': 0.137}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-@pytest.fixture
-def ros(tmp_path):
-    harness = Harness(tmp_path)
-    yield harness
-    harness.close()
 
 
 def parameters(model, names, tune, **extra):
