@@ -65,6 +65,8 @@ class Harness:
         self.statuses = []
         self._lock = threading.Lock()
         self._spinning = []
+        # One client per (type, service), kept across calls: see call().
+        self._clients = {}
         self.observer = self.spin(rclpy.create_node('observer', namespace=self.namespace,
                                                     context=self.context))
 
@@ -135,10 +137,9 @@ class Harness:
         response is then lost. A ``repeatable`` request (a query that changes nothing) is
         sent again every few seconds until it is answered.
         """
-        clients = self.__dict__.setdefault('_clients', {})
-        client = clients.get((service_type, name))
+        client = self._clients.get((service_type, name))
         if client is None:
-            client = clients[(service_type, name)] = \
+            client = self._clients[(service_type, name)] = \
                 self.observer.create_client(service_type, name)
         assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
         deadline = time.monotonic() + timeout
