@@ -5,16 +5,19 @@ The command line of every ``ctid`` subcommand: its arguments, and nothing that c
 numpy, sympy, scipy, matplotlib, rclpy or the bag readers (about a tenth of a second instead
 of two to three, see ``bench/cli_startup.py``). :mod:`ctid_ros.cli.main` imports the module
 that runs the chosen command only once the command line has been parsed, and that module
-imports the heavy libraries it needs. So the choices offered here are written out, not
-imported from the estimator: they are the same tuples as
-``ctid_ros.estimation.options.METHODS``, ``INITIAL_STATES`` and
-``ctid_ros.core.simulation.INTERSAMPLE``, and the node's default name is that of
-``ctid_ros.streaming.contract`` (which imports numpy); ``test/cli/test_arguments.py`` checks.
+imports the heavy libraries it needs. So the estimator's choices and the node's default name
+come from the plain parameter table :mod:`ctid_ros.streaming.parameter_specs`, not from the
+estimator or the contract (which import numpy); ``test/cli/test_arguments.py`` checks that
+they are ``ctid_ros.estimation.options.METHODS``, ``INITIAL_STATES``,
+``ctid_ros.core.simulation.INTERSAMPLE`` and ``ctid_ros.streaming.contract``'s name.
 """
 
 import argparse
 from pathlib import Path
 from typing import Dict, Optional, Tuple
+
+from ctid_ros.streaming.parameter_specs import (DEFAULT_NODE_NAME, ESTIMATION_METHODS,
+                                                INITIAL_STATES, INTERSAMPLE)
 
 __all__ = ['CONTROLLERS', 'DEFAULT_NODE_NAME', 'DEFAULT_PLOT', 'DESIGN_METHODS',
            'INITIAL_STATES', 'INTERSAMPLE', 'METHODS', 'configure_compare', 'configure_echo',
@@ -22,10 +25,8 @@ __all__ = ['CONTROLLERS', 'DEFAULT_NODE_NAME', 'DEFAULT_PLOT', 'DESIGN_METHODS',
            'configure_replay', 'configure_tune', 'parse_bounds', 'parse_fixed', 'parse_initial',
            'parse_interval', 'parse_range', 'parse_target', 'parse_units']
 
-METHODS = ('iv', 'ls', 'gn')
-INITIAL_STATES = ('zero', 'estimate')
-INTERSAMPLE = ('zoh', 'foh')
-DEFAULT_NODE_NAME = 'ctid_node'
+# The estimator's choices from the plain parameter table, which imports nothing heavy.
+METHODS = ESTIMATION_METHODS
 # ctid_ros.design.tune.CONTROLLERS and METHODS (checked by test/cli/test_tune.py).
 CONTROLLERS = ('PI', 'PID')
 DESIGN_METHODS = ('auto', 'simc', 'ms')
