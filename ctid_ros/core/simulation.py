@@ -43,6 +43,10 @@ _MODAL_CONDITION_LIMIT = 1e4
 # Poles whose magnitudes are further apart than this factor are left to the matrix exponential,
 # which reports them as beyond floating point.
 _MODAL_RANGE_LIMIT = 1e30
+# Above this amplification of rounding by the partial fractions of 1/D^2 (residues squared times
+# the poles' spread, in the scaled variable) responses through 1/D^2 are simulated in their own
+# (Schur) coordinates instead of as the double-pole chains of D's modes.
+_SQUARED_AMPLIFICATION_LIMIT = 1e6
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -465,16 +469,68 @@ class StateResponse:
         self._count = values.shape[0]
         self._held = discrete.delayed_input(values)
         self._modes = None
+        self._discrete_modes: Optional[_DiscreteModes] = None
+        self._signals: Optional[np.ndarray] = None
+        self._chains: Optional[np.ndarray] = None
         if self._continuous.order:
             if discrete.modes is not None:
                 signals = np.array([_sampled(values, sample)
                                     for sample in discrete.modes.samples])
                 self._modes = discrete.modes.run(signals)
+                self._discrete_modes, self._signals = discrete.modes, signals
             else:
                 drive = discrete.drive
                 signals = np.array([_sampled(values, sample) for sample in drive])
                 self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
                                      self._continuous.repeated_roots)
+
+    def squared_outputs(self, numerators: np.ndarray) -> Optional[np.ndarray]:
+        """
+        ``N_q(s)/D(s)^2`` applied to the signal for the rows of ``numerators``, shape (q, N).
+
+        The same values as a simulation through ``1/D^2`` (``numerators`` of degree up to
+        ``2 deg D``, highest power first, padded to one length), read off this response's modes
+        instead: with the (scaled) poles ``z_i`` and residues ``r_i`` of ``D``,
+        ``N/D^2 = c + sum_i A_i/(z - z_i)^2 + B_i/(z - z_i)`` and ``r_i/(z - z_i)^2`` of the
+        signal is the derivative of mode ``i`` with respect to its pole, a first-order
+        recursion driven by the mode itself (the exact discretisation of the double pole's
+        chain, :meth:`_DiscreteModes.chains`). So the sensitivities of an output need no
+        discretisation, eigen- or Schur decomposition of ``D^2`` and no coupled recursions.
+        None where ``D`` has no uncoupled modes or their partial fractions would amplify
+        rounding (poles close together): then simulate through ``1/D^2``.
+        """
+        modes = self._discrete_modes
+        if modes is None or not modes.continuous.squared:
+            return None
+        numerators = np.asarray(numerators, dtype=float)
+        order = self._continuous.order
+        extra = numerators.shape[1] - (2 * order + 1)
+        if extra > 0:
+            if np.any(numerators[:, :extra] != 0.0):
+                raise ModelError(f'improper transfer function: numerator degree exceeds '
+                                 f'twice the denominator degree {order}')
+            numerators = numerators[:, extra:]
+        size = numerators.shape[1]
+        with np.errstate(over='ignore', invalid='ignore'):
+            # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
+            ascending = (numerators[:, ::-1] * self._continuous.scale ** np.arange(size)
+                         * self._continuous._gain ** 2)
+        if not np.all(np.isfinite(ascending)):
+            return None
+        if self._chains is None:
+            self._chains = modes.chains(self._modes.trajectories, self._signals)
+        continuous = modes.continuous
+        poles = continuous.poles
+        powers = poles[:, None] ** np.arange(size)
+        values = ascending @ powers.T                                   # N(z_i)
+        slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
+        weighted = continuous.residues * continuous.weights
+        out = ((values * weighted) @ self._chains
+               + ((slopes - 2.0 * values * continuous.spread) * weighted)
+               @ self._modes.trajectories).real
+        if size == 2 * order + 1:
+            out += np.outer(ascending[:, -1], self._held)
+        return out
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
@@ -533,6 +589,11 @@ class _Modes:
         modes = cls(None, signals=np.zeros((0, 0)), drives=np.zeros((0, 0)))
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
         return modes
+
+    @property
+    def trajectories(self) -> np.ndarray:
+        """Return the modal trajectories, one row per mode run (kept modes if uncoupled)."""
+        return self._modal
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """Return ``rows @ x[k]`` for every k, shape (q, N)."""
@@ -645,6 +706,8 @@ _SERIES_POWERS = np.arange(19)
 _FACTORIALS = np.cumprod(np.arange(1, 22, dtype=float))       # 1!, 2!, ..., 21!
 _SERIES_FIRST = 1.0 / _FACTORIALS[:19]                          # 1/(k+1)!
 _SERIES_SECOND = 1.0 / _FACTORIALS[1:20]                        # 1/(k+2)!
+_SERIES_FIRST_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[1:20]   # (k+1)/(k+2)!
+_SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)!
 
 
 def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -658,6 +721,20 @@ def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
             first = np.where(small, powers @ _SERIES_FIRST, first)
             second = np.where(small, powers @ _SERIES_SECOND, second)
     return first, second
+
+
+def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray
+                        ) -> Tuple[np.ndarray, np.ndarray]:
+    """Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``."""
+    with np.errstate(all='ignore'):
+        first_slope = (np.exp(x) - first) / x
+        second_slope = (first - 2.0 * second) / x
+        small = np.abs(x) < _SERIES_LIMIT
+        if small.any():
+            powers = x[:, None] ** _SERIES_POWERS
+            first_slope = np.where(small, powers @ _SERIES_FIRST_SLOPE, first_slope)
+            second_slope = np.where(small, powers @ _SERIES_SECOND_SLOPE, second_slope)
+    return first_slope, second_slope
 
 
 @dataclass
@@ -677,6 +754,8 @@ class _ContinuousModes:
     keep: np.ndarray
     weights: np.ndarray
     residues: np.ndarray       # r_i of the kept modes
+    spread: np.ndarray         # sum over j != i of 1/(z_i - z_j), i.e. D''(z_i) / (2 D'(z_i))
+    squared: bool              # 1/D^2 is read off these modes (StateResponse.squared_outputs)
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
@@ -694,7 +773,33 @@ class _ContinuousModes:
         drives = np.array(list(drive.values()))
         if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
             return None
-        return _DiscreteModes(self, transition, list(drive), drives)
+        return _DiscreteModes(self, transition, list(drive), drives, segments)
+
+    def drive_slopes(self, segments, samples: List[Sample]) -> np.ndarray:
+        """
+        Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
+
+        Returns ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
+        ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
+        """
+        drive: Dict[Sample, np.ndarray] = {}
+        slope: Dict[Sample, np.ndarray] = {}
+        for length, start, end in segments:
+            x = self.poles * length
+            e = np.exp(x)
+            first, second = _hold_factors(x)
+            first_slope, second_slope = _hold_factor_slopes(x, first, second)
+            q = length * second * self.residues
+            q_slope = length * length * second_slope * self.residues
+            slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
+                     for sample, vector in drive.items()}
+            drive = {sample: e * vector for sample, vector in drive.items()}
+            _accumulate(drive, start, length * first * self.residues - q)
+            _accumulate(drive, end, q)
+            _accumulate(slope, start, length * length * first_slope * self.residues - q_slope)
+            _accumulate(slope, end, q_slope)
+        zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
+        return np.array([slope.get(sample, zero) for sample in samples])
 
 
 @dataclass
@@ -705,6 +810,21 @@ class _DiscreteModes:
     poles: np.ndarray
     samples: List[Sample]
     drives: np.ndarray         # (samples, kept modes)
+    segments: List             # the scaled sub-intervals discretised
+
+    def chains(self, modal: np.ndarray, signals: np.ndarray) -> np.ndarray:
+        """
+        Run ``r_i/(z - z_i)^2`` over the signals, given the modes ``modal`` (:meth:`run`'s).
+
+        The derivative of ``m[k+1] = p m[k] + g . u`` with respect to the pole ``z_i``
+        (``p = e^{z_i h}``, ``dp/dz_i = h p``) is
+        ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
+        pole, one recursion per kept mode.
+        """
+        length = sum(segment[0] for segment in self.segments)
+        slopes = self.continuous.drive_slopes(self.segments, self.samples)
+        driving = (length * self.poles)[:, None] * modal + slopes.T @ signals
+        return _run(self.poles, None, driving)
 
     def run(self, signals: np.ndarray) -> _Modes:
         """Run every kept mode over the signals of :attr:`samples` (one row each)."""
@@ -739,11 +859,16 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
             return None
     keep = poles.imag >= 0.0
     residues = 1.0 / differences.prod(axis=1)[keep]
+    inverse = 1.0 / differences
+    np.fill_diagonal(inverse, 0.0)
+    spread = inverse.sum(axis=1)[keep]
+    amplification = np.max(np.abs(residues) ** 2 * (1.0 + 2.0 * np.abs(spread)))
     if not poles.imag.any():
         # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
-        poles, basis, residues = poles.real, basis.real, residues.real
+        poles, basis, residues, spread = poles.real, basis.real, residues.real, spread.real
     return _ContinuousModes(poles[keep], basis, keep,
-                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues)
+                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues, spread,
+                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT))
 
 
 def skew_delay(ts: float, output_skew: float) -> float:

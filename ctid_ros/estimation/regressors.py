@@ -9,7 +9,10 @@ sampled input ``u`` and output ``y``, with three state simulations sharing one d
 * the regressors ``phi_i = [dN/dtheta_i e^{-tau s} u - dD/dtheta_i y] / D`` (y through ``1/D``,
   first-order hold), minus ``dtau/dtheta_i * s G u`` for a dead time;
 * the instruments ``psi_i = d yhat / d theta_i = (dN_i D - dD_i N)/D^2 e^{-tau s} u - ...``
-  (u through ``1/D^2``), which carry no measurement noise.
+  (u through ``1/D^2``), which carry no measurement noise. Where ``D`` has uncoupled modes they
+  are read off the simulation of ``u`` through ``1/D`` (the double poles' chains of
+  :meth:`~ctid_ros.core.simulation.StateResponse.squared_outputs`), so only two state
+  simulations are discretised per parameter vector.
 
 ``phi`` makes the error decomposition exact (one-step property; on sampled data up to the
 first-order hold of ``y``); ``psi`` are the output sensitivities that make the
@@ -172,9 +175,7 @@ class SignalBank:
         bank_u = self._discrete(den, delay, self.intersample)
         u_responses = self._channel_responses(self._responses, den, delay,
                                               _REMEMBERED_RESPONSES)
-        # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
-        sensitivity_responses = self._channel_responses(self._sensitivities,
-                                                        np.convolve(den, den), delay, 1)
+        sensitivity_responses: Optional[List[StateResponse]] = None
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         jump = np.zeros(self.y.size)
@@ -213,7 +214,15 @@ class SignalBank:
             sensitivity_numerators = [
                 np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
                 for i in range(params)]
-            psi += sensitivity_responses[j].outputs(sensitivity_numerators)[:, trim:]
+            # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
+            sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
+            if sensitivities is None:
+                if sensitivity_responses is None:
+                    # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
+                    sensitivity_responses = self._channel_responses(
+                        self._sensitivities, np.convolve(den, den), delay, 1)
+                sensitivities = sensitivity_responses[j].outputs(sensitivity_numerators)
+            psi += sensitivities[:, trim:]
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
         delay_jump = np.outer(coefficients.delay_gradient, jump).T if np.any(jump) else None

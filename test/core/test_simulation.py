@@ -1,7 +1,7 @@
 """Exact sampled simulation against independent references (solve_ivp, lsim)."""
 
 from ctid_ros import DataError, Model, ModelError
-from ctid_ros.core.simulation import response, responses
+from ctid_ros.core.simulation import ContinuousFilter, response, responses
 import numpy as np
 import pytest
 from scipy import signal
@@ -355,3 +355,32 @@ def test_output_skew_gives_the_response_at_the_output_instants(text, params, ske
                                   model.simulate(params, u, ts))
     with pytest.raises(ModelError, match='skew'):
         model.simulate(params, u, ts, output_skew=ts)
+
+
+@pytest.mark.parametrize('den, delay', [
+    ([1.0, 3.0, 2.0], 0.0), ([1.0, 3.0, 2.0], 0.37), ([1.0, 0.4, 9.0], 0.05),
+    ([0.6, 1.9, 1.0], 0.7), ([1.0, 5.0, 408.0, 416.0, 1600.0], 0.0), ([2.0, 1.0], 1.234)])
+@pytest.mark.parametrize('intersample', ['zoh', 'foh'])
+def test_responses_through_the_squared_denominator_read_off_its_modes(den, delay,
+                                                                      intersample):
+    # N/D^2 of a signal from the modes of D (double-pole chains) equals the simulation through
+    # 1/D^2 (complex Schur coordinates) to rounding, biproper numerators included.
+    rng = np.random.default_rng(11)
+    values = rng.standard_normal(1500)
+    den = np.array(den)
+    order = den.size - 1
+    ts = 0.01 if order > 2 else 0.1
+    numerators = rng.standard_normal((3, 2 * order + 1))
+    numerators[1, :2] = 0.0
+    state = ContinuousFilter(den).discretize(ts, delay, intersample).response(values)
+    squared = state.squared_outputs(numerators)
+    simulated = ContinuousFilter(np.convolve(den, den)).discretize(ts, delay, intersample).outputs(
+        values, numerators)
+    np.testing.assert_allclose(squared, simulated, rtol=0.0, atol=1e-11 * np.abs(simulated).max())
+
+
+def test_close_poles_leave_the_squared_denominator_to_its_own_simulation():
+    # Poles 1e-4 apart: partial fractions of 1/D^2 would amplify rounding by ~1e12.
+    den = np.convolve([1.0, 1.0], [1.0, 1.0001])
+    state = ContinuousFilter(den).discretize(0.1, 0.0, 'zoh').response(np.ones(100))
+    assert state.squared_outputs(np.ones((1, 5))) is None
