@@ -657,24 +657,69 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     """
     Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
 
-    Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, computed as one lower
-    bidiagonal triangular solve (LAPACK ``?tbtrs``, the same forward substitution) over all
-    rows at once: no per-row call, and no import of :mod:`scipy.signal` (and with it
-    :mod:`scipy.stats`) for the simulation.
+    Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, without importing
+    :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows of
+    stable poles run in blocks (:func:`_blocked_recursions`); other rows as lower bidiagonal
+    triangular solves (LAPACK ``?tbtrs``, the same forward substitution), several rows per
+    solve up to :data:`_BAND_SIZE` samples (a longer band leaves the cache and runs several
+    times slower per sample).
     """
     rows, length = values.shape
     complex_valued = np.iscomplexobj(values) or np.iscomplexobj(poles)
     dtype = complex if complex_valued else float
     if rows == 0 or length == 0:
         return np.zeros((rows, length), dtype=dtype)
-    band = np.empty((2, rows * length), dtype=dtype)
-    band[0] = 1.0
-    below = band[1].reshape(rows, length)
-    below[:] = -poles[:, None]
-    below[:, -1] = 0.0                  # a row's last sample does not feed the next row
+    values = values.astype(dtype, copy=False)
+    if not complex_valued and length >= _BLOCKED_MIN_LENGTH and \
+            rows * length >= _BLOCKED_MIN_SIZE and np.all(np.abs(poles) <= 1.0):
+        return _blocked_recursions(np.asarray(poles, dtype=float), values)
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
-    out, _ = solve(band, values.astype(dtype, copy=False).reshape(-1, 1), uplo='L')
-    return out.reshape(rows, length)
+    step = max(1, _BAND_SIZE // length)
+    parts = []
+    for first in range(0, rows, step):
+        count = min(step, rows - first)
+        band = np.empty((2, count * length), dtype=dtype)
+        band[0] = 1.0
+        below = band[1].reshape(count, length)
+        below[:] = -poles[first:first + count, None]
+        below[:, -1] = 0.0                  # a row's last sample does not feed the next row
+        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L')
+        parts.append(out.reshape(count, length))
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+# Samples per banded solve of recursions.
+_BAND_SIZE = 16384
+# Block length of the blocked recursions, the shortest row and the fewest samples they run.
+_BLOCK = 16
+_BLOCKED_MIN_LENGTH = 8 * _BLOCK
+_BLOCKED_MIN_SIZE = 4096
+
+
+def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    :func:`recursions` for real poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
+
+    A substitution carries one sample at a time, a chain of dependent multiply-adds. Instead
+    each block's response from rest is a matrix product with the block's lower triangular
+    Toeplitz matrix of pole powers (all blocks of a row in one product), then the state carried
+    into block ``b`` is a recursion over blocks with pole ``p^B`` and adds
+    ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
+    round no worse than the substitution's.
+    """
+    rows, length = values.shape
+    blocks = -(-length // _BLOCK)
+    padded = np.zeros((rows, blocks, _BLOCK))
+    padded.reshape(rows, -1)[:, :length] = values
+    powers = poles[:, None] ** np.arange(_BLOCK + 1)               # p^0 .. p^B
+    lag = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))   # j - k
+    # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
+    transposed = np.where(lag <= 0, powers[:, np.maximum(-lag, 0)], 0.0)
+    # One 2-D product per row: numpy's stacked matmul can miss BLAS for these shapes.
+    response = np.array([row @ matrix for row, matrix in zip(padded, transposed)])
+    carried = recursions(powers[:, _BLOCK], response[:, :, -1])    # state at each block's end
+    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+    return response.reshape(rows, -1)[:, :length]
 
 
 def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Exact sampled simulation against independent references (solve_ivp, lsim)."""
 
 from ctid_ros import DataError, Model, ModelError
-from ctid_ros.core.simulation import ContinuousFilter, response, responses
+from ctid_ros.core.simulation import ContinuousFilter, recursions, response, responses
 import numpy as np
 import pytest
 from scipy import signal
@@ -384,3 +384,23 @@ def test_close_poles_leave_the_squared_denominator_to_its_own_simulation():
     den = np.convolve([1.0, 1.0], [1.0, 1.0001])
     state = ContinuousFilter(den).discretize(0.1, 0.0, 'zoh').response(np.ones(100))
     assert state.squared_outputs(np.ones((1, 5))) is None
+
+
+@pytest.mark.parametrize('rows, length', [(1, 50), (3, 5000), (2, 20000), (40, 1000)])
+@pytest.mark.parametrize('kind', ['stable', 'complex', 'unstable'])
+def test_recursions_equal_first_order_lfilter_per_row(rows, length, kind):
+    # Blocked products (many real samples of stable poles), banded solves (the rest, several
+    # rows per solve): each row as scipy.signal.lfilter runs it, to rounding.
+    rng = np.random.default_rng(12)
+    values = rng.standard_normal((rows, length))
+    poles = rng.uniform(-0.999, 1.0, rows)
+    poles[0] = 1.0                                  # an integrator
+    if kind == 'complex':
+        poles = poles * np.exp(1j * rng.uniform(0.0, 0.5, rows))
+        values = values + 1j * rng.standard_normal((rows, length))
+    elif kind == 'unstable':
+        poles[-1] = 1.0005
+    out = recursions(poles, values)
+    expected = np.array([signal.lfilter([1.0], [1.0, -pole], row)
+                         for pole, row in zip(poles, values)])
+    np.testing.assert_allclose(out, expected, rtol=1e-11, atol=1e-11 * np.abs(expected).max())
