@@ -79,9 +79,40 @@ def polynomial_roots(coefficients: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _roots(key: bytes) -> np.ndarray:
-    roots = np.roots(np.frombuffer(key))
+    coefficients = np.frombuffer(key)
+    roots = _low_order_roots(coefficients)
+    if roots is None:
+        roots = np.roots(coefficients)
     roots.setflags(write=False)
     return roots
+
+
+def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return the roots of a first- or second-degree polynomial in closed form, else None.
+
+    ``np.roots`` builds a companion matrix and calls LAPACK's eigenvalue routine, mostly call
+    overhead at these degrees; the estimator asks for the roots of every candidate
+    denominator. Real roots come as a float array, complex ones as a complex array, as
+    ``np.roots`` gives them; the quadratic takes the larger root first and the other from
+    their product, so neither cancels.
+    """
+    if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
+            not np.all(np.isfinite(coefficients)):
+        return None
+    if coefficients.size == 2:
+        return np.array([-coefficients[1] / coefficients[0]])
+    a, b, c = (float(value) for value in coefficients)
+    discriminant = b * b - 4.0 * a * c
+    if not np.isfinite(discriminant):
+        return None
+    if discriminant < 0.0:
+        real, imaginary = -b / (2.0 * a), np.sqrt(-discriminant) / (2.0 * abs(a))
+        return np.array([complex(real, imaginary), complex(real, -imaginary)])
+    half = -0.5 * (b + np.copysign(np.sqrt(discriminant), b))
+    if half == 0.0:
+        return None
+    return np.array([half / a, c / half])
 
 
 def _time_scale(den: np.ndarray) -> float:
