@@ -26,6 +26,7 @@ Python loop runs per sample.
 
 from dataclasses import dataclass
 from functools import lru_cache
+import math
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
@@ -788,10 +789,14 @@ _SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)
 
 def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0)."""
+    small = np.abs(x) < _SERIES_LIMIT
+    if small.all():
+        # Fast sampling makes every |x| small: the series alone, the same values.
+        powers = x[:, None] ** _SERIES_POWERS
+        return powers @ _SERIES_FIRST, powers @ _SERIES_SECOND
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
-        small = np.abs(x) < _SERIES_LIMIT
         if small.any():
             powers = x[:, None] ** _SERIES_POWERS
             first = np.where(small, powers @ _SERIES_FIRST, first)
@@ -802,10 +807,13 @@ def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray
                         ) -> Tuple[np.ndarray, np.ndarray]:
     """Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``."""
+    small = np.abs(x) < _SERIES_LIMIT
+    if small.all():
+        powers = x[:, None] ** _SERIES_POWERS
+        return powers @ _SERIES_FIRST_SLOPE, powers @ _SERIES_SECOND_SLOPE
     with np.errstate(all='ignore'):
         first_slope = (np.exp(x) - first) / x
         second_slope = (first - 2.0 * second) / x
-        small = np.abs(x) < _SERIES_LIMIT
         if small.any():
             powers = x[:, None] ** _SERIES_POWERS
             first_slope = np.where(small, powers @ _SERIES_FIRST_SLOPE, first_slope)
@@ -837,10 +845,12 @@ class _ContinuousModes:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
         transition = np.ones(self.poles.size, dtype=self.poles.dtype)
         drive: Dict[Sample, np.ndarray] = {}
+        factors = []
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
             first, second = _hold_factors(x)
+            factors.append((length, start, end, x, e, first, second))
             q = length * second * self.residues
             transition = e * transition
             drive = {sample: e * vector for sample, vector in drive.items()}
@@ -849,21 +859,20 @@ class _ContinuousModes:
         drives = np.array(list(drive.values()))
         if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
             return None
-        return _DiscreteModes(self, transition, list(drive), drives, segments)
+        return _DiscreteModes(self, transition, list(drive), drives, factors)
 
-    def drive_slopes(self, segments, samples: List[Sample]) -> np.ndarray:
+    def drive_slopes(self, factors, samples: List[Sample]) -> np.ndarray:
         """
         Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
 
-        Returns ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
-        ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
+        ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
+        end, ``x``, ``e^x`` and the hold factors). Returns ``(samples, kept modes)`` in the
+        order of ``samples``: the drives of the chain ``r_i/(z - z_i)^2``
+        (:meth:`_DiscreteModes.chains`).
         """
         drive: Dict[Sample, np.ndarray] = {}
         slope: Dict[Sample, np.ndarray] = {}
-        for length, start, end in segments:
-            x = self.poles * length
-            e = np.exp(x)
-            first, second = _hold_factors(x)
+        for length, start, end, x, e, first, second in factors:
             first_slope, second_slope = _hold_factor_slopes(x, first, second)
             q = length * second * self.residues
             q_slope = length * length * second_slope * self.residues
@@ -886,7 +895,7 @@ class _DiscreteModes:
     poles: np.ndarray
     samples: List[Sample]
     drives: np.ndarray         # (samples, kept modes)
-    segments: List             # the scaled sub-intervals discretised
+    factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
 
     def chains(self, modal: np.ndarray, signals: np.ndarray) -> np.ndarray:
         """
@@ -897,8 +906,8 @@ class _DiscreteModes:
         ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
         pole, one recursion per kept mode.
         """
-        length = sum(segment[0] for segment in self.segments)
-        slopes = self.continuous.drive_slopes(self.segments, self.samples)
+        length = sum(factor[0] for factor in self.factors)
+        slopes = self.continuous.drive_slopes(self.factors, self.samples)
         driving = (length * self.poles)[:, None] * modal + slopes.T @ signals
         return _run(self.poles, None, driving)
 
@@ -909,11 +918,39 @@ class _DiscreteModes:
         return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
 
 
+def _condition(matrix: np.ndarray) -> float:
+    """
+    Return the 2-norm condition number of a square matrix (inf if singular).
+
+    A 2 x 2 one from its Frobenius norm and determinant (``s1^2 + s2^2 = |M|_F^2``,
+    ``s1 s2 = |det M|``), without the SVD's call overhead; larger ones by ``np.linalg.cond``.
+    """
+    if matrix.shape != (2, 2):
+        return float(np.linalg.cond(matrix))
+    frobenius = float(np.sum(np.abs(matrix) ** 2))
+    determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
+    if not determinant > 0.0:
+        return math.inf
+    root = math.sqrt(max(frobenius * frobenius - 4.0 * determinant * determinant, 0.0))
+    # s1^2 = (F + root)/2, and s1/s2 = s1^2/(s1 s2) takes the smaller one without cancellation.
+    largest = 0.5 * (frobenius + root)
+    return largest / determinant
+
+
 def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousModes]:
     """Return the uncoupled modes of ``realisation``, None if they are ill-conditioned."""
     n = realisation.order
     if n == 0:
         return None
+    if n == 1:
+        # One real pole: the general construction below reduces to this (residue 1, nothing
+        # to compare it with), without its arrays of pole differences.
+        pole = -realisation.den[1] / realisation.den[0] / realisation.scale
+        if not np.isfinite(pole):
+            return None
+        return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
+                                np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
+                                True)
     poles = np.asarray(polynomial_roots(realisation.den), dtype=complex) / realisation.scale
     if poles.size != n or not np.isfinite(poles).all():
         return None
@@ -930,7 +967,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     basis = vandermonde / realisation._balance[:, None]
     if n > 1:
         with np.errstate(all='ignore'):
-            condition = np.linalg.cond(basis / np.linalg.norm(basis, axis=0))
+            condition = _condition(basis / np.linalg.norm(basis, axis=0))
         if not condition <= _MODAL_CONDITION_LIMIT:
             return None
     keep = poles.imag >= 0.0
