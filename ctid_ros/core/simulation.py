@@ -48,6 +48,9 @@ _MODAL_RANGE_LIMIT = 1e30
 # the poles' spread, in the scaled variable) responses through 1/D^2 are simulated in their own
 # (Schur) coordinates instead of as the double-pole chains of D's modes.
 _SQUARED_AMPLIFICATION_LIMIT = 1e6
+# Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
+# one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
+_CHAIN_MAX_ORDER = 8
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -185,6 +188,31 @@ class ContinuousFilter:
             self._modal_checked = True
         return self._modal
 
+    @property
+    def repeated_root(self) -> Optional[float]:
+        """
+        Return ``z0`` (scaled) if ``D`` is ``den[0] (s - scale z0)^n`` to rounding, else None.
+
+        To rounding: the scaled monic coefficients within 1e-14 (plus as much relative) of the
+        binomial ones of the roots' mean.
+
+        A single real root of multiplicity ``n`` (2 to :data:`_CHAIN_MAX_ORDER`), as the
+        state-variable filters ``(p + lam)^n`` of the equation-error starts have: their states
+        are propagated as one real Jordan chain (:class:`_Chain`) instead of in the complex Schur
+        coordinates that the root, split by rounding into a cluster, would otherwise need.
+        """
+        n = self.order
+        if not 2 <= n <= _CHAIN_MAX_ORDER:
+            return None
+        root = -float(self._monic_ascending[n - 1]) / n               # mean of the scaled roots
+        expected = [math.comb(n, j) * (-root) ** (n - j) for j in range(n + 1)]
+        # np.poly's own rounding of (p + lam)^n stays within 3e-15 here (n <= 8, lam from 1e-4
+        # to 1e4); roots 2e-7 apart already differ by 1e-14.
+        if any(abs(value - target) > 1e-14 * (1.0 + abs(target))
+               for value, target in zip(self._monic_ascending, expected)):
+            return None
+        return root
+
     def output_map(self, num) -> Tuple[np.ndarray, float]:
         """
         Row ``c`` and feedthrough ``d`` such that ``N(s)/D(s) u = c x + d u``.
@@ -263,6 +291,12 @@ class ContinuousFilter:
             feed_left = {(-whole - 1, False): 1.0} if intersample == 'zoh' else \
                 {(-whole, True): 1.0}
         scaled_segments = [(length * scaled_ts, start, end) for length, start, end in segments]
+        root = self.repeated_root
+        if root is not None:
+            # Checked first: the modes of a root repeated n times are not tried at all.
+            chain = _Chain.discretize(self, root, scaled_segments)
+            if chain is not None:
+                return DiscreteFilter(self, ts, scaled_segments, feed, feed_left, chain=chain)
         modal = self.modal
         if modal is not None:
             discrete_modes = modal.discretize(scaled_segments)
@@ -383,12 +417,13 @@ class DiscreteFilter:
     def __init__(self, continuous: ContinuousFilter, ts: float, segments,
                  feed: Dict[Sample, float],
                  feed_left: Optional[Dict[Sample, float]] = None,
-                 modes: Optional['_DiscreteModes'] = None):
+                 modes: Optional['_DiscreteModes'] = None, chain: Optional['_Chain'] = None):
         self.continuous = continuous
         self.ts = ts
         self.feed = feed
         self.feed_left = feed_left
         self.modes = modes
+        self.chain = chain
         self._segments = segments
         self._state_space: Optional[Tuple[np.ndarray, Dict[Sample, np.ndarray]]] = None
 
@@ -510,6 +545,10 @@ class StateResponse:
                                     for sample in discrete.modes.samples])
                 self._modes = discrete.modes.run(signals)
                 self._discrete_modes, self._signals = discrete.modes, signals
+            elif discrete.chain is not None:
+                signals = np.array([_sampled(values, sample)
+                                    for sample in discrete.chain.samples])
+                self._modes = discrete.chain.run(signals)
             else:
                 drive = discrete.drive
                 signals = np.array([_sampled(values, sample) for sample in drive])
@@ -916,6 +955,63 @@ class _DiscreteModes:
         modes = self.continuous
         modal = _run(self.poles, None, self.drives.T @ signals)
         return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
+
+
+@dataclass
+class _Chain:
+    """
+    The states of ``1/(z - z0)^n`` as one real Jordan chain, discretised exactly.
+
+    ``c_m = 1/(z - z0)^m`` of the signal, ``m = 1..n``: ``c_1' = z0 c_1 + u``,
+    ``c_m' = z0 c_m + c_(m-1)``. Over a sample period ``c[k+1] = T c[k] + sum_o B_o u[k+o]``
+    with ``T`` lower triangular and every diagonal entry ``e^{z0 h}`` (matrix exponentials of
+    the chain per sub-interval, as :meth:`ContinuousFilter.state_discretization` forms them for
+    the companion states), so the states run one after the other, each a real first-order
+    recursion driven by the ones before (:func:`recursions`). The companion states
+    ``z^j/(z - z0)^n = sum_l C(j, l) z0^(j-l) c_(n-l)`` are read off through :attr:`basis`.
+    """
+
+    basis: np.ndarray          # balanced companion states from the chain states (n x n)
+    transition: np.ndarray     # T, lower triangular
+    samples: List[Sample]
+    drives: np.ndarray         # (samples, n)
+
+    @classmethod
+    def discretize(cls, continuous: 'ContinuousFilter', root: float,
+                   segments) -> Optional['_Chain']:
+        """Return the chain of ``continuous`` over ``segments``; None on overflow."""
+        n = continuous.order
+        a = root * np.eye(n) + np.eye(n, k=-1)
+        b = np.eye(n)[0]
+        transition = np.eye(n)
+        drive: Dict[Sample, np.ndarray] = {}
+        for length, start, end in segments:
+            e, integral, ramp = _hold_integrals(a, b, length)
+            transition = e @ transition
+            drive = {sample: e @ vector for sample, vector in drive.items()}
+            _accumulate(drive, start, integral - ramp)
+            _accumulate(drive, end, ramp)
+        drives = np.array(list(drive.values()))
+        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+            return None
+        basis = np.zeros((n, n))
+        for j in range(n):
+            for power in range(j + 1):             # C(j, l) z0^(j - l) on c_(n - l), l = power
+                basis[j, n - power - 1] = math.comb(j, power) * root ** (j - power)
+        return cls(basis / continuous._balance[:, None], transition, list(drive), drives)
+
+    def run(self, signals: np.ndarray) -> '_Modes':
+        """Run the chain over the signals of :attr:`samples` (one row each)."""
+        driving = self.drives.T @ signals
+        count = driving.shape[1]
+        modal = np.zeros(driving.shape)
+        pole = self.transition[:1, 0]
+        if count > 1:
+            for m in range(driving.shape[0]):
+                if m:
+                    driving[m] += self.transition[m, :m] @ modal[:m]
+                modal[m, 1:] = recursions(pole, driving[m:m + 1, :count - 1])[0]
+        return _Modes.uncoupled(self.basis, None, None, modal)
 
 
 def _condition(matrix: np.ndarray) -> float:

@@ -1,6 +1,7 @@
 """Exact sampled simulation against independent references (solve_ivp, lsim)."""
 
 from ctid_ros import DataError, Model, ModelError
+from ctid_ros.core import simulation
 from ctid_ros.core.simulation import ContinuousFilter, recursions, response, responses
 import numpy as np
 import pytest
@@ -404,3 +405,25 @@ def test_recursions_equal_first_order_lfilter_per_row(rows, length, kind):
     expected = np.array([signal.lfilter([1.0], [1.0, -pole], row)
                          for pole, row in zip(poles, values)])
     np.testing.assert_allclose(out, expected, rtol=1e-11, atol=1e-11 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize('order, lam', [(2, 1.0), (3, 30.0), (4, 0.5), (6, 2.0)])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'zoh'), (0.0137, 'zoh'), (0.0137, 'foh')])
+def test_repeated_root_runs_as_a_jordan_chain_equal_to_the_schur_form(monkeypatch, order, lam,
+                                                                      delay, intersample):
+    # (p + lam)^n, the state-variable filters: one real chain of recursions instead of the
+    # complex Schur coordinates of the root's rounding cluster; the same responses.
+    den = np.poly(np.full(order, -lam))
+    values = np.random.default_rng(13).standard_normal(2000)
+    numerators = [np.eye(order + 1)[order - j] for j in range(order + 1)]
+    discrete = ContinuousFilter(den).discretize(0.01, delay, intersample)
+    assert discrete.chain is not None
+    chained = discrete.outputs(values, numerators)
+    monkeypatch.setattr(simulation, '_CHAIN_MAX_ORDER', 0)
+    schur = ContinuousFilter(den).discretize(0.01, delay, intersample).outputs(values, numerators)
+    np.testing.assert_allclose(chained, schur, rtol=0.0, atol=1e-11 * np.abs(schur).max())
+
+
+def test_distinct_roots_are_not_taken_for_a_repeated_one():
+    assert ContinuousFilter(np.poly([-1.0, -1.0 - 1e-6])).repeated_root is None
+    assert ContinuousFilter(np.poly([-2.0, -2.0, -2.0])).repeated_root is not None
