@@ -20,6 +20,7 @@ instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and
 """
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
@@ -39,6 +40,8 @@ _REMEMBERED = 4
 # an optimality check).
 _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
+# Realisations and discretisations shared by every bank (a few tens of small objects).
+_SHARED_FILTERS = 32
 
 
 @dataclass
@@ -81,6 +84,25 @@ def _remembered(cache: Dict[Hashable, Value], key: Hashable,
     return value
 
 
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _discretized(den: bytes, ts: float, delay: float, intersample: str) -> DiscreteFilter:
+    """
+    Return the discretisation of ``1/den`` (coefficients as bytes), shared by every bank.
+
+    It depends on the denominator, sample time, dead time and intersample assumption only:
+    the banks of a record's halves and quarters (the consistency check), of the dead-time
+    search and of the structure comparisons evaluate the same parameter vectors on the same
+    sample time, and need not realise and discretise them again.
+    """
+    return _realization(den).discretize(ts, delay, intersample)
+
+
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _realization(den: bytes) -> ContinuousFilter:
+    """Return the realisation of ``1/den`` (coefficients as bytes), shared by every bank."""
+    return ContinuousFilter(np.frombuffer(den))
+
+
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
     return np.concatenate([np.zeros(length - poly.size), poly])
 
@@ -107,7 +129,6 @@ class SignalBank:
         self.driving = skew_extended(self.channels, output_skew)
         self.extra_delay = skew_delay(ts, output_skew)
         self.trim = 1 if output_skew else 0
-        self._realizations: Dict[Hashable, ContinuousFilter] = {}
         self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
         # State trajectories of the input channels (output and its sensitivities at the same
@@ -117,13 +138,9 @@ class SignalBank:
         self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
-        def discretized() -> DiscreteFilter:
-            realization = _remembered(self._realizations, den.tobytes(),
-                                      lambda: ContinuousFilter(den))
-            return realization.discretize(self.ts, delay, intersample)
-
         return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
-                           discretized)
+                           lambda: _discretized(den.tobytes(), self.ts, float(delay),
+                                                intersample))
 
     def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
                            delay: float, size: int) -> List[StateResponse]:
