@@ -599,7 +599,7 @@ class StateResponse:
         out = ((values * weighted) @ self._chains
                + ((slopes - 2.0 * values * continuous.spread) * weighted)
                @ self._modes.trajectories).real
-        if size == 2 * order + 1:
+        if size == 2 * order + 1 and np.any(ascending[:, -1]):
             out += np.outer(ascending[:, -1], self._held)
         return out
 
@@ -626,7 +626,10 @@ class StateResponse:
             else:
                 rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
                 rows = np.asarray(rows)
-        return self.mapped(rows) + np.outer(feeds, self._held)
+        if np.any(feeds):
+            return self.mapped(rows) + np.outer(feeds, self._held)
+        # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
+        return np.ascontiguousarray(self.mapped(rows))
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,

@@ -241,15 +241,21 @@ class SignalBank:
                 sensitivities = sensitivity_responses[j].outputs(sensitivity_numerators)
             psi += sensitivities[:, trim:]
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
-        delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
-        delay_jump = np.outer(coefficients.delay_gradient, jump).T if np.any(jump) else None
-        psi += delay_term
+        delay_jump = None
+        if delay_used:
+            delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
+            if np.any(jump):
+                delay_jump = np.outer(coefficients.delay_gradient, jump).T
+            psi += delay_term
         phi = None
         if regressors:
             bank_y = _remembered(self._output_filtered, den.tobytes(),
                                  lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
             y_parts = bank_y.outputs(list(coefficients.den_jacobian))
-            phi = (u_regressors - y_parts + delay_term).T
+            phi = u_regressors - y_parts
+            if delay_used:
+                phi += delay_term
+            phi = phi.T
         output.setflags(write=False)
         _remembered(self._outputs, self._output_key(coefficients), lambda: output)
         return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)
