@@ -744,8 +744,10 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     if rows == 0 or length == 0:
         return np.zeros((rows, length), dtype=dtype)
     values = values.astype(dtype, copy=False)
+    # Finite values only: a block's product would spread a NaN or inf to the samples before it.
     if not complex_valued and length >= _BLOCKED_MIN_LENGTH and \
-            rows * length >= _BLOCKED_MIN_SIZE and np.all(np.abs(poles) <= 1.0):
+            rows * length >= _BLOCKED_MIN_SIZE and np.all(np.abs(poles) <= 1.0) and \
+            np.isfinite(values).all():
         return _blocked_recursions(np.asarray(poles, dtype=float), values)
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
     step = max(1, _BAND_SIZE // length)

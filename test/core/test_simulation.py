@@ -427,3 +427,12 @@ def test_repeated_root_runs_as_a_jordan_chain_equal_to_the_schur_form(monkeypatc
 def test_distinct_roots_are_not_taken_for_a_repeated_one():
     assert ContinuousFilter(np.poly([-1.0, -1.0 - 1e-6])).repeated_root is None
     assert ContinuousFilter(np.poly([-2.0, -2.0, -2.0])).repeated_root is not None
+
+
+def test_recursions_keep_a_non_finite_value_to_the_samples_after_it():
+    # As the substitution does: a block's product must not carry a NaN back in time.
+    values = np.ones((2, 5000))
+    values[1, 3000] = np.nan
+    out = recursions(np.array([0.5, 0.9]), values)
+    assert np.isfinite(out[0]).all() and np.isfinite(out[1, :3000]).all()
+    assert np.isnan(out[1, 3000:]).all()
