@@ -26,6 +26,7 @@ Python loop runs per sample.
 
 from dataclasses import dataclass
 from functools import lru_cache
+import math
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
@@ -43,6 +44,13 @@ _MODAL_CONDITION_LIMIT = 1e4
 # Poles whose magnitudes are further apart than this factor are left to the matrix exponential,
 # which reports them as beyond floating point.
 _MODAL_RANGE_LIMIT = 1e30
+# Above this amplification of rounding by the partial fractions of 1/D^2 (residues squared times
+# the poles' spread, in the scaled variable) responses through 1/D^2 are simulated in their own
+# (Schur) coordinates instead of as the double-pole chains of D's modes.
+_SQUARED_AMPLIFICATION_LIMIT = 1e6
+# Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
+# one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
+_CHAIN_MAX_ORDER = 8
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -75,9 +83,40 @@ def polynomial_roots(coefficients: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _roots(key: bytes) -> np.ndarray:
-    roots = np.roots(np.frombuffer(key))
+    coefficients = np.frombuffer(key)
+    roots = _low_order_roots(coefficients)
+    if roots is None:
+        roots = np.roots(coefficients)
     roots.setflags(write=False)
     return roots
+
+
+def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return the roots of a first- or second-degree polynomial in closed form, else None.
+
+    ``np.roots`` builds a companion matrix and calls LAPACK's eigenvalue routine, mostly call
+    overhead at these degrees; the estimator asks for the roots of every candidate
+    denominator. Real roots come as a float array, complex ones as a complex array, as
+    ``np.roots`` gives them; the quadratic takes the larger root first and the other from
+    their product, so neither cancels.
+    """
+    if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
+            not np.all(np.isfinite(coefficients)):
+        return None
+    if coefficients.size == 2:
+        return np.array([-coefficients[1] / coefficients[0]])
+    a, b, c = (float(value) for value in coefficients)
+    discriminant = b * b - 4.0 * a * c
+    if not np.isfinite(discriminant):
+        return None
+    if discriminant < 0.0:
+        real, imaginary = -b / (2.0 * a), np.sqrt(-discriminant) / (2.0 * abs(a))
+        return np.array([complex(real, imaginary), complex(real, -imaginary)])
+    half = -0.5 * (b + np.copysign(np.sqrt(discriminant), b))
+    if half == 0.0:
+        return None
+    return np.array([half / a, c / half])
 
 
 def _time_scale(den: np.ndarray) -> float:
@@ -148,6 +187,31 @@ class ContinuousFilter:
             self._modal = _continuous_modes(self)
             self._modal_checked = True
         return self._modal
+
+    @property
+    def repeated_root(self) -> Optional[float]:
+        """
+        Return ``z0`` (scaled) if ``D`` is ``den[0] (s - scale z0)^n`` to rounding, else None.
+
+        To rounding: the scaled monic coefficients within 1e-14 (plus as much relative) of the
+        binomial ones of the roots' mean.
+
+        A single real root of multiplicity ``n`` (2 to :data:`_CHAIN_MAX_ORDER`), as the
+        state-variable filters ``(p + lam)^n`` of the equation-error starts have: their states
+        are propagated as one real Jordan chain (:class:`_Chain`) instead of in the complex Schur
+        coordinates that the root, split by rounding into a cluster, would otherwise need.
+        """
+        n = self.order
+        if not 2 <= n <= _CHAIN_MAX_ORDER:
+            return None
+        root = -float(self._monic_ascending[n - 1]) / n               # mean of the scaled roots
+        expected = [math.comb(n, j) * (-root) ** (n - j) for j in range(n + 1)]
+        # np.poly's own rounding of (p + lam)^n stays within 3e-15 here (n <= 8, lam from 1e-4
+        # to 1e4); roots 2e-7 apart already differ by 1e-14.
+        if any(abs(value - target) > 1e-14 * (1.0 + abs(target))
+               for value, target in zip(self._monic_ascending, expected)):
+            return None
+        return root
 
     def output_map(self, num) -> Tuple[np.ndarray, float]:
         """
@@ -227,6 +291,12 @@ class ContinuousFilter:
             feed_left = {(-whole - 1, False): 1.0} if intersample == 'zoh' else \
                 {(-whole, True): 1.0}
         scaled_segments = [(length * scaled_ts, start, end) for length, start, end in segments]
+        root = self.repeated_root
+        if root is not None:
+            # Checked first: the modes of a root repeated n times are not tried at all.
+            chain = _Chain.discretize(self, root, scaled_segments)
+            if chain is not None:
+                return DiscreteFilter(self, ts, scaled_segments, feed, feed_left, chain=chain)
         modal = self.modal
         if modal is not None:
             discrete_modes = modal.discretize(scaled_segments)
@@ -347,12 +417,13 @@ class DiscreteFilter:
     def __init__(self, continuous: ContinuousFilter, ts: float, segments,
                  feed: Dict[Sample, float],
                  feed_left: Optional[Dict[Sample, float]] = None,
-                 modes: Optional['_DiscreteModes'] = None):
+                 modes: Optional['_DiscreteModes'] = None, chain: Optional['_Chain'] = None):
         self.continuous = continuous
         self.ts = ts
         self.feed = feed
         self.feed_left = feed_left
         self.modes = modes
+        self.chain = chain
         self._segments = segments
         self._state_space: Optional[Tuple[np.ndarray, Dict[Sample, np.ndarray]]] = None
 
@@ -465,16 +536,72 @@ class StateResponse:
         self._count = values.shape[0]
         self._held = discrete.delayed_input(values)
         self._modes = None
+        self._discrete_modes: Optional[_DiscreteModes] = None
+        self._signals: Optional[np.ndarray] = None
+        self._chains: Optional[np.ndarray] = None
         if self._continuous.order:
             if discrete.modes is not None:
                 signals = np.array([_sampled(values, sample)
                                     for sample in discrete.modes.samples])
                 self._modes = discrete.modes.run(signals)
+                self._discrete_modes, self._signals = discrete.modes, signals
+            elif discrete.chain is not None:
+                signals = np.array([_sampled(values, sample)
+                                    for sample in discrete.chain.samples])
+                self._modes = discrete.chain.run(signals)
             else:
                 drive = discrete.drive
                 signals = np.array([_sampled(values, sample) for sample in drive])
                 self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
                                      self._continuous.repeated_roots)
+
+    def squared_outputs(self, numerators: np.ndarray) -> Optional[np.ndarray]:
+        """
+        ``N_q(s)/D(s)^2`` applied to the signal for the rows of ``numerators``, shape (q, N).
+
+        The same values as a simulation through ``1/D^2`` (``numerators`` of degree up to
+        ``2 deg D``, highest power first, padded to one length), read off this response's modes
+        instead: with the (scaled) poles ``z_i`` and residues ``r_i`` of ``D``,
+        ``N/D^2 = c + sum_i A_i/(z - z_i)^2 + B_i/(z - z_i)`` and ``r_i/(z - z_i)^2`` of the
+        signal is the derivative of mode ``i`` with respect to its pole, a first-order
+        recursion driven by the mode itself (the exact discretisation of the double pole's
+        chain, :meth:`_DiscreteModes.chains`). So the sensitivities of an output need no
+        discretisation, eigen- or Schur decomposition of ``D^2`` and no coupled recursions.
+        None where ``D`` has no uncoupled modes or their partial fractions would amplify
+        rounding (poles close together): then simulate through ``1/D^2``.
+        """
+        modes = self._discrete_modes
+        if modes is None or not modes.continuous.squared:
+            return None
+        numerators = np.asarray(numerators, dtype=float)
+        order = self._continuous.order
+        extra = numerators.shape[1] - (2 * order + 1)
+        if extra > 0:
+            if np.any(numerators[:, :extra] != 0.0):
+                raise ModelError(f'improper transfer function: numerator degree exceeds '
+                                 f'twice the denominator degree {order}')
+            numerators = numerators[:, extra:]
+        size = numerators.shape[1]
+        with np.errstate(over='ignore', invalid='ignore'):
+            # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
+            ascending = (numerators[:, ::-1] * self._continuous.scale ** np.arange(size)
+                         * self._continuous._gain ** 2)
+        if not np.all(np.isfinite(ascending)):
+            return None
+        if self._chains is None:
+            self._chains = modes.chains(self._modes.trajectories, self._signals)
+        continuous = modes.continuous
+        poles = continuous.poles
+        powers = poles[:, None] ** np.arange(size)
+        values = ascending @ powers.T                                   # N(z_i)
+        slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
+        weighted = continuous.residues * continuous.weights
+        out = ((values * weighted) @ self._chains
+               + ((slopes - 2.0 * values * continuous.spread) * weighted)
+               @ self._modes.trajectories).real
+        if size == 2 * order + 1 and np.any(ascending[:, -1]):
+            out += np.outer(ascending[:, -1], self._held)
+        return out
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
@@ -499,7 +626,10 @@ class StateResponse:
             else:
                 rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
                 rows = np.asarray(rows)
-        return self.mapped(rows) + np.outer(feeds, self._held)
+        if np.any(feeds):
+            return self.mapped(rows) + np.outer(feeds, self._held)
+        # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
+        return np.ascontiguousarray(self.mapped(rows))
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
@@ -533,6 +663,11 @@ class _Modes:
         modes = cls(None, signals=np.zeros((0, 0)), drives=np.zeros((0, 0)))
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
         return modes
+
+    @property
+    def trajectories(self) -> np.ndarray:
+        """Return the modal trajectories, one row per mode run (kept modes if uncoupled)."""
+        return self._modal
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """Return ``rows @ x[k]`` for every k, shape (q, N)."""
@@ -596,24 +731,71 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     """
     Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
 
-    Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, computed as one lower
-    bidiagonal triangular solve (LAPACK ``?tbtrs``, the same forward substitution) over all
-    rows at once: no per-row call, and no import of :mod:`scipy.signal` (and with it
-    :mod:`scipy.stats`) for the simulation.
+    Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, without importing
+    :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows of
+    stable poles run in blocks (:func:`_blocked_recursions`); other rows as lower bidiagonal
+    triangular solves (LAPACK ``?tbtrs``, the same forward substitution), several rows per
+    solve up to :data:`_BAND_SIZE` samples (a longer band leaves the cache and runs several
+    times slower per sample).
     """
     rows, length = values.shape
     complex_valued = np.iscomplexobj(values) or np.iscomplexobj(poles)
     dtype = complex if complex_valued else float
     if rows == 0 or length == 0:
         return np.zeros((rows, length), dtype=dtype)
-    band = np.empty((2, rows * length), dtype=dtype)
-    band[0] = 1.0
-    below = band[1].reshape(rows, length)
-    below[:] = -poles[:, None]
-    below[:, -1] = 0.0                  # a row's last sample does not feed the next row
+    values = values.astype(dtype, copy=False)
+    # Finite values only: a block's product would spread a NaN or inf to the samples before it.
+    if not complex_valued and length >= _BLOCKED_MIN_LENGTH and \
+            rows * length >= _BLOCKED_MIN_SIZE and np.all(np.abs(poles) <= 1.0) and \
+            np.isfinite(values).all():
+        return _blocked_recursions(np.asarray(poles, dtype=float), values)
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
-    out, _ = solve(band, values.astype(dtype, copy=False).reshape(-1, 1), uplo='L')
-    return out.reshape(rows, length)
+    step = max(1, _BAND_SIZE // length)
+    parts = []
+    for first in range(0, rows, step):
+        count = min(step, rows - first)
+        band = np.empty((2, count * length), dtype=dtype)
+        band[0] = 1.0
+        below = band[1].reshape(count, length)
+        below[:] = -poles[first:first + count, None]
+        below[:, -1] = 0.0                  # a row's last sample does not feed the next row
+        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L')
+        parts.append(out.reshape(count, length))
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+# Samples per banded solve of recursions.
+_BAND_SIZE = 16384
+# Block length of the blocked recursions, the shortest row and the fewest samples they run.
+_BLOCK = 16
+_BLOCKED_MIN_LENGTH = 8 * _BLOCK
+_BLOCKED_MIN_SIZE = 4096
+
+
+def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    :func:`recursions` for real poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
+
+    A substitution carries one sample at a time, a chain of dependent multiply-adds. Instead
+    each block's response from rest is a matrix product with the block's lower triangular
+    Toeplitz matrix of pole powers (all blocks of a row in one product), then the state carried
+    into block ``b`` is a recursion over blocks with pole ``p^B`` and adds
+    ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
+    round no worse than the substitution's.
+    """
+    rows, length = values.shape
+    blocks = -(-length // _BLOCK)
+    padded = np.zeros((rows, blocks, _BLOCK))
+    padded.reshape(rows, -1)[:, :length] = values
+    powers = poles[:, None] ** np.arange(_BLOCK + 1)               # p^0 .. p^B
+    lag = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))   # j - k
+    # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
+    transposed = np.where(lag <= 0, powers[:, np.maximum(-lag, 0)], 0.0)
+    # One 2-D product per row: numpy's stacked matmul can miss BLAS for these shapes.
+    response = np.array([row @ matrix for row, matrix in zip(padded, transposed)])
+    carried = recursions(powers[:, _BLOCK], response[:, :, -1])    # state at each block's end
+    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+    return response.reshape(rows, -1)[:, :length]
 
 
 def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -645,19 +827,42 @@ _SERIES_POWERS = np.arange(19)
 _FACTORIALS = np.cumprod(np.arange(1, 22, dtype=float))       # 1!, 2!, ..., 21!
 _SERIES_FIRST = 1.0 / _FACTORIALS[:19]                          # 1/(k+1)!
 _SERIES_SECOND = 1.0 / _FACTORIALS[1:20]                        # 1/(k+2)!
+_SERIES_FIRST_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[1:20]   # (k+1)/(k+2)!
+_SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)!
 
 
 def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0)."""
+    small = np.abs(x) < _SERIES_LIMIT
+    if small.all():
+        # Fast sampling makes every |x| small: the series alone, the same values.
+        powers = x[:, None] ** _SERIES_POWERS
+        return powers @ _SERIES_FIRST, powers @ _SERIES_SECOND
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
-        small = np.abs(x) < _SERIES_LIMIT
         if small.any():
             powers = x[:, None] ** _SERIES_POWERS
             first = np.where(small, powers @ _SERIES_FIRST, first)
             second = np.where(small, powers @ _SERIES_SECOND, second)
     return first, second
+
+
+def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray
+                        ) -> Tuple[np.ndarray, np.ndarray]:
+    """Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``."""
+    small = np.abs(x) < _SERIES_LIMIT
+    if small.all():
+        powers = x[:, None] ** _SERIES_POWERS
+        return powers @ _SERIES_FIRST_SLOPE, powers @ _SERIES_SECOND_SLOPE
+    with np.errstate(all='ignore'):
+        first_slope = (np.exp(x) - first) / x
+        second_slope = (first - 2.0 * second) / x
+        if small.any():
+            powers = x[:, None] ** _SERIES_POWERS
+            first_slope = np.where(small, powers @ _SERIES_FIRST_SLOPE, first_slope)
+            second_slope = np.where(small, powers @ _SERIES_SECOND_SLOPE, second_slope)
+    return first_slope, second_slope
 
 
 @dataclass
@@ -677,15 +882,19 @@ class _ContinuousModes:
     keep: np.ndarray
     weights: np.ndarray
     residues: np.ndarray       # r_i of the kept modes
+    spread: np.ndarray         # sum over j != i of 1/(z_i - z_j), i.e. D''(z_i) / (2 D'(z_i))
+    squared: bool              # 1/D^2 is read off these modes (StateResponse.squared_outputs)
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
         transition = np.ones(self.poles.size, dtype=self.poles.dtype)
         drive: Dict[Sample, np.ndarray] = {}
+        factors = []
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
             first, second = _hold_factors(x)
+            factors.append((length, start, end, x, e, first, second))
             q = length * second * self.residues
             transition = e * transition
             drive = {sample: e * vector for sample, vector in drive.items()}
@@ -694,7 +903,32 @@ class _ContinuousModes:
         drives = np.array(list(drive.values()))
         if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
             return None
-        return _DiscreteModes(self, transition, list(drive), drives)
+        return _DiscreteModes(self, transition, list(drive), drives, factors)
+
+    def drive_slopes(self, factors, samples: List[Sample]) -> np.ndarray:
+        """
+        Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
+
+        ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
+        end, ``x``, ``e^x`` and the hold factors). Returns ``(samples, kept modes)`` in the
+        order of ``samples``: the drives of the chain ``r_i/(z - z_i)^2``
+        (:meth:`_DiscreteModes.chains`).
+        """
+        drive: Dict[Sample, np.ndarray] = {}
+        slope: Dict[Sample, np.ndarray] = {}
+        for length, start, end, x, e, first, second in factors:
+            first_slope, second_slope = _hold_factor_slopes(x, first, second)
+            q = length * second * self.residues
+            q_slope = length * length * second_slope * self.residues
+            slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
+                     for sample, vector in drive.items()}
+            drive = {sample: e * vector for sample, vector in drive.items()}
+            _accumulate(drive, start, length * first * self.residues - q)
+            _accumulate(drive, end, q)
+            _accumulate(slope, start, length * length * first_slope * self.residues - q_slope)
+            _accumulate(slope, end, q_slope)
+        zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
+        return np.array([slope.get(sample, zero) for sample in samples])
 
 
 @dataclass
@@ -705,6 +939,21 @@ class _DiscreteModes:
     poles: np.ndarray
     samples: List[Sample]
     drives: np.ndarray         # (samples, kept modes)
+    factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
+
+    def chains(self, modal: np.ndarray, signals: np.ndarray) -> np.ndarray:
+        """
+        Run ``r_i/(z - z_i)^2`` over the signals, given the modes ``modal`` (:meth:`run`'s).
+
+        The derivative of ``m[k+1] = p m[k] + g . u`` with respect to the pole ``z_i``
+        (``p = e^{z_i h}``, ``dp/dz_i = h p``) is
+        ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
+        pole, one recursion per kept mode.
+        """
+        length = sum(factor[0] for factor in self.factors)
+        slopes = self.continuous.drive_slopes(self.factors, self.samples)
+        driving = (length * self.poles)[:, None] * modal + slopes.T @ signals
+        return _run(self.poles, None, driving)
 
     def run(self, signals: np.ndarray) -> _Modes:
         """Run every kept mode over the signals of :attr:`samples` (one row each)."""
@@ -713,11 +962,96 @@ class _DiscreteModes:
         return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
 
 
+@dataclass
+class _Chain:
+    """
+    The states of ``1/(z - z0)^n`` as one real Jordan chain, discretised exactly.
+
+    ``c_m = 1/(z - z0)^m`` of the signal, ``m = 1..n``: ``c_1' = z0 c_1 + u``,
+    ``c_m' = z0 c_m + c_(m-1)``. Over a sample period ``c[k+1] = T c[k] + sum_o B_o u[k+o]``
+    with ``T`` lower triangular and every diagonal entry ``e^{z0 h}`` (matrix exponentials of
+    the chain per sub-interval, as :meth:`ContinuousFilter.state_discretization` forms them for
+    the companion states), so the states run one after the other, each a real first-order
+    recursion driven by the ones before (:func:`recursions`). The companion states
+    ``z^j/(z - z0)^n = sum_l C(j, l) z0^(j-l) c_(n-l)`` are read off through :attr:`basis`.
+    """
+
+    basis: np.ndarray          # balanced companion states from the chain states (n x n)
+    transition: np.ndarray     # T, lower triangular
+    samples: List[Sample]
+    drives: np.ndarray         # (samples, n)
+
+    @classmethod
+    def discretize(cls, continuous: 'ContinuousFilter', root: float,
+                   segments) -> Optional['_Chain']:
+        """Return the chain of ``continuous`` over ``segments``; None on overflow."""
+        n = continuous.order
+        a = root * np.eye(n) + np.eye(n, k=-1)
+        b = np.eye(n)[0]
+        transition = np.eye(n)
+        drive: Dict[Sample, np.ndarray] = {}
+        for length, start, end in segments:
+            e, integral, ramp = _hold_integrals(a, b, length)
+            transition = e @ transition
+            drive = {sample: e @ vector for sample, vector in drive.items()}
+            _accumulate(drive, start, integral - ramp)
+            _accumulate(drive, end, ramp)
+        drives = np.array(list(drive.values()))
+        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+            return None
+        basis = np.zeros((n, n))
+        for j in range(n):
+            for power in range(j + 1):             # C(j, l) z0^(j - l) on c_(n - l), l = power
+                basis[j, n - power - 1] = math.comb(j, power) * root ** (j - power)
+        return cls(basis / continuous._balance[:, None], transition, list(drive), drives)
+
+    def run(self, signals: np.ndarray) -> '_Modes':
+        """Run the chain over the signals of :attr:`samples` (one row each)."""
+        driving = self.drives.T @ signals
+        count = driving.shape[1]
+        modal = np.zeros(driving.shape)
+        pole = self.transition[:1, 0]
+        if count > 1:
+            for m in range(driving.shape[0]):
+                if m:
+                    driving[m] += self.transition[m, :m] @ modal[:m]
+                modal[m, 1:] = recursions(pole, driving[m:m + 1, :count - 1])[0]
+        return _Modes.uncoupled(self.basis, None, None, modal)
+
+
+def _condition(matrix: np.ndarray) -> float:
+    """
+    Return the 2-norm condition number of a square matrix (inf if singular).
+
+    A 2 x 2 one from its Frobenius norm and determinant (``s1^2 + s2^2 = |M|_F^2``,
+    ``s1 s2 = |det M|``), without the SVD's call overhead; larger ones by ``np.linalg.cond``.
+    """
+    if matrix.shape != (2, 2):
+        return float(np.linalg.cond(matrix))
+    frobenius = float(np.sum(np.abs(matrix) ** 2))
+    determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
+    if not determinant > 0.0:
+        return math.inf
+    root = math.sqrt(max(frobenius * frobenius - 4.0 * determinant * determinant, 0.0))
+    # s1^2 = (F + root)/2, and s1/s2 = s1^2/(s1 s2) takes the smaller one without cancellation.
+    largest = 0.5 * (frobenius + root)
+    return largest / determinant
+
+
 def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousModes]:
     """Return the uncoupled modes of ``realisation``, None if they are ill-conditioned."""
     n = realisation.order
     if n == 0:
         return None
+    if n == 1:
+        # One real pole: the general construction below reduces to this (residue 1, nothing
+        # to compare it with), without its arrays of pole differences.
+        pole = -realisation.den[1] / realisation.den[0] / realisation.scale
+        if not np.isfinite(pole):
+            return None
+        return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
+                                np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
+                                True)
     poles = np.asarray(polynomial_roots(realisation.den), dtype=complex) / realisation.scale
     if poles.size != n or not np.isfinite(poles).all():
         return None
@@ -734,16 +1068,21 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     basis = vandermonde / realisation._balance[:, None]
     if n > 1:
         with np.errstate(all='ignore'):
-            condition = np.linalg.cond(basis / np.linalg.norm(basis, axis=0))
+            condition = _condition(basis / np.linalg.norm(basis, axis=0))
         if not condition <= _MODAL_CONDITION_LIMIT:
             return None
     keep = poles.imag >= 0.0
     residues = 1.0 / differences.prod(axis=1)[keep]
+    inverse = 1.0 / differences
+    np.fill_diagonal(inverse, 0.0)
+    spread = inverse.sum(axis=1)[keep]
+    amplification = np.max(np.abs(residues) ** 2 * (1.0 + 2.0 * np.abs(spread)))
     if not poles.imag.any():
         # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
-        poles, basis, residues = poles.real, basis.real, residues.real
+        poles, basis, residues, spread = poles.real, basis.real, residues.real, spread.real
     return _ContinuousModes(poles[keep], basis, keep,
-                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues)
+                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues, spread,
+                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT))
 
 
 def skew_delay(ts: float, output_skew: float) -> float:

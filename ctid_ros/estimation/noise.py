@@ -23,8 +23,9 @@ from typing import Optional, Tuple
 from ctid_ros.core.simulation import all_pole
 import numpy as np
 
-__all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'measured_every',
-           'model_score', 'noise_model', 'noise_root', 'shaped_noise_model']
+__all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
+           'measured_every', 'model_score', 'noise_model', 'noise_root', 'rational_form',
+           'shaped_noise_model']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -33,6 +34,12 @@ _PATIENCE = 10
 # Interpolation is recognised when this share of an output's bends falls on one phase.
 _PHASE_SHARE = 0.99
 _MAX_FACTOR = 64
+# Highest order of the rational form of a shaping filter that is looked for: a closed loop has
+# degree at most 32 in s (core.expression.MAX_DEGREE) and its sampled form no higher order.
+_MAX_RATIONAL_ORDER = 40
+# A rational form stands for an impulse response it reproduces to this fraction of the peak:
+# a hundred times the level at which the response itself was cut (consistency.loop_sensitivity).
+_RATIONAL_TOLERANCE = 1e-10
 # How the noise model's order is chosen (noise_model).
 DEFAULT_CRITERION = 'aicc'
 _PENALTIES = {
@@ -148,25 +155,78 @@ def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERIO
     return count * math.log(model.innovation_variance) + penalty
 
 
+def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
+                  ) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """
+    Return ``(num, den)`` of the lowest order whose impulse response is ``impulse``, or None.
+
+    A sampled rational filter of order ``m`` satisfies ``(den * h)[k] = 0`` for ``k > m``
+    (``den[0] = 1``), so ``den`` is the least-squares solution of that recurrence over the
+    response (Prony's method with the order found, not chosen) and ``num = (den * h)[:m + 1]``.
+    An order is accepted only if the filter ``num/den`` reproduces ``impulse`` over its whole
+    length to 1e-10 of its peak; None if no order up to ``max_order`` does (then the response
+    is not that of a low-order filter, or too short to tell).
+    """
+    impulse = np.asarray(impulse, dtype=float)
+    peak = float(np.max(np.abs(impulse), initial=0.0))
+    if peak == 0.0 or not np.all(np.isfinite(impulse)):
+        return None
+    for order in range(1, max_order + 1):
+        if impulse.size < 3 * order + 2:
+            return None
+        # rows[j] = h[j + order], h[j + order - 1], ..., h[j]; the recurrence holds from
+        # k = order + 1 on, i.e. for the rows after the first.
+        rows = np.lib.stride_tricks.sliding_window_view(impulse, order + 1)[1:, ::-1]
+        tail, *_ = np.linalg.lstsq(rows[:, 1:], -rows[:, 0], rcond=None)
+        den = np.concatenate([[1.0], tail])
+        num = np.convolve(den, impulse[:order + 1])[:order + 1]
+        if not (np.all(np.isfinite(den)) and num[0] != 0.0):
+            continue
+        pulse = np.zeros(impulse.size)
+        pulse[:order + 1] = num
+        with np.errstate(all='ignore'):
+            error = np.max(np.abs(all_pole(den, pulse) - impulse))
+        if error <= _RATIONAL_TOLERANCE * peak:
+            return num, den
+    return None
+
+
+def inverse_filtered(shaping: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """
+    Return ``H^-1 values`` for the filter ``H`` of impulse response ``shaping`` (``h[0] != 0``).
+
+    This is ``lfilter([1], shaping, values)``, the forward substitution, which with a response
+    thousands of samples long is a recursion of that order. Where the response is that of a
+    low-order rational filter ``num/den`` (:func:`rational_form`; the loop sensitivity of a
+    closed-loop model is one, of the loop's order) the same inverse is ``den/num``: an FIR pass
+    and an all-pole recursion of that low order, equal to the long form to the rounding of
+    the response's own cut. A response without such a form takes the long recursion.
+    """
+    values = np.asarray(values, dtype=float)
+    form = rational_form(shaping)
+    if form is None:
+        # Imported here: only a shaping without a low-order form needs it, and scipy.signal is
+        # slow to import (all_pole's banded solve with a band this long is far slower).
+        from scipy.signal import lfilter
+        return lfilter([1.0], shaping, values)
+    num, den = form
+    return all_pole(num, np.convolve(den, values)[:values.size])
+
+
 def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
                        criterion: str = DEFAULT_CRITERION) -> NoiseModel:
     """
     Fit ``e = H A^-1 w``: an autoregressive model of ``H^-1 e`` for a known filter ``H``.
 
     ``shaping`` is the impulse response of ``H`` (``h[0] = 1``, negligible beyond its length);
-    ``H^-1 e`` is computed by forward substitution (``lfilter`` with ``h`` as denominator).
+    ``H^-1 e`` is computed by :func:`inverse_filtered`.
     Where ``H`` has zeros on the unit circle (the sensitivity of a loop with integrators) the
     substitution is marginally stable: a residual it does not fit blows up, and
     :func:`model_score` then prefers the plain model.
     """
-    # Imported here: only closed-loop models need it, and scipy.signal is slow to import.
-    # all_pole's banded solve would do the same, but with a band as long as the shaping
-    # response it is tens of times slower than lfilter's recursion.
-    from scipy.signal import lfilter
-
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
-        prewhitened = lfilter([1.0], shaping, residual - np.mean(residual))
+        prewhitened = inverse_filtered(shaping, residual - np.mean(residual))
     if not np.all(np.isfinite(prewhitened)):
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)

@@ -9,7 +9,10 @@ sampled input ``u`` and output ``y``, with three state simulations sharing one d
 * the regressors ``phi_i = [dN/dtheta_i e^{-tau s} u - dD/dtheta_i y] / D`` (y through ``1/D``,
   first-order hold), minus ``dtau/dtheta_i * s G u`` for a dead time;
 * the instruments ``psi_i = d yhat / d theta_i = (dN_i D - dD_i N)/D^2 e^{-tau s} u - ...``
-  (u through ``1/D^2``), which carry no measurement noise.
+  (u through ``1/D^2``), which carry no measurement noise. Where ``D`` has uncoupled modes they
+  are read off the simulation of ``u`` through ``1/D`` (the double poles' chains of
+  :meth:`~ctid_ros.core.simulation.StateResponse.squared_outputs`), so only two state
+  simulations are discretised per parameter vector.
 
 ``phi`` makes the error decomposition exact (one-step property; on sampled data up to the
 first-order hold of ``y``); ``psi`` are the output sensitivities that make the
@@ -17,6 +20,7 @@ instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and
 """
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
@@ -36,6 +40,8 @@ _REMEMBERED = 4
 # an optimality check).
 _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
+# Realisations and discretisations shared by every bank (a few tens of small objects).
+_SHARED_FILTERS = 32
 
 
 @dataclass
@@ -78,6 +84,25 @@ def _remembered(cache: Dict[Hashable, Value], key: Hashable,
     return value
 
 
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _discretized(den: bytes, ts: float, delay: float, intersample: str) -> DiscreteFilter:
+    """
+    Return the discretisation of ``1/den`` (coefficients as bytes), shared by every bank.
+
+    It depends on the denominator, sample time, dead time and intersample assumption only:
+    the banks of a record's halves and quarters (the consistency check), of the dead-time
+    search and of the structure comparisons evaluate the same parameter vectors on the same
+    sample time, and need not realise and discretise them again.
+    """
+    return _realization(den).discretize(ts, delay, intersample)
+
+
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _realization(den: bytes) -> ContinuousFilter:
+    """Return the realisation of ``1/den`` (coefficients as bytes), shared by every bank."""
+    return ContinuousFilter(np.frombuffer(den))
+
+
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
     return np.concatenate([np.zeros(length - poly.size), poly])
 
@@ -104,7 +129,6 @@ class SignalBank:
         self.driving = skew_extended(self.channels, output_skew)
         self.extra_delay = skew_delay(ts, output_skew)
         self.trim = 1 if output_skew else 0
-        self._realizations: Dict[Hashable, ContinuousFilter] = {}
         self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
         # State trajectories of the input channels (output and its sensitivities at the same
@@ -114,13 +138,9 @@ class SignalBank:
         self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
-        def discretized() -> DiscreteFilter:
-            realization = _remembered(self._realizations, den.tobytes(),
-                                      lambda: ContinuousFilter(den))
-            return realization.discretize(self.ts, delay, intersample)
-
         return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
-                           discretized)
+                           lambda: _discretized(den.tobytes(), self.ts, float(delay),
+                                                intersample))
 
     def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
                            delay: float, size: int) -> List[StateResponse]:
@@ -172,9 +192,7 @@ class SignalBank:
         bank_u = self._discrete(den, delay, self.intersample)
         u_responses = self._channel_responses(self._responses, den, delay,
                                               _REMEMBERED_RESPONSES)
-        # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
-        sensitivity_responses = self._channel_responses(self._sensitivities,
-                                                        np.convolve(den, den), delay, 1)
+        sensitivity_responses: Optional[List[StateResponse]] = None
         output = np.zeros(self.y.size)
         derivative = np.zeros(self.y.size)
         jump = np.zeros(self.y.size)
@@ -213,17 +231,31 @@ class SignalBank:
             sensitivity_numerators = [
                 np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
                 for i in range(params)]
-            psi += sensitivity_responses[j].outputs(sensitivity_numerators)[:, trim:]
+            # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
+            sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
+            if sensitivities is None:
+                if sensitivity_responses is None:
+                    # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
+                    sensitivity_responses = self._channel_responses(
+                        self._sensitivities, np.convolve(den, den), delay, 1)
+                sensitivities = sensitivity_responses[j].outputs(sensitivity_numerators)
+            psi += sensitivities[:, trim:]
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
-        delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
-        delay_jump = np.outer(coefficients.delay_gradient, jump).T if np.any(jump) else None
-        psi += delay_term
+        delay_jump = None
+        if delay_used:
+            delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
+            if np.any(jump):
+                delay_jump = np.outer(coefficients.delay_gradient, jump).T
+            psi += delay_term
         phi = None
         if regressors:
             bank_y = _remembered(self._output_filtered, den.tobytes(),
                                  lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
             y_parts = bank_y.outputs(list(coefficients.den_jacobian))
-            phi = (u_regressors - y_parts + delay_term).T
+            phi = u_regressors - y_parts
+            if delay_used:
+                phi += delay_term
+            phi = phi.T
         output.setflags(write=False)
         _remembered(self._outputs, self._output_key(coefficients), lambda: output)
         return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)

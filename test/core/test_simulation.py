@@ -1,7 +1,8 @@
 """Exact sampled simulation against independent references (solve_ivp, lsim)."""
 
 from ctid_ros import DataError, Model, ModelError
-from ctid_ros.core.simulation import response, responses
+from ctid_ros.core import simulation
+from ctid_ros.core.simulation import ContinuousFilter, recursions, response, responses
 import numpy as np
 import pytest
 from scipy import signal
@@ -355,3 +356,83 @@ def test_output_skew_gives_the_response_at_the_output_instants(text, params, ske
                                   model.simulate(params, u, ts))
     with pytest.raises(ModelError, match='skew'):
         model.simulate(params, u, ts, output_skew=ts)
+
+
+@pytest.mark.parametrize('den, delay', [
+    ([1.0, 3.0, 2.0], 0.0), ([1.0, 3.0, 2.0], 0.37), ([1.0, 0.4, 9.0], 0.05),
+    ([0.6, 1.9, 1.0], 0.7), ([1.0, 5.0, 408.0, 416.0, 1600.0], 0.0), ([2.0, 1.0], 1.234)])
+@pytest.mark.parametrize('intersample', ['zoh', 'foh'])
+def test_responses_through_the_squared_denominator_read_off_its_modes(den, delay,
+                                                                      intersample):
+    # N/D^2 of a signal from the modes of D (double-pole chains) equals the simulation through
+    # 1/D^2 (complex Schur coordinates) to rounding, biproper numerators included.
+    rng = np.random.default_rng(11)
+    values = rng.standard_normal(1500)
+    den = np.array(den)
+    order = den.size - 1
+    ts = 0.01 if order > 2 else 0.1
+    numerators = rng.standard_normal((3, 2 * order + 1))
+    numerators[1, :2] = 0.0
+    state = ContinuousFilter(den).discretize(ts, delay, intersample).response(values)
+    squared = state.squared_outputs(numerators)
+    simulated = ContinuousFilter(np.convolve(den, den)).discretize(ts, delay, intersample).outputs(
+        values, numerators)
+    np.testing.assert_allclose(squared, simulated, rtol=0.0, atol=1e-11 * np.abs(simulated).max())
+
+
+def test_close_poles_leave_the_squared_denominator_to_its_own_simulation():
+    # Poles 1e-4 apart: partial fractions of 1/D^2 would amplify rounding by ~1e12.
+    den = np.convolve([1.0, 1.0], [1.0, 1.0001])
+    state = ContinuousFilter(den).discretize(0.1, 0.0, 'zoh').response(np.ones(100))
+    assert state.squared_outputs(np.ones((1, 5))) is None
+
+
+@pytest.mark.parametrize('rows, length', [(1, 50), (3, 5000), (2, 20000), (40, 1000)])
+@pytest.mark.parametrize('kind', ['stable', 'complex', 'unstable'])
+def test_recursions_equal_first_order_lfilter_per_row(rows, length, kind):
+    # Blocked products (many real samples of stable poles), banded solves (the rest, several
+    # rows per solve): each row as scipy.signal.lfilter runs it, to rounding.
+    rng = np.random.default_rng(12)
+    values = rng.standard_normal((rows, length))
+    poles = rng.uniform(-0.999, 1.0, rows)
+    poles[0] = 1.0                                  # an integrator
+    if kind == 'complex':
+        poles = poles * np.exp(1j * rng.uniform(0.0, 0.5, rows))
+        values = values + 1j * rng.standard_normal((rows, length))
+    elif kind == 'unstable':
+        poles[-1] = 1.0005
+    out = recursions(poles, values)
+    expected = np.array([signal.lfilter([1.0], [1.0, -pole], row)
+                         for pole, row in zip(poles, values)])
+    np.testing.assert_allclose(out, expected, rtol=1e-11, atol=1e-11 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize('order, lam', [(2, 1.0), (3, 30.0), (4, 0.5), (6, 2.0)])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'zoh'), (0.0137, 'zoh'), (0.0137, 'foh')])
+def test_repeated_root_runs_as_a_jordan_chain_equal_to_the_schur_form(monkeypatch, order, lam,
+                                                                      delay, intersample):
+    # (p + lam)^n, the state-variable filters: one real chain of recursions instead of the
+    # complex Schur coordinates of the root's rounding cluster; the same responses.
+    den = np.poly(np.full(order, -lam))
+    values = np.random.default_rng(13).standard_normal(2000)
+    numerators = [np.eye(order + 1)[order - j] for j in range(order + 1)]
+    discrete = ContinuousFilter(den).discretize(0.01, delay, intersample)
+    assert discrete.chain is not None
+    chained = discrete.outputs(values, numerators)
+    monkeypatch.setattr(simulation, '_CHAIN_MAX_ORDER', 0)
+    schur = ContinuousFilter(den).discretize(0.01, delay, intersample).outputs(values, numerators)
+    np.testing.assert_allclose(chained, schur, rtol=0.0, atol=1e-11 * np.abs(schur).max())
+
+
+def test_distinct_roots_are_not_taken_for_a_repeated_one():
+    assert ContinuousFilter(np.poly([-1.0, -1.0 - 1e-6])).repeated_root is None
+    assert ContinuousFilter(np.poly([-2.0, -2.0, -2.0])).repeated_root is not None
+
+
+def test_recursions_keep_a_non_finite_value_to_the_samples_after_it():
+    # As the substitution does: a block's product must not carry a NaN back in time.
+    values = np.ones((2, 5000))
+    values[1, 3000] = np.nan
+    out = recursions(np.array([0.5, 0.9]), values)
+    assert np.isfinite(out[0]).all() and np.isfinite(out[1, :3000]).all()
+    assert np.isnan(out[1, 3000:]).all()

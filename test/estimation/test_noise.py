@@ -1,6 +1,8 @@
 """Noise model, coloured-residual covariance and the measured rate (docs/algorithm.md 15)."""
 
-from ctid_ros.estimation.noise import coloured_covariance, measured_every, noise_model
+from ctid_ros.core.model import Model
+from ctid_ros.estimation.noise import (coloured_covariance, inverse_filtered,
+                                       measured_every, noise_model, rational_form)
 import numpy as np
 import pytest
 from scipy import linalg, signal
@@ -64,3 +66,46 @@ def test_measured_outputs_are_not_mistaken_for_interpolated_ones():
     quantised = np.round(np.cumsum(0.3 * rng.standard_normal(2000)))
     assert measured_every(quantised) == 1
     assert measured_every(np.sin(0.01 * np.arange(2000))) == 1
+
+
+def loop_sensitivity_response(count):
+    """Return the pulse response of ``1 - T`` of a PI loop around a lag and an integrator."""
+    model = Model('1/(J*s**2 + b*s)', controller='40 + 20/s')
+    pulse = np.zeros(count)
+    pulse[0] = 1.0
+    shaping = -model.simulate({'J': 1.0, 'b': 2.0}, pulse, 0.01)
+    shaping[0] += 1.0
+    return shaping
+
+
+def test_loop_sensitivity_has_its_low_order_rational_form_found():
+    shaping = loop_sensitivity_response(4000)
+    num, den = rational_form(shaping)
+    # The closed loop has degree 3 in s: its sampled sensitivity has order 3.
+    assert den.size == 4 and num.size == 4
+    response = signal.lfilter(num, den, np.eye(1, 4000)[0])
+    np.testing.assert_allclose(response, shaping, rtol=0.0, atol=1e-10 * np.abs(shaping).max())
+
+
+def test_inverse_filter_equals_the_long_forward_substitution():
+    shaping = loop_sensitivity_response(4000)
+    residual = ar1(0.5, 4000, np.random.default_rng(7))
+    residual -= residual.mean()
+    long_form = signal.lfilter([1.0], shaping, residual)
+    inverse = inverse_filtered(shaping, residual)
+    # H w = e holds for the result (to rounding, up to the tail beyond the response's length).
+    np.testing.assert_allclose(np.convolve(shaping, inverse)[:4000], residual, rtol=0.0,
+                               atol=1e-9 * np.abs(residual).max())
+    # S has a zero at z = 1 (the integrators): both inverses accumulate, and the long form's
+    # response, cut after 4000 samples, has that zero moved by its tail, so they drift apart
+    # by that much and no more.
+    np.testing.assert_allclose(inverse, long_form, rtol=0.0, atol=1e-6 * np.abs(long_form).max())
+
+
+def test_response_without_a_low_order_form_takes_the_long_substitution():
+    rng = np.random.default_rng(8)
+    shaping = np.concatenate([[1.0], 0.3 * rng.standard_normal(200) / np.arange(2, 202) ** 2])
+    assert rational_form(shaping) is None
+    values = rng.standard_normal(1000)
+    np.testing.assert_allclose(inverse_filtered(shaping, values),
+                               signal.lfilter([1.0], shaping, values), rtol=1e-12, atol=1e-12)
