@@ -18,7 +18,8 @@ sympy (both in the key). Anything unexpected (missing, unreadable, malformed, st
 model is derived again and the file rewritten; a store that cannot be written is skipped.
 
 The directory is ``$CTID_CACHE_DIR`` if set (set it empty to keep nothing on disk), else
-``$XDG_CACHE_HOME/ctid_ros/models`` or ``~/.cache/ctid_ros/models``.
+``$XDG_CACHE_HOME/ctid_ros/models`` or ``~/.cache/ctid_ros/models``; it holds at most
+:data:`MAX_STORED` models.
 """
 
 import ast
@@ -37,9 +38,13 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ['CACHE_VARIABLE', 'CoefficientProgram', 'cache_directory', 'load', 'store']
+__all__ = ['CACHE_VARIABLE', 'CoefficientProgram', 'MAX_STORED', 'cache_directory', 'load',
+           'store']
 
 CACHE_VARIABLE = 'CTID_CACHE_DIR'
+# Models kept on disk at most (a few kilobytes each): model texts can come from anyone on the
+# ROS graph, so the store is bounded; beyond it the least recently written models go.
+MAX_STORED = 256
 # Bumped whenever the stored layout or the meaning of an attribute changes.
 _FORMAT = 1
 # A stored model is a few kilobytes; anything far larger is not one of ours.
@@ -213,8 +218,11 @@ def cache_directory() -> Optional[Path]:
     configured = os.environ.get(CACHE_VARIABLE)
     if configured is not None:
         return Path(configured) if configured.strip() else None
-    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    return Path(base) / 'ctid_ros' / 'models'
+    base = os.environ.get('XDG_CACHE_HOME', '')
+    if not os.path.isabs(base):     # unset, or relative (which the XDG rules ignore)
+        base = os.path.join(os.path.expanduser('~'), '.cache')
+    # No home directory (expanduser left '~'): nowhere to keep models, rather than the cwd.
+    return Path(base) / 'ctid_ros' / 'models' if os.path.isabs(base) else None
 
 
 @functools.lru_cache(maxsize=1)
@@ -317,5 +325,25 @@ def store(key: Tuple, attributes: Dict[str, object]) -> None:
         except BaseException:
             os.unlink(temporary)
             raise
+        _trim(path.parent)
     except (OSError, ValueError):
         pass
+
+
+def _trim(directory: Path) -> None:
+    """Remove the least recently written models beyond :data:`MAX_STORED` (see its note)."""
+    files = list(directory.glob('*.json'))
+    if len(files) <= MAX_STORED:
+        return
+    dated = []
+    for file in files:
+        try:
+            dated.append((file.stat().st_mtime, file))
+        except OSError:
+            continue        # removed meanwhile by another process
+    dated.sort()
+    for _, file in dated[:len(dated) - MAX_STORED]:
+        try:
+            file.unlink()
+        except OSError:
+            pass

@@ -141,3 +141,29 @@ def test_new_process_builds_a_stored_model_without_sympy(store):
 def test_program_rejects_unknown_forms():
     assert CoefficientProgram.from_function(sp.lambdify([sp.Symbol('x')], [sp.sin(1)])) is None
     assert CoefficientProgram.from_function(len) is None
+
+
+def test_store_keeps_at_most_max_stored_models(store, monkeypatch):
+    monkeypatch.setattr(model_cache, 'MAX_STORED', 3)
+    derived = derive('K/(T*s + 1)', None, inputs=None, output='y')
+    keys = [(f'K/(T*s + {index})', None, None, 'y') for index in range(1, 6)]
+    seen = set()
+    for index, key in enumerate(keys):
+        model_cache.store(key, dict(derived, expression=key[0]))
+        written, = set(store.glob('*.json')) - seen
+        os.utime(written, (1000 + index, 1000 + index))    # written in this order
+        seen = set(store.glob('*.json'))
+    assert len(seen) == 3
+    assert [model_cache.load(key) is not None for key in keys] == [False, False, True, True,
+                                                                    True]
+
+
+def test_no_home_directory_means_no_store(monkeypatch):
+    monkeypatch.delenv(model_cache.CACHE_VARIABLE)
+    monkeypatch.delenv('XDG_CACHE_HOME', raising=False)
+    monkeypatch.setattr(os.path, 'expanduser', lambda path: path)
+    assert model_cache.cache_directory() is None
+    monkeypatch.setenv('XDG_CACHE_HOME', 'relative/cache')
+    assert model_cache.cache_directory() is None
+    monkeypatch.setenv('XDG_CACHE_HOME', '/somewhere/cache')
+    assert model_cache.cache_directory() == Path('/somewhere/cache/ctid_ros/models')
