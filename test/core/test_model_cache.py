@@ -154,8 +154,8 @@ def test_store_keeps_at_most_max_stored_models(store, monkeypatch):
         os.utime(written, (1000 + index, 1000 + index))    # written in this order
         seen = set(store.glob('*.json'))
     assert len(seen) == 3
-    assert [model_cache.load(key) is not None for key in keys] == [False, False, True, True,
-                                                                    True]
+    kept = [model_cache.load(key) is not None for key in keys]
+    assert kept == [False, False, True, True, True]
 
 
 def test_no_home_directory_means_no_store(monkeypatch):
