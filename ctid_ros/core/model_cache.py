@@ -89,6 +89,9 @@ class CoefficientProgram:
         if type(self.parameters) is not int or self.parameters < 0:
             raise ValueError('bad parameter count')
         integer = [False] * self.parameters     # which slots hold Python integers
+        # The value of each slot that depends on no parameter, computed here once: arithmetic
+        # that fails on numbers alone (1/0, 10.0**400) is refused now, not met at run time.
+        constant: List[Any] = [None] * self.parameters
         for operation in self.operations:
             code, *operands = operation
             if code == 'const':
@@ -99,6 +102,7 @@ class CoefficientProgram:
                 elif type(value) is not float or not math.isfinite(value):
                     raise ValueError('bad constant')
                 integer.append(type(value) is int)
+                constant.append(value)
                 continue
             if any(type(slot) is not int or not 0 <= slot < len(integer) for slot in operands):
                 raise ValueError('bad slot')
@@ -112,6 +116,8 @@ class CoefficientProgram:
                 integer.append(False)
             else:
                 raise ValueError(f'bad operation {code!r}')
+            values = [constant[slot] for slot in operands]
+            constant.append(None if None in values else _folded(code, values))
         if any(type(slot) is not int or not 0 <= slot < len(integer) for slot in self.outputs):
             raise ValueError('bad output slot')
 
@@ -161,6 +167,19 @@ class CoefficientProgram:
             return _Translation(definition).program()
         except (OSError, TypeError, ValueError):
             return None
+
+
+def _folded(code: str, values: List[Any]) -> Any:
+    """Return the value of an operation on numbers, as the program computes it, or ValueError."""
+    try:
+        with np.errstate(all='ignore'):     # numpy's nan and inf are the run time's too
+            if code == 'neg':
+                return -values[0]
+            if code == 'sqrt':
+                return np.sqrt(values[0])
+            return _BINARY[code](*values)
+    except (ArithmeticError, ValueError, TypeError, AttributeError) as error:
+        raise ValueError(f'arithmetic on numbers fails: {error}') from None
 
 
 class _Translation:

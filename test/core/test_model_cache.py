@@ -167,3 +167,13 @@ def test_no_home_directory_means_no_store(monkeypatch):
     assert model_cache.cache_directory() is None
     monkeypatch.setenv('XDG_CACHE_HOME', '/somewhere/cache')
     assert model_cache.cache_directory() == Path('/somewhere/cache/ctid_ros/models')
+
+
+@pytest.mark.parametrize('operations', [
+    [['const', 1], ['const', 0], ['/', 1, 2]],
+    [['const', 10.0], ['const', 400], ['**', 1, 2]],
+    [['const', 10 ** 1000], ['sqrt', 1]],
+])
+def test_program_refuses_arithmetic_that_fails_on_numbers(operations):
+    with pytest.raises(ValueError, match='arithmetic on numbers fails'):
+        CoefficientProgram(1, operations, [len(operations)])
