@@ -37,7 +37,8 @@ import json
 import operator
 from pathlib import Path
 import sys
-from typing import Any, Callable, Iterable, Iterator, Optional, Sequence, TextIO, Tuple
+from typing import (Any, Callable, Iterable, Iterator, Optional, Sequence, TextIO, Tuple,
+                    TYPE_CHECKING)
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
@@ -45,7 +46,6 @@ from ctid_ros.errors import BagError, ConfigError
 from ctid_ros.files.bag_reader import BagReader, open_bag
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.files.mcap_source import BagRecord, PathLike
-from ctid_ros.files.mcap_writer import EstimateWriter
 from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
 from ctid_ros.streaming.baseline import configured_baseline
 from ctid_ros.streaming.config import IdentificationConfig
@@ -54,7 +54,9 @@ from ctid_ros.streaming.params_file import load_params_file, load_units
 from ctid_ros.streaming.replay import (Replay, replay_columns, replay_messages, SampleColumns,
                                        SkippedTick)
 from ctid_ros.streaming.session import buffer_capacity
-from tqdm import tqdm
+
+if TYPE_CHECKING:   # for annotations only: the writer loads with --output (run time below)
+    from ctid_ros.files.mcap_writer import EstimateWriter
 
 __all__ = ['default_plot_path', 'progress', 'run']
 
@@ -165,11 +167,15 @@ def progress(messages: Iterable[Any], start_ns: Optional[int], end_ns: Optional[
     ``stream`` only if that is a terminal, and removed when the replay ends. ``time_of`` gives
     an item's log time (default the message's second element).
     """
-    if None in (start_ns, end_ns) or end_ns <= start_ns:
+    # tqdm would draw nothing unless the stream is a terminal (disable=None): then it is not
+    # even imported (a tenth of the replay's imports of the bag extras).
+    if None in (start_ns, end_ns) or end_ns <= start_ns or \
+            not (hasattr(stream, 'isatty') and stream.isatty()):
         yield from messages
         return
+    from tqdm import tqdm
+
     total = (end_ns - start_ns) / NANOSECONDS
-    # disable=None: tqdm draws nothing unless the stream is a terminal.
     with tqdm(total=total, desc='replaying', file=stream, disable=None, leave=False,
               bar_format='{desc} {percentage:3.0f}%|{bar:25}| {n:.1f}/{total:.1f} s of bag time'
               ) as bar:
@@ -201,7 +207,7 @@ def _readable(records: Iterable[Any], warn: TextIO) -> Iterator[Any]:
         yield record
 
 
-def _copied(records: Iterable[BagRecord], writer: Optional[EstimateWriter]
+def _copied(records: Iterable[BagRecord], writer: Optional['EstimateWriter']
             ) -> Iterator[Message]:
     """Yield ``(topic, log_time_ns, msg)``, first copying each record into ``writer``."""
     for record in records:
@@ -240,7 +246,7 @@ def _check_topics(bag: BagReader, config: IdentificationConfig, node_name: str,
 
 @contextmanager
 def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwrite: bool
-                     ) -> Iterator[Optional[EstimateWriter]]:
+                     ) -> Iterator[Optional['EstimateWriter']]:
     """
     Create the ``--output`` file before replaying (to fail fast), complete or not at all.
 
@@ -250,6 +256,9 @@ def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwr
     if path is None:
         yield None
         return
+    # Imported here: only --output writes a bag (the mcap writer costs a replay 15 ms).
+    from ctid_ros.files.mcap_writer import EstimateWriter
+
     writer = EstimateWriter(path, inputs=[bag], node_name=node_name, overwrite=overwrite,
                             atomic=True)
     try:
@@ -260,7 +269,7 @@ def _estimate_output(path: Optional[Path], bag: PathLike, node_name: str, overwr
     writer.close()
 
 
-def _write_estimates(writer: EstimateWriter, replay: Replay, origin_ns: int) -> None:
+def _write_estimates(writer: 'EstimateWriter', replay: Replay, origin_ns: int) -> None:
     """
     Write every update as the live node publishes it, and the status of every skipped tick.
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import struct
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
+from ctid_ros.files.mcap_source import byte_rows
 from ctid_ros.streaming.contract import NANOSECONDS
 from ctid_ros.streaming.message_fields import FieldPath, Key, NAME_FIELDS
 import numpy as np
@@ -117,8 +118,7 @@ class _Cursor:
         at = np.clip(at, 0, max(self.data.size - size, 0))
         if self.data.size < size:
             return np.zeros(at.size, dtype=self.order + code)
-        raw = self.data[at[:, None] + np.arange(size)]
-        return np.ascontiguousarray(raw).view(self.order + code).ravel()
+        return byte_rows(self.data, at, size).view(self.order + code).ravel()
 
     def count(self, minimum: int) -> np.ndarray:
         """Read a sequence's uint32 length, flagging lengths its remaining bytes cannot hold."""
@@ -149,9 +149,8 @@ class _Cursor:
         if longest:
             short = safe_length - 1 <= _ASCII_SPAN
             span = min(longest, _ASCII_SPAN)
-            where = self.pos[:, None] + 4 + np.arange(span)
             inside = np.arange(span) < (safe_length - 1)[:, None]
-            text = self.data[np.clip(where, 0, self.data.size - 1)]
+            text = byte_rows(self.data, self.pos + 4, span)
             flagged |= np.any((text >= 0x80) & inside, axis=1) | ~short
         if np.any(flagged):
             self.bad[self.ids[flagged]] = True

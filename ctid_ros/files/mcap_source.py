@@ -39,7 +39,7 @@ import zstandard
 
 __all__ = ['BagMessage', 'BagRecord', 'MCAP_MAGIC', 'McapSource', 'PathLike', 'RawBlock',
            'RawStream', 'field_definitions',
-           'TopicSchema', 'check_chunk_sizes', 'chunk_records', 'chunk_size_problem',
+           'TopicSchema', 'byte_rows', 'check_chunk_sizes', 'chunk_records', 'chunk_size_problem',
            'is_service_event', 'raw_block',
            'reading_errors', 'service_event_error']
 
@@ -397,6 +397,23 @@ def _message_positions(data: bytes, wanted: Mapping[int, int], lo: int, hi: floa
     return tuple(columns[:, column] for column in range(5))
 
 
+def byte_rows(buffer: np.ndarray, at: np.ndarray, size: int) -> np.ndarray:
+    """
+    Return the ``size`` bytes of ``buffer`` (uint8) from each position ``at``, a row each.
+
+    A copy, positions clipped to the buffer byte by byte (the row of a position near the end
+    repeats the last byte). When every row lies within the buffer the rows are taken from a
+    strided view of it: one gather of rows, not one of ``size`` times as many single bytes.
+    """
+    if at.size and size <= buffer.size and int(at.min()) >= 0 and \
+            int(at.max()) <= buffer.size - size:
+        step = buffer.strides[0]
+        rows = np.lib.stride_tricks.as_strided(buffer, (buffer.size - size + 1, size),
+                                               (step, step), writeable=False)
+        return rows[at]
+    return buffer[np.clip(at[:, None] + np.arange(size), 0, max(buffer.size - 1, 0))]
+
+
 def _indexed_positions(data: bytes, offsets: np.ndarray, wanted: Mapping[int, int], lo: int,
                        hi: float) -> Optional[Tuple[np.ndarray, ...]]:
     """
@@ -421,8 +438,7 @@ def _indexed_positions(data: bytes, offsets: np.ndarray, wanted: Mapping[int, in
     # In slices: the byte positions of a whole chunk of tiny messages would take gigabytes.
     for first in range(0, offsets.size, _GATHERED_HEADS):
         part = offsets[first:first + _GATHERED_HEADS]
-        heads[first:first + part.size] = buffer[part[:, None] + np.arange(head)].view(
-            _MESSAGE_HEAD)[:, 0]
+        heads[first:first + part.size] = byte_rows(buffer, part, head).view(_MESSAGE_HEAD)[:, 0]
     if np.any(heads['opcode'] != Opcode.MESSAGE) or \
             np.any(heads['length'] < _MESSAGE_FIELDS.size) or \
             np.any(heads['length'] > size) or np.any(heads['log_time'] >= 1 << 63):

@@ -168,7 +168,12 @@ def assign_instants(positions: np.ndarray, early: float = LATTICE_SLACK
     count = index.size
     if count == 0:
         return index, np.zeros(0, dtype=bool)
-    starts = np.flatnonzero(np.concatenate(([True], np.diff(index) != 0)))
+    steps = np.diff(index)
+    if np.all(steps > 0):
+        # One stamp per instant, the usual case: each keeps its own (what the rule below
+        # gives, without its per-stamp bookkeeping).
+        return index, np.ones(count, dtype=bool)
+    starts = np.flatnonzero(np.concatenate(([True], steps != 0)))
     ends = np.append(starts[1:], count)
     values = index[starts]
     free = np.concatenate(([count], np.diff(values)))
