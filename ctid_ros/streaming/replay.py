@@ -24,7 +24,7 @@ its reports and figures are :mod:`ctid_ros.cli.replay`.
 
 from array import array
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Callable, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
 from ctid_ros.errors import DataError, EstimationError
 from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
@@ -134,14 +134,21 @@ def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig
     appending them one by one gives) and estimated by the same session; the sliding ticks fire
     between the same messages. Same arguments, results and errors as :func:`replay_messages`.
     """
+    return _dispatch(blocks, config, topics, sliding, capacity, detector, origin_ns,
+                     _columns_span, _columns_sliding)
+
+
+def _dispatch(source, config: IdentificationConfig, topics: Optional[Tuple[str, str]],
+              sliding: bool, capacity: Optional[int], detector: Optional[ChangeDetector],
+              origin_ns: Optional[int], span: Callable, slide: Callable) -> Replay:
+    """Resolve the defaults of a replay and run ``slide`` (sliding) or ``span`` on ``source``."""
     if topics is None:
         topics = (resolve_topic(config.input_topic), resolve_topic(config.output_topic))
     sampler = MessageSampler(config, topics)
     if sliding:
         capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
-        return _columns_sliding(blocks, config, sampler, capacity,
-                                detector or _detector(config), origin_ns)
-    return _columns_span(blocks, config, sampler)
+        return slide(source, config, sampler, capacity, detector or _detector(config), origin_ns)
+    return span(source, config, sampler)
 
 
 def _detector(config: IdentificationConfig) -> ChangeDetector:
@@ -297,14 +304,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
         Default mode: if the estimate fails.
 
     """
-    if topics is None:
-        topics = (resolve_topic(config.input_topic), resolve_topic(config.output_topic))
-    sampler = MessageSampler(config, topics)
-    if sliding:
-        capacity = capacity or buffer_capacity(config, 1.0 / config.sample_time)
-        return _replay_sliding(messages, config, sampler, capacity,
-                               detector or _detector(config), origin_ns)
-    return _replay_span(messages, config, sampler)
+    return _dispatch(messages, config, topics, sliding, capacity, detector, origin_ns,
+                     _replay_span, _replay_sliding)
 
 
 def _relevant(messages: Iterable[Tuple[str, int, Any]], topics: Sequence[str]
