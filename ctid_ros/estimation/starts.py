@@ -54,6 +54,9 @@ _UNEXPLAINED = 0.9
 _RESEMBLANCE = 0.01
 # Fractions of a sample whose filtered input is kept (the lattice, half samples, a hint).
 _REMEMBERED_FRACTIONS = 4
+# Dead times whose triangular factors are kept per filter: the warm start's look at the data's
+# guess and the automatic start after it factor the same ones.
+_REMEMBERED_FACTORS = 8
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -336,14 +339,15 @@ class StateVariableFilters:
                     nuisance.append(undelayed.free_responses(len(data)))
                 if problem.output_offset:
                     nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append((realization, y_parts.T, nuisance, {}))
+            self._filters.append((realization, y_parts.T, nuisance, {}, {}))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
         Triangular factors ``R`` of ``[p^j/E y, -p^j/E u_c]`` ordered like ``(den, num)``.
 
         Initial-state and offset components of the equation error (if the problem estimates
-        them) are projected out first.
+        them) are projected out first. A filter's factor depends on the dead time's whole
+        samples and fraction only: the latest are kept.
 
         """
         bank, ts = self._bank, self._ts
@@ -351,7 +355,10 @@ class StateVariableFilters:
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
         factors = []
-        for realization, y_parts, nuisance, by_fraction in self._filters:
+        for realization, y_parts, nuisance, by_fraction, by_shift in self._filters:
+            if (whole, fraction) in by_shift:
+                factors.append(by_shift[whole, fraction])
+                continue
             if fraction not in by_fraction:
                 if len(by_fraction) >= _REMEMBERED_FRACTIONS:
                     del by_fraction[next(iter(by_fraction))]
@@ -363,7 +370,12 @@ class StateVariableFilters:
             # columns / scales = Q R_s, so |columns c| = |(R_s * scales) c|.
             triangular = _triangular_factor(columns / scales) * scales
             leading = sum(part.shape[1] for part in nuisance)
-            factors.append(triangular[leading:, leading:])
+            factor = triangular[leading:, leading:]
+            factor.setflags(write=False)
+            if len(by_shift) >= _REMEMBERED_FACTORS:
+                del by_shift[next(iter(by_shift))]
+            by_shift[whole, fraction] = factor
+            factors.append(factor)
         return factors
 
     @property
