@@ -419,6 +419,27 @@ def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
     return shifted(values, offset)
 
 
+def _sampled_rows(values: np.ndarray, samples: Iterable[Sample]) -> np.ndarray:
+    """
+    Return :func:`_sampled` of every sample as the rows of one array.
+
+    Written into the array directly, without a temporary per sample and the stacking copy.
+    """
+    samples = list(samples)
+    count = values.shape[0]
+    rows = np.zeros((len(samples), count), dtype=values.dtype)
+    for row, (offset, masked) in zip(rows, samples):
+        if offset >= 0:
+            if offset < count:
+                row[:count - offset] = values[offset:]
+        elif -offset < count:
+            row[-offset:] = values[:count + offset]
+        # The masked first sample, wherever the shift put it.
+        if masked and count and offset <= 0 and -offset < count:
+            row[-offset] = 0.0
+    return rows
+
+
 class DiscreteFilter:
     """
     ``x[k+1] = Ad x[k] + sum_o B_o u[k+o]`` realising a :class:`ContinuousFilter` exactly.
@@ -556,17 +577,15 @@ class StateResponse:
         self._chains: Optional[np.ndarray] = None
         if self._continuous.order:
             if discrete.modes is not None:
-                signals = np.array([_sampled(values, sample)
-                                    for sample in discrete.modes.samples])
+                signals = _sampled_rows(values, discrete.modes.samples)
                 self._modes = discrete.modes.run(signals)
                 self._discrete_modes, self._signals = discrete.modes, signals
             elif discrete.chain is not None:
-                signals = np.array([_sampled(values, sample)
-                                    for sample in discrete.chain.samples])
+                signals = _sampled_rows(values, discrete.chain.samples)
                 self._modes = discrete.chain.run(signals)
             else:
                 drive = discrete.drive
-                signals = np.array([_sampled(values, sample) for sample in drive])
+                signals = _sampled_rows(values, drive)
                 self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
                                      self._continuous.repeated_roots)
 
