@@ -570,7 +570,9 @@ class StateResponse:
     def __init__(self, discrete: DiscreteFilter, values: np.ndarray):
         self._continuous = discrete.continuous
         self._count = values.shape[0]
-        self._held = discrete.delayed_input(values)
+        self._discrete = discrete
+        self._values = values
+        self._held_values: Optional[np.ndarray] = None
         self._modes = None
         self._discrete_modes: Optional[_DiscreteModes] = None
         self._signals: Optional[np.ndarray] = None
@@ -636,6 +638,13 @@ class StateResponse:
         if size == 2 * order + 1 and np.any(ascending[:, -1]):
             out += np.outer(ascending[:, -1], self._held)
         return out
+
+    @property
+    def _held(self) -> np.ndarray:
+        # The delayed input itself, for feedthroughs only: a strictly proper model never asks.
+        if self._held_values is None:
+            self._held_values = self._discrete.delayed_input(self._values)
+        return self._held_values
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
