@@ -530,12 +530,16 @@ class _EquationError:
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            # Each damping is tried on the same matrices: the diagonal is built once.
-            scaling = np.diag(np.maximum(np.diag(gram), tiny))
+            # Each damping is tried on the same matrices: the diagonal is read once.
+            scaling = np.maximum(gram.diagonal(), tiny)
+            diagonal = np.diag_indices_from(gram)
             while True:
+                # gram + damping * diag(scaling), without forming the diagonal matrix.
+                damped = gram.copy()
+                damped[diagonal] += damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular).
-                solution, info = lapack.dgesv(gram + damping * scaling, gradient)[2:]
+                solution, info = lapack.dgesv(damped, gradient)[2:]
                 step = -solution if info == 0 else None
                 if step is not None and np.isfinite(step).all():
                     # np.clip, without its dispatch overhead (the step is finite).
