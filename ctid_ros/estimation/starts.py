@@ -526,17 +526,17 @@ class _EquationError:
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
+        diagonal = np.arange(values.size)
         for _ in range(_START_ITERATIONS):
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
             # Each damping is tried on the same matrices: the diagonal is read once.
             scaling = np.maximum(gram.diagonal(), tiny)
-            diagonal = np.diag_indices_from(gram)
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
                 damped = gram.copy()
-                damped[diagonal] += damping * scaling
+                damped[diagonal, diagonal] += damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular).
                 solution, info = lapack.dgesv(damped, gradient)[2:]
