@@ -812,7 +812,7 @@ _BAND_SIZE = 16384
 # Block length of the blocked recursions, the shortest row and the fewest samples they run.
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
-_BLOCKED_MIN_SIZE = 4096
+_BLOCKED_MIN_SIZE = 1536
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
