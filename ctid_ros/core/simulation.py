@@ -58,8 +58,10 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     array = np.atleast_1d(np.asarray(coefficients, dtype=float))
     if array.ndim != 1 or array.size == 0:
         raise ModelError(f'{what} must be a 1-D coefficient sequence')
-    if not np.all(np.isfinite(array)):
+    if not np.isfinite(array).all():
         raise ModelError(f'{what} has non-finite coefficients: {array}')
+    if array[0] != 0.0:
+        return array
     nonzero = np.flatnonzero(array)
     if nonzero.size == 0:
         return np.zeros(1)
@@ -127,7 +129,9 @@ def _time_scale(den: np.ndarray) -> float:
     magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
-    return float(np.exp(np.mean(np.log(magnitudes))))
+    logarithms = np.log(magnitudes)
+    # np.mean's own arithmetic (the sum, then one division), without its dispatch.
+    return float(np.exp(np.add.reduce(logarithms) / logarithms.size))
 
 
 class ContinuousFilter:
@@ -154,29 +158,34 @@ class ContinuousFilter:
             powers = self.scale ** np.arange(n, -1, -1, dtype=float)
             monic = den * powers / (den[0] * powers[0])
             self._gain = 1.0 / (den[0] * powers[0])
+            self._powers = powers[::-1].copy()
         # Roots hundreds of decades apart (numbers like 1.5**490 in the model text) overflow
         # the scaled coefficients: say so instead of failing inside scipy with NaNs.
         if not (np.all(np.isfinite(monic)) and np.isfinite(self._gain) and self._gain != 0.0):
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
-        with np.errstate(over='ignore'):
-            self._powers = self.scale ** np.arange(n + 1, dtype=float)
         a = np.zeros((n, n))
-        if n:
-            a[:-1, 1:] = np.eye(n - 1)
+        if n > 1:
+            a[range(n - 1), range(1, n)] = 1.0
             a[-1, :] = -self._monic_ascending[:-1]
             # Diagonal balancing keeps the companion matrix well conditioned: LAPACK's gebal
             # as linalg.matrix_balance(a, permute=False, separate=True) calls it, without its
             # per-call validation (a is finite).
             sc = lapack.dgebal(a, permute=0, scale=1)[3]
         else:
-            sc = np.ones(0)
+            # A 1 x 1 matrix has nothing to balance (gebal leaves it at scale 1).
+            a[:] = -self._monic_ascending[:-1]
+            sc = np.ones(n)
         self._balance = sc
         self.a = a / sc[:, None] * sc[None, :] if n else a
-        self.b = (np.eye(n)[-1] / sc) if n else np.zeros(0)
+        unit = np.zeros(n)
+        if n:
+            unit[-1] = 1.0
+        self.b = unit / sc
         self._modal: Optional[_ContinuousModes] = None
         self._modal_checked = False
+        self._repeated: Optional[Tuple[Optional[float]]] = None
         # Set by :attr:`modal`: (nearly) repeated roots have no eigenvector basis to try.
         self.repeated_roots = False
 
@@ -201,6 +210,12 @@ class ContinuousFilter:
         are propagated as one real Jordan chain (:class:`_Chain`) instead of in the complex Schur
         coordinates that the root, split by rounding into a cluster, would otherwise need.
         """
+        # Asked for by every discretisation (each dead time and hold): found once.
+        if self._repeated is None:
+            self._repeated = (self._repeated_root(),)
+        return self._repeated[0]
+
+    def _repeated_root(self) -> Optional[float]:
         n = self.order
         if not 2 <= n <= _CHAIN_MAX_ORDER:
             return None
@@ -404,6 +419,27 @@ def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
     return shifted(values, offset)
 
 
+def _sampled_rows(values: np.ndarray, samples: Iterable[Sample]) -> np.ndarray:
+    """
+    Return :func:`_sampled` of every sample as the rows of one array.
+
+    Written into the array directly, without a temporary per sample and the stacking copy.
+    """
+    samples = list(samples)
+    count = values.shape[0]
+    rows = np.zeros((len(samples), count), dtype=values.dtype)
+    for row, (offset, masked) in zip(rows, samples):
+        if offset >= 0:
+            if offset < count:
+                row[:count - offset] = values[offset:]
+        elif -offset < count:
+            row[-offset:] = values[:count + offset]
+        # The masked first sample, wherever the shift put it.
+        if masked and count and offset <= 0 and -offset < count:
+            row[-offset] = 0.0
+    return rows
+
+
 class DiscreteFilter:
     """
     ``x[k+1] = Ad x[k] + sum_o B_o u[k+o]`` realising a :class:`ContinuousFilter` exactly.
@@ -534,24 +570,24 @@ class StateResponse:
     def __init__(self, discrete: DiscreteFilter, values: np.ndarray):
         self._continuous = discrete.continuous
         self._count = values.shape[0]
-        self._held = discrete.delayed_input(values)
+        self._discrete = discrete
+        self._values = values
+        self._held_values: Optional[np.ndarray] = None
         self._modes = None
         self._discrete_modes: Optional[_DiscreteModes] = None
         self._signals: Optional[np.ndarray] = None
         self._chains: Optional[np.ndarray] = None
         if self._continuous.order:
             if discrete.modes is not None:
-                signals = np.array([_sampled(values, sample)
-                                    for sample in discrete.modes.samples])
+                signals = _sampled_rows(values, discrete.modes.samples)
                 self._modes = discrete.modes.run(signals)
                 self._discrete_modes, self._signals = discrete.modes, signals
             elif discrete.chain is not None:
-                signals = np.array([_sampled(values, sample)
-                                    for sample in discrete.chain.samples])
+                signals = _sampled_rows(values, discrete.chain.samples)
                 self._modes = discrete.chain.run(signals)
             else:
                 drive = discrete.drive
-                signals = np.array([_sampled(values, sample) for sample in drive])
+                signals = _sampled_rows(values, drive)
                 self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
                                      self._continuous.repeated_roots)
 
@@ -602,6 +638,13 @@ class StateResponse:
         if size == 2 * order + 1 and np.any(ascending[:, -1]):
             out += np.outer(ascending[:, -1], self._held)
         return out
+
+    @property
+    def _held(self) -> np.ndarray:
+        # The delayed input itself, for feedthroughs only: a strictly proper model never asks.
+        if self._held_values is None:
+            self._held_values = self._discrete.delayed_input(self._values)
+        return self._held_values
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
         """``rows @ x[k]`` for every k, shape (q, N)."""
@@ -769,7 +812,7 @@ _BAND_SIZE = 16384
 # Block length of the blocked recursions, the shortest row and the fewest samples they run.
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
-_BLOCKED_MIN_SIZE = 4096
+_BLOCKED_MIN_SIZE = 1536
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:

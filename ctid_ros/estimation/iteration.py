@@ -179,7 +179,7 @@ class _Side:
 
     def scales(self, free: np.ndarray) -> np.ndarray:
         """:func:`column_scales` of the free columns, from the diagonal of the gram matrix."""
-        scales = np.sqrt(np.diag(self.gram)[free])
+        scales = np.sqrt(self.gram.diagonal()[free])
         return np.where(scales > 0.0, scales, 1.0)
 
 

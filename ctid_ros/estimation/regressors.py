@@ -42,6 +42,7 @@ _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
 # Realisations and discretisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
+_TINY = np.finfo(float).tiny
 
 
 @dataclass
@@ -67,11 +68,12 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     """Return True if every root of ``den`` lies left of ``-margin * max|root|``."""
     if den.size < 2:
         return den.size == 1 and den[0] != 0.0
-    if den[0] == 0.0 or not np.all(np.isfinite(den)):
+    if den[0] == 0.0 or not np.isfinite(den).all():
         return False
+    # Every candidate parameter vector is checked: the array methods, not numpy's dispatch.
     roots = polynomial_roots(den)
-    scale = max(np.max(np.abs(roots)), np.finfo(float).tiny)
-    return bool(np.max(roots.real) < -margin * scale)
+    scale = max(np.abs(roots).max(), _TINY)
+    return bool(roots.real.max() < -margin * scale)
 
 
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,

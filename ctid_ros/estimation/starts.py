@@ -54,6 +54,9 @@ _UNEXPLAINED = 0.9
 _RESEMBLANCE = 0.01
 # Fractions of a sample whose filtered input is kept (the lattice, half samples, a hint).
 _REMEMBERED_FRACTIONS = 4
+# Dead times whose triangular factors are kept per filter: the warm start's look at the data's
+# guess and the automatic start after it factor the same ones.
+_REMEMBERED_FACTORS = 8
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -336,14 +339,15 @@ class StateVariableFilters:
                     nuisance.append(undelayed.free_responses(len(data)))
                 if problem.output_offset:
                     nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append((realization, y_parts.T, nuisance, {}))
+            self._filters.append((realization, y_parts.T, nuisance, {}, {}))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
         Triangular factors ``R`` of ``[p^j/E y, -p^j/E u_c]`` ordered like ``(den, num)``.
 
         Initial-state and offset components of the equation error (if the problem estimates
-        them) are projected out first.
+        them) are projected out first. A filter's factor depends on the dead time's whole
+        samples and fraction only: the latest are kept.
 
         """
         bank, ts = self._bank, self._ts
@@ -351,7 +355,10 @@ class StateVariableFilters:
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
         factors = []
-        for realization, y_parts, nuisance, by_fraction in self._filters:
+        for realization, y_parts, nuisance, by_fraction, by_shift in self._filters:
+            if (whole, fraction) in by_shift:
+                factors.append(by_shift[whole, fraction])
+                continue
             if fraction not in by_fraction:
                 if len(by_fraction) >= _REMEMBERED_FRACTIONS:
                     del by_fraction[next(iter(by_fraction))]
@@ -361,9 +368,14 @@ class StateVariableFilters:
             scales = np.linalg.norm(columns, axis=0)
             scales[scales == 0.0] = 1.0
             # columns / scales = Q R_s, so |columns c| = |(R_s * scales) c|.
-            triangular = np.linalg.qr(columns / scales, mode='r') * scales
+            triangular = _triangular_factor(columns / scales) * scales
             leading = sum(part.shape[1] for part in nuisance)
-            factors.append(triangular[leading:, leading:])
+            factor = triangular[leading:, leading:]
+            factor.setflags(write=False)
+            if len(by_shift) >= _REMEMBERED_FACTORS:
+                del by_shift[next(iter(by_shift))]
+            by_shift[whole, fraction] = factor
+            factors.append(factor)
         return factors
 
     @property
@@ -388,6 +400,19 @@ class StateVariableFilters:
         discrete = realization.discretize(self._ts, delay, self._bank.intersample)
         return np.vstack([discrete.outputs(channel, self._u_powers)
                           for channel in self._bank.driving.T]).T
+
+
+def _triangular_factor(columns: np.ndarray) -> np.ndarray:
+    """
+    Return ``R`` of the QR factorisation of ``columns``: ``np.linalg.qr(columns, mode='r')``.
+
+    LAPACK's geqrf on a column-major copy, as numpy calls it, without numpy's wrapping (which
+    costs several times the factorisation on a long record: the same factor to the bit).
+    """
+    factored, _, _, info = lapack.dgeqrf(np.asfortranarray(columns), overwrite_a=True)
+    if info != 0:
+        raise np.linalg.LinAlgError(f'QR factorisation failed (LAPACK info {info})')
+    return np.triu(factored[:min(columns.shape)])
 
 
 # The filtered signals of each problem's default filters: the automatic start, the dead-time
@@ -501,16 +526,20 @@ class _EquationError:
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
+        diagonal = np.arange(values.size)
         for _ in range(_START_ITERATIONS):
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            # Each damping is tried on the same matrices: the diagonal is built once.
-            scaling = np.diag(np.maximum(np.diag(gram), tiny))
+            # Each damping is tried on the same matrices: the diagonal is read once.
+            scaling = np.maximum(gram.diagonal(), tiny)
             while True:
+                # gram + damping * diag(scaling), without forming the diagonal matrix.
+                damped = gram.copy()
+                damped[diagonal, diagonal] += damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular).
-                solution, info = lapack.dgesv(gram + damping * scaling, gradient)[2:]
+                solution, info = lapack.dgesv(damped, gradient)[2:]
                 step = -solution if info == 0 else None
                 if step is not None and np.isfinite(step).all():
                     # np.clip, without its dispatch overhead (the step is finite).
