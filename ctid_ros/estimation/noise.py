@@ -24,8 +24,8 @@ from ctid_ros.core.simulation import all_pole
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
-           'measured_every', 'model_score', 'noise_model', 'noise_root', 'rational_form',
-           'shaped_noise_model']
+           'measured_every', 'model_score', 'noise_memory', 'noise_model', 'noise_root',
+           'rational_form', 'shaped_noise_model']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -292,6 +292,40 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     if model.order:
         columns = all_pole(model.ar, columns[::-1])[::-1]
     return np.sqrt(scale * model.innovation_variance) * columns
+
+
+def noise_memory(model: NoiseModel, limit: int) -> int:
+    """
+    Return how many samples :func:`noise_root`'s filter takes to forget a state (<= ``limit``).
+
+    Past that many samples the response of ``1/A`` (and the shaping) to any state it holds is
+    below :data:`_FORGOTTEN` of that state's own size: a block's filtered map is exact to
+    rounding when only those samples before the block are filtered. From ``A``'s largest root
+    ``r``: ``ln(1/_FORGOTTEN) / ln(1/r)`` samples plus the order, doubled until the impulse
+    response over the last ``2 order`` of them is that small (roots near each other decay
+    more slowly at first); ``limit`` for an ``A`` with a root on or outside the unit circle.
+    """
+    shaping = 0 if model.shaping is None else model.shaping.size
+    order = model.order
+    if order == 0:
+        return min(shaping, limit)
+    radius = float(np.max(np.abs(np.roots(model.ar))))
+    if not radius < 1.0:
+        return limit
+    span = order + (1 if radius == 0.0 else
+                    int(np.ceil(math.log(_FORGOTTEN) / math.log(radius))))
+    while span + shaping < limit:
+        impulse = np.zeros(span + order)
+        impulse[0] = 1.0
+        response = np.abs(all_pole(model.ar, impulse))
+        if np.max(response[span - order:]) <= _FORGOTTEN * np.max(response):
+            return span + shaping
+        span *= 2
+    return limit
+
+
+# What a filtered state may keep of its size once noise_memory's samples have passed.
+_FORGOTTEN = 1e-20
 
 
 def measured_every(y: np.ndarray) -> int:
