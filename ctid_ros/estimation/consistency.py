@@ -199,6 +199,9 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     # before it (zero before that to rounding).
     whole_root = noise_root(whole.T, noise, scale)
     memory = noise_memory(noise, count)
+    # Products of the samples with a map's N x p transpose (C-ordered): matmul runs a p x N
+    # Fortran-ordered map far from BLAS speed.
+    whole_deviation = error @ whole.T
     free_names = [name for name, keep in zip(names, free) if keep]
     z_table: Dict[str, Dict[str, float]] = {}
     worst: Optional[Tuple[str, str]] = None
@@ -210,7 +213,7 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         if local is None:
             continue
         # A_b - A as a p x N map of the noise, A_b acting on the block's rows only.
-        deviation = local @ error[rows] - whole @ error
+        deviation = error[rows] @ local.T - whole_deviation
         first = max(rows.start - memory, 0)
         extended = np.zeros((rows.stop - first, params))
         extended[rows.start - first:] = local.T
