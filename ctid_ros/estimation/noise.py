@@ -21,6 +21,7 @@ import math
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
+from ctid_ros.estimation.correlation import fft_size
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
@@ -116,7 +117,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     if autocorrelation is not None and autocorrelation.size > top:
         autocovariance = variance * autocorrelation[:top + 1]
     else:
-        size = 1 << int(np.ceil(np.log2(count + top + 1)))
+        size = fft_size(count + top + 1)
         spectrum = np.fft.rfft(centred, size)
         autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
     best = (count * math.log(variance), 0, variance)
@@ -284,7 +285,7 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     if model.shaping is not None:
         # H^T X: the columns filtered through H backwards in time.
         count = columns.shape[0]
-        size = 1 << int(np.ceil(np.log2(count + model.shaping.size)))
+        size = fft_size(count + model.shaping.size)
         spectrum = np.fft.rfft(columns[::-1].reshape(count, -1), size, axis=0)
         filtered = np.fft.irfft(spectrum * np.fft.rfft(model.shaping, size)[:, None], size,
                                 axis=0)[:count]
