@@ -27,6 +27,8 @@ _PREWHITENING_ORDER = 10
 # spectra (what the filter leaves, Bartlett's bound counts); order 10 also whitens away much of
 # a new resonance's ringing (on the demo drive its first windows read 3-5 sigma instead of 5-7).
 _RESIDUAL_WHITENING_ORDER = 4
+# Past values conditioned within this (columns of unit norm) are solved by normal equations.
+_NORMAL_CONDITION = 1e3
 
 
 def fft_size(count: int) -> int:
@@ -209,8 +211,18 @@ def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np
     order = min(order, count // 10)
     if order < 1 or not np.any(values):
         return np.ones(1)
-    lagged = np.column_stack([values[order - k - 1:count - k - 1] for k in range(order)])
-    coefficients = np.linalg.lstsq(lagged, values[order:], rcond=None)[0]
+    # Column 0 the predicted samples, column k their k-th past values.
+    lagged = np.column_stack([values[order - k:count - k] for k in range(order + 1)])
+    # The normal equations where the past values are well conditioned (a cond^2 eps relative
+    # error), least squares otherwise.
+    products = lagged.T @ lagged
+    gram = products[1:, 1:]
+    scales = np.sqrt(np.diag(gram))
+    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales)) if scales.all() else [0.0]
+    if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
+        coefficients = np.linalg.solve(gram, products[1:, 0])
+    else:
+        coefficients = np.linalg.lstsq(lagged[:, 1:], lagged[:, 0], rcond=None)[0]
     return np.concatenate([[1.0], -coefficients])
 
 
