@@ -21,9 +21,12 @@ the record (two halves and four quarters) and compares each block with the whole
   consistent if ``max |z|`` stays below a Bonferroni bound over the parameters and blocks
   tested at about 1 % false alarms.
 
-Cost: the sensitivities are the covariance's (cached by the problem); per block one small SVD
-and one backward filter of ``p`` columns. Only a flagged estimate is refined: each quarter's
-estimate is iterated (Gauss-Newton on the block's rows of the full-record simulation, at most
+Cost: the sensitivities are the covariance's (cached by the problem), filtered backwards once
+(:func:`block_deviations`); per block a p x p inverse, a Gram matrix and two free responses of
+the noise filter over its memory (where the noise model is shaped, a block's sensitivities are
+ill conditioned or the filter's memory is as long as a block: an SVD and one backward filter
+of the block's map per block). Only a flagged estimate is refined: each quarter's estimate is
+iterated (Gauss-Newton on the block's rows of the full-record simulation, at most
 :data:`REFINE_ITERATIONS` updates) and the reported standard deviations become at least the
 scatter of the quarter estimates.
 """
@@ -31,13 +34,14 @@ scatter of the quarter estimates.
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
-from ctid_ros.estimation.noise import coloured_covariance, noise_root, NoiseModel
+from ctid_ros.core.simulation import all_pole
+from ctid_ros.estimation.noise import coloured_covariance, noise_memory, noise_root, NoiseModel
 from ctid_ros.estimation.problem import Problem, State
 import numpy as np
 from scipy import special
 
-__all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'check_consistency',
-           'consistency_bound', 'loop_sensitivity', 'small_sample_factor',
+__all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'block_deviations',
+           'check_consistency', 'consistency_bound', 'loop_sensitivity', 'small_sample_factor',
            'with_consistency']
 
 # Halves and quarters.
@@ -51,6 +55,8 @@ FAMILY = 0.998
 REFINE_ITERATIONS = 4
 # A block whose scaled sensitivities are worse conditioned than this determines no parameter.
 _BLOCK_CONDITION = 1e8
+# Scaled sensitivities conditioned within this are inverted through their normal equations.
+_NORMAL_CONDITION = 1e3
 # Fewest fitted samples per parameter in a block.
 _SAMPLES_PER_PARAMETER = 10
 
@@ -136,11 +142,173 @@ def _sensitivities(problem: Problem, state: State, free: np.ndarray
 
 
 def _pseudo_inverse(psi: np.ndarray) -> Optional[np.ndarray]:
-    """Return ``(Psi^T Psi)^-1 Psi^T`` by the SVD, or None if ``Psi`` is (nearly) singular."""
+    """
+    Return ``(Psi^T Psi)^-1 Psi^T``, or None if ``Psi`` is (nearly) singular.
+
+    Through the inverse of ``Psi^T Psi`` where ``Psi`` (columns of unit norm) is conditioned
+    within :data:`_NORMAL_CONDITION`: squaring it then costs at most ``cond^2 eps`` relative.
+    Otherwise through the SVD, which keeps the precision the normal equations would square
+    away.
+    """
+    gram = psi.T @ psi
+    eigenvalues = np.linalg.eigvalsh(gram)
+    if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
+        # (N x p) @ (p x p) by einsum: matmul runs these shapes far from BLAS speed.
+        return np.einsum('ij,jk->ik', psi, np.linalg.inv(gram)).T
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False)
     if singular.size == 0 or singular[-1] <= singular[0] / _BLOCK_CONDITION:
         return None
     return (right_t.T / singular) @ left.T
+
+
+def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: NoiseModel,
+                     scale: float = 1.0) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+    """
+    Return each block's deviation from the whole and its variance under the noise model.
+
+    Parameters
+    ----------
+    sensitivities : ndarray, shape (N, p)
+        The sensitivities ``S`` of the free parameters (columns of unit norm).
+    residual : ndarray, shape (N,)
+        The residual ``e`` of the estimate.
+    noise : NoiseModel
+        The noise model ``Sigma = scale sigma_w^2 H H^T`` (:func:`noise_root`).
+    scale : float
+        The covariance's ``N / (N - p)``.
+
+    Returns
+    -------
+    list of (str, ndarray, ndarray) or None
+        For each block long enough (:data:`BLOCKS`, at least ten samples per parameter) and
+        not singular: its name, ``d_b = (A_b - A) e`` and the diagonal of
+        ``(A_b - A) Sigma (A_b - A)^T``. None if the whole record does not determine the
+        parameters.
+
+    """
+    blocks = _filtered_once(sensitivities, residual, noise, scale)
+    return _filtered_by_block(sensitivities, residual, noise, scale) if blocks is None \
+        else blocks
+
+
+def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float
+                       ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+    """
+    Return each block's ``(name, d_b, var(d_b))``, each block's map filtered on its own.
+
+    None if the whole record does not determine the parameters. The noise root is linear and
+    runs backwards in time: the whole record's map is filtered once, and a block's own map from
+    the block's end over the block and the filter's memory before it (zero before that to
+    rounding).
+    """
+    count, params = scaled.shape
+    whole = _pseudo_inverse(scaled)
+    if whole is None:
+        return None
+    whole_root = noise_root(whole.T, noise, scale)
+    memory = noise_memory(noise, count)
+    # Products of the samples with a map's N x p transpose (C-ordered): matmul runs a p x N
+    # Fortran-ordered map far from BLAS speed.
+    whole_deviation = error @ whole.T
+    blocks = []
+    for block, rows in _block_rows(count):
+        if rows.stop - rows.start < _SAMPLES_PER_PARAMETER * params:
+            continue
+        local = _pseudo_inverse(scaled[rows])
+        if local is None:
+            continue
+        # A_b - A as a p x N map of the noise, A_b acting on the block's rows only.
+        deviation = error[rows] @ local.T - whole_deviation
+        first = max(rows.start - memory, 0)
+        extended = np.zeros((rows.stop - first, params))
+        extended[rows.start - first:] = local.T
+        root = noise_root(extended, noise, scale) - whole_root[first:rows.stop]
+        variance = np.einsum('ij,ij->j', root, root)
+        for outside in (whole_root[:first], whole_root[rows.stop:]):
+            variance += np.einsum('ij,ij->j', outside, outside)
+        blocks.append((block, deviation, variance))
+    return blocks
+
+
+def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float
+                   ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+    """
+    :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
+
+    ``A_b - A = (G_b^-1 P_b - G^-1) S^T`` (``S`` the scaled sensitivities, ``G = S^T S``,
+    ``P_b`` keeping the block's rows), so its noise root is ``E_b G_b^-1 - F G^-1`` with
+    ``F = H^T S`` filtered once and ``E_b = H^T P_b S``. ``E_b`` equals ``F`` inside the block
+    except for the filter's memory before the block's end, where the response to the samples
+    after the block (``F``'s state there) is taken off, and before the block it is the response
+    to the block's own state at its start: both free responses of the all-pole filter over its
+    memory. Inside the block the squares sum through ``F``'s Gram matrix. None (the block by
+    block filtering then) for a shaped noise model, an all-pole filter whose memory is not
+    shorter than every block, or sensitivities worse conditioned than
+    :data:`_NORMAL_CONDITION`.
+    """
+    count, params = scaled.shape
+    if noise.shaping is not None:
+        return None
+    memory = noise_memory(noise, count)
+    rows_of = [(block, rows) for block, rows in _block_rows(count)
+               if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
+    if any(rows.stop - rows.start <= 2 * memory for _, rows in rows_of):
+        return None
+    inverse = _normal_inverse(scaled)
+    locals_ = [_normal_inverse(scaled[rows]) for _, rows in rows_of]
+    if inverse is None or any(local is None for local in locals_):
+        return None
+    filtered = noise_root(scaled, noise, scale)
+    whole_root = np.einsum('ij,jk->ik', filtered, inverse)
+    whole_deviation = (error @ scaled) @ inverse
+    blocks = []
+    for (block, rows), local in zip(rows_of, locals_):
+        deviation = (error[rows] @ scaled[rows]) @ local - whole_deviation
+        first, inner = max(rows.start - memory, 0), rows.stop - memory
+        # Inside the block, away from its end: (F G_b^-1 - F G^-1) row by row.
+        difference = local - inverse
+        gram = filtered[rows.start:inner].T @ filtered[rows.start:inner]
+        variance = np.einsum('ij,ik,kj->j', difference, gram, difference)
+        # The block's end: F less the response to the samples after the block.
+        end = filtered[inner:rows.stop] - _free_response(filtered, noise.ar, rows.stop, memory)
+        root = end @ local - whole_root[inner:rows.stop]
+        variance += np.einsum('ij,ij->j', root, root)
+        # Before the block: the response to the block's state at its start.
+        before = _free_response(filtered, noise.ar, rows.start, rows.start - first)
+        root = before @ local - whole_root[first:rows.start]
+        variance += np.einsum('ij,ij->j', root, root)
+        for outside in (whole_root[:first], whole_root[rows.stop:]):
+            variance += np.einsum('ij,ij->j', outside, outside)
+        blocks.append((block, deviation, variance))
+    return blocks
+
+
+def _normal_inverse(scaled: np.ndarray) -> Optional[np.ndarray]:
+    """Return ``(S^T S)^-1`` if ``S`` is conditioned within :data:`_NORMAL_CONDITION`."""
+    gram = scaled.T @ scaled
+    eigenvalues = np.linalg.eigvalsh(gram)
+    if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
+        return np.linalg.inv(gram)
+    return None
+
+
+def _free_response(filtered: np.ndarray, ar: np.ndarray, end: int, length: int) -> np.ndarray:
+    """
+    Return rows ``end - length .. end - 1`` of the backward all-pole filter's free response.
+
+    The filter (``1/A`` backwards in time, as in ``noise_root``) holds the values of
+    ``filtered`` at ``end .. end + order - 1`` and gets no input before ``end``: the input that
+    gives those values from rest is ``A`` applied to them, then zeros.
+    """
+    order = ar.size - 1
+    top = min(end + order, filtered.shape[0])
+    held = top - end
+    if length == 0 or held == 0:
+        return np.zeros((length, filtered.shape[1]))
+    driving = np.zeros((length + held, filtered.shape[1]))
+    for lag in range(min(order, held - 1) + 1):
+        driving[length:length + held - lag] += ar[lag] * filtered[end + lag:top]
+    return all_pole(ar, driving[::-1])[::-1][:length]
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
@@ -174,27 +342,15 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     scales = np.linalg.norm(psi, axis=0)
     scales = np.where(scales > 0.0, scales, 1.0)
     scaled = psi / scales
-    whole = _pseudo_inverse(scaled)
-    if whole is None:
+    blocks = block_deviations(scaled, error, noise, count / max(count - params, 1))
+    if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
-    scale = count / max(count - params, 1)
     free_names = [name for name, keep in zip(names, free) if keep]
     z_table: Dict[str, Dict[str, float]] = {}
     worst: Optional[Tuple[str, str]] = None
     max_z = 0.0
-    for block, rows in _block_rows(count):
-        if rows.stop - rows.start < _SAMPLES_PER_PARAMETER * params:
-            continue
-        local = _pseudo_inverse(scaled[rows])
-        if local is None:
-            continue
-        # A_b - A as a p x N map of the noise, A_b acting on the block's rows only.
-        difference = -whole
-        difference[:, rows] += local
-        deviation = difference @ error
-        root = noise_root(difference.T, noise, scale)
-        variance = np.einsum('ij,ij->j', root, root)
+    for block, deviation, variance in blocks:
         z = np.where(variance > 0.0, deviation / np.sqrt(np.maximum(variance, 1e-300)), 0.0)
         z_table[block] = dict(zip(free_names, map(float, z)))
         top = int(np.argmax(np.abs(z)))

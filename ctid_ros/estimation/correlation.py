@@ -15,7 +15,7 @@ from typing import Optional
 from ctid_ros.core.data import Data
 import numpy as np
 
-__all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread',
+__all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread', 'fft_size',
            'independent_of_input', 'input_correlation', 'prewhitened_delay',
            'whitening_filter']
 
@@ -27,6 +27,28 @@ _PREWHITENING_ORDER = 10
 # spectra (what the filter leaves, Bartlett's bound counts); order 10 also whitens away much of
 # a new resonance's ringing (on the demo drive its first windows read 3-5 sigma instead of 5-7).
 _RESIDUAL_WHITENING_ORDER = 4
+# Past values conditioned within this (columns of unit norm) are solved by normal equations.
+_NORMAL_CONDITION = 1e3
+
+
+def fft_size(count: int) -> int:
+    """
+    Return the smallest ``2^a 3^b 5^c`` of at least ``count`` (1 for none): a fast FFT length.
+
+    Zero padding to it rather than to the next power of two gives the same correlations to
+    rounding; numpy's FFT runs these lengths at about the same speed per sample, and the power
+    of two can be almost twice as long.
+    """
+    best = 1 << max(count - 1, 0).bit_length()
+    fives = 1
+    while fives < best:
+        odd = fives
+        while odd < best:
+            # odd times the least power of two that reaches count
+            best = min(best, odd << max(-(-count // odd) - 1, 0).bit_length())
+            odd *= 3
+        fives *= 5
+    return best
 
 
 def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) -> np.ndarray:
@@ -60,7 +82,7 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     error[first:] = residual[first:] - np.mean(residual[first:])
     centred = inputs - np.mean(inputs, axis=0)
     # Zero padding to N + max_lag keeps the circular correlation free of wrap-around.
-    size = 1 << int(np.ceil(np.log2(residual.size + max_lag + 1)))
+    size = fft_size(residual.size + max_lag + 1)
     spectrum = np.fft.rfft(error, size)[:, None] * np.conj(np.fft.rfft(centred, size, axis=0))
     correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
     scale = np.sqrt(np.sum(error ** 2) * np.sum(centred ** 2, axis=0))
@@ -81,7 +103,7 @@ def autocorrelations(columns: np.ndarray, span: int) -> np.ndarray:
     columns = np.asarray(columns, dtype=float)
     columns = columns.reshape(columns.shape[0], -1)
     centred = columns - np.mean(columns, axis=0)
-    size = 1 << int(np.ceil(np.log2(centred.shape[0] + span + 1)))
+    size = fft_size(centred.shape[0] + span + 1)
     spectrum = np.fft.rfft(centred, size, axis=0)
     full = np.fft.irfft(spectrum * np.conj(spectrum), size, axis=0)
     values = np.concatenate([full[size - span:], full[:span + 1]]) if span else full[:1]
@@ -189,8 +211,18 @@ def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np
     order = min(order, count // 10)
     if order < 1 or not np.any(values):
         return np.ones(1)
-    lagged = np.column_stack([values[order - k - 1:count - k - 1] for k in range(order)])
-    coefficients = np.linalg.lstsq(lagged, values[order:], rcond=None)[0]
+    # Column 0 the predicted samples, column k their k-th past values.
+    lagged = np.column_stack([values[order - k:count - k] for k in range(order + 1)])
+    # The normal equations where the past values are well conditioned (a cond^2 eps relative
+    # error), least squares otherwise.
+    products = lagged.T @ lagged
+    gram = products[1:, 1:]
+    scales = np.sqrt(np.diag(gram))
+    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales)) if scales.all() else [0.0]
+    if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
+        coefficients = np.linalg.solve(gram, products[1:, 0])
+    else:
+        coefficients = np.linalg.lstsq(lagged[:, 1:], lagged[:, 0], rcond=None)[0]
     return np.concatenate([[1.0], -coefficients])
 
 

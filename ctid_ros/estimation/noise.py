@@ -21,11 +21,12 @@ import math
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
+from ctid_ros.estimation.correlation import fft_size
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
-           'measured_every', 'model_score', 'noise_model', 'noise_root', 'rational_form',
-           'shaped_noise_model']
+           'measured_every', 'model_score', 'noise_memory', 'noise_model', 'noise_root',
+           'rational_form', 'shaped_noise_model']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -116,7 +117,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     if autocorrelation is not None and autocorrelation.size > top:
         autocovariance = variance * autocorrelation[:top + 1]
     else:
-        size = 1 << int(np.ceil(np.log2(count + top + 1)))
+        size = fft_size(count + top + 1)
         spectrum = np.fft.rfft(centred, size)
         autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
     best = (count * math.log(variance), 0, variance)
@@ -284,7 +285,7 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     if model.shaping is not None:
         # H^T X: the columns filtered through H backwards in time.
         count = columns.shape[0]
-        size = 1 << int(np.ceil(np.log2(count + model.shaping.size)))
+        size = fft_size(count + model.shaping.size)
         spectrum = np.fft.rfft(columns[::-1].reshape(count, -1), size, axis=0)
         filtered = np.fft.irfft(spectrum * np.fft.rfft(model.shaping, size)[:, None], size,
                                 axis=0)[:count]
@@ -292,6 +293,40 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     if model.order:
         columns = all_pole(model.ar, columns[::-1])[::-1]
     return np.sqrt(scale * model.innovation_variance) * columns
+
+
+def noise_memory(model: NoiseModel, limit: int) -> int:
+    """
+    Return how many samples :func:`noise_root`'s filter takes to forget a state (<= ``limit``).
+
+    Past that many samples the response of ``1/A`` (and the shaping) to any state it holds is
+    below :data:`_FORGOTTEN` of that state's own size: a block's filtered map is exact to
+    rounding when only those samples before the block are filtered. From ``A``'s largest root
+    ``r``: ``ln(1/_FORGOTTEN) / ln(1/r)`` samples plus the order, doubled until the impulse
+    response over the last ``2 order`` of them is that small (roots near each other decay
+    more slowly at first); ``limit`` for an ``A`` with a root on or outside the unit circle.
+    """
+    shaping = 0 if model.shaping is None else model.shaping.size
+    order = model.order
+    if order == 0:
+        return min(shaping, limit)
+    radius = float(np.max(np.abs(np.roots(model.ar))))
+    if not radius < 1.0:
+        return limit
+    span = order + (1 if radius == 0.0 else
+                    int(np.ceil(math.log(_FORGOTTEN) / math.log(radius))))
+    while span + shaping < limit:
+        impulse = np.zeros(span + order)
+        impulse[0] = 1.0
+        response = np.abs(all_pole(model.ar, impulse))
+        if np.max(response[span - order:]) <= _FORGOTTEN * np.max(response):
+            return span + shaping
+        span *= 2
+    return limit
+
+
+# What a filtered state may keep of its size once noise_memory's samples have passed.
+_FORGOTTEN = 1e-20
 
 
 def measured_every(y: np.ndarray) -> int:

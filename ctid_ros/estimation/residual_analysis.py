@@ -20,7 +20,7 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Sequence, Tuple
 
-from ctid_ros.estimation.correlation import bartlett_span, chance_spread
+from ctid_ros.estimation.correlation import bartlett_span, chance_spread, fft_size
 import numpy as np
 from scipy import special
 
@@ -52,7 +52,7 @@ class _Spectrum:
     def __init__(self, values: np.ndarray, lags: int):
         values = np.asarray(values, dtype=float)
         self.centred = values - np.mean(values)
-        self.size = 1 << int(np.ceil(np.log2(values.size + lags + 1)))
+        self.size = fft_size(values.size + lags + 1)
         self.spectrum = np.fft.rfft(self.centred, self.size)
         self.energy = float(self.centred @ self.centred)
 

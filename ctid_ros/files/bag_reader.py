@@ -154,14 +154,38 @@ def _storage(reader: AnyReader) -> Optional[_Storage]:
     compressed = None
     for storage in storages:
         if storage.connections and storage.metadata.message_count:
-            with reading_errors(f'cannot read {storage.path}'):
-                first = next(storage.messages(storage.connections), None)
+            first = _first_message(storage)
             if first is not None:
-                compressed = bytes(first[2][:4]) == _ZSTD_MAGIC
+                compressed = first[:4] == _ZSTD_MAGIC
                 break
     return _Storage(counts, matched, reasons, min(starts, default=None),
                     max(ends, default=None), [Path(storage.path) for storage in storages],
                     compressed)
+
+
+def _first_message(storage: Any) -> Optional[bytes]:
+    """
+    Return the first stored message of one of rosbags' storage files, None if it has none.
+
+    An MCAP file's comes from its index and first chunk (:class:`McapSource`); rosbags would
+    parse the whole first chunk message by message to yield it. A file that reader refuses is
+    read with rosbags, which reports its problem as before.
+    """
+    if Path(storage.path).suffix == '.mcap':
+        try:
+            source = McapSource(Path(storage.path))
+        except BagError:
+            source = None
+        if source is not None:
+            try:
+                return source.first_message()
+            except BagError:
+                pass
+            finally:
+                source.close()
+    with reading_errors(f'cannot read {storage.path}'):
+        first = next(storage.messages(storage.connections), None)
+    return None if first is None else bytes(first[2])
 
 
 def _difference(listed: Any, stored: Any) -> Optional[str]:

@@ -939,6 +939,11 @@ class McapSource:
             raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
                            ) from None
 
+    def first_message(self) -> Optional[bytes]:
+        """Return the serialised first message of the file (any channel), None if it has none."""
+        block = next(self.raw_blocks(self._channels, None, None), None)
+        return None if block is None else block.message(0)
+
     def close(self) -> None:
         """Release the file."""
         self._stream.close()

@@ -3,9 +3,11 @@
 from bench.coverage import arma_noise, FOPDT, FOPDT_BOUNDS, INADEQUATE
 from ctid_ros import Data, estimate
 from ctid_ros.core import reference_systems as systems
-from ctid_ros.estimation.consistency import consistency_bound
+from ctid_ros.estimation.consistency import block_deviations, consistency_bound
+from ctid_ros.estimation.noise import NoiseModel
 import numpy as np
 import pytest
+from scipy import linalg, signal
 
 
 def noisy(clean, rng, snr_db=20.0):
@@ -72,3 +74,39 @@ def test_false_alarms_of_adequate_models_with_arma_noise_are_rare():
         flagged += not estimate(system.model, data, 'auto',
                                 bounds=system.bounds).consistency.consistent
     assert flagged <= 1
+
+
+@pytest.mark.parametrize('roots', [[], [0.5], [0.8, -0.4],
+                                   [0.8 * np.exp(0.4j), 0.8 * np.exp(-0.4j)], [0.995]])
+def test_block_deviations_equal_the_dense_covariance_of_each_block(roots):
+    # d_b = (A_b - A) e and diag((A_b - A) Sigma (A_b - A)^T), Sigma = c s^2 H H^T with H the
+    # impulse-response matrix of 1/A: the filtered-once path (short memories) and the block by
+    # block one (the near-unit root) against dense matrices.
+    count = 2400
+    rng = np.random.default_rng(7)
+    sensitivities = rng.standard_normal((count, 3))
+    sensitivities[:, 1] += 0.6 * sensitivities[:, 0]
+    sensitivities /= np.linalg.norm(sensitivities, axis=0)
+    residual = rng.standard_normal(count)
+    ar = np.real(np.poly(roots)) if roots else np.ones(1)
+    noise = NoiseModel(ar, 0.3, 1.0)
+    impulse = signal.lfilter([1.0], ar, np.eye(count)[0])
+    response = linalg.toeplitz(impulse, np.zeros(count))
+    sigma = 1.01 * 0.3 * response @ response.T
+    whole = np.linalg.pinv(sensitivities)
+    edges = {2: np.linspace(0, count, 3).round().astype(int),
+             4: np.linspace(0, count, 5).round().astype(int)}
+    expected = []
+    for parts, names in ((2, ('first half', 'second half')),
+                         (4, ('quarter 1', 'quarter 2', 'quarter 3', 'quarter 4'))):
+        for name, first, last in zip(names, edges[parts][:-1], edges[parts][1:]):
+            local = np.zeros_like(whole)
+            local[:, first:last] = np.linalg.pinv(sensitivities[first:last])
+            difference = local - whole
+            expected.append((name, difference @ residual,
+                             np.diag(difference @ sigma @ difference.T)))
+    blocks = block_deviations(sensitivities, residual, noise, 1.01)
+    assert [block[0] for block in blocks] == [block[0] for block in expected]
+    for (_, deviation, variance), (_, want_deviation, want_variance) in zip(blocks, expected):
+        np.testing.assert_allclose(deviation, want_deviation, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(variance, want_variance, rtol=1e-9)

@@ -3,7 +3,7 @@
 from ctid_ros import Data, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.correlation import (CONFIDENCE, independent_of_input,
+from ctid_ros.estimation.correlation import (CONFIDENCE, fft_size, independent_of_input,
                                              input_correlation, prewhitened_delay)
 import numpy as np
 import pytest
@@ -105,3 +105,17 @@ def test_a_held_input_and_arma_noise_are_no_model_error_but_a_missed_lag_is():
     residual = missed + 0.3 * np.std(missed) * noise / np.std(noise)
     assert not independent_of_input(residual, u, 100)
     assert not independent_of_input(residual, u, 100, bound='bartlett')
+
+
+def test_fft_size_is_the_least_five_smooth_length_reaching_the_count():
+    def smooth(value):
+        for prime in (2, 3, 5):
+            while value % prime == 0:
+                value //= prime
+        return value == 1
+
+    for count in list(range(1, 2000)) + [299533, 449999]:
+        expected = count
+        while not smooth(expected):
+            expected += 1
+        assert fft_size(count) == expected

@@ -2,7 +2,8 @@
 
 from ctid_ros.core.model import Model
 from ctid_ros.estimation.noise import (coloured_covariance, inverse_filtered,
-                                       measured_every, noise_model, rational_form)
+                                       measured_every, noise_memory, noise_model, noise_root,
+                                       NoiseModel, rational_form)
 import numpy as np
 import pytest
 from scipy import linalg, signal
@@ -109,3 +110,25 @@ def test_response_without_a_low_order_form_takes_the_long_substitution():
     values = rng.standard_normal(1000)
     np.testing.assert_allclose(inverse_filtered(shaping, values),
                                signal.lfilter([1.0], shaping, values), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize('roots', [[0.9], [0.99, 0.99, 0.99],
+                                   [0.95 * np.exp(0.3j), 0.95 * np.exp(-0.3j), -0.5]])
+def test_noise_root_past_the_memory_depends_on_its_last_samples_only(roots):
+    # A map supported on a late block, filtered backwards over the block and the memory only,
+    # equals the whole backward filter there; before it the whole filter is zero to rounding.
+    model = NoiseModel(np.real(np.poly(roots)), 1.0, 1.0)
+    count = 40000
+    memory = noise_memory(model, count)
+    assert memory < 20000
+    columns = np.zeros((count, 2))
+    columns[30000:] = np.random.default_rng(5).standard_normal((count - 30000, 2))
+    whole = noise_root(columns, model)
+    part = noise_root(columns[30000 - memory:], model)
+    scale = np.max(np.abs(whole))
+    np.testing.assert_allclose(part, whole[30000 - memory:], rtol=0, atol=1e-13 * scale)
+    assert np.max(np.abs(whole[:30000 - memory])) <= 1e-18 * scale
+
+
+def test_noise_memory_is_the_whole_record_for_a_root_on_the_unit_circle():
+    assert noise_memory(NoiseModel(np.array([1.0, -1.0]), 1.0, 1.0), 5000) == 5000
