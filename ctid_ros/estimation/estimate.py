@@ -46,6 +46,7 @@ from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem,
                                          settling_time, State, with_fitted_nuisance)
+from ctid_ros.estimation.projected_noise import restored_covariance
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_guess, automatic_start,
@@ -304,6 +305,10 @@ def covariance(problem: Problem, state: State,
         svd = np.linalg.svd(psi / scales, full_matrices=False)
     scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
                                         autocorrelation)
+    # The residual lacks the noise the fit projected off: restore it before the sandwich.
+    restored = restored_covariance(psi / scales, error, svd, start=model)
+    if restored is not None:
+        scaled, model = restored
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
