@@ -49,8 +49,8 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
 from ctid_ros.estimation.projected_noise import restored_covariance
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
-from ctid_ros.estimation.stages import (against_the_data_guess, automatic_start,
-                                        final_iteration, look_elsewhere,
+from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
+                                        automatic_start, final_iteration, look_elsewhere,
                                         other_side_of_the_sample, symmetry_restarts,
                                         warm_start)
 from ctid_ros.estimation.starts import Initial
@@ -417,17 +417,18 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         if start is None:
             start = automatic_start(problem, initial, transient, delay_index, delay_range)
         fit = final_iteration(problem, start, policy)
+        fit, from_initial = against_the_data_basin(problem, fit, start, policy, transient,
+                                                   delay_index, delay_range)
         sensitivities = Sensitivities(problem)
         rng = np.random.default_rng(0)
         fit, blind = symmetry_restarts(problem, fit, policy, sensitivities, rng)
         analysis = _residual_analysis(problem, fit.state)
-        if not start.from_initial and blind is None:
+        if not from_initial and blind is None:
             fit = look_elsewhere(problem, fit, policy, delay_index, analysis)
             fit = other_side_of_the_sample(problem, fit, policy, delay_index, delay_range)
             blind = blind_combination(problem, fit.state, sensitivities)
         _refuse_blind(problem, fit.state, blind, rng)
         final, history, profile = fit.result, list(fit.history), list(start.profile)
-        from_initial = start.from_initial
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
         uncertainty = covariance(problem, final.state, residuals.long_autocorrelation,
