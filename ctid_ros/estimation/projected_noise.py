@@ -42,10 +42,13 @@ import numpy as np
 
 __all__ = ['RESTORE_PASSES', 'noise_freedom', 'restored_covariance', 'restored_noise_model']
 
-# Refits of the noise model to the restored autocovariance (each adds back what the previous
-# model says the projection removed; the low-frequency level settles within a per cent by
-# the third).
+# Most refits of the noise model to the restored autocovariance (each adds back what the
+# previous model says the projection removed; the low-frequency level settles within a per
+# cent by the third).
 RESTORE_PASSES = 3
+# A restoration that moves the low-frequency level by less than this share is not needed
+# (on a long record), or has settled (between passes).
+_NEGLIGIBLE = 0.005
 # Step in the autoregressive coefficients for the gradient of the covariance.
 _COEFFICIENT_STEP = 1e-6
 # Longest lag the noise model may use (noise.noise_model's own limits are lower).
@@ -100,11 +103,16 @@ def restored_noise_model(left: np.ndarray, residual: np.ndarray,
     model = noise_model(residual, criterion=criterion) if start is None else start
     if model.order == 0 or model.shaping is not None or model.variance <= 0.0:
         return model
+    # The projection removes about (n + 1) r / N of the low-frequency level: nothing to
+    # restore on a long record.
+    if (left.shape[1] + 1) * max(model.variance_ratio, 1.0) < _NEGLIGIBLE * count:
+        return model
     basis, _ = np.linalg.qr(np.column_stack([left, np.ones(count)]))
     lags = int(min(_MAX_LAG, count - 1))
     size = 1 << int(np.ceil(np.log2(count + lags + 1)))
     centred = residual - np.mean(residual)
     sums = _lag_sums(centred[:, None], centred[:, None], lags, size)
+    level = _low_frequency_level(model)
     for _ in range(RESTORE_PASSES):
         restored = sums + _removed(basis, model, lags, size)
         if restored[0] <= 0.0:
@@ -115,7 +123,14 @@ def restored_noise_model(left: np.ndarray, residual: np.ndarray,
         # noise_model scaled the autocorrelation by the residual's own variance.
         scale = variance / fitted.variance
         model = NoiseModel(fitted.ar, fitted.innovation_variance * scale, variance)
+        previous, level = level, _low_frequency_level(model)
+        if abs(level - previous) < _NEGLIGIBLE * previous:
+            break
     return model
+
+
+def _low_frequency_level(model: NoiseModel) -> float:
+    return model.innovation_variance / float(np.sum(model.ar)) ** 2
 
 
 def restored_covariance(psi: np.ndarray, residual: np.ndarray,
