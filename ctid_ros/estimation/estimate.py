@@ -417,8 +417,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         if start is None:
             start = automatic_start(problem, initial, transient, delay_index, delay_range)
         fit = final_iteration(problem, start, policy)
-        fit, from_initial = against_the_data_basin(problem, fit, start, policy, transient,
-                                                   delay_index, delay_range)
+        fit, from_initial = against_the_data_basin(problem, fit, start, policy, delay_index,
+                                                   delay_range)
         sensitivities = Sensitivities(problem)
         rng = np.random.default_rng(0)
         fit, blind = symmetry_restarts(problem, fit, policy, sensitivities, rng)
