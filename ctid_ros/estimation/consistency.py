@@ -325,7 +325,7 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray
 
 
 def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
-                         noise: NoiseModel) -> np.ndarray:
+                         noise: NoiseModel, removed_share: float = 0.0) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
 
@@ -334,7 +334,8 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     (:func:`~ctid_ros.estimation.projected_noise.noise_freedom`). The standard deviations
     scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or white
     noise it is 1 to within a per cent (``docs/algorithm.md`` section 15). 1 for parameters
-    held at a bound.
+    held at a bound. ``removed_share``: the share of the noise's low-frequency level the fit
+    took out of the residual, which the noise model then had to restore.
     """
     factors = np.ones(free.size)
     if not np.any(free):
@@ -346,14 +347,14 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, psi.shape[0],
-                            int(np.sum(free)))
+                            int(np.sum(free)), removed_share)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
     return factors
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
-                     free: np.ndarray) -> Any:
+                     free: np.ndarray, removed_share: float = 0.0) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -362,7 +363,9 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     covariance, standard deviations and the residual's noise order are recomputed with that
     description (:func:`loop_sensitivity`, ``docs/algorithm.md`` section 15). Then the
     standard deviations are scaled for a small effective sample
-    (:func:`small_sample_factors`).
+    (:func:`small_sample_factors`; ``removed_share``: the share of the noise's low-frequency
+    level the fit took out of the residual, from
+    :func:`~ctid_ros.estimation.estimate.covariance`).
 
     Sets ``result.consistency`` and ``result.std_noise`` (the noise-only standard deviations).
     If the model does not hold over the record, each standard deviation becomes the larger of
@@ -379,7 +382,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_order = noise.order
             result.residuals.noise_power_ratio = noise.variance_ratio
             result.residuals.noise_shaped = True
-    factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise)
+    factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
+                                   0.0 if fed_back is not None else removed_share)
     result.covariance = result.covariance * np.outer(factors, factors)
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}

@@ -46,7 +46,7 @@ from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem,
                                          settling_time, State, with_fitted_nuisance)
-from ctid_ros.estimation.projected_noise import restored_covariance
+from ctid_ros.estimation.projected_noise import low_frequency_level, restored_covariance
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
@@ -264,6 +264,9 @@ class Uncertainty:
         The autoregressive model of the residual behind the covariance.
     free : ndarray of bool
         Parameters the data determine (not held at a bound).
+    removed_share : float
+        Share of the noise's low-frequency level the fit's projection took out of the residual
+        (0 where the noise model was not restored: :mod:`~ctid_ros.estimation.projected_noise`).
 
     """
 
@@ -273,6 +276,7 @@ class Uncertainty:
     weakest: np.ndarray
     noise: NoiseModel
     free: np.ndarray
+    removed_share: float = 0.0
 
 
 def covariance(problem: Problem, state: State,
@@ -307,7 +311,10 @@ def covariance(problem: Problem, state: State,
                                         autocorrelation)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(psi / scales, error, svd, start=model)
+    removed_share = 0.0
     if restored is not None:
+        removed_share = max(1.0 - low_frequency_level(model) / low_frequency_level(restored[1]),
+                            0.0)
         scaled, model = restored
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
@@ -317,7 +324,7 @@ def covariance(problem: Problem, state: State,
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
-    return Uncertainty(result, variance, condition, weakest, model, free)
+    return Uncertainty(result, variance, condition, weakest, model, free, removed_share)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -448,7 +455,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
-    return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free)
+    return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
+                            uncertainty.removed_share)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

@@ -40,7 +40,8 @@ from ctid_ros.core.simulation import all_pole
 from ctid_ros.estimation.noise import DEFAULT_CRITERION, noise_model, noise_root, NoiseModel
 import numpy as np
 
-__all__ = ['RESTORE_PASSES', 'noise_freedom', 'restored_covariance', 'restored_noise_model']
+__all__ = ['RESTORE_PASSES', 'low_frequency_level', 'noise_freedom', 'restored_covariance',
+           'restored_noise_model']
 
 # Most refits of the noise model to the restored autocovariance (each adds back what the
 # previous model says the projection removed; the low-frequency level settles within a per
@@ -112,7 +113,7 @@ def restored_noise_model(left: np.ndarray, residual: np.ndarray,
     size = 1 << int(np.ceil(np.log2(count + lags + 1)))
     centred = residual - np.mean(residual)
     sums = _lag_sums(centred[:, None], centred[:, None], lags, size)
-    level = _low_frequency_level(model)
+    level = low_frequency_level(model)
     for _ in range(RESTORE_PASSES):
         restored = sums + _removed(basis, model, lags, size)
         if restored[0] <= 0.0:
@@ -123,13 +124,14 @@ def restored_noise_model(left: np.ndarray, residual: np.ndarray,
         # noise_model scaled the autocorrelation by the residual's own variance.
         scale = variance / fitted.variance
         model = NoiseModel(fitted.ar, fitted.innovation_variance * scale, variance)
-        previous, level = level, _low_frequency_level(model)
+        previous, level = level, low_frequency_level(model)
         if abs(level - previous) < _NEGLIGIBLE * previous:
             break
     return model
 
 
-def _low_frequency_level(model: NoiseModel) -> float:
+def low_frequency_level(model: NoiseModel) -> float:
+    """Return the model's spectrum at frequency 0, ``sigma_w^2 / A(1)^2`` (unshaped)."""
     return model.innovation_variance / float(np.sum(model.ar)) ** 2
 
 
@@ -165,7 +167,7 @@ def _diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel) -> np.nd
 
 
 def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, count: int,
-                  parameters: int) -> np.ndarray:
+                  parameters: int, removed_share: float = 0.0) -> np.ndarray:
     """
     Return each standard deviation's effective degrees of freedom (module docstring).
 
@@ -179,6 +181,10 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
         The noise model behind the covariance.
     count, parameters : int
         Fitted samples and free parameters.
+    removed_share : float
+        Share of the noise's low-frequency level the fit's projection took out of the
+        residual: the coefficients are determined by that share fewer samples' worth of
+        residual (``count (1 - removed_share)``).
 
     Returns
     -------
@@ -210,5 +216,6 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
         second = np.tril(np.array([[reversed_[i - j] if i >= j else 0.0
                                     for j in range(order)] for i in range(order)]))
         inverse = first @ first.T - second @ second.T
-        variance += np.einsum('ij,jk,ik->i', gradient, inverse, gradient) / count
+        informative = count * (1.0 - min(max(removed_share, 0.0), 0.9))
+        variance += np.einsum('ij,jk,ik->i', gradient, inverse, gradient) / informative
     return np.maximum(2.0 / variance, 1.0)

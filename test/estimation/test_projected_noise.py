@@ -50,3 +50,6 @@ def test_a_slow_parameter_under_coloured_noise_has_few_degrees_of_freedom():
     model = noise_model(noise)
     freedom = noise_freedom(slow, np.eye(1), model, count, 1)
     assert 3.0 < freedom[0] < 20.0
+    # A residual that lacks a quarter of the low-frequency level determines its model less.
+    depleted = noise_freedom(slow, np.eye(1), model, count, 1, removed_share=0.25)
+    assert depleted[0] == pytest.approx(0.75 * freedom[0], rel=0.1)
