@@ -37,11 +37,12 @@ from typing import Any, Dict, List, Optional, Tuple
 from ctid_ros.core.simulation import all_pole
 from ctid_ros.estimation.noise import coloured_covariance, noise_memory, noise_root, NoiseModel
 from ctid_ros.estimation.problem import Problem, State
+from ctid_ros.estimation.projected_noise import noise_freedom
 import numpy as np
 from scipy import special
 
 __all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'block_deviations',
-           'check_consistency', 'consistency_bound', 'loop_sensitivity', 'small_sample_factor',
+           'check_consistency', 'consistency_bound', 'loop_sensitivity', 'small_sample_factors',
            'with_consistency']
 
 # Halves and quarters.
@@ -479,24 +480,37 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray
     return covariance, model
 
 
-def small_sample_factor(count: int, parameters: int, noise: NoiseModel) -> float:
+def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
+                         noise: NoiseModel, removed_share: float = 0.0) -> np.ndarray:
     """
-    Return ``t_0.975(nu) / z_0.975``: the 95 % t quantile over the normal one.
+    Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
 
-    ``nu = N / r - p`` effective degrees of freedom: ``r`` the noise model's low-frequency
-    power over that of white noise of equal variance (at least 1), so ``N / r`` is the number
-    of effectively independent samples (exact for the mean of an AR(1) process). The standard
-    deviations scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or
-    white noise it is 1 to within a per cent (``docs/algorithm.md`` section 15).
+    ``nu_i`` is the effective degrees of freedom of parameter ``i``'s variance: how much the
+    noise model's own estimation error moves it
+    (:func:`~ctid_ros.estimation.projected_noise.noise_freedom`). The standard deviations
+    scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or white
+    noise it is 1 to within a per cent (``docs/algorithm.md`` section 15). 1 for parameters
+    held at a bound. ``removed_share``: the share of the noise's low-frequency level the fit
+    took out of the residual, which the noise model then had to restore.
     """
-    ratio = max(float(noise.variance_ratio), 1.0)
-    freedom = max(count / ratio - parameters, 1.0)
+    factors = np.ones(free.size)
+    if not np.any(free):
+        return factors
+    psi, _ = _sensitivities(problem, state, free)
+    scales = np.linalg.norm(psi, axis=0)
+    left, singular, right_t = np.linalg.svd(psi / np.where(scales > 0.0, scales, 1.0),
+                                            full_matrices=False)
+    if singular[-1] <= 0.0:
+        return factors
+    freedom = noise_freedom(left, right_t.T / singular, noise, psi.shape[0],
+                            int(np.sum(free)), removed_share)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
-    return float(special.stdtrit(freedom, 0.975) / special.ndtri(0.975))
+    factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
+    return factors
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
-                     free: np.ndarray) -> Any:
+                     free: np.ndarray, removed_share: float = 0.0) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -505,7 +519,9 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     covariance, standard deviations and the residual's noise order are recomputed with that
     description (:func:`loop_sensitivity`, ``docs/algorithm.md`` section 15). Then the
     standard deviations are scaled for a small effective sample
-    (:func:`small_sample_factor`).
+    (:func:`small_sample_factors`; ``removed_share``: the share of the noise's low-frequency
+    level the fit took out of the residual, from
+    :func:`~ctid_ros.estimation.estimate.covariance`).
 
     Sets ``result.consistency`` and ``result.std_noise`` (the noise-only standard deviations).
     If the model does not hold over the record, each standard deviation becomes the larger of
@@ -522,10 +538,11 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_order = noise.order
             result.residuals.noise_power_ratio = noise.variance_ratio
             result.residuals.noise_shaped = True
-    factor = small_sample_factor(problem.measured.size, int(np.sum(free)), noise)
-    if factor != 1.0:
-        result.covariance = result.covariance * factor ** 2
-        result.std = {name: value * factor for name, value in result.std.items()}
+    factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
+                                   0.0 if fed_back is not None else removed_share)
+    result.covariance = result.covariance * np.outer(factors, factors)
+    result.std = {name: value * factor for (name, value), factor in
+                  zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
     consistency = check_consistency(problem, state, noise, free, std)
     result.consistency = consistency

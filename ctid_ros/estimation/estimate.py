@@ -46,10 +46,11 @@ from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem,
                                          settling_time, State, with_fitted_nuisance)
+from ctid_ros.estimation.projected_noise import low_frequency_level, restored_covariance
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
-from ctid_ros.estimation.stages import (against_the_data_guess, automatic_start,
-                                        final_iteration, look_elsewhere,
+from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
+                                        automatic_start, final_iteration, look_elsewhere,
                                         other_side_of_the_sample, symmetry_restarts,
                                         warm_start)
 from ctid_ros.estimation.starts import Initial
@@ -263,6 +264,9 @@ class Uncertainty:
         The autoregressive model of the residual behind the covariance.
     free : ndarray of bool
         Parameters the data determine (not held at a bound).
+    removed_share : float
+        Share of the noise's low-frequency level the fit's projection took out of the residual
+        (0 where the noise model was not restored: :mod:`~ctid_ros.estimation.projected_noise`).
 
     """
 
@@ -272,6 +276,7 @@ class Uncertainty:
     weakest: np.ndarray
     noise: NoiseModel
     free: np.ndarray
+    removed_share: float = 0.0
 
 
 def covariance(problem: Problem, state: State,
@@ -304,6 +309,13 @@ def covariance(problem: Problem, state: State,
         svd = np.linalg.svd(psi / scales, full_matrices=False)
     scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
                                         autocorrelation)
+    # The residual lacks the noise the fit projected off: restore it before the sandwich.
+    restored = restored_covariance(psi / scales, error, svd, start=model)
+    removed_share = 0.0
+    if restored is not None:
+        removed_share = max(1.0 - low_frequency_level(model) / low_frequency_level(restored[1]),
+                            0.0)
+        scaled, model = restored
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
@@ -312,7 +324,7 @@ def covariance(problem: Problem, state: State,
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
-    return Uncertainty(result, variance, condition, weakest, model, free)
+    return Uncertainty(result, variance, condition, weakest, model, free, removed_share)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -412,17 +424,18 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         if start is None:
             start = automatic_start(problem, initial, transient, delay_index, delay_range)
         fit = final_iteration(problem, start, policy)
+        fit, from_initial = against_the_data_basin(problem, fit, start, policy, delay_index,
+                                                   delay_range)
         sensitivities = Sensitivities(problem)
         rng = np.random.default_rng(0)
         fit, blind = symmetry_restarts(problem, fit, policy, sensitivities, rng)
         analysis = _residual_analysis(problem, fit.state)
-        if not start.from_initial and blind is None:
+        if not from_initial and blind is None:
             fit = look_elsewhere(problem, fit, policy, delay_index, analysis)
             fit = other_side_of_the_sample(problem, fit, policy, delay_index, delay_range)
             blind = blind_combination(problem, fit.state, sensitivities)
         _refuse_blind(problem, fit.state, blind, rng)
         final, history, profile = fit.result, list(fit.history), list(start.profile)
-        from_initial = start.from_initial
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
         uncertainty = covariance(problem, final.state, residuals.long_autocorrelation,
@@ -442,7 +455,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         condition=condition, intersample=intersample, warnings=notes, delay_profile=profile,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
-    return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free)
+    return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
+                            uncertainty.removed_share)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],
