@@ -162,8 +162,10 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
 def _diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel) -> np.ndarray:
     """Return the diagonal of ``mapping Z^T Z mapping^T``, ``Z`` of unit innovation variance."""
     unit = NoiseModel(model.ar, 1.0, model.variance)
-    projected = noise_root(left, unit) @ mapping.T
-    return np.einsum('ij,ij->j', projected, projected)
+    root = noise_root(left, unit)
+    # Through the p x p Gram matrix: numpy's product of the long, reversed root with the
+    # mapping does not reach BLAS speed.
+    return np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
 
 
 def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, count: int,
