@@ -236,10 +236,13 @@ def _raised(levels: Sequence[int], level: int = ERROR) -> int:
 
 def _light(update: Update, config: IdentificationConfig) -> SimpleNamespace:
     """Return what a detector reads of an update, the model check done, without the data."""
+    result = update.result
     return SimpleNamespace(
         names=update.names, values=update.values, stds=update.stds,
         covariance=update.covariance, end_ns=update.end_ns, start_ns=update.start_ns,
-        result=SimpleNamespace(converged=update.result.converged),
+        result=SimpleNamespace(converged=result.converged, std=result.std,
+                               std_noise=result.std_noise, std_change=result.std_change,
+                               consistency=result.consistency),
         check=model_check(update, config.window, config.transient))
 
 

@@ -510,7 +510,8 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
-                     free: np.ndarray, removed_share: float = 0.0) -> Any:
+                     free: np.ndarray, removed_share: float = 0.0,
+                     restored_factors: Optional[np.ndarray] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -521,9 +522,12 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     standard deviations are scaled for a small effective sample
     (:func:`small_sample_factors`; ``removed_share``: the share of the noise's low-frequency
     level the fit took out of the residual, from
-    :func:`~ctid_ros.estimation.estimate.covariance`).
+    :func:`~ctid_ros.estimation.estimate.covariance`; ``restored_factors``: its standard
+    deviations with the restored noise over those without, None if not restored).
 
-    Sets ``result.consistency`` and ``result.std_noise`` (the noise-only standard deviations).
+    Sets ``result.consistency``, ``result.std_noise`` (the noise-only standard deviations) and
+    ``result.std_change`` (those before the t factors and the restored noise: a change test's,
+    ``docs/algorithm.md`` section 17).
     If the model does not hold over the record, each standard deviation becomes the larger of
     the noise-only one and the scatter of the quarter estimates (the covariance is scaled to
     match, correlations kept), a warning says so, and the residual verdict no longer claims
@@ -531,7 +535,10 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     """
     names = problem.model.parameters
     fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool))
+    restored = np.ones(len(names)) if restored_factors is None else \
+        np.asarray(restored_factors, dtype=float)
     if fed_back is not None:
+        restored = np.ones(len(names))
         result.covariance, noise = fed_back
         result.std = dict(zip(names, map(float, np.sqrt(np.abs(np.diag(result.covariance))))))
         if result.residuals is not None:
@@ -541,6 +548,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
                                    0.0 if fed_back is not None else removed_share)
     result.covariance = result.covariance * np.outer(factors, factors)
+    result.std_change = {name: value / factor for (name, value), factor in
+                         zip(result.std.items(), restored)}
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)

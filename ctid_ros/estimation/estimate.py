@@ -123,6 +123,14 @@ class Estimate:
         covers the scatter of the quarter estimates and ``covariance`` is scaled to match.
     std_noise : dict
         The standard deviations the noise alone implies (equal to ``std`` when consistent).
+    std_change : dict
+        The standard deviations a change test compares windows by
+        (:mod:`~ctid_ros.streaming.alarm`): the noise-only ones before the small-sample t
+        factors (a quantile correction of the intervals, not a variance) and before the
+        restored projected noise (a correction that grows where the residual is coloured by
+        a model that does not hold across the record), both of section 15; the test's robust
+        scale calibrates them on the windows themselves (``docs/algorithm.md`` section 17).
+        Not reported; empty where not computed.
 
     """
 
@@ -148,6 +156,7 @@ class Estimate:
     residuals: Optional[ResidualAnalysis] = None
     consistency: Optional[Consistency] = None
     std_noise: Dict[str, float] = field(default_factory=dict)
+    std_change: Dict[str, float] = field(default_factory=dict)
 
     @property
     def theta(self) -> np.ndarray:
@@ -267,6 +276,9 @@ class Uncertainty:
     removed_share : float
         Share of the noise's low-frequency level the fit's projection took out of the residual
         (0 where the noise model was not restored: :mod:`~ctid_ros.estimation.projected_noise`).
+    restored_factors : ndarray or None
+        Per parameter, the standard deviation with the restored noise model over that with the
+        residual's own (1 for held parameters); None where the noise model was not restored.
 
     """
 
@@ -277,6 +289,7 @@ class Uncertainty:
     noise: NoiseModel
     free: np.ndarray
     removed_share: float = 0.0
+    restored_factors: Optional[np.ndarray] = None
 
 
 def covariance(problem: Problem, state: State,
@@ -312,9 +325,13 @@ def covariance(problem: Problem, state: State,
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(psi / scales, error, svd, start=model)
     removed_share = 0.0
+    restored_factors = None
     if restored is not None:
         removed_share = max(1.0 - low_frequency_level(model) / low_frequency_level(restored[1]),
                             0.0)
+        ratio = np.sqrt(np.diag(restored[0]) / np.diag(scaled))
+        restored_factors = np.ones(params)
+        restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
         scaled, model = restored
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
@@ -324,7 +341,8 @@ def covariance(problem: Problem, state: State,
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
-    return Uncertainty(result, variance, condition, weakest, model, free, removed_share)
+    return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
+                       restored_factors)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -456,7 +474,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
-                            uncertainty.removed_share)
+                            uncertainty.removed_share, uncertainty.restored_factors)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

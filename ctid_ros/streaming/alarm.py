@@ -274,20 +274,27 @@ def output_sensitivities(result: Any, data: Any) -> np.ndarray:
 
 def noise_only(update: Update, covariance: np.ndarray) -> np.ndarray:
     """
-    Return the window's covariance as the noise alone implies it.
+    Return the window's covariance as a change test needs it: the noise's alone.
 
     Where the window's parameters move across it (its consistency check flagged it, section
     18) the estimate reports standard deviations that cover the scatter of its quarters: the
     honest spread of the answer, but for the change test a window that straddles a change
-    would then hide the change behind it. The test compares each window with the baseline on
-    the noise-only covariance (the correlations kept); that an adequate model's windows agree
-    with it is what :func:`robust_scale` learns anyway.
+    would then hide the change behind it. Nor does the test take the small-sample t factors (a
+    quantile correction of a single window's interval, not a variance) or the restored
+    projected noise (it grows where a model that does not hold across the window colours the
+    residual): the estimate's ``std_change`` (section 17). The test compares each window with
+    the baseline on that covariance (the correlations kept); that an adequate model's windows
+    agree with it is what :func:`robust_scale` learns anyway. An estimate without
+    ``std_change`` gets the noise-only covariance where it was flagged.
     """
     result = update.result
-    consistency = getattr(result, 'consistency', None)
-    if consistency is None or consistency.consistent or not result.std_noise:
-        return covariance
-    ratio = np.array([result.std_noise.get(name, math.nan) / result.std[name]
+    std = getattr(result, 'std_change', None)
+    if not std:
+        consistency = getattr(result, 'consistency', None)
+        if consistency is None or consistency.consistent or not result.std_noise:
+            return covariance
+        std = result.std_noise
+    ratio = np.array([std.get(name, math.nan) / result.std[name]
                       if result.std.get(name) else 1.0 for name in update.names])
     ratio = np.where(np.isfinite(ratio) & (ratio > 0.0) & (ratio < 1.0), ratio, 1.0)
     return covariance * np.outer(ratio, ratio)

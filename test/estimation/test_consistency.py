@@ -27,6 +27,10 @@ def test_an_adequate_model_with_arma_noise_is_consistent_and_reports_it():
     assert consistency.bound == pytest.approx(3.86, abs=0.01)
     assert 0.0 < consistency.max_z < consistency.bound
     assert result.std == result.std_noise
+    # The change test's standard deviations leave out the t factors and the restored noise:
+    # a few per cent narrower on 2 550 samples of ARMA noise.
+    for name in system.model.parameters:
+        assert 0.9 * result.std[name] < result.std_change[name] < result.std[name]
     assert consistency.verdict.startswith('consistent over the record')
     summary = result.to_dict()['consistency']
     assert summary['consistent'] is True and summary['blocks'] == 6

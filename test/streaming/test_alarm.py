@@ -7,8 +7,8 @@ from bench.alarm import node_config, plant, RESONANCE_MODEL, run_windows
 from ctid_ros import Data, Model
 from ctid_ros.errors import DataError
 from ctid_ros.streaming.alarm import (AlarmSettings, brownian_arl, ChangeDetector,
-                                      cusum_threshold, long_run_variance, model_check, overshoot,
-                                      REFERENCE)
+                                      cusum_threshold, long_run_variance, model_check, noise_only,
+                                      overshoot, REFERENCE)
 from ctid_ros.streaming.baseline import Baseline
 from ctid_ros.streaming.contract import ERROR, NANOSECONDS, OK, WARN
 import numpy as np
@@ -176,6 +176,19 @@ def test_an_optimistic_covariance_is_corrected_by_the_robust_scale():
     assert max(levels[:100]) == ERROR
     later = np.array(levels[200:])
     assert np.sum((later[1:] == ERROR) & (later[:-1] != ERROR)) <= 4
+
+
+def test_the_change_test_takes_the_estimate_s_change_covariance():
+    window = update(0, TRUTH)
+    covariance = np.array(window.covariance)
+    window.result.consistency, window.result.std = None, dict(zip(NAMES, STD))
+    assert noise_only(window, covariance) == pytest.approx(covariance)
+    # Without the t factors and the restored noise (Estimate.std_change), correlations kept.
+    covariance[0, 1] = covariance[1, 0] = 0.5 * STD[0] * STD[1]
+    window.result.std_change = dict(zip(NAMES, STD * np.array([0.9, 0.95, 1.0])))
+    narrowed = noise_only(window, covariance)
+    assert np.sqrt(np.diag(narrowed)) == pytest.approx(STD * np.array([0.9, 0.95, 1.0]))
+    assert narrowed[0, 1] == pytest.approx(0.5 * 0.9 * 0.95 * STD[0] * STD[1])
 
 
 def test_the_baseline_uncertainty_widens_the_dead_zone():
