@@ -28,10 +28,10 @@ order-``p`` model fitted to ``N`` samples scatter with covariance ``sigma_w^2 R_
 (``R_p`` the ``p x p`` autocovariance; by Gohberg-Semencul ``sigma_w^2 R_p^-1 = L_1 L_1^T -
 L_2 L_2^T``, ``L_1``, ``L_2`` lower triangular Toeplitz of ``1, a_1 .. a_p-1`` and
 ``a_p .. a_1``), ``log sigma_w^2`` with variance ``2 / (N - n)``; the gradient ``g_i`` of
-``log P_ii`` in ``a`` (by differences) gives ``var(log P_ii) = 2 / (N - n) + g_i^T sigma_w^2
-R_p^-1 g_i / N`` and ``nu_i = 2 / var(log P_ii)``, as for a variance estimate distributed
-``chi^2_nu / nu``. For white noise ``nu = N - n``; for a slow parameter under noise of
-low-frequency power ``r`` times white, ``nu`` is about ``N / (2 r)``.
+``log P_ii`` in ``a`` (exact, from two filter passes) gives ``var(log P_ii) = 2 / (N - n) +
+g_i^T sigma_w^2 R_p^-1 g_i / N`` and ``nu_i = 2 / var(log P_ii)``, as for a variance
+estimate distributed ``chi^2_nu / nu``. For white noise ``nu = N - n``; for a slow parameter
+under noise of low-frequency power ``r`` times white, ``nu`` is about ``N / (2 r)``.
 """
 
 from typing import Optional, Tuple
@@ -50,8 +50,6 @@ RESTORE_PASSES = 3
 # A restoration that moves the low-frequency level by less than this share is not needed
 # (on a long record), or has settled (between passes).
 _NEGLIGIBLE = 0.005
-# Step in the autoregressive coefficients for the gradient of the covariance.
-_COEFFICIENT_STEP = 1e-6
 # Longest lag the noise model may use (noise.noise_model's own limits are lower).
 _MAX_LAG = 30
 
@@ -159,13 +157,30 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
     return mapping @ (filtered.T @ filtered) @ mapping.T, model
 
 
-def _diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """Return the diagonal of ``mapping Z^T Z mapping^T``, ``Z`` of unit innovation variance."""
+def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel
+                  ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return ``log d`` and its gradient in ``a_1 .. a_p``, ``d`` the diagonal of ``M Z^T Z M^T``.
+
+    ``Z = H^T U`` with ``H = A(S)^-1`` the causal impulse-response matrix of ``1/A`` for unit
+    innovations (``S`` the lower shift). ``dH/da_k = -S^k H^2``: lower triangular Toeplitz
+    matrices commute, so ``dZ/da_k = -(S^T)^k Y`` with ``Y = H^T Z``, the root filtered once
+    more, moved ``k`` samples earlier. Two filter passes give the exact gradient, where
+    differences would take one pass per coefficient.
+    """
     unit = NoiseModel(model.ar, 1.0, model.variance)
     root = noise_root(left, unit)
-    # Through the p x p Gram matrix: numpy's product of the long, reversed root with the
+    again = noise_root(root, unit)
+    # Through p x p Gram matrices: numpy's product of the long, reversed root with the
     # mapping does not reach BLAS speed.
-    return np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
+    diagonal = np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
+    gradient = np.empty((mapping.shape[0], model.order))
+    for lag in range(1, model.order + 1):
+        cross = root[:-lag].T @ again[lag:] if lag < root.shape[0] else \
+            np.zeros((root.shape[1],) * 2)
+        gradient[:, lag - 1] = -np.einsum('ij,jk,ik->i', mapping, cross + cross.T,
+                                          mapping) / diagonal
+    return np.log(diagonal), gradient
 
 
 def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, count: int,
@@ -203,14 +218,7 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
     variance = np.full(rows, 2.0 / residual_freedom)
     order = model.order
     if order:
-        base = np.log(_diagonal(mapping, left, model))
-        gradient = np.empty((rows, order))
-        for index in range(order):
-            shifted = model.ar.copy()
-            shifted[index + 1] += _COEFFICIENT_STEP
-            moved = NoiseModel(shifted, 1.0, model.variance)
-            gradient[:, index] = (np.log(_diagonal(mapping, left, moved)) - base) \
-                / _COEFFICIENT_STEP
+        _, gradient = _log_diagonal(mapping, left, model)
         coefficients = model.ar
         first = np.tril(np.array([[coefficients[i - j] if i >= j else 0.0
                                    for j in range(order)] for i in range(order)]))
