@@ -269,12 +269,7 @@ class ContinuousFilter:
         if not np.isfinite(numerators).all():
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
-        extra = numerators.shape[1] - (n + 1)
-        if extra > 0:
-            if np.any(numerators[:, :extra] != 0.0):
-                raise ModelError(f'improper transfer function: numerator degree exceeds '
-                                 f'denominator degree {n}')
-            numerators = numerators[:, extra:]
+        numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
         size = numerators.shape[1]
         ascending = np.zeros((numerators.shape[0], n + 1))
         # N(scale * z) scaled the same way as the monic denominator.
@@ -611,12 +606,8 @@ class StateResponse:
             return None
         numerators = np.asarray(numerators, dtype=float)
         order = self._continuous.order
-        extra = numerators.shape[1] - (2 * order + 1)
-        if extra > 0:
-            if np.any(numerators[:, :extra] != 0.0):
-                raise ModelError(f'improper transfer function: numerator degree exceeds '
-                                 f'twice the denominator degree {order}')
-            numerators = numerators[:, extra:]
+        numerators = _without_leading_zeros(numerators, 2 * order,
+                                            f'twice the denominator degree {order}')
         size = numerators.shape[1]
         with np.errstate(over='ignore', invalid='ignore'):
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
@@ -768,6 +759,20 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
             driving[i] += coupling[i, i + 1:] @ modal[i + 1:]
         modal[i, 1:] = recursions(poles[i:i + 1], driving[i:i + 1, :count - 1])[0]
     return modal
+
+
+def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> np.ndarray:
+    """
+    Return the numerator rows (highest power first) cut to ``degree + 1`` coefficients.
+
+    Raises ModelError naming ``limit`` if a coefficient cut off is not zero.
+    """
+    extra = numerators.shape[1] - (degree + 1)
+    if extra > 0:
+        if np.any(numerators[:, :extra] != 0.0):
+            raise ModelError(f'improper transfer function: numerator degree exceeds {limit}')
+        numerators = numerators[:, extra:]
+    return numerators
 
 
 def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
