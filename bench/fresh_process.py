@@ -13,7 +13,7 @@ baselines run in the same environment.
 from contextlib import contextmanager
 import os
 from pathlib import Path
-from typing import Iterator
+from typing import Dict, Iterator, Optional
 
 __all__ = ['MODEL_STORE', 'user_environment']
 
@@ -28,15 +28,16 @@ def user_environment(directory: Path) -> Iterator[None]:
                'PYTHONDONTWRITEBYTECODE': None}
     saved = {name: os.environ.get(name) for name in changes}
     try:
-        for name, value in changes.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
+        _set_environment(changes)
         yield
     finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
+        _set_environment(saved)
+
+
+def _set_environment(values: Dict[str, Optional[str]]) -> None:
+    """Set each variable to its value; remove those whose value is None."""
+    for name, value in values.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
