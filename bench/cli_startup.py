@@ -20,22 +20,16 @@ The installed ``ctid`` and ``ctid_node`` scripts next to this interpreter are us
 """
 
 import argparse
-import os
 from pathlib import Path
-import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from typing import Dict, List, Optional, Tuple
 
-from bench.fresh_process import MODEL_STORE, user_environment
+from bench.fresh_process import interleaved_medians, MODEL_STORE, user_environment
 
 __all__ = ['LIMITS', 'commands', 'main', 'run', 'write_record']
 
 MODEL = 'K*exp(-tau*s)/(T*s + 1)'
-# The script baseline runs as ``python -m bench.user_fit_script`` from here.
-_REPOSITORY = Path(__file__).resolve().parent.parent
 # (command, baseline, largest ratio command / baseline) that issue #26 accepts.
 LIMITS: List[Tuple[str, str, float]] = [
     ('ctid --help', 'python -c "import numpy"', 2.0),
@@ -81,29 +75,10 @@ def commands(csv: Path) -> Dict[str, List[str]]:
     }
 
 
-def _once(command: List[str]) -> Tuple[float, float]:
-    """Return the wall and CPU seconds (user + system of the child) of one fresh process."""
-    before = os.times()
-    started = time.perf_counter()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                   cwd=_REPOSITORY)
-    wall = time.perf_counter() - started
-    after = os.times()
-    return wall, (after.children_user - before.children_user
-                  + after.children_system - before.children_system)
-
-
 def run(runs: int, csv: Path) -> Dict[str, Tuple[float, float]]:
     """Return the median (wall, CPU) seconds of each command over ``runs`` interleaved runs."""
     lines = commands(csv)
-    for command in lines.values():     # warm the file cache and the bytecode once
-        _once(command)
-    times: Dict[str, List[Tuple[float, float]]] = {name: [] for name in lines}
-    for _ in range(runs):
-        for name, command in lines.items():
-            times[name].append(_once(command))
-    return {name: (statistics.median(w for w, _ in values),
-                   statistics.median(c for _, c in values)) for name, values in times.items()}
+    return interleaved_medians(lines, runs)
 
 
 def main(argv: Optional[List[str]] = None) -> Dict[str, float]:

@@ -13,11 +13,15 @@ baselines run in the same environment.
 from contextlib import contextmanager
 import os
 from pathlib import Path
-from typing import Dict, Iterator, Optional
+import statistics
+import subprocess
+import time
+from typing import Dict, Iterator, List, Mapping, Optional, Tuple
 
-__all__ = ['MODEL_STORE', 'user_environment']
+__all__ = ['MODEL_STORE', 'interleaved_medians', 'time_process', 'user_environment']
 
 MODEL_STORE = 'CTID_CACHE_DIR'
+_REPOSITORY = Path(__file__).resolve().parent.parent
 
 
 @contextmanager
@@ -41,3 +45,33 @@ def _set_environment(values: Dict[str, Optional[str]]) -> None:
             os.environ.pop(name, None)
         else:
             os.environ[name] = value
+
+
+def time_process(command: List[str]) -> Tuple[float, float]:
+    """Return the wall and CPU seconds (user + system of the child) of one fresh process."""
+    before = os.times()
+    started = time.perf_counter()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                   cwd=_REPOSITORY)
+    wall = time.perf_counter() - started
+    after = os.times()
+    return wall, (after.children_user - before.children_user
+                  + after.children_system - before.children_system)
+
+
+def interleaved_medians(commands: Mapping[str, List[str]], runs: int
+                        ) -> Dict[str, Tuple[float, float]]:
+    """
+    Return the median (wall, CPU) seconds of each command over ``runs`` interleaved runs.
+
+    Each command runs once first, untimed, to warm the file cache, the bytecode and the model
+    store; then the commands take turns, so load that comes and goes falls on all alike.
+    """
+    for command in commands.values():
+        time_process(command)
+    times: Dict[str, List[Tuple[float, float]]] = {name: [] for name in commands}
+    for _ in range(runs):
+        for name, command in commands.items():
+            times[name].append(time_process(command))
+    return {name: (statistics.median(w for w, _ in values),
+                   statistics.median(c for _, c in values)) for name, values in times.items()}

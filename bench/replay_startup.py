@@ -14,33 +14,17 @@ Run with ``python -m bench replay_startup [--runs N] [--work DIR]``.
 """
 
 import argparse
-import os
 from pathlib import Path
-import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from typing import Dict, List, Optional, Tuple
 
-from bench.fresh_process import user_environment
+from bench.fresh_process import interleaved_medians, user_environment
 
 __all__ = ['LIMIT', 'main', 'run']
 
 LIMIT = 0.5
 _REPOSITORY = Path(__file__).resolve().parent.parent
-
-
-def _once(command: List[str]) -> Tuple[float, float]:
-    """Return the wall and CPU seconds of one fresh process."""
-    before = os.times()
-    started = time.perf_counter()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                   cwd=_REPOSITORY)
-    wall = time.perf_counter() - started
-    after = os.times()
-    return wall, (after.children_user - before.children_user
-                  + after.children_system - before.children_system)
 
 
 def run(runs: int, work: Path) -> Dict[str, Tuple[float, float]]:
@@ -57,14 +41,7 @@ def run(runs: int, work: Path) -> Dict[str, Tuple[float, float]]:
         'bare rosbags read + deserialise': [sys.executable, '-m', 'bench.bare_bag_read',
                                             str(bag)],
     }
-    for command in lines.values():     # warm the file cache and the bytecode once
-        _once(command)
-    times: Dict[str, List[Tuple[float, float]]] = {name: [] for name in lines}
-    for _ in range(runs):
-        for name, command in lines.items():
-            times[name].append(_once(command))
-    return {name: (statistics.median(w for w, _ in values),
-                   statistics.median(c for _, c in values)) for name, values in times.items()}
+    return interleaved_medians(lines, runs)
 
 
 def main(argv: Optional[List[str]] = None) -> Dict[str, Tuple[float, float]]:
