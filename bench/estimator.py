@@ -22,7 +22,7 @@ ratios show how close to the bound any estimator gets with this record length an
 import argparse
 import json
 import time
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Tuple
 import warnings
 
 from ctid_ros import estimate, EstimationError, ModelError
@@ -130,25 +130,41 @@ METHODS: Dict[str, Callable] = {
 }
 
 
-def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
-    truth = system.model.vector(system.truth)
+def timed_fits(system: ReferenceSystem, runs: int, seed: int,
+               fits: Dict[str, Callable[..., np.ndarray]],
+               clock: Callable[[], float] = time.perf_counter
+               ) -> Iterator[Tuple[str, np.ndarray, float]]:
+    """
+    Yield ``(name, theta, seconds)`` of every fit of ``runs`` seeded noisy records.
+
+    Each record gets one start (:func:`draw_start`) that every fit in ``fits`` (called as
+    ``fit(system, data, start)``) begins from; ``seconds`` is the fit alone on ``clock``;
+    ``theta`` is labelled like the truth, NaN where the fit raised.
+    """
+    size = system.model.vector(system.truth).size
     rng = np.random.default_rng(seed)
-    outcomes = {name: {'success': 0, 'times': [], 'estimates': []} for name in METHODS}
     for run in range(runs):
         data = system.data(seed=seed * 1000 + run)
         start = draw_start(system, rng)
-        for name, fit in METHODS.items():
-            began = time.perf_counter()
+        for name, fit in fits.items():
+            began = clock()
             try:
                 theta = fit(system, data, start)
             except (EstimationError, ValueError, np.linalg.LinAlgError):
-                theta = np.full(truth.size, np.nan)
-            outcomes[name]['times'].append(time.perf_counter() - began)
-            theta = system.labelled_like_truth(theta)
-            close = np.all(np.abs(theta - truth) <= FAR * np.abs(truth))
-            outcomes[name]['success'] += bool(close)
-            if close:
-                outcomes[name]['estimates'].append(theta)
+                theta = np.full(size, np.nan)
+            seconds = clock() - began
+            yield name, system.labelled_like_truth(theta), seconds
+
+
+def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
+    truth = system.model.vector(system.truth)
+    outcomes = {name: {'success': 0, 'times': [], 'estimates': []} for name in METHODS}
+    for name, theta, seconds in timed_fits(system, runs, seed, METHODS):
+        outcomes[name]['times'].append(seconds)
+        close = np.all(np.abs(theta - truth) <= FAR * np.abs(truth))
+        outcomes[name]['success'] += bool(close)
+        if close:
+            outcomes[name]['estimates'].append(theta)
     bound = crlb(system)
     bound_std = np.sqrt(np.diag(bound))
     summary = {'system': system.name, 'runs': runs, 'parameters': list(system.model.parameters),

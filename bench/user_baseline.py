@@ -19,9 +19,9 @@ import time
 from typing import Callable, Dict, List, Optional, Tuple
 import warnings
 
-from bench.estimator import draw_start, FAR, run_on_reference_systems
+from bench.estimator import FAR, run_on_reference_systems, timed_fits
 from bench.user_simulator import user_simulate
-from ctid_ros import estimate, EstimationError
+from ctid_ros import estimate
 from ctid_ros.core.reference_systems import ReferenceSystem
 import numpy as np
 from scipy import optimize
@@ -87,22 +87,12 @@ def ctid_fit(system: ReferenceSystem, data, start: np.ndarray) -> np.ndarray:
 def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
     """Fit ``runs`` noisy records both ways; return success rates, median times, ratio."""
     truth = system.model.vector(system.truth)
-    rng = np.random.default_rng(seed)
     fits = {'ctid_ros': ctid_fit, 'user least_squares': user_fit}
     times: Dict[str, List[float]] = {name: [] for name in fits}
     success = dict.fromkeys(fits, 0)
-    for run in range(runs):
-        data = system.data(seed=seed * 1000 + run)
-        start = draw_start(system, rng)
-        for name, fit in fits.items():
-            began = time.process_time()
-            try:
-                theta = fit(system, data, start)
-            except (EstimationError, ValueError, np.linalg.LinAlgError):
-                theta = np.full(truth.size, np.nan)
-            times[name].append(time.process_time() - began)
-            theta = system.labelled_like_truth(theta)
-            success[name] += bool(np.all(np.abs(theta - truth) <= FAR * np.abs(truth)))
+    for name, theta, seconds in timed_fits(system, runs, seed, fits, time.process_time):
+        times[name].append(seconds)
+        success[name] += bool(np.all(np.abs(theta - truth) <= FAR * np.abs(truth)))
     medians = {name: float(np.median(values)) for name, values in times.items()}
     return {'system': system.name, 'runs': runs,
             'success_rate': {name: count / runs for name, count in success.items()},
