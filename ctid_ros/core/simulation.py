@@ -708,6 +708,10 @@ class _Modes:
         out_map = rows @ self._basis
         if self._keep is not None:
             out_map = out_map[:, self._keep] * self._weights
+        if self._modal.shape[0] == 1 and self._modal.dtype.kind == 'f':
+            # One real mode: the product of one term, which numpy's matmul runs without BLAS
+            # (this inner dimension) several times slower than the broadcast product.
+            return out_map.real * self._modal
         return (out_map @ self._modal).real
 
 
@@ -786,23 +790,32 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     solve up to :data:`_BAND_SIZE` samples (a longer band leaves the cache and runs several
     times slower per sample).
     """
+    poles = np.asarray(poles)
     rows, length = values.shape
-    complex_valued = np.iscomplexobj(values) or np.iscomplexobj(poles)
+    complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
     dtype = complex if complex_valued else float
     if rows == 0 or length == 0:
         return np.zeros((rows, length), dtype=dtype)
     values = values.astype(dtype, copy=False)
     # Finite values only: a block's product would spread a NaN or inf to the samples before it.
-    if not complex_valued and length >= _BLOCKED_MIN_LENGTH and \
-            rows * length >= _BLOCKED_MIN_SIZE and np.all(np.abs(poles) <= 1.0) and \
-            np.isfinite(values).all():
-        return _blocked_recursions(np.asarray(poles, dtype=float), values)
+    # The checks are array methods, without numpy's dispatch: a sum is finite if no value
+    # is NaN or infinite (a finite sum overflowing takes the solves, as exact).
+    if not complex_valued and _blocked_size(rows, length) and abs(poles).max() <= 1.0 and \
+            math.isfinite(values.sum()):
+        return _blocked_recursions(poles.astype(float, copy=False), values)
+    return _banded_recursions(poles, values, complex_valued)
+
+
+def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bool
+                       ) -> np.ndarray:
+    """:func:`recursions` as banded triangular solves, for values of the solve's type."""
+    rows, length = values.shape
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
     step = max(1, _BAND_SIZE // length)
     parts = []
     for first in range(0, rows, step):
         count = min(step, rows - first)
-        band = np.empty((2, count * length), dtype=dtype)
+        band = np.empty((2, count * length), dtype=values.dtype)
         band[0] = 1.0
         below = band[1].reshape(count, length)
         below[:] = -poles[first:first + count, None]
@@ -818,6 +831,17 @@ _BAND_SIZE = 16384
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
 _BLOCKED_MIN_SIZE = 1536
+# The exponents of a block's pole powers p^0 .. p^B, and where each entry of the transposed
+# block matrix reads them: p^(k - j) at row j, column k for k >= j, else the zero appended
+# after p^B (index B + 1). Constant: built once, not per run.
+_BLOCK_EXPONENTS = np.arange(_BLOCK + 1)
+_BLOCK_LAG = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))    # j - k
+_BLOCK_INDEX = np.where(_BLOCK_LAG <= 0, -_BLOCK_LAG, _BLOCK + 1)
+
+
+def _blocked_size(rows: int, length: int) -> bool:
+    """Return True if ``rows`` recursions of ``length`` samples are worth running in blocks."""
+    return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -835,14 +859,20 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     blocks = -(-length // _BLOCK)
     padded = np.zeros((rows, blocks, _BLOCK))
     padded.reshape(rows, -1)[:, :length] = values
-    powers = poles[:, None] ** np.arange(_BLOCK + 1)               # p^0 .. p^B
-    lag = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))   # j - k
+    powers = np.zeros((rows, _BLOCK + 2))
+    powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
     # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
-    transposed = np.where(lag <= 0, powers[:, np.maximum(-lag, 0)], 0.0)
+    transposed = powers[:, _BLOCK_INDEX]
     # One 2-D product per row: numpy's stacked matmul can miss BLAS for these shapes.
-    response = np.array([row @ matrix for row, matrix in zip(padded, transposed)])
-    carried = recursions(powers[:, _BLOCK], response[:, :, -1])    # state at each block's end
-    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+    if rows == 1:
+        response = (padded[0] @ transposed[0])[None]
+    else:
+        response = np.array([row @ matrix for row, matrix in zip(padded, transposed)])
+    # The state at each block's end, carried over blocks (blocked again if they are many).
+    ends = response[:, :, -1]
+    carried = recursions(powers[:, _BLOCK], ends) if _blocked_size(rows, blocks) else \
+        _banded_recursions(powers[:, _BLOCK], ends, False)
+    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
     return response.reshape(rows, -1)[:, :length]
 
 
