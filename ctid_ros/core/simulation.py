@@ -161,13 +161,13 @@ class ContinuousFilter:
             self._powers = powers[::-1].copy()
         # Roots hundreds of decades apart (numbers like 1.5**490 in the model text) overflow
         # the scaled coefficients: say so instead of failing inside scipy with NaNs.
-        if not (np.all(np.isfinite(monic)) and np.isfinite(self._gain) and self._gain != 0.0):
+        if not (np.isfinite(monic).all() and math.isfinite(self._gain) and self._gain != 0.0):
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
         a = np.zeros((n, n))
         if n > 1:
-            a[range(n - 1), range(1, n)] = 1.0
+            a.flat[1::n + 1] = 1.0                      # the superdiagonal
             a[-1, :] = -self._monic_ascending[:-1]
             # Diagonal balancing keeps the companion matrix well conditioned: LAPACK's gebal
             # as linalg.matrix_balance(a, permute=False, separate=True) calls it, without its
@@ -282,12 +282,12 @@ class ContinuousFilter:
                    intersample: str = 'zoh') -> 'DiscreteFilter':
         """Exact discretisation for the intersample assumption, including a fractional delay."""
         _check_intersample(intersample)
-        if not (np.isfinite(ts) and ts > 0):
+        if not (math.isfinite(ts) and ts > 0):
             raise DataError(f'sample time must be positive and finite, got {ts}')
-        if not (np.isfinite(delay) and delay >= 0):
+        if not (math.isfinite(delay) and delay >= 0):
             raise ModelError(f'dead time must be non-negative and finite, got {delay}')
         scaled_ts = ts * self.scale
-        whole = int(np.floor(delay / ts + 1e-12))
+        whole = math.floor(delay / ts + 1e-12)
         fraction = delay / ts - whole
         if fraction < 1e-12 or fraction > 1.0 - 1e-12:
             whole = int(round(delay / ts))
@@ -911,11 +911,11 @@ _SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)
 
 def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0)."""
-    small = np.abs(x) < _SERIES_LIMIT
-    if small.all():
+    if abs(x).max() < _SERIES_LIMIT:
         # Fast sampling makes every |x| small: the series alone, the same values.
         powers = x[:, None] ** _SERIES_POWERS
         return powers @ _SERIES_FIRST, powers @ _SERIES_SECOND
+    small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
@@ -929,10 +929,10 @@ def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray
                         ) -> Tuple[np.ndarray, np.ndarray]:
     """Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``."""
-    small = np.abs(x) < _SERIES_LIMIT
-    if small.all():
+    if abs(x).max() < _SERIES_LIMIT:
         powers = x[:, None] ** _SERIES_POWERS
         return powers @ _SERIES_FIRST_SLOPE, powers @ _SERIES_SECOND_SLOPE
+    small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
         first_slope = (np.exp(x) - first) / x
         second_slope = (first - 2.0 * second) / x
@@ -1106,7 +1106,7 @@ def _condition(matrix: np.ndarray) -> float:
     """
     if matrix.shape != (2, 2):
         return float(np.linalg.cond(matrix))
-    frobenius = float(np.sum(np.abs(matrix) ** 2))
+    frobenius = float((abs(matrix) ** 2).sum())
     determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
     if not determinant > 0.0:
         return math.inf
@@ -1130,31 +1130,36 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
                                 np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
                                 True)
-    poles = np.asarray(polynomial_roots(realisation.den), dtype=complex) / realisation.scale
-    if poles.size != n or not np.isfinite(poles).all():
+    # Asked for every new denominator: array methods and operators, not numpy's dispatch.
+    poles = polynomial_roots(realisation.den).astype(complex) / realisation.scale
+    if poles.size != n:
         return None
-    magnitudes = np.abs(poles)
+    magnitudes = abs(poles)
+    # A NaN or infinite pole makes the sum so (the scaled poles are O(1): it cannot overflow).
+    if not math.isfinite(magnitudes.sum()):
+        return None
     nonzero = magnitudes[magnitudes > 0.0]
     if nonzero.size and nonzero.max() > _MODAL_RANGE_LIMIT * nonzero.min():
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
-    np.fill_diagonal(differences, 1.0)
-    if np.abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
+    differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
+    if abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
     basis = vandermonde / realisation._balance[:, None]
-    if n > 1:
-        with np.errstate(all='ignore'):
-            condition = _condition(basis / np.linalg.norm(basis, axis=0))
-        if not condition <= _MODAL_CONDITION_LIMIT:
-            return None
+    with np.errstate(all='ignore'):
+        # The column norms as np.linalg.norm(basis, axis=0) forms them.
+        norms = np.sqrt(np.add.reduce((basis.conj() * basis).real, axis=0))
+        condition = _condition(basis / norms)
+    if not condition <= _MODAL_CONDITION_LIMIT:
+        return None
     keep = poles.imag >= 0.0
     residues = 1.0 / differences.prod(axis=1)[keep]
     inverse = 1.0 / differences
-    np.fill_diagonal(inverse, 0.0)
+    inverse.flat[::n + 1] = 0.0
     spread = inverse.sum(axis=1)[keep]
-    amplification = np.max(np.abs(residues) ** 2 * (1.0 + 2.0 * np.abs(spread)))
+    amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
     if not poles.imag.any():
         # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
         poles, basis, residues, spread = poles.real, basis.real, residues.real, spread.real
