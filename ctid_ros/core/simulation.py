@@ -623,9 +623,9 @@ class StateResponse:
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
-        out = ((values * weighted) @ self._chains
-               + ((slopes - 2.0 * values * continuous.spread) * weighted)
-               @ self._modes.trajectories).real
+        out = (_product(values * weighted, self._chains)
+               + _product((slopes - 2.0 * values * continuous.spread) * weighted,
+                          self._modes.trajectories)).real
         if size == 2 * order + 1 and np.any(ascending[:, -1]):
             out += np.outer(ascending[:, -1], self._held)
         return out
@@ -664,6 +664,18 @@ class StateResponse:
             return self.mapped(rows) + np.outer(feeds, self._held)
         # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
         return np.ascontiguousarray(self.mapped(rows))
+
+
+def _product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """
+    Return ``left @ right``; for one real row of ``right``, as the broadcast product.
+
+    A sum of one term is that product, which numpy's matmul forms several times slower (one
+    mode of a first-order model, on every simulation and sensitivity).
+    """
+    if right.shape[0] == 1 and right.dtype.kind == 'f':
+        return left * right
+    return left @ right
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
@@ -708,11 +720,7 @@ class _Modes:
         out_map = rows @ self._basis
         if self._keep is not None:
             out_map = out_map[:, self._keep] * self._weights
-        if self._modal.shape[0] == 1 and self._modal.dtype.kind == 'f':
-            # One real mode: the product of one term, which numpy's matmul runs without BLAS
-            # (this inner dimension) several times slower than the broadcast product.
-            return out_map.real * self._modal
-        return (out_map @ self._modal).real
+        return _product(out_map, self._modal).real
 
 
 def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
