@@ -671,7 +671,9 @@ def _product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     Return ``left @ right``; for one real row of ``right``, as the broadcast product.
 
     A sum of one term is that product, which numpy's matmul forms several times slower (one
-    mode of a first-order model, on every simulation and sensitivity).
+    mode of a first-order model, one input sample driving the modes, on every simulation and
+    sensitivity). A complex ``left`` times the real row is the same product too: the zero
+    imaginary part adds nothing.
     """
     if right.shape[0] == 1 and right.dtype.kind == 'f':
         return left * right
@@ -759,10 +761,16 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
         return modal
     if coupling is None:
         # Uncoupled: the real modes in one solve, the complex ones in another; a real mode of
-        # real signals has only rounding in any imaginary part of its driving.
+        # real signals has only rounding in any imaginary part of its driving. Modes all of
+        # one kind (the usual case) run without selecting rows.
+        if poles.dtype.kind != 'c':
+            modal[:, 1:] = recursions(poles, driving[:, :count - 1].real)
+            return modal
         real = poles.imag == 0.0
-        if real.any():
-            modal[real, 1:] = recursions(poles[real].real, driving[real, :count - 1].real)
+        if not real.any():
+            modal[:, 1:] = recursions(poles, driving[:, :count - 1])
+            return modal
+        modal[real, 1:] = recursions(poles[real].real, driving[real, :count - 1].real)
         if not real.all():
             modal[~real, 1:] = recursions(poles[~real], driving[~real, :count - 1])
         return modal
@@ -1038,13 +1046,13 @@ class _DiscreteModes:
         """
         length = sum(factor[0] for factor in self.factors)
         slopes = self.continuous.drive_slopes(self.factors, self.samples)
-        driving = (length * self.poles)[:, None] * modal + slopes.T @ signals
+        driving = (length * self.poles)[:, None] * modal + _product(slopes.T, signals)
         return _run(self.poles, None, driving)
 
     def run(self, signals: np.ndarray) -> _Modes:
         """Run every kept mode over the signals of :attr:`samples` (one row each)."""
         modes = self.continuous
-        modal = _run(self.poles, None, self.drives.T @ signals)
+        modal = _run(self.poles, None, _product(self.drives.T, signals))
         return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
 
 
@@ -1093,7 +1101,7 @@ class _Chain:
 
     def run(self, signals: np.ndarray) -> '_Modes':
         """Run the chain over the signals of :attr:`samples` (one row each)."""
-        driving = self.drives.T @ signals
+        driving = _product(self.drives.T, signals)
         count = driving.shape[1]
         modal = np.zeros(driving.shape)
         pole = self.transition[:1, 0]
