@@ -836,7 +836,9 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
         below = band[1].reshape(count, length)
         below[:] = -poles[first:first + count, None]
         below[:, -1] = 0.0                  # a row's last sample does not feed the next row
-        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L')
+        # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
+        # values), a third of its time.
+        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L', diag='U')
         parts.append(out.reshape(count, length))
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
@@ -910,7 +912,8 @@ def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
     band[:] = den[:, None]
     for lag in range(1, order + 1):
         band[lag, max(count - lag, 0):] = 0.0       # outside the matrix
-    out, _ = lapack.dtbtrs(band, columns, uplo='L')
+    # A monic denominator divides by 1 per sample: the unit-diagonal solve skips it (exact).
+    out, _ = lapack.dtbtrs(band, columns, uplo='L', diag='U' if den[0] == 1.0 else 'N')
     return out.reshape(values.shape)
 
 
