@@ -27,6 +27,7 @@ Python loop runs per sample.
 from dataclasses import dataclass
 from functools import lru_cache
 import math
+import threading
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
@@ -39,6 +40,10 @@ __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'State
            'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
+# Discretisations kept for every caller (:meth:`ContinuousFilter.discretize`), latest last.
+_SHARED_DISCRETIZATIONS = 64
+_DISCRETIZATIONS: Dict[Tuple, 'DiscreteFilter'] = {}
+_DISCRETIZATIONS_LOCK = threading.Lock()
 # Above this condition number of the eigenvector basis the propagation uses the Schur form.
 _MODAL_CONDITION_LIMIT = 1e4
 # Poles whose magnitudes are further apart than this factor are left to the matrix exponential,
@@ -286,6 +291,20 @@ class ContinuousFilter:
             raise DataError(f'sample time must be positive and finite, got {ts}')
         if not (math.isfinite(delay) and delay >= 0):
             raise ModelError(f'dead time must be non-negative and finite, got {delay}')
+        # Shared by every caller: the starts' state-variable filters and the estimator's
+        # denominators come back within a fit and from fit to fit on one record.
+        key = (self.den.tobytes(), float(ts), float(delay), intersample)
+        with _DISCRETIZATIONS_LOCK:
+            discrete = _DISCRETIZATIONS.pop(key, None)
+        if discrete is None:
+            discrete = self._discretization(ts, delay, intersample)
+        with _DISCRETIZATIONS_LOCK:
+            _DISCRETIZATIONS[key] = discrete
+            while len(_DISCRETIZATIONS) > _SHARED_DISCRETIZATIONS:
+                del _DISCRETIZATIONS[next(iter(_DISCRETIZATIONS))]
+        return discrete
+
+    def _discretization(self, ts: float, delay: float, intersample: str) -> 'DiscreteFilter':
         scaled_ts = ts * self.scale
         whole = math.floor(delay / ts + 1e-12)
         fraction = delay / ts - whole
