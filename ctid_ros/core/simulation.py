@@ -109,7 +109,7 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     their product, so neither cancels.
     """
     if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
-            not np.all(np.isfinite(coefficients)):
+            not np.isfinite(coefficients).all():
         return None
     if coefficients.size == 2:
         return np.array([-coefficients[1] / coefficients[0]])
@@ -271,7 +271,8 @@ class ContinuousFilter:
 
         """
         numerators = np.asarray(numerators, dtype=float)
-        if not np.isfinite(numerators).all():
+        # A finite sum has finite terms (one overflowing takes the elementwise check).
+        if not math.isfinite(numerators.sum()) and not np.isfinite(numerators).all():
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
         numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
@@ -632,7 +633,7 @@ class StateResponse:
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
             ascending = (numerators[:, ::-1] * self._continuous.scale ** np.arange(size)
                          * self._continuous._gain ** 2)
-        if not np.all(np.isfinite(ascending)):
+        if not np.isfinite(ascending).all():
             return None
         if self._chains is None:
             self._chains = modes.chains(self._modes.trajectories, self._signals)
@@ -645,8 +646,8 @@ class StateResponse:
         out = (_product(values * weighted, self._chains)
                + _product((slopes - 2.0 * values * continuous.spread) * weighted,
                           self._modes.trajectories)).real
-        if size == 2 * order + 1 and np.any(ascending[:, -1]):
-            out += np.outer(ascending[:, -1], self._held)
+        if size == 2 * order + 1 and ascending[:, -1].any():
+            out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
 
     @property
@@ -678,9 +679,9 @@ class StateResponse:
                 rows, feeds = self._continuous.output_maps(np.array(numerators))
             else:
                 rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
-                rows = np.asarray(rows)
-        if np.any(feeds):
-            return self.mapped(rows) + np.outer(feeds, self._held)
+                rows, feeds = np.asarray(rows), np.asarray(feeds)
+        if feeds.any():
+            return self.mapped(rows) + feeds[:, None] * self._held      # np.outer's product
         # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
         return np.ascontiguousarray(self.mapped(rows))
 
@@ -727,7 +728,7 @@ class _Modes:
     def uncoupled(cls, basis: np.ndarray, keep: np.ndarray, weights: np.ndarray,
                   modal: np.ndarray) -> '_Modes':
         """Return the modes already run (:meth:`_DiscreteModes.run`)."""
-        modes = cls(None, signals=np.zeros((0, 0)), drives=np.zeros((0, 0)))
+        modes = cls.__new__(cls)
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
         return modes
 

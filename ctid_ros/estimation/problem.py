@@ -211,6 +211,8 @@ class Problem:
         return self.data.y[self.skip:]
 
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
+        if not (self.initial_state or self.output_offset):
+            return None             # nothing fitted besides G u (every cost asks)
         # The simulation's own discretisation of 1/D serves the free responses too.
         discrete = self.bank.realized(coefficients.den, coefficients.delay) \
             if self.initial_state else None

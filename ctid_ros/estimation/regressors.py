@@ -40,7 +40,7 @@ _REMEMBERED = 4
 # an optimality check).
 _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
-# Realisations and discretisations shared by every bank (a few tens of small objects).
+# Realisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
 _TINY = np.finfo(float).tiny
 
@@ -87,21 +87,15 @@ def _remembered(cache: Dict[Hashable, Value], key: Hashable,
 
 
 @lru_cache(maxsize=_SHARED_FILTERS)
-def _discretized(den: bytes, ts: float, delay: float, intersample: str) -> DiscreteFilter:
-    """
-    Return the discretisation of ``1/den`` (coefficients as bytes), shared by every bank.
-
-    It depends on the denominator, sample time, dead time and intersample assumption only:
-    the banks of a record's halves and quarters (the consistency check), of the dead-time
-    search and of the structure comparisons evaluate the same parameter vectors on the same
-    sample time, and need not realise and discretise them again.
-    """
-    return _realization(den).discretize(ts, delay, intersample)
-
-
-@lru_cache(maxsize=_SHARED_FILTERS)
 def _realization(den: bytes) -> ContinuousFilter:
-    """Return the realisation of ``1/den`` (coefficients as bytes), shared by every bank."""
+    """
+    Return the realisation of ``1/den`` (coefficients as bytes), shared by every bank.
+
+    The input's and the output's discretisations of one denominator (held and interpolated)
+    share its modes; the banks of a record's halves and quarters (the consistency check), of
+    the dead-time search and of the structure comparisons evaluate the same parameter vectors,
+    and find their discretisations kept by :meth:`ContinuousFilter.discretize`.
+    """
     return ContinuousFilter(np.frombuffer(den))
 
 
@@ -131,7 +125,6 @@ class SignalBank:
         self.driving = skew_extended(self.channels, output_skew)
         self.extra_delay = skew_delay(ts, output_skew)
         self.trim = 1 if output_skew else 0
-        self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
@@ -140,9 +133,7 @@ class SignalBank:
         self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
-        return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
-                           lambda: _discretized(den.tobytes(), self.ts, float(delay),
-                                                intersample))
+        return _realization(den.tobytes()).discretize(self.ts, float(delay), intersample)
 
     def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
                            delay: float, size: int) -> List[StateResponse]:
