@@ -163,8 +163,11 @@ class SignalBank:
             responses = self._channel_responses(self._responses, coefficients.den,
                                                 coefficients.delay + self.extra_delay,
                                                 _REMEMBERED_RESPONSES)
-            output = sum(responses[j].outputs([num])[0][self.trim:]
-                         for j, num in enumerate(coefficients.num))
+            trim = self.trim
+            # One input (the usual case) needs no sum: its output array is new already.
+            output = responses[0].outputs(coefficients.num[:1])[0, trim:] \
+                if len(responses) == 1 else sum(responses[j].outputs([num])[0][trim:]
+                                                for j, num in enumerate(coefficients.num))
             output.setflags(write=False)
             return output
 
