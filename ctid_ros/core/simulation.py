@@ -24,6 +24,7 @@ No high-order difference equation is ever formed, so precision holds up to high 
 Python loop runs per sample.
 """
 
+import cmath
 from dataclasses import dataclass
 from functools import lru_cache
 import math
@@ -63,7 +64,7 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     array = np.atleast_1d(np.asarray(coefficients, dtype=float))
     if array.ndim != 1 or array.size == 0:
         raise ModelError(f'{what} must be a 1-D coefficient sequence')
-    if not np.isfinite(array).all():
+    if not _all_finite(array):
         raise ModelError(f'{what} has non-finite coefficients: {array}')
     if array[0] != 0.0:
         return array
@@ -71,6 +72,16 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     if nonzero.size == 0:
         return np.zeros(1)
     return array[nonzero[0]:]
+
+
+def _all_finite(values: np.ndarray) -> bool:
+    """
+    Return True if every value (real or complex) is finite.
+
+    One sum instead of numpy's elementwise test and its reduction: a NaN or infinity makes
+    the sum so; only a sum that overflows is checked elementwise.
+    """
+    return cmath.isfinite(values.sum()) or bool(np.isfinite(values).all())
 
 
 def _check_intersample(intersample: str) -> None:
@@ -109,13 +120,13 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     their product, so neither cancels.
     """
     if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
-            not np.isfinite(coefficients).all():
+            not _all_finite(coefficients):
         return None
     if coefficients.size == 2:
         return np.array([-coefficients[1] / coefficients[0]])
     a, b, c = (float(value) for value in coefficients)
     discriminant = b * b - 4.0 * a * c
-    if not np.isfinite(discriminant):
+    if not math.isfinite(discriminant):
         return None
     if discriminant < 0.0:
         real, imaginary = -b / (2.0 * a), np.sqrt(-discriminant) / (2.0 * abs(a))
@@ -166,7 +177,7 @@ class ContinuousFilter:
             self._powers = powers[::-1].copy()
         # Roots hundreds of decades apart (numbers like 1.5**490 in the model text) overflow
         # the scaled coefficients: say so instead of failing inside scipy with NaNs.
-        if not (np.isfinite(monic).all() and math.isfinite(self._gain) and self._gain != 0.0):
+        if not (_all_finite(monic) and math.isfinite(self._gain) and self._gain != 0.0):
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
@@ -225,12 +236,13 @@ class ContinuousFilter:
         if not 2 <= n <= _CHAIN_MAX_ORDER:
             return None
         root = -float(self._monic_ascending[n - 1]) / n               # mean of the scaled roots
-        expected = [math.comb(n, j) * (-root) ** (n - j) for j in range(n + 1)]
         # np.poly's own rounding of (p + lam)^n stays within 3e-15 here (n <= 8, lam from 1e-4
-        # to 1e4); roots 2e-7 apart already differ by 1e-14.
-        if any(abs(value - target) > 1e-14 * (1.0 + abs(target))
-               for value, target in zip(self._monic_ascending, expected)):
-            return None
+        # to 1e4); roots 2e-7 apart already differ by 1e-14. Each binomial coefficient is
+        # formed only if the ones before matched (distinct roots differ at once).
+        for j, value in enumerate(self._monic_ascending.tolist()):
+            target = math.comb(n, j) * (-root) ** (n - j)
+            if abs(value - target) > 1e-14 * (1.0 + abs(target)):
+                return None
         return root
 
     def output_map(self, num) -> Tuple[np.ndarray, float]:
@@ -271,8 +283,7 @@ class ContinuousFilter:
 
         """
         numerators = np.asarray(numerators, dtype=float)
-        # A finite sum has finite terms (one overflowing takes the elementwise check).
-        if not math.isfinite(numerators.sum()) and not np.isfinite(numerators).all():
+        if not _all_finite(numerators):
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
         numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
@@ -633,7 +644,7 @@ class StateResponse:
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
             ascending = (numerators[:, ::-1] * self._continuous.scale ** np.arange(size)
                          * self._continuous._gain ** 2)
-        if not np.isfinite(ascending).all():
+        if not _all_finite(ascending):
             return None
         if self._chains is None:
             self._chains = modes.chains(self._modes.trajectories, self._signals)
@@ -834,10 +845,9 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
         return np.zeros((rows, length), dtype=dtype)
     values = values.astype(dtype, copy=False)
     # Finite values only: a block's product would spread a NaN or inf to the samples before it.
-    # The checks are array methods, without numpy's dispatch: a sum is finite if no value
-    # is NaN or infinite (a finite sum overflowing takes the solves, as exact).
+    # The checks are array methods, without numpy's dispatch.
     if not complex_valued and _blocked_size(rows, length) and abs(poles).max() <= 1.0 and \
-            math.isfinite(values.sum()):
+            _all_finite(values):
         return _blocked_recursions(poles.astype(float, copy=False), values)
     return _banded_recursions(poles, values, complex_valued)
 
@@ -901,11 +911,14 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
     # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
     transposed = powers[:, _BLOCK_INDEX]
-    # One 2-D product per row: numpy's stacked matmul can miss BLAS for these shapes.
+    # One 2-D product per row (numpy's stacked matmul can miss BLAS for these shapes), each
+    # written in place.
     if rows == 1:
         response = (padded[0] @ transposed[0])[None]
     else:
-        response = np.array([row @ matrix for row, matrix in zip(padded, transposed)])
+        response = np.empty((rows, blocks, _BLOCK))
+        for row, matrix, out in zip(padded, transposed, response):
+            np.matmul(row, matrix, out=out)
     # The state at each block's end, carried over blocks (blocked again if they are many).
     ends = response[:, :, -1]
     carried = recursions(powers[:, _BLOCK], ends) if _blocked_size(rows, blocks) else \
@@ -1004,7 +1017,7 @@ class _ContinuousModes:
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
-        transition = np.ones(self.poles.size, dtype=self.poles.dtype)
+        transition = None
         drive: Dict[Sample, np.ndarray] = {}
         factors = []
         for length, start, end in segments:
@@ -1013,12 +1026,13 @@ class _ContinuousModes:
             first, second = _hold_factors(x)
             factors.append((length, start, end, x, e, first, second))
             q = length * second * self.residues
-            transition = e * transition
+            # The first sub-interval's transition is its exponential itself (times 1, exact).
+            transition = e if transition is None else e * transition
             drive = {sample: e * vector for sample, vector in drive.items()}
             _accumulate(drive, start, length * first * self.residues - q)
             _accumulate(drive, end, q)
         drives = np.array(list(drive.values()))
-        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+        if not (_all_finite(transition) and _all_finite(drives)):
             return None
         return _DiscreteModes(self, transition, list(drive), drives, factors)
 
@@ -1114,7 +1128,7 @@ class _Chain:
             _accumulate(drive, start, integral - ramp)
             _accumulate(drive, end, ramp)
         drives = np.array(list(drive.values()))
-        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+        if not (_all_finite(transition) and _all_finite(drives)):
             return None
         basis = np.zeros((n, n))
         for j in range(n):
@@ -1164,7 +1178,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         # One real pole: the general construction below reduces to this (residue 1, nothing
         # to compare it with), without its arrays of pole differences.
         pole = -realisation.den[1] / realisation.den[0] / realisation.scale
-        if not np.isfinite(pole):
+        if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
                                 np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
@@ -1174,8 +1188,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     if poles.size != n:
         return None
     magnitudes = abs(poles)
-    # A NaN or infinite pole makes the sum so (the scaled poles are O(1): it cannot overflow).
-    if not math.isfinite(magnitudes.sum()):
+    if not _all_finite(magnitudes):
         return None
     nonzero = magnitudes[magnitudes > 0.0]
     if nonzero.size and nonzero.max() > _MODAL_RANGE_LIMIT * nonzero.min():
