@@ -961,11 +961,25 @@ _SERIES_FIRST_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[1:20]   # (k+1)/(k+2)
 _SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)!
 
 
-def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0)."""
+def _series_powers(x: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return ``x^0 .. x^18`` for every element (one row each) if every ``|x|`` is small, else None.
+
+    The hold factors and their slopes of one sub-interval sum the same powers.
+    """
     if abs(x).max() < _SERIES_LIMIT:
+        return x[:, None] ** _SERIES_POWERS
+    return None
+
+
+def _hold_factors(x: np.ndarray, powers: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    ``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0).
+
+    ``powers``: :func:`_series_powers` of ``x``.
+    """
+    if powers is not None:
         # Fast sampling makes every |x| small: the series alone, the same values.
-        powers = x[:, None] ** _SERIES_POWERS
         return powers @ _SERIES_FIRST, powers @ _SERIES_SECOND
     small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
@@ -978,11 +992,14 @@ def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return first, second
 
 
-def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray
-                        ) -> Tuple[np.ndarray, np.ndarray]:
-    """Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``."""
-    if abs(x).max() < _SERIES_LIMIT:
-        powers = x[:, None] ** _SERIES_POWERS
+def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray,
+                        powers: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``.
+
+    ``powers``: :func:`_series_powers` of ``x``.
+    """
+    if powers is not None:
         return powers @ _SERIES_FIRST_SLOPE, powers @ _SERIES_SECOND_SLOPE
     small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
@@ -1023,8 +1040,9 @@ class _ContinuousModes:
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
-            first, second = _hold_factors(x)
-            factors.append((length, start, end, x, e, first, second))
+            powers = _series_powers(x)
+            first, second = _hold_factors(x, powers)
+            factors.append((length, start, end, x, e, first, second, powers))
             q = length * second * self.residues
             # The first sub-interval's transition is its exponential itself (times 1, exact).
             transition = e if transition is None else e * transition
@@ -1041,14 +1059,14 @@ class _ContinuousModes:
         Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
 
         ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
-        end, ``x``, ``e^x`` and the hold factors). Returns ``(samples, kept modes)`` in the
-        order of ``samples``: the drives of the chain ``r_i/(z - z_i)^2``
-        (:meth:`_DiscreteModes.chains`).
+        end, ``x``, ``e^x``, the hold factors and :func:`_series_powers`). Returns
+        ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
+        ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
         """
         drive: Dict[Sample, np.ndarray] = {}
         slope: Dict[Sample, np.ndarray] = {}
-        for length, start, end, x, e, first, second in factors:
-            first_slope, second_slope = _hold_factor_slopes(x, first, second)
+        for length, start, end, x, e, first, second, powers in factors:
+            first_slope, second_slope = _hold_factor_slopes(x, first, second, powers)
             q = length * second * self.residues
             q_slope = length * length * second_slope * self.residues
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector

@@ -100,7 +100,10 @@ def _realization(den: bytes) -> ContinuousFilter:
 
 
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
-    return np.concatenate([np.zeros(length - poly.size), poly])
+    """Return coefficients (highest power first; rows of a 2-D array) with leading zeros."""
+    padded = np.zeros(poly.shape[:-1] + (length,))
+    padded[..., length - poly.shape[-1]:] = poly
+    return padded
 
 
 class SignalBank:
@@ -198,7 +201,7 @@ class SignalBank:
         for j, num in enumerate(coefficients.num):
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
-            num_jac = np.array([_pad(row, order + 1) for row in coefficients.num_jacobian[:, j]])
+            num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -247,7 +250,7 @@ class SignalBank:
         if regressors:
             bank_y = _remembered(self._output_filtered, den.tobytes(),
                                  lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-            y_parts = bank_y.outputs(list(coefficients.den_jacobian))
+            y_parts = bank_y.outputs(coefficients.den_jacobian)
             phi = u_regressors - y_parts
             if delay_used:
                 phi += delay_term
