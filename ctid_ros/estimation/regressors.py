@@ -186,7 +186,7 @@ class SignalBank:
         den = coefficients.den
         order = den.size - 1
         params = coefficients.num_jacobian.shape[0]
-        delay_used = np.any(coefficients.delay_gradient != 0.0)
+        delay_used = bool(coefficients.delay_gradient.any())
         delay = coefficients.delay + self.extra_delay
         bank_u = self._discrete(den, delay, self.intersample)
         u_responses = self._channel_responses(self._responses, den, delay,
@@ -209,7 +209,9 @@ class SignalBank:
                     'the dead time or use a strictly proper model')
             u_numerators = [num_full]
             if delay_used:
-                u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
+                times_s = np.zeros(order + 1)                       # s N, strictly proper
+                times_s[:-1] = num_full[1:]
+                u_numerators.append(times_s)
             if regressors:
                 u_numerators.extend(num_jac)
             u_parts = u_responses[j].outputs(u_numerators)[:, trim:]
@@ -242,9 +244,11 @@ class SignalBank:
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_jump = None
         if delay_used:
-            delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
-            if np.any(jump):
-                delay_jump = np.outer(coefficients.delay_gradient, jump).T
+            # np.outer's products, without its dispatch.
+            gradient = coefficients.delay_gradient[:, None]
+            delay_term = -(gradient * (derivative + jump))
+            if jump.any():
+                delay_jump = (gradient * jump).T
             psi += delay_term
         phi = None
         if regressors:
