@@ -124,14 +124,15 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
         return None
     if coefficients.size == 2:
         return np.array([-coefficients[1] / coefficients[0]])
-    a, b, c = (float(value) for value in coefficients)
+    # Python floats and math (IEEE square roots, as numpy's): no numpy scalars per candidate.
+    a, b, c = coefficients.tolist()
     discriminant = b * b - 4.0 * a * c
     if not math.isfinite(discriminant):
         return None
     if discriminant < 0.0:
-        real, imaginary = -b / (2.0 * a), np.sqrt(-discriminant) / (2.0 * abs(a))
+        real, imaginary = -b / (2.0 * a), math.sqrt(-discriminant) / (2.0 * abs(a))
         return np.array([complex(real, imaginary), complex(real, -imaginary)])
-    half = -0.5 * (b + np.copysign(np.sqrt(discriminant), b))
+    half = -0.5 * (b + math.copysign(math.sqrt(discriminant), b))
     if half == 0.0:
         return None
     return np.array([half / a, c / half])

@@ -21,6 +21,7 @@ instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and
 
 from dataclasses import dataclass
 from functools import lru_cache
+import math
 from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
@@ -68,11 +69,12 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     """Return True if every root of ``den`` lies left of ``-margin * max|root|``."""
     if den.size < 2:
         return den.size == 1 and den[0] != 0.0
-    if den[0] == 0.0 or not np.isfinite(den).all():
+    # Every candidate parameter vector is checked: the array methods, not numpy's dispatch
+    # (a finite sum has finite terms; one that overflows is checked elementwise).
+    if den[0] == 0.0 or not (math.isfinite(den.sum()) or np.isfinite(den).all()):
         return False
-    # Every candidate parameter vector is checked: the array methods, not numpy's dispatch.
     roots = polynomial_roots(den)
-    scale = max(np.abs(roots).max(), _TINY)
+    scale = max(abs(roots).max(), _TINY)
     return bool(roots.real.max() < -margin * scale)
 
 
