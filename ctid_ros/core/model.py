@@ -18,6 +18,7 @@ section 2).
 
 from dataclasses import dataclass
 import functools
+import math
 from typing import Dict, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core import model_cache
@@ -238,15 +239,16 @@ class Model:
             If a parameter value is not finite or a coefficient is undefined (division by zero).
 
         """
+        # The estimator's own vectors (thousands per fit): read, never kept, not copied. A sum
+        # is finite if every value is (a finite sum overflowing takes the full check).
         if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
-                params.size == len(self.parameters) and np.isfinite(params).all():
-            # The estimator's own vectors (thousands per fit): read, never kept, not copied.
+                params.size == len(self.parameters) and math.isfinite(params.sum()):
             theta = params
         else:
             theta = self.vector(params)
         with np.errstate(all='ignore'):
             flat = np.asarray(self._evaluate(*theta), dtype=float)
-        if not np.isfinite(flat).all():
+        if not math.isfinite(flat.sum()) and not np.isfinite(flat).all():
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')
         return flat

@@ -24,9 +24,11 @@ No high-order difference equation is ever formed, so precision holds up to high 
 Python loop runs per sample.
 """
 
+import cmath
 from dataclasses import dataclass
 from functools import lru_cache
 import math
+import threading
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from ctid_ros.errors import DataError, ModelError
@@ -39,6 +41,10 @@ __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'State
            'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
+# Discretisations kept for every caller (:meth:`ContinuousFilter.discretize`), latest last.
+_SHARED_DISCRETIZATIONS = 64
+_DISCRETIZATIONS: Dict[Tuple, 'DiscreteFilter'] = {}
+_DISCRETIZATIONS_LOCK = threading.Lock()
 # Above this condition number of the eigenvector basis the propagation uses the Schur form.
 _MODAL_CONDITION_LIMIT = 1e4
 # Poles whose magnitudes are further apart than this factor are left to the matrix exponential,
@@ -58,7 +64,7 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     array = np.atleast_1d(np.asarray(coefficients, dtype=float))
     if array.ndim != 1 or array.size == 0:
         raise ModelError(f'{what} must be a 1-D coefficient sequence')
-    if not np.isfinite(array).all():
+    if not _all_finite(array):
         raise ModelError(f'{what} has non-finite coefficients: {array}')
     if array[0] != 0.0:
         return array
@@ -66,6 +72,16 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     if nonzero.size == 0:
         return np.zeros(1)
     return array[nonzero[0]:]
+
+
+def _all_finite(values: np.ndarray) -> bool:
+    """
+    Return True if every value (real or complex) is finite.
+
+    One sum instead of numpy's elementwise test and its reduction: a NaN or infinity makes
+    the sum so; only a sum that overflows is checked elementwise.
+    """
+    return cmath.isfinite(values.sum()) or bool(np.isfinite(values).all())
 
 
 def _check_intersample(intersample: str) -> None:
@@ -104,18 +120,19 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     their product, so neither cancels.
     """
     if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
-            not np.all(np.isfinite(coefficients)):
+            not _all_finite(coefficients):
         return None
     if coefficients.size == 2:
         return np.array([-coefficients[1] / coefficients[0]])
-    a, b, c = (float(value) for value in coefficients)
+    # Python floats and math (IEEE square roots, as numpy's): no numpy scalars per candidate.
+    a, b, c = coefficients.tolist()
     discriminant = b * b - 4.0 * a * c
-    if not np.isfinite(discriminant):
+    if not math.isfinite(discriminant):
         return None
     if discriminant < 0.0:
-        real, imaginary = -b / (2.0 * a), np.sqrt(-discriminant) / (2.0 * abs(a))
+        real, imaginary = -b / (2.0 * a), math.sqrt(-discriminant) / (2.0 * abs(a))
         return np.array([complex(real, imaginary), complex(real, -imaginary)])
-    half = -0.5 * (b + np.copysign(np.sqrt(discriminant), b))
+    half = -0.5 * (b + math.copysign(math.sqrt(discriminant), b))
     if half == 0.0:
         return None
     return np.array([half / a, c / half])
@@ -161,13 +178,13 @@ class ContinuousFilter:
             self._powers = powers[::-1].copy()
         # Roots hundreds of decades apart (numbers like 1.5**490 in the model text) overflow
         # the scaled coefficients: say so instead of failing inside scipy with NaNs.
-        if not (np.all(np.isfinite(monic)) and np.isfinite(self._gain) and self._gain != 0.0):
+        if not (_all_finite(monic) and math.isfinite(self._gain) and self._gain != 0.0):
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
         a = np.zeros((n, n))
         if n > 1:
-            a[range(n - 1), range(1, n)] = 1.0
+            a.flat[1::n + 1] = 1.0                      # the superdiagonal
             a[-1, :] = -self._monic_ascending[:-1]
             # Diagonal balancing keeps the companion matrix well conditioned: LAPACK's gebal
             # as linalg.matrix_balance(a, permute=False, separate=True) calls it, without its
@@ -220,12 +237,13 @@ class ContinuousFilter:
         if not 2 <= n <= _CHAIN_MAX_ORDER:
             return None
         root = -float(self._monic_ascending[n - 1]) / n               # mean of the scaled roots
-        expected = [math.comb(n, j) * (-root) ** (n - j) for j in range(n + 1)]
         # np.poly's own rounding of (p + lam)^n stays within 3e-15 here (n <= 8, lam from 1e-4
-        # to 1e4); roots 2e-7 apart already differ by 1e-14.
-        if any(abs(value - target) > 1e-14 * (1.0 + abs(target))
-               for value, target in zip(self._monic_ascending, expected)):
-            return None
+        # to 1e4); roots 2e-7 apart already differ by 1e-14. Each binomial coefficient is
+        # formed only if the ones before matched (distinct roots differ at once).
+        for j, value in enumerate(self._monic_ascending.tolist()):
+            target = math.comb(n, j) * (-root) ** (n - j)
+            if abs(value - target) > 1e-14 * (1.0 + abs(target)):
+                return None
         return root
 
     def output_map(self, num) -> Tuple[np.ndarray, float]:
@@ -266,7 +284,7 @@ class ContinuousFilter:
 
         """
         numerators = np.asarray(numerators, dtype=float)
-        if not np.isfinite(numerators).all():
+        if not _all_finite(numerators):
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
         numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
@@ -282,12 +300,26 @@ class ContinuousFilter:
                    intersample: str = 'zoh') -> 'DiscreteFilter':
         """Exact discretisation for the intersample assumption, including a fractional delay."""
         _check_intersample(intersample)
-        if not (np.isfinite(ts) and ts > 0):
+        if not (math.isfinite(ts) and ts > 0):
             raise DataError(f'sample time must be positive and finite, got {ts}')
-        if not (np.isfinite(delay) and delay >= 0):
+        if not (math.isfinite(delay) and delay >= 0):
             raise ModelError(f'dead time must be non-negative and finite, got {delay}')
+        # Shared by every caller: the starts' state-variable filters and the estimator's
+        # denominators come back within a fit and from fit to fit on one record.
+        key = (self.den.tobytes(), float(ts), float(delay), intersample)
+        with _DISCRETIZATIONS_LOCK:
+            discrete = _DISCRETIZATIONS.pop(key, None)
+        if discrete is None:
+            discrete = self._discretization(ts, delay, intersample)
+        with _DISCRETIZATIONS_LOCK:
+            _DISCRETIZATIONS[key] = discrete
+            while len(_DISCRETIZATIONS) > _SHARED_DISCRETIZATIONS:
+                del _DISCRETIZATIONS[next(iter(_DISCRETIZATIONS))]
+        return discrete
+
+    def _discretization(self, ts: float, delay: float, intersample: str) -> 'DiscreteFilter':
         scaled_ts = ts * self.scale
-        whole = int(np.floor(delay / ts + 1e-12))
+        whole = math.floor(delay / ts + 1e-12)
         fraction = delay / ts - whole
         if fraction < 1e-12 or fraction > 1.0 - 1e-12:
             whole = int(round(delay / ts))
@@ -613,7 +645,7 @@ class StateResponse:
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
             ascending = (numerators[:, ::-1] * self._continuous.scale ** np.arange(size)
                          * self._continuous._gain ** 2)
-        if not np.all(np.isfinite(ascending)):
+        if not _all_finite(ascending):
             return None
         if self._chains is None:
             self._chains = modes.chains(self._modes.trajectories, self._signals)
@@ -623,11 +655,11 @@ class StateResponse:
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
-        out = ((values * weighted) @ self._chains
-               + ((slopes - 2.0 * values * continuous.spread) * weighted)
-               @ self._modes.trajectories).real
-        if size == 2 * order + 1 and np.any(ascending[:, -1]):
-            out += np.outer(ascending[:, -1], self._held)
+        out = (_product(values * weighted, self._chains)
+               + _product((slopes - 2.0 * values * continuous.spread) * weighted,
+                          self._modes.trajectories)).real
+        if size == 2 * order + 1 and ascending[:, -1].any():
+            out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
 
     @property
@@ -659,11 +691,25 @@ class StateResponse:
                 rows, feeds = self._continuous.output_maps(np.array(numerators))
             else:
                 rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
-                rows = np.asarray(rows)
-        if np.any(feeds):
-            return self.mapped(rows) + np.outer(feeds, self._held)
+                rows, feeds = np.asarray(rows), np.asarray(feeds)
+        if feeds.any():
+            return self.mapped(rows) + feeds[:, None] * self._held      # np.outer's product
         # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
         return np.ascontiguousarray(self.mapped(rows))
+
+
+def _product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """
+    Return ``left @ right``; for one real row of ``right``, as the broadcast product.
+
+    A sum of one term is that product, which numpy's matmul forms several times slower (one
+    mode of a first-order model, one input sample driving the modes, on every simulation and
+    sensitivity). A complex ``left`` times the real row is the same product too: the zero
+    imaginary part adds nothing.
+    """
+    if right.shape[0] == 1 and right.dtype.kind == 'f':
+        return left * right
+    return left @ right
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
@@ -694,7 +740,7 @@ class _Modes:
     def uncoupled(cls, basis: np.ndarray, keep: np.ndarray, weights: np.ndarray,
                   modal: np.ndarray) -> '_Modes':
         """Return the modes already run (:meth:`_DiscreteModes.run`)."""
-        modes = cls(None, signals=np.zeros((0, 0)), drives=np.zeros((0, 0)))
+        modes = cls.__new__(cls)
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
         return modes
 
@@ -708,7 +754,7 @@ class _Modes:
         out_map = rows @ self._basis
         if self._keep is not None:
             out_map = out_map[:, self._keep] * self._weights
-        return (out_map @ self._modal).real
+        return _product(out_map, self._modal).real
 
 
 def _modes(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
@@ -747,10 +793,16 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
         return modal
     if coupling is None:
         # Uncoupled: the real modes in one solve, the complex ones in another; a real mode of
-        # real signals has only rounding in any imaginary part of its driving.
+        # real signals has only rounding in any imaginary part of its driving. Modes all of
+        # one kind (the usual case) run without selecting rows.
+        if poles.dtype.kind != 'c':
+            modal[:, 1:] = recursions(poles, driving[:, :count - 1].real)
+            return modal
         real = poles.imag == 0.0
-        if real.any():
-            modal[real, 1:] = recursions(poles[real].real, driving[real, :count - 1].real)
+        if not real.any():
+            modal[:, 1:] = recursions(poles, driving[:, :count - 1])
+            return modal
+        modal[real, 1:] = recursions(poles[real].real, driving[real, :count - 1].real)
         if not real.all():
             modal[~real, 1:] = recursions(poles[~real], driving[~real, :count - 1])
         return modal
@@ -786,28 +838,38 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     solve up to :data:`_BAND_SIZE` samples (a longer band leaves the cache and runs several
     times slower per sample).
     """
+    poles = np.asarray(poles)
     rows, length = values.shape
-    complex_valued = np.iscomplexobj(values) or np.iscomplexobj(poles)
+    complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
     dtype = complex if complex_valued else float
     if rows == 0 or length == 0:
         return np.zeros((rows, length), dtype=dtype)
     values = values.astype(dtype, copy=False)
     # Finite values only: a block's product would spread a NaN or inf to the samples before it.
-    if not complex_valued and length >= _BLOCKED_MIN_LENGTH and \
-            rows * length >= _BLOCKED_MIN_SIZE and np.all(np.abs(poles) <= 1.0) and \
-            np.isfinite(values).all():
-        return _blocked_recursions(np.asarray(poles, dtype=float), values)
+    # The checks are array methods, without numpy's dispatch.
+    if not complex_valued and _blocked_size(rows, length) and abs(poles).max() <= 1.0 and \
+            _all_finite(values):
+        return _blocked_recursions(poles.astype(float, copy=False), values)
+    return _banded_recursions(poles, values, complex_valued)
+
+
+def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bool
+                       ) -> np.ndarray:
+    """:func:`recursions` as banded triangular solves, for values of the solve's type."""
+    rows, length = values.shape
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
     step = max(1, _BAND_SIZE // length)
     parts = []
     for first in range(0, rows, step):
         count = min(step, rows - first)
-        band = np.empty((2, count * length), dtype=dtype)
+        band = np.empty((2, count * length), dtype=values.dtype)
         band[0] = 1.0
         below = band[1].reshape(count, length)
         below[:] = -poles[first:first + count, None]
         below[:, -1] = 0.0                  # a row's last sample does not feed the next row
-        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L')
+        # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
+        # values), a third of its time.
+        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L', diag='U')
         parts.append(out.reshape(count, length))
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
@@ -818,6 +880,17 @@ _BAND_SIZE = 16384
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
 _BLOCKED_MIN_SIZE = 1536
+# The exponents of a block's pole powers p^0 .. p^B, and where each entry of the transposed
+# block matrix reads them: p^(k - j) at row j, column k for k >= j, else the zero appended
+# after p^B (index B + 1). Constant: built once, not per run.
+_BLOCK_EXPONENTS = np.arange(_BLOCK + 1)
+_BLOCK_LAG = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))    # j - k
+_BLOCK_INDEX = np.where(_BLOCK_LAG <= 0, -_BLOCK_LAG, _BLOCK + 1)
+
+
+def _blocked_size(rows: int, length: int) -> bool:
+    """Return True if ``rows`` recursions of ``length`` samples are worth running in blocks."""
+    return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -835,14 +908,23 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     blocks = -(-length // _BLOCK)
     padded = np.zeros((rows, blocks, _BLOCK))
     padded.reshape(rows, -1)[:, :length] = values
-    powers = poles[:, None] ** np.arange(_BLOCK + 1)               # p^0 .. p^B
-    lag = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))   # j - k
+    powers = np.zeros((rows, _BLOCK + 2))
+    powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
     # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
-    transposed = np.where(lag <= 0, powers[:, np.maximum(-lag, 0)], 0.0)
-    # One 2-D product per row: numpy's stacked matmul can miss BLAS for these shapes.
-    response = np.array([row @ matrix for row, matrix in zip(padded, transposed)])
-    carried = recursions(powers[:, _BLOCK], response[:, :, -1])    # state at each block's end
-    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+    transposed = powers[:, _BLOCK_INDEX]
+    # One 2-D product per row (numpy's stacked matmul can miss BLAS for these shapes), each
+    # written in place.
+    if rows == 1:
+        response = (padded[0] @ transposed[0])[None]
+    else:
+        response = np.empty((rows, blocks, _BLOCK))
+        for row, matrix, out in zip(padded, transposed, response):
+            np.matmul(row, matrix, out=out)
+    # The state at each block's end, carried over blocks (blocked again if they are many).
+    ends = response[:, :, -1]
+    carried = recursions(powers[:, _BLOCK], ends) if _blocked_size(rows, blocks) else \
+        _banded_recursions(powers[:, _BLOCK], ends, False)
+    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
     return response.reshape(rows, -1)[:, :length]
 
 
@@ -864,7 +946,8 @@ def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
     band[:] = den[:, None]
     for lag in range(1, order + 1):
         band[lag, max(count - lag, 0):] = 0.0       # outside the matrix
-    out, _ = lapack.dtbtrs(band, columns, uplo='L')
+    # A monic denominator divides by 1 per sample: the unit-diagonal solve skips it (exact).
+    out, _ = lapack.dtbtrs(band, columns, uplo='L', diag='U' if den[0] == 1.0 else 'N')
     return out.reshape(values.shape)
 
 
@@ -879,13 +962,27 @@ _SERIES_FIRST_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[1:20]   # (k+1)/(k+2)
 _SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)!
 
 
-def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0)."""
-    small = np.abs(x) < _SERIES_LIMIT
-    if small.all():
+def _series_powers(x: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return ``x^0 .. x^18`` for every element (one row each) if every ``|x|`` is small, else None.
+
+    The hold factors and their slopes of one sub-interval sum the same powers.
+    """
+    if abs(x).max() < _SERIES_LIMIT:
+        return x[:, None] ** _SERIES_POWERS
+    return None
+
+
+def _hold_factors(x: np.ndarray, powers: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    ``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0).
+
+    ``powers``: :func:`_series_powers` of ``x``.
+    """
+    if powers is not None:
         # Fast sampling makes every |x| small: the series alone, the same values.
-        powers = x[:, None] ** _SERIES_POWERS
         return powers @ _SERIES_FIRST, powers @ _SERIES_SECOND
+    small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
@@ -896,13 +993,16 @@ def _hold_factors(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return first, second
 
 
-def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray
-                        ) -> Tuple[np.ndarray, np.ndarray]:
-    """Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``."""
-    small = np.abs(x) < _SERIES_LIMIT
-    if small.all():
-        powers = x[:, None] ** _SERIES_POWERS
+def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray,
+                        powers: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``.
+
+    ``powers``: :func:`_series_powers` of ``x``.
+    """
+    if powers is not None:
         return powers @ _SERIES_FIRST_SLOPE, powers @ _SERIES_SECOND_SLOPE
+    small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
         first_slope = (np.exp(x) - first) / x
         second_slope = (first - 2.0 * second) / x
@@ -935,21 +1035,23 @@ class _ContinuousModes:
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
-        transition = np.ones(self.poles.size, dtype=self.poles.dtype)
+        transition = None
         drive: Dict[Sample, np.ndarray] = {}
         factors = []
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
-            first, second = _hold_factors(x)
-            factors.append((length, start, end, x, e, first, second))
+            powers = _series_powers(x)
+            first, second = _hold_factors(x, powers)
+            factors.append((length, start, end, x, e, first, second, powers))
             q = length * second * self.residues
-            transition = e * transition
+            # The first sub-interval's transition is its exponential itself (times 1, exact).
+            transition = e if transition is None else e * transition
             drive = {sample: e * vector for sample, vector in drive.items()}
             _accumulate(drive, start, length * first * self.residues - q)
             _accumulate(drive, end, q)
         drives = np.array(list(drive.values()))
-        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+        if not (_all_finite(transition) and _all_finite(drives)):
             return None
         return _DiscreteModes(self, transition, list(drive), drives, factors)
 
@@ -958,14 +1060,14 @@ class _ContinuousModes:
         Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
 
         ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
-        end, ``x``, ``e^x`` and the hold factors). Returns ``(samples, kept modes)`` in the
-        order of ``samples``: the drives of the chain ``r_i/(z - z_i)^2``
-        (:meth:`_DiscreteModes.chains`).
+        end, ``x``, ``e^x``, the hold factors and :func:`_series_powers`). Returns
+        ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
+        ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
         """
         drive: Dict[Sample, np.ndarray] = {}
         slope: Dict[Sample, np.ndarray] = {}
-        for length, start, end, x, e, first, second in factors:
-            first_slope, second_slope = _hold_factor_slopes(x, first, second)
+        for length, start, end, x, e, first, second, powers in factors:
+            first_slope, second_slope = _hold_factor_slopes(x, first, second, powers)
             q = length * second * self.residues
             q_slope = length * length * second_slope * self.residues
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
@@ -1000,13 +1102,13 @@ class _DiscreteModes:
         """
         length = sum(factor[0] for factor in self.factors)
         slopes = self.continuous.drive_slopes(self.factors, self.samples)
-        driving = (length * self.poles)[:, None] * modal + slopes.T @ signals
+        driving = (length * self.poles)[:, None] * modal + _product(slopes.T, signals)
         return _run(self.poles, None, driving)
 
     def run(self, signals: np.ndarray) -> _Modes:
         """Run every kept mode over the signals of :attr:`samples` (one row each)."""
         modes = self.continuous
-        modal = _run(self.poles, None, self.drives.T @ signals)
+        modal = _run(self.poles, None, _product(self.drives.T, signals))
         return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
 
 
@@ -1045,7 +1147,7 @@ class _Chain:
             _accumulate(drive, start, integral - ramp)
             _accumulate(drive, end, ramp)
         drives = np.array(list(drive.values()))
-        if not (np.isfinite(transition).all() and np.isfinite(drives).all()):
+        if not (_all_finite(transition) and _all_finite(drives)):
             return None
         basis = np.zeros((n, n))
         for j in range(n):
@@ -1055,7 +1157,7 @@ class _Chain:
 
     def run(self, signals: np.ndarray) -> '_Modes':
         """Run the chain over the signals of :attr:`samples` (one row each)."""
-        driving = self.drives.T @ signals
+        driving = _product(self.drives.T, signals)
         count = driving.shape[1]
         modal = np.zeros(driving.shape)
         pole = self.transition[:1, 0]
@@ -1076,7 +1178,7 @@ def _condition(matrix: np.ndarray) -> float:
     """
     if matrix.shape != (2, 2):
         return float(np.linalg.cond(matrix))
-    frobenius = float(np.sum(np.abs(matrix) ** 2))
+    frobenius = float((abs(matrix) ** 2).sum())
     determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
     if not determinant > 0.0:
         return math.inf
@@ -1095,36 +1197,40 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         # One real pole: the general construction below reduces to this (residue 1, nothing
         # to compare it with), without its arrays of pole differences.
         pole = -realisation.den[1] / realisation.den[0] / realisation.scale
-        if not np.isfinite(pole):
+        if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
                                 np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
                                 True)
-    poles = np.asarray(polynomial_roots(realisation.den), dtype=complex) / realisation.scale
-    if poles.size != n or not np.isfinite(poles).all():
+    # Asked for every new denominator: array methods and operators, not numpy's dispatch.
+    poles = polynomial_roots(realisation.den).astype(complex) / realisation.scale
+    if poles.size != n:
         return None
-    magnitudes = np.abs(poles)
+    magnitudes = abs(poles)
+    if not _all_finite(magnitudes):
+        return None
     nonzero = magnitudes[magnitudes > 0.0]
     if nonzero.size and nonzero.max() > _MODAL_RANGE_LIMIT * nonzero.min():
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
-    np.fill_diagonal(differences, 1.0)
-    if np.abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
+    differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
+    if abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
     basis = vandermonde / realisation._balance[:, None]
-    if n > 1:
-        with np.errstate(all='ignore'):
-            condition = _condition(basis / np.linalg.norm(basis, axis=0))
-        if not condition <= _MODAL_CONDITION_LIMIT:
-            return None
+    with np.errstate(all='ignore'):
+        # The column norms as np.linalg.norm(basis, axis=0) forms them.
+        norms = np.sqrt(np.add.reduce((basis.conj() * basis).real, axis=0))
+        condition = _condition(basis / norms)
+    if not condition <= _MODAL_CONDITION_LIMIT:
+        return None
     keep = poles.imag >= 0.0
     residues = 1.0 / differences.prod(axis=1)[keep]
     inverse = 1.0 / differences
-    np.fill_diagonal(inverse, 0.0)
+    inverse.flat[::n + 1] = 0.0
     spread = inverse.sum(axis=1)[keep]
-    amplification = np.max(np.abs(residues) ** 2 * (1.0 + 2.0 * np.abs(spread)))
+    amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
     if not poles.imag.any():
         # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
         poles, basis, residues, spread = poles.real, basis.real, residues.real, spread.real

@@ -187,7 +187,8 @@ class Problem:
         self.best: Optional[State] = None
         self.reductions: Dict[int, float] = {}
         self._leading_sign = None
-        self._latest: Optional[Tuple[bytes, Linearization]] = None
+        # The latest linearisation: its key, itself, and the coefficients and skip it was for.
+        self._latest: Optional[Tuple[bytes, Linearization, Coefficients, int]] = None
 
     @cached_property
     def delay_guess(self) -> float:
@@ -211,6 +212,8 @@ class Problem:
         return self.data.y[self.skip:]
 
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
+        if not (self.initial_state or self.output_offset):
+            return None             # nothing fitted besides G u (every cost asks)
         # The simulation's own discretisation of 1/D serves the free responses too.
         discrete = self.bank.realized(coefficients.den, coefficients.delay) \
             if self.initial_state else None
@@ -231,14 +234,20 @@ class Problem:
         rule, the identifiability check and the covariance.
 
         """
-        key = b''.join(np.ascontiguousarray(part).tobytes() for part in (
+        latest = self._latest
+        # The iteration asks again with the same coefficients object (kept alive here, so its
+        # identity is its value); other callers with equal values are found by their bytes.
+        same = latest is not None and latest[2] is coefficients and latest[3] == self.skip
+        key = None if same else b''.join(np.ascontiguousarray(part).tobytes() for part in (
             coefficients.den, coefficients.num, coefficients.delay, coefficients.den_jacobian,
             coefficients.num_jacobian, coefficients.delay_gradient, self.skip))
-        if self._latest is not None and self._latest[0] == key and (
-                self._latest[1].phi is not None or not regressors):
-            return self._latest[1]
+        if latest is not None and (same or latest[0] == key) and (
+                latest[1].phi is not None or not regressors):
+            return latest[1]
         lin = self._linearized(coefficients, regressors)
-        self._latest = (key, lin)
+        if key is None:
+            key = latest[0]
+        self._latest = (key, lin, coefficients, self.skip)
         return lin
 
     def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:

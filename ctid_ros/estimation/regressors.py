@@ -21,6 +21,7 @@ instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and
 
 from dataclasses import dataclass
 from functools import lru_cache
+import math
 from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
@@ -40,7 +41,7 @@ _REMEMBERED = 4
 # an optimality check).
 _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
-# Realisations and discretisations shared by every bank (a few tens of small objects).
+# Realisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
 _TINY = np.finfo(float).tiny
 
@@ -68,11 +69,12 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     """Return True if every root of ``den`` lies left of ``-margin * max|root|``."""
     if den.size < 2:
         return den.size == 1 and den[0] != 0.0
-    if den[0] == 0.0 or not np.isfinite(den).all():
+    # Every candidate parameter vector is checked: the array methods, not numpy's dispatch
+    # (a finite sum has finite terms; one that overflows is checked elementwise).
+    if den[0] == 0.0 or not (math.isfinite(den.sum()) or np.isfinite(den).all()):
         return False
-    # Every candidate parameter vector is checked: the array methods, not numpy's dispatch.
     roots = polynomial_roots(den)
-    scale = max(np.abs(roots).max(), _TINY)
+    scale = max(abs(roots).max(), _TINY)
     return bool(roots.real.max() < -margin * scale)
 
 
@@ -87,26 +89,23 @@ def _remembered(cache: Dict[Hashable, Value], key: Hashable,
 
 
 @lru_cache(maxsize=_SHARED_FILTERS)
-def _discretized(den: bytes, ts: float, delay: float, intersample: str) -> DiscreteFilter:
-    """
-    Return the discretisation of ``1/den`` (coefficients as bytes), shared by every bank.
-
-    It depends on the denominator, sample time, dead time and intersample assumption only:
-    the banks of a record's halves and quarters (the consistency check), of the dead-time
-    search and of the structure comparisons evaluate the same parameter vectors on the same
-    sample time, and need not realise and discretise them again.
-    """
-    return _realization(den).discretize(ts, delay, intersample)
-
-
-@lru_cache(maxsize=_SHARED_FILTERS)
 def _realization(den: bytes) -> ContinuousFilter:
-    """Return the realisation of ``1/den`` (coefficients as bytes), shared by every bank."""
+    """
+    Return the realisation of ``1/den`` (coefficients as bytes), shared by every bank.
+
+    The input's and the output's discretisations of one denominator (held and interpolated)
+    share its modes; the banks of a record's halves and quarters (the consistency check), of
+    the dead-time search and of the structure comparisons evaluate the same parameter vectors,
+    and find their discretisations kept by :meth:`ContinuousFilter.discretize`.
+    """
     return ContinuousFilter(np.frombuffer(den))
 
 
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
-    return np.concatenate([np.zeros(length - poly.size), poly])
+    """Return coefficients (highest power first; rows of a 2-D array) with leading zeros."""
+    padded = np.zeros(poly.shape[:-1] + (length,))
+    padded[..., length - poly.shape[-1]:] = poly
+    return padded
 
 
 class SignalBank:
@@ -131,7 +130,6 @@ class SignalBank:
         self.driving = skew_extended(self.channels, output_skew)
         self.extra_delay = skew_delay(ts, output_skew)
         self.trim = 1 if output_skew else 0
-        self._filters: Dict[Hashable, DiscreteFilter] = {}
         self._outputs: Dict[Hashable, np.ndarray] = {}
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
@@ -140,9 +138,7 @@ class SignalBank:
         self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
-        return _remembered(self._filters, (den.tobytes(), float(delay), intersample),
-                           lambda: _discretized(den.tobytes(), self.ts, float(delay),
-                                                intersample))
+        return _realization(den.tobytes()).discretize(self.ts, float(delay), intersample)
 
     def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
                            delay: float, size: int) -> List[StateResponse]:
@@ -172,8 +168,11 @@ class SignalBank:
             responses = self._channel_responses(self._responses, coefficients.den,
                                                 coefficients.delay + self.extra_delay,
                                                 _REMEMBERED_RESPONSES)
-            output = sum(responses[j].outputs([num])[0][self.trim:]
-                         for j, num in enumerate(coefficients.num))
+            trim = self.trim
+            # One input (the usual case) needs no sum: its output array is new already.
+            output = responses[0].outputs(coefficients.num[:1])[0, trim:] \
+                if len(responses) == 1 else sum(responses[j].outputs([num])[0][trim:]
+                                                for j, num in enumerate(coefficients.num))
             output.setflags(write=False)
             return output
 
@@ -189,7 +188,7 @@ class SignalBank:
         den = coefficients.den
         order = den.size - 1
         params = coefficients.num_jacobian.shape[0]
-        delay_used = np.any(coefficients.delay_gradient != 0.0)
+        delay_used = bool(coefficients.delay_gradient.any())
         delay = coefficients.delay + self.extra_delay
         bank_u = self._discrete(den, delay, self.intersample)
         u_responses = self._channel_responses(self._responses, den, delay,
@@ -204,7 +203,7 @@ class SignalBank:
         for j, num in enumerate(coefficients.num):
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
-            num_jac = np.array([_pad(row, order + 1) for row in coefficients.num_jacobian[:, j]])
+            num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -212,7 +211,9 @@ class SignalBank:
                     'the dead time or use a strictly proper model')
             u_numerators = [num_full]
             if delay_used:
-                u_numerators.append(np.append(num_full[1:], 0.0))     # s N, strictly proper
+                times_s = np.zeros(order + 1)                       # s N, strictly proper
+                times_s[:-1] = num_full[1:]
+                u_numerators.append(times_s)
             if regressors:
                 u_numerators.extend(num_jac)
             u_parts = u_responses[j].outputs(u_numerators)[:, trim:]
@@ -245,15 +246,17 @@ class SignalBank:
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_jump = None
         if delay_used:
-            delay_term = -np.outer(coefficients.delay_gradient, derivative + jump)
-            if np.any(jump):
-                delay_jump = np.outer(coefficients.delay_gradient, jump).T
+            # np.outer's products, without its dispatch.
+            gradient = coefficients.delay_gradient[:, None]
+            delay_term = -(gradient * (derivative + jump))
+            if jump.any():
+                delay_jump = (gradient * jump).T
             psi += delay_term
         phi = None
         if regressors:
             bank_y = _remembered(self._output_filtered, den.tobytes(),
                                  lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-            y_parts = bank_y.outputs(list(coefficients.den_jacobian))
+            y_parts = bank_y.outputs(coefficients.den_jacobian)
             phi = u_regressors - y_parts
             if delay_used:
                 phi += delay_term

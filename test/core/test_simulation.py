@@ -420,6 +420,7 @@ def test_repeated_root_runs_as_a_jordan_chain_equal_to_the_schur_form(monkeypatc
     assert discrete.chain is not None
     chained = discrete.outputs(values, numerators)
     monkeypatch.setattr(simulation, '_CHAIN_MAX_ORDER', 0)
+    monkeypatch.setattr(simulation, '_DISCRETIZATIONS', {})     # not the chain just kept
     schur = ContinuousFilter(den).discretize(0.01, delay, intersample).outputs(values, numerators)
     np.testing.assert_allclose(chained, schur, rtol=0.0, atol=1e-11 * np.abs(schur).max())
 
@@ -436,3 +437,18 @@ def test_recursions_keep_a_non_finite_value_to_the_samples_after_it():
     out = recursions(np.array([0.5, 0.9]), values)
     assert np.isfinite(out[0]).all() and np.isfinite(out[1, :3000]).all()
     assert np.isnan(out[1, 3000:]).all()
+
+
+def test_discretisations_are_shared_by_equal_denominators_only():
+    # A realisation built again (the starts' filters, each fit) finds its discretisation kept.
+    den = np.polymul([2.0, 1.0], [0.5, 1.0])
+    first = ContinuousFilter(den).discretize(0.01, 0.0137, 'zoh')
+    assert ContinuousFilter(list(den)).discretize(0.01, 0.0137, 'zoh') is first
+    others = [ContinuousFilter(den).discretize(0.01, 0.0137, 'foh'),
+              ContinuousFilter(den).discretize(0.01, 0.02, 'zoh'),
+              ContinuousFilter(den).discretize(0.02, 0.0137, 'zoh'),
+              ContinuousFilter(den * (1.0 + 1e-15)).discretize(0.01, 0.0137, 'zoh')]
+    assert all(other is not first for other in others)
+    values = np.random.default_rng(3).standard_normal(500)
+    np.testing.assert_array_equal(first.outputs(values, [[1.0]])[0],
+                                  response([1.0], den, values, 0.01, delay=0.0137))
