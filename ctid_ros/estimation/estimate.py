@@ -279,6 +279,12 @@ class Uncertainty:
     restored_factors : ndarray or None
         Per parameter, the standard deviation with the restored noise model over that with the
         residual's own (1 for held parameters); None where the noise model was not restored.
+    svd : tuple of ndarray or None
+        The thin SVD of the column-scaled sensitivities of the free parameters, which the
+        checks after the covariance reuse (None if no parameter is free).
+    residual_noise : NoiseModel or None
+        The autoregressive model of the residual itself, before it was restored (``noise``
+        where it was not).
 
     """
 
@@ -290,6 +296,8 @@ class Uncertainty:
     free: np.ndarray
     removed_share: float = 0.0
     restored_factors: Optional[np.ndarray] = None
+    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+    residual_noise: Optional[NoiseModel] = None
 
 
 def covariance(problem: Problem, state: State,
@@ -324,6 +332,7 @@ def covariance(problem: Problem, state: State,
                                         autocorrelation)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(psi / scales, error, svd, start=model)
+    residual_noise = model
     removed_share = 0.0
     restored_factors = None
     if restored is not None:
@@ -342,7 +351,7 @@ def covariance(problem: Problem, state: State,
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors)
+                       restored_factors, svd if np.any(free) else None, residual_noise)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -474,7 +483,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
-                            uncertainty.removed_share, uncertainty.restored_factors)
+                            uncertainty.removed_share, uncertainty.restored_factors,
+                            svd=uncertainty.svd, residual_noise=uncertainty.residual_noise)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

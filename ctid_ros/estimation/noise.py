@@ -239,7 +239,8 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                         autocorrelation: Optional[np.ndarray] = None,
                         criterion: str = DEFAULT_CRITERION,
-                        shaping: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
+                        shaping: Optional[np.ndarray] = None,
+                        model: Optional[NoiseModel] = None) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
 
@@ -253,14 +254,17 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     ``autocorrelation``: that of the residual, if the caller has them; ``criterion``: how the
     noise model's order is chosen (:func:`noise_model`); ``shaping``: the impulse response of a
     known filter the noise may pass through (:func:`shaped_noise_model`), used if its model
-    scores better than the plain one (:func:`model_score`).
+    scores better than the plain one (:func:`model_score`); ``model``: the noise model to use,
+    if the caller has chosen it (then ``autocorrelation``, ``criterion`` and ``shaping`` are
+    not used).
     """
     count = residual.size
-    model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
-    if shaping is not None:
-        shaped = shaped_noise_model(residual, shaping, criterion)
-        if model_score(shaped, count, criterion) < model_score(model, count, criterion):
-            model = shaped
+    if model is None:
+        model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
+        if shaping is not None:
+            shaped = shaped_noise_model(residual, shaping, criterion)
+            if model_score(shaped, count, criterion) < model_score(model, count, criterion):
+                model = shaped
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
