@@ -165,7 +165,8 @@ def _pseudo_inverse(psi: np.ndarray) -> Optional[np.ndarray]:
 
 
 def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: NoiseModel,
-                     scale: float = 1.0) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+                     scale: float = 1.0, filtered: Optional[np.ndarray] = None
+                     ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
     """
     Return each block's deviation from the whole and its variance under the noise model.
 
@@ -179,6 +180,8 @@ def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: Noi
         The noise model ``Sigma = scale sigma_w^2 H H^T`` (:func:`noise_root`).
     scale : float
         The covariance's ``N / (N - p)``.
+    filtered : ndarray, shape (N, p), optional
+        ``noise_root(sensitivities, noise, scale)``, if the caller has it.
 
     Returns
     -------
@@ -189,7 +192,7 @@ def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: Noi
         parameters.
 
     """
-    blocks = _filtered_once(sensitivities, residual, noise, scale)
+    blocks = _filtered_once(sensitivities, residual, noise, scale, filtered)
     return _filtered_by_block(sensitivities, residual, noise, scale) if blocks is None \
         else blocks
 
@@ -233,7 +236,8 @@ def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel,
     return blocks
 
 
-def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float
+def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
+                   filtered: Optional[np.ndarray] = None
                    ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
     """
     :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
@@ -247,7 +251,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     memory. Inside the block the squares sum through ``F``'s Gram matrix. None (the block by
     block filtering then) for a shaped noise model, an all-pole filter whose memory is not
     shorter than every block, or sensitivities worse conditioned than
-    :data:`_NORMAL_CONDITION`.
+    :data:`_NORMAL_CONDITION`. ``filtered``: ``F``, if the caller has it.
     """
     count, params = scaled.shape
     if noise.shaping is not None:
@@ -271,7 +275,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if inverses is None:
         return None
     inverse, locals_ = inverses[0], inverses[1:]
-    filtered = noise_root(scaled, noise, scale)
+    if filtered is None:
+        filtered = noise_root(scaled, noise, scale)
     products = _piece_sums(np.stack([error[start:stop] @ scaled[start:stop]
                                      for start, stop in zip(edges[:-1], edges[1:])]))
     deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
@@ -364,7 +369,9 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
-                      std: np.ndarray) -> Consistency:
+                      std: np.ndarray,
+                      svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                      root: Optional[np.ndarray] = None) -> Consistency:
     """
     Test whether one parameter vector holds over the record (module docstring).
 
@@ -380,6 +387,13 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         Parameters not held at a bound (only these are tested).
     std : ndarray
         The noise-only standard deviations, ``model.parameters`` order.
+    svd : tuple of ndarray, optional
+        The thin SVD ``U S V^T`` of the column-scaled sensitivities of ``free``, if the
+        caller has it.
+    root : ndarray, optional
+        ``U`` filtered through the noise model's ``1/A`` backwards in time for unit
+        innovations, if the caller has it: the sensitivities' filtered form is then
+        ``root S V^T`` scaled, without another filter pass.
 
     """
     names = problem.model.parameters
@@ -394,7 +408,12 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     scales = np.linalg.norm(psi, axis=0)
     scales = np.where(scales > 0.0, scales, 1.0)
     scaled = psi / scales
-    blocks = block_deviations(scaled, error, noise, count / max(count - params, 1))
+    scale = count / max(count - params, 1)
+    filtered = None
+    if svd is not None and root is not None and root.shape[1] == params:
+        filtered = np.sqrt(scale * noise.innovation_variance) * (root @ (svd[1][:, None] *
+                                                                         svd[2]))
+    blocks = block_deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
@@ -538,8 +557,8 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
 
 def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
                          noise: NoiseModel, removed_share: float = 0.0,
-                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
-                         ) -> np.ndarray:
+                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                         root: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
 
@@ -550,12 +569,15 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     noise it is 1 to within a per cent (``docs/algorithm.md`` section 15). 1 for parameters
     held at a bound. ``removed_share``: the share of the noise's low-frequency level the fit
     took out of the residual, which the noise model then had to restore. ``svd``: the thin
-    SVD of the column-scaled sensitivities of the free parameters, if the caller has it.
+    SVD of the column-scaled sensitivities of the free parameters, and ``root``, its ``U``
+    filtered through the noise model's ``1/A`` backwards for unit innovations, if the caller
+    has them.
     """
     factors = np.ones(free.size)
     if not np.any(free):
         return factors
     if svd is None:
+        root = None
         psi, _ = _sensitivities(problem, state, free)
         scales = np.linalg.norm(psi, axis=0)
         svd = np.linalg.svd(psi / np.where(scales > 0.0, scales, 1.0), full_matrices=False)
@@ -563,7 +585,7 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
-                            int(np.sum(free)), removed_share)
+                            int(np.sum(free)), removed_share, root)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
     return factors
@@ -611,15 +633,20 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_order = noise.order
             result.residuals.noise_power_ratio = noise.variance_ratio
             result.residuals.noise_shaped = True
+    # The sensitivities' basis filtered once through the noise model, for the small-sample
+    # factors and the consistency check alike.
+    root = None
+    if svd is not None and noise.shaping is None and noise.order:
+        root = noise_root(svd[0], NoiseModel(noise.ar, 1.0, noise.variance))
     factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
-                                   0.0 if fed_back is not None else removed_share, svd)
+                                   0.0 if fed_back is not None else removed_share, svd, root)
     result.covariance = result.covariance * np.outer(factors, factors)
     result.std_change = {name: value / factor for (name, value), factor in
                          zip(result.std.items(), restored)}
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
-    consistency = check_consistency(problem, state, noise, free, std)
+    consistency = check_consistency(problem, state, noise, free, std, svd, root)
     result.consistency = consistency
     result.std_noise = dict(consistency.std_noise)
     if consistency.consistent:
