@@ -37,7 +37,7 @@ from typing import Any, Dict, List, Optional, Tuple
 from ctid_ros.core.simulation import all_pole
 from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
                                        noise_model, noise_root, NoiseModel,
-                                       shaped_noise_model)
+                                       shaped_noise_model, unit_root)
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.projected_noise import noise_freedom
 import numpy as np
@@ -595,7 +595,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
                      free: np.ndarray, removed_share: float = 0.0,
                      restored_factors: Optional[np.ndarray] = None,
                      svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                     residual_noise: Optional[NoiseModel] = None) -> Any:
+                     residual_noise: Optional[NoiseModel] = None,
+                     root: Optional[np.ndarray] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -610,7 +611,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     deviations with the restored noise over those without, None if not restored). ``svd``
     (the thin SVD of the column-scaled sensitivities of the free parameters) and
     ``residual_noise`` (the residual's own noise model, before any restoring): the
-    covariance's, so they are not computed again.
+    covariance's, so they are not computed again; ``root``: the SVD's ``U`` filtered for
+    ``noise`` (:func:`~ctid_ros.estimation.noise.unit_root`), if the caller has it.
 
     Sets ``result.consistency``, ``result.std_noise`` (the noise-only standard deviations) and
     ``result.std_change`` (those before the t factors and the restored noise: a change test's,
@@ -635,9 +637,10 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_shaped = True
     # The sensitivities' basis filtered once through the noise model, for the small-sample
     # factors and the consistency check alike.
-    root = None
-    if svd is not None and noise.shaping is None and noise.order:
-        root = noise_root(svd[0], NoiseModel(noise.ar, 1.0, noise.variance))
+    if fed_back is not None or svd is None or noise.shaping is not None or not noise.order:
+        root = None
+    elif root is None:
+        root = unit_root(svd[0], noise)
     factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
                                    0.0 if fed_back is not None else removed_share, svd, root)
     result.covariance = result.covariance * np.outer(factors, factors)

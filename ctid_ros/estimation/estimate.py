@@ -41,7 +41,8 @@ from ctid_ros.estimation.identifiability import (blind_combination, BlindCombina
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (column_scales, Iteration, IterationPolicy,
                                            IterationResult, on_bounds, Opening)
-from ctid_ros.estimation.noise import coloured_covariance, measured_every, NoiseModel
+from ctid_ros.estimation.noise import (coloured_covariance, measured_every, noise_model,
+                                       NoiseModel, unit_root)
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem,
@@ -285,6 +286,9 @@ class Uncertainty:
     residual_noise : NoiseModel or None
         The autoregressive model of the residual itself, before it was restored (``noise``
         where it was not).
+    root : ndarray or None
+        ``U`` of ``svd`` filtered through ``noise``'s ``1/A`` backwards for unit innovations
+        (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
 
     """
 
@@ -298,6 +302,7 @@ class Uncertainty:
     restored_factors: Optional[np.ndarray] = None
     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
     residual_noise: Optional[NoiseModel] = None
+    root: Optional[np.ndarray] = None
 
 
 def covariance(problem: Problem, state: State,
@@ -328,8 +333,11 @@ def covariance(problem: Problem, state: State,
         psi = psi[:, free]
         scales = column_scales(psi)
         svd = np.linalg.svd(psi / scales, full_matrices=False)
+    model = noise_model(error, autocorrelation=autocorrelation)
+    # The sensitivities' basis filtered once, for the sandwich and the checks after it.
+    root = unit_root(svd[0], model) if model.order and np.any(free) else None
     scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
-                                        autocorrelation)
+                                        model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(psi / scales, error, svd, start=model)
     residual_noise = model
@@ -342,6 +350,7 @@ def covariance(problem: Problem, state: State,
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
         scaled, model = restored
+        root = None
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
@@ -351,7 +360,7 @@ def covariance(problem: Problem, state: State,
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors, svd if np.any(free) else None, residual_noise)
+                       restored_factors, svd if np.any(free) else None, residual_noise, root)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -484,7 +493,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
                             uncertainty.removed_share, uncertainty.restored_factors,
-                            svd=uncertainty.svd, residual_noise=uncertainty.residual_noise)
+                            svd=uncertainty.svd, residual_noise=uncertainty.residual_noise,
+                            root=uncertainty.root)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

@@ -26,7 +26,7 @@ import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
            'measured_every', 'model_score', 'noise_memory', 'noise_model', 'noise_root',
-           'rational_form', 'shaped_noise_model']
+           'rational_form', 'shaped_noise_model', 'unit_root']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -240,7 +240,8 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         autocorrelation: Optional[np.ndarray] = None,
                         criterion: str = DEFAULT_CRITERION,
                         shaping: Optional[np.ndarray] = None,
-                        model: Optional[NoiseModel] = None) -> Tuple[np.ndarray, NoiseModel]:
+                        model: Optional[NoiseModel] = None,
+                        root: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
 
@@ -256,7 +257,7 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     known filter the noise may pass through (:func:`shaped_noise_model`), used if its model
     scores better than the plain one (:func:`model_score`); ``model``: the noise model to use,
     if the caller has chosen it (then ``autocorrelation``, ``criterion`` and ``shaping`` are
-    not used).
+    not used), and ``root``: ``unit_root(U, model)``, if the caller has it.
     """
     count = residual.size
     if model is None:
@@ -272,7 +273,9 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     if model.order == 0 and model.shaping is None:
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
-    filtered = noise_root(left, model, count / max(count - parameters, 1))
+    scale = count / max(count - parameters, 1)
+    filtered = noise_root(left, model, scale) if root is None else \
+        np.sqrt(scale * model.innovation_variance) * root
     return mapping @ (filtered.T @ filtered) @ mapping.T, model
 
 
@@ -297,6 +300,16 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     if model.order:
         columns = all_pole(model.ar, columns[::-1])[::-1]
     return np.sqrt(scale * model.innovation_variance) * columns
+
+
+def unit_root(columns: np.ndarray, model: NoiseModel) -> np.ndarray:
+    """
+    Return :func:`noise_root` of ``columns`` for unit innovations: the filtering alone.
+
+    ``noise_root(columns, model, scale)`` is ``sqrt(scale sigma_w^2)`` times it, to the last
+    bit: one filter pass serves every scale and every use of the same model's filter.
+    """
+    return noise_root(columns, NoiseModel(model.ar, 1.0, model.variance, model.shaping))
 
 
 def noise_memory(model: NoiseModel, limit: int) -> int:
