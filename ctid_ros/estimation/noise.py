@@ -183,6 +183,12 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
         num = np.convolve(den, impulse[:order + 1])[:order + 1]
         if not (np.all(np.isfinite(den)) and num[0] != 0.0):
             continue
+        # den * (impulse - response) is den * impulse after the first order + 1 samples: where
+        # that exceeds |den|_1 times the tolerance, so does the error itself (no filtering).
+        recurrence = np.convolve(den, impulse)[order + 1:impulse.size]
+        if np.max(np.abs(recurrence), initial=0.0) > \
+                2.0 * np.sum(np.abs(den)) * _RATIONAL_TOLERANCE * peak:
+            continue
         pulse = np.zeros(impulse.size)
         pulse[:order + 1] = num
         with np.errstate(all='ignore'):
