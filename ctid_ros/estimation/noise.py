@@ -373,6 +373,9 @@ def measured_every(y: np.ndarray) -> int:
         # on (nearly) every sample, rule out every factor at once.
         largest = int(min(_MAX_FACTOR, differences.size / (_PHASE_SHARE * moving.size) + 1))
         for factor in range(2, largest + 1):
+            if -(-differences.size // factor) < _PHASE_SHARE * moving.size:
+                # No phase of this or a larger factor has room for the share.
+                break
             phases = np.bincount(moving % factor, minlength=factor)
             if phases.max() >= _PHASE_SHARE * moving.size and \
                     phases.max() >= 0.5 * differences.size / factor:
