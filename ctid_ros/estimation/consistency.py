@@ -22,10 +22,12 @@ the record (two halves and four quarters) and compares each block with the whole
   tested at about 1 % false alarms.
 
 Cost: the sensitivities are the covariance's (cached by the problem), filtered backwards once
-(:func:`block_deviations`); per block a p x p inverse, a Gram matrix and two free responses of
-the noise filter over its memory (where the noise model is shaped, a block's sensitivities are
-ill conditioned or the filter's memory is as long as a block: an SVD and one backward filter
-of the block's map per block). Only a flagged estimate is refined: each quarter's estimate is
+(the covariance's filter pass, reused: :func:`block_deviations`); their products are summed
+once over the pieces between the blocks' edges, and per block there is a p x p inverse and two
+free responses of the noise filter over its memory, all stacked into single calls. For white
+noise the variances are ``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise
+model is shaped, a block's sensitivities are ill conditioned or the filter's memory is as long
+as a block: an SVD and one backward filter of the block's map per block. Only a flagged estimate is refined: each quarter's estimate is
 iterated (Gauss-Newton on the block's rows of the full-record simulation, at most
 :data:`REFINE_ITERATIONS` updates) and the reported standard deviations become at least the
 scatter of the quarter estimates.
@@ -275,12 +277,19 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if inverses is None:
         return None
     inverse, locals_ = inverses[0], inverses[1:]
-    if filtered is None:
-        filtered = noise_root(scaled, noise, scale)
     products = _piece_sums(np.stack([error[start:stop] @ scaled[start:stop]
                                      for start, stop in zip(edges[:-1], edges[1:])]))
     deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
         - products[-1] @ inverse
+    if not noise.order:
+        # White noise, Sigma = c^2 I: A_b A^T = G_b^-1 S_b^T S G^-1 = G^-1, so
+        # (A_b - A) Sigma (A_b - A)^T = c^2 (G_b^-1 - G^-1), from the p x p inverses alone.
+        variances = scale * noise.innovation_variance * np.diagonal(
+            locals_ - inverse, axis1=1, axis2=2)
+        return [(block, deviation, variance) for (block, _), deviation, variance
+                in zip(rows_of, deviations, variances)]
+    if filtered is None:
+        filtered = noise_root(scaled, noise, scale)
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
     # block and the memory before it: F G^-1. Through F's products over the pieces.
     filtered_edges = np.unique(np.concatenate([edges, firsts, inners]))
