@@ -27,10 +27,10 @@ once over the pieces between the blocks' edges, and per block there is a p x p i
 free responses of the noise filter over its memory, all stacked into single calls. For white
 noise the variances are ``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise
 model is shaped, a block's sensitivities are ill conditioned or the filter's memory is as long
-as a block: an SVD and one backward filter of the block's map per block. Only a flagged estimate is refined: each quarter's estimate is
-iterated (Gauss-Newton on the block's rows of the full-record simulation, at most
-:data:`REFINE_ITERATIONS` updates) and the reported standard deviations become at least the
-scatter of the quarter estimates.
+as a block: an SVD and one backward filter of the block's map per block. Only a flagged
+estimate is refined: each quarter's estimate is iterated (Gauss-Newton on the block's rows of
+the full-record simulation, at most :data:`REFINE_ITERATIONS` updates) and the reported
+standard deviations become at least the scatter of the quarter estimates.
 """
 
 from dataclasses import dataclass, field
