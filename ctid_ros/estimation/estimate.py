@@ -39,8 +39,8 @@ from ctid_ros.estimation.consistency import Consistency, with_consistency
 from ctid_ros.estimation.identifiability import (blind_combination, BlindCombination,
                                                  Sensitivities, structurally_blind)
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
-from ctid_ros.estimation.iteration import (column_scales, Iteration, IterationPolicy,
-                                           IterationResult, on_bounds, Opening)
+from ctid_ros.estimation.iteration import (Iteration, IterationPolicy, IterationResult,
+                                           on_bounds, Opening)
 from ctid_ros.estimation.noise import (coloured_covariance, measured_every, noise_model,
                                        NoiseModel, unit_root)
 from ctid_ros.estimation.options import check_options
@@ -326,12 +326,10 @@ def covariance(problem: Problem, state: State,
     variance = float(error @ error) / max(count - params, 1)
     free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
     scales = np.where(norms > 0.0, norms, 1.0)
-    if lin.delay_jump is not None or svd is None:
-        # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
-        # sensitivities differ; their mean stands for both.
-        psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
-        psi = psi[:, free]
-        scales = column_scales(psi)
+    if svd is None:
+        # A zero column, which the identifiability check's decomposition leaves out (scaled
+        # by 1 here). At a kink of the cost in the dead time ``psi`` is already the mean of
+        # the two one-sided sensitivities (:class:`Sensitivities`).
         svd = np.linalg.svd(psi / scales, full_matrices=False)
     model = noise_model(error, autocorrelation=autocorrelation)
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.
