@@ -22,20 +22,24 @@ the record (two halves and four quarters) and compares each block with the whole
   tested at about 1 % false alarms.
 
 Cost: the sensitivities are the covariance's (cached by the problem), filtered backwards once
-(:func:`block_deviations`); per block a p x p inverse, a Gram matrix and two free responses of
-the noise filter over its memory (where the noise model is shaped, a block's sensitivities are
-ill conditioned or the filter's memory is as long as a block: an SVD and one backward filter
-of the block's map per block). Only a flagged estimate is refined: each quarter's estimate is
-iterated (Gauss-Newton on the block's rows of the full-record simulation, at most
-:data:`REFINE_ITERATIONS` updates) and the reported standard deviations become at least the
-scatter of the quarter estimates.
+(the covariance's filter pass, reused: :func:`block_deviations`); their products are summed
+once over the pieces between the blocks' edges, and per block there is a p x p inverse and two
+free responses of the noise filter over its memory, all stacked into single calls. For white
+noise the variances are ``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise
+model is shaped, a block's sensitivities are ill conditioned or the filter's memory is as long
+as a block: an SVD and one backward filter of the block's map per block. Only a flagged
+estimate is refined: each quarter's estimate is iterated (Gauss-Newton on the block's rows of
+the full-record simulation, at most :data:`REFINE_ITERATIONS` updates) and the reported
+standard deviations become at least the scatter of the quarter estimates.
 """
 
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
-from ctid_ros.estimation.noise import coloured_covariance, noise_memory, noise_root, NoiseModel
+from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
+                                       noise_model, noise_root, NoiseModel,
+                                       shaped_noise_model, unit_root)
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.projected_noise import noise_freedom
 import numpy as np
@@ -163,7 +167,8 @@ def _pseudo_inverse(psi: np.ndarray) -> Optional[np.ndarray]:
 
 
 def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: NoiseModel,
-                     scale: float = 1.0) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+                     scale: float = 1.0, filtered: Optional[np.ndarray] = None
+                     ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
     """
     Return each block's deviation from the whole and its variance under the noise model.
 
@@ -177,6 +182,8 @@ def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: Noi
         The noise model ``Sigma = scale sigma_w^2 H H^T`` (:func:`noise_root`).
     scale : float
         The covariance's ``N / (N - p)``.
+    filtered : ndarray, shape (N, p), optional
+        ``noise_root(sensitivities, noise, scale)``, if the caller has it.
 
     Returns
     -------
@@ -187,7 +194,7 @@ def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: Noi
         parameters.
 
     """
-    blocks = _filtered_once(sensitivities, residual, noise, scale)
+    blocks = _filtered_once(sensitivities, residual, noise, scale, filtered)
     return _filtered_by_block(sensitivities, residual, noise, scale) if blocks is None \
         else blocks
 
@@ -231,7 +238,8 @@ def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel,
     return blocks
 
 
-def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float
+def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
+                   filtered: Optional[np.ndarray] = None
                    ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
     """
     :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
@@ -245,7 +253,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     memory. Inside the block the squares sum through ``F``'s Gram matrix. None (the block by
     block filtering then) for a shaped noise model, an all-pole filter whose memory is not
     shorter than every block, or sensitivities worse conditioned than
-    :data:`_NORMAL_CONDITION`.
+    :data:`_NORMAL_CONDITION`. ``filtered``: ``F``, if the caller has it.
     """
     count, params = scaled.shape
     if noise.shaping is not None:
@@ -255,65 +263,124 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
                if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
     if any(rows.stop - rows.start <= 2 * memory for _, rows in rows_of):
         return None
-    inverse = _normal_inverse(scaled)
-    locals_ = [_normal_inverse(scaled[rows]) for _, rows in rows_of]
-    if inverse is None or any(local is None for local in locals_):
+    starts = np.array([rows.start for _, rows in rows_of], dtype=int)
+    stops = np.array([rows.stop for _, rows in rows_of], dtype=int)
+    firsts, inners = np.maximum(starts - memory, 0), stops - memory
+    # Every block's sums of products are sums over the pieces between the blocks' edges: each
+    # row enters one product (halves and quarters share their rows).
+    edges = np.unique(np.concatenate([[0, count], starts, stops]))
+    grams = _piece_sums(_piece_grams(scaled, edges))
+    # The whole record's and every block's inverse Gram matrix, decomposed together: the
+    # matrices are p x p, and one stacked call costs what one alone does.
+    inverses = _normal_inverses(np.concatenate([
+        grams[-1:], _between(grams, edges, starts, stops)]))
+    if inverses is None:
         return None
-    filtered = noise_root(scaled, noise, scale)
-    whole_root = np.einsum('ij,jk->ik', filtered, inverse)
-    whole_deviation = (error @ scaled) @ inverse
-    blocks = []
-    for (block, rows), local in zip(rows_of, locals_):
-        deviation = (error[rows] @ scaled[rows]) @ local - whole_deviation
-        first, inner = max(rows.start - memory, 0), rows.stop - memory
-        # Inside the block, away from its end: (F G_b^-1 - F G^-1) row by row.
-        difference = local - inverse
-        gram = filtered[rows.start:inner].T @ filtered[rows.start:inner]
-        variance = np.einsum('ij,ik,kj->j', difference, gram, difference)
-        # The block's end: F less the response to the samples after the block.
-        end = filtered[inner:rows.stop] - _free_response(filtered, noise.ar, rows.stop, memory)
-        root = end @ local - whole_root[inner:rows.stop]
-        variance += np.einsum('ij,ij->j', root, root)
-        # Before the block: the response to the block's state at its start.
-        before = _free_response(filtered, noise.ar, rows.start, rows.start - first)
-        root = before @ local - whole_root[first:rows.start]
-        variance += np.einsum('ij,ij->j', root, root)
-        for outside in (whole_root[:first], whole_root[rows.stop:]):
-            variance += np.einsum('ij,ij->j', outside, outside)
-        blocks.append((block, deviation, variance))
-    return blocks
+    inverse, locals_ = inverses[0], inverses[1:]
+    products = _piece_sums(np.stack([error[start:stop] @ scaled[start:stop]
+                                     for start, stop in zip(edges[:-1], edges[1:])]))
+    deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
+        - products[-1] @ inverse
+    if not noise.order:
+        # White noise, Sigma = c^2 I: A_b A^T = G_b^-1 S_b^T S G^-1 = G^-1, so
+        # (A_b - A) Sigma (A_b - A)^T = c^2 (G_b^-1 - G^-1), from the p x p inverses alone.
+        variances = scale * noise.innovation_variance * np.diagonal(
+            locals_ - inverse, axis1=1, axis2=2)
+        return [(block, deviation, variance) for (block, _), deviation, variance
+                in zip(rows_of, deviations, variances)]
+    if filtered is None:
+        filtered = noise_root(scaled, noise, scale)
+    # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
+    # block and the memory before it: F G^-1. Through F's products over the pieces.
+    filtered_edges = np.unique(np.concatenate([edges, firsts, inners]))
+    filtered_grams = _piece_sums(_piece_grams(filtered, filtered_edges))
+    difference = locals_ - inverse
+    outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
+    variances = np.einsum('bij,bik,bkj->bj', difference,
+                          _between(filtered_grams, filtered_edges, starts, inners), difference) \
+        + np.einsum('ij,bik,kj->bj', inverse, outside, inverse)
+    if memory:
+        # Each block's end: F less the response to the samples after the block; before each
+        # block: the response to the block's state at its start. All from one filter pass,
+        # then row by row.
+        ends, befores = np.split(_free_responses(
+            filtered, noise.ar, np.concatenate([stops, starts]),
+            np.concatenate([stops - inners, starts - firsts]), memory), 2)
+        span = np.arange(memory)
+        at_end = filtered[inners[:, None] + span]
+        rows_before = starts[:, None] - memory + span
+        before = np.where((rows_before >= 0)[:, :, None],
+                          filtered[np.maximum(rows_before, 0)], 0.0)
+        for response, rows in ((at_end - ends, at_end), (befores, before)):
+            root = np.einsum('bij,bjk->bik', response, locals_) - rows @ inverse
+            variances += np.einsum('bij,bij->bj', root, root)
+    return [(block, deviation, variance) for (block, _), deviation, variance
+            in zip(rows_of, deviations, variances)]
 
 
-def _normal_inverse(scaled: np.ndarray) -> Optional[np.ndarray]:
-    """Return ``(S^T S)^-1`` if ``S`` is conditioned within :data:`_NORMAL_CONDITION`."""
-    gram = scaled.T @ scaled
-    eigenvalues = np.linalg.eigvalsh(gram)
-    if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
-        return np.linalg.inv(gram)
+def _piece_grams(columns: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Return ``X_k^T X_k`` for the rows ``edges[k] .. edges[k + 1] - 1`` of ``columns``."""
+    return np.stack([columns[start:stop].T @ columns[start:stop]
+                     for start, stop in zip(edges[:-1], edges[1:])])
+
+
+def _piece_sums(pieces: np.ndarray) -> np.ndarray:
+    """Return the running sums of ``pieces`` from 0: entry ``k`` sums pieces ``0 .. k - 1``."""
+    return np.concatenate([np.zeros((1,) + pieces.shape[1:]), np.cumsum(pieces, axis=0)])
+
+
+def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.ndarray
+             ) -> np.ndarray:
+    """Return the sums over rows ``starts .. stops - 1`` (all among ``edges``) by block."""
+    return sums[np.searchsorted(edges, stops)] - sums[np.searchsorted(edges, starts)]
+
+
+def _normal_inverses(grams: np.ndarray) -> Optional[np.ndarray]:
+    """Return the inverses of ``S^T S`` (stacked) if all ``S`` are conditioned within bounds."""
+    eigenvalues = np.linalg.eigvalsh(grams)
+    if np.all(eigenvalues[:, 0] > 0.0) and \
+            np.all(eigenvalues[:, 0] >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2):
+        return np.linalg.inv(grams)
     return None
 
 
-def _free_response(filtered: np.ndarray, ar: np.ndarray, end: int, length: int) -> np.ndarray:
+def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
+                    lengths: np.ndarray, span: int) -> np.ndarray:
     """
-    Return rows ``end - length .. end - 1`` of the backward all-pole filter's free response.
+    Return the backward all-pole filter's free responses before ``ends``, ``span`` rows each.
 
     The filter (``1/A`` backwards in time, as in ``noise_root``) holds the values of
     ``filtered`` at ``end .. end + order - 1`` and gets no input before ``end``: the input that
-    gives those values from rest is ``A`` applied to them, then zeros.
+    gives those values from rest is ``A`` applied to them, then zeros. Response ``i`` covers
+    rows ``end - span .. end - 1``, of which only the last ``lengths[i]`` are kept (the rest
+    zero). Shape ``(len(ends), span, columns)``; one filter pass for all.
     """
     order = ar.size - 1
-    top = min(end + order, filtered.shape[0])
-    held = top - end
-    if length == 0 or held == 0:
-        return np.zeros((length, filtered.shape[1]))
-    driving = np.zeros((length + held, filtered.shape[1]))
-    for lag in range(min(order, held - 1) + 1):
-        driving[length:length + held - lag] += ar[lag] * filtered[end + lag:top]
-    return all_pole(ar, driving[::-1])[::-1][:length]
+    columns = filtered.shape[1]
+    result = np.zeros((ends.size, span, columns))
+    if order == 0 or span == 0:
+        return result
+    # In reversed time the driving input of response i is nonzero on its first `held` rows.
+    driving = np.zeros((order + span, ends.size, columns))
+    helds = np.minimum(ends + order, filtered.shape[0]) - ends
+    for index, (end, held) in enumerate(zip(ends, helds)):
+        if held == 0 or lengths[index] == 0:
+            continue
+        part = np.zeros((held, columns))
+        for lag in range(min(order, held - 1) + 1):
+            part[:held - lag] += ar[lag] * filtered[end + lag:end + held]
+        driving[:held, index] = part[::-1]
+    response = all_pole(ar, driving.reshape(order + span, -1)).reshape(driving.shape)
+    for index, (held, length) in enumerate(zip(helds, lengths)):
+        if held and length:
+            result[index, span - length:] = response[held:held + length, index][::-1]
+    return result
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
-                      std: np.ndarray) -> Consistency:
+                      std: np.ndarray,
+                      svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                      root: Optional[np.ndarray] = None) -> Consistency:
     """
     Test whether one parameter vector holds over the record (module docstring).
 
@@ -329,6 +396,13 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         Parameters not held at a bound (only these are tested).
     std : ndarray
         The noise-only standard deviations, ``model.parameters`` order.
+    svd : tuple of ndarray, optional
+        The thin SVD ``U S V^T`` of the column-scaled sensitivities of ``free``, if the
+        caller has it.
+    root : ndarray, optional
+        ``U`` filtered through the noise model's ``1/A`` backwards in time for unit
+        innovations, if the caller has it: the sensitivities' filtered form is then
+        ``root S V^T`` scaled, without another filter pass.
 
     """
     names = problem.model.parameters
@@ -343,7 +417,12 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     scales = np.linalg.norm(psi, axis=0)
     scales = np.where(scales > 0.0, scales, 1.0)
     scaled = psi / scales
-    blocks = block_deviations(scaled, error, noise, count / max(count - params, 1))
+    scale = count / max(count - params, 1)
+    filtered = None
+    if svd is not None and root is not None and root.shape[1] == params:
+        filtered = np.sqrt(scale * noise.innovation_variance) * (root @ (svd[1][:, None] *
+                                                                         svd[2]))
+    blocks = block_deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
@@ -442,46 +521,60 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
     the measured output that the controller feeds back reaches the output through ``1 - T``
     (``docs/algorithm.md`` section 15). ``T``'s pulse response is simulated over the fitted
     samples and cut where it has decayed below 1e-12 of its peak. None for an open-loop model.
+
+    The simulation is causal: the first half of the samples give the same response to the
+    last bit, and where its last quarter has decayed (a loop that settles within a third of
+    the record) the rest is not simulated.
     """
     if getattr(problem.model, 'controller', None) is None:
         return None
     count = problem.measured.size
-    pulse = np.zeros(count)
-    pulse[0] = 1.0
-    shaping = -np.asarray(problem.model.simulate(state.theta, pulse, problem.data.ts),
-                          dtype=float)
-    shaping[0] += 1.0
-    significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.max(np.abs(shaping)))
+    for length in sorted({max(count // 2, 1), count}):
+        pulse = np.zeros(length)
+        pulse[0] = 1.0
+        shaping = -np.asarray(problem.model.simulate(state.theta, pulse, problem.data.ts),
+                              dtype=float)
+        shaping[0] += 1.0
+        significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.max(np.abs(shaping)))
+        if significant[-1] < length - length // 4 or length == count:
+            break
     return shaping[:significant[-1] + 1]
 
 
-def _fed_back_noise(problem: Problem, state: State, free: np.ndarray
+def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
+                    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                    residual_noise: Optional[NoiseModel] = None
                     ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
     """
     Return the covariance and noise model with the noise shaped by the loop, if that fits better.
 
     For a closed-loop model the residual's noise model may be the plain autoregressive one or
     one passed through the loop's sensitivity (:func:`loop_sensitivity`), whichever scores
-    better (:func:`~ctid_ros.estimation.noise.coloured_covariance`). None if the model is open
-    loop or the plain one wins (the estimate's covariance stands).
+    better (:func:`~ctid_ros.estimation.noise.model_score`). None if the model is open loop or
+    the plain one wins (the estimate's covariance stands). ``svd``: that of the column-scaled
+    sensitivities, ``residual_noise``: the plain model, if the caller has them.
     """
     shaping = loop_sensitivity(problem, state)
     if shaping is None or not np.any(free):
         return None
     psi, error = _sensitivities(problem, state, free)
+    plain = noise_model(error) if residual_noise is None else residual_noise
+    shaped = shaped_noise_model(error, shaping)
+    count = error.size
+    if not model_score(shaped, count) < model_score(plain, count):
+        return None
     scales = np.linalg.norm(psi, axis=0)
     scales = np.where(scales > 0.0, scales, 1.0)
-    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)),
-                                        shaping=shaping)
-    if model.shaping is None:
-        return None
+    scaled, _ = coloured_covariance(psi / scales, error, int(np.sum(free)), svd, model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
     covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
-    return covariance, model
+    return covariance, shaped
 
 
 def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
-                         noise: NoiseModel, removed_share: float = 0.0) -> np.ndarray:
+                         noise: NoiseModel, removed_share: float = 0.0,
+                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                         root: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
 
@@ -491,19 +584,24 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or white
     noise it is 1 to within a per cent (``docs/algorithm.md`` section 15). 1 for parameters
     held at a bound. ``removed_share``: the share of the noise's low-frequency level the fit
-    took out of the residual, which the noise model then had to restore.
+    took out of the residual, which the noise model then had to restore. ``svd``: the thin
+    SVD of the column-scaled sensitivities of the free parameters, and ``root``, its ``U``
+    filtered through the noise model's ``1/A`` backwards for unit innovations, if the caller
+    has them.
     """
     factors = np.ones(free.size)
     if not np.any(free):
         return factors
-    psi, _ = _sensitivities(problem, state, free)
-    scales = np.linalg.norm(psi, axis=0)
-    left, singular, right_t = np.linalg.svd(psi / np.where(scales > 0.0, scales, 1.0),
-                                            full_matrices=False)
+    if svd is None:
+        root = None
+        psi, _ = _sensitivities(problem, state, free)
+        scales = np.linalg.norm(psi, axis=0)
+        svd = np.linalg.svd(psi / np.where(scales > 0.0, scales, 1.0), full_matrices=False)
+    left, singular, right_t = svd
     if singular[-1] <= 0.0:
         return factors
-    freedom = noise_freedom(left, right_t.T / singular, noise, psi.shape[0],
-                            int(np.sum(free)), removed_share)
+    freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
+                            int(np.sum(free)), removed_share, root)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
     return factors
@@ -511,7 +609,10 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
                      free: np.ndarray, removed_share: float = 0.0,
-                     restored_factors: Optional[np.ndarray] = None) -> Any:
+                     restored_factors: Optional[np.ndarray] = None,
+                     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                     residual_noise: Optional[NoiseModel] = None,
+                     root: Optional[np.ndarray] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -523,7 +624,11 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     (:func:`small_sample_factors`; ``removed_share``: the share of the noise's low-frequency
     level the fit took out of the residual, from
     :func:`~ctid_ros.estimation.estimate.covariance`; ``restored_factors``: its standard
-    deviations with the restored noise over those without, None if not restored).
+    deviations with the restored noise over those without, None if not restored). ``svd``
+    (the thin SVD of the column-scaled sensitivities of the free parameters) and
+    ``residual_noise`` (the residual's own noise model, before any restoring): the
+    covariance's, so they are not computed again; ``root``: the SVD's ``U`` filtered for
+    ``noise`` (:func:`~ctid_ros.estimation.noise.unit_root`), if the caller has it.
 
     Sets ``result.consistency``, ``result.std_noise`` (the noise-only standard deviations) and
     ``result.std_change`` (those before the t factors and the restored noise: a change test's,
@@ -534,7 +639,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     that the standard deviations account for what is left.
     """
     names = problem.model.parameters
-    fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool))
+    fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool), svd,
+                               residual_noise)
     restored = np.ones(len(names)) if restored_factors is None else \
         np.asarray(restored_factors, dtype=float)
     if fed_back is not None:
@@ -545,15 +651,21 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_order = noise.order
             result.residuals.noise_power_ratio = noise.variance_ratio
             result.residuals.noise_shaped = True
+    # The sensitivities' basis filtered once through the noise model, for the small-sample
+    # factors and the consistency check alike.
+    if fed_back is not None or svd is None or noise.shaping is not None or not noise.order:
+        root = None
+    elif root is None:
+        root = unit_root(svd[0], noise)
     factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
-                                   0.0 if fed_back is not None else removed_share)
+                                   0.0 if fed_back is not None else removed_share, svd, root)
     result.covariance = result.covariance * np.outer(factors, factors)
     result.std_change = {name: value / factor for (name, value), factor in
                          zip(result.std.items(), restored)}
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
-    consistency = check_consistency(problem, state, noise, free, std)
+    consistency = check_consistency(problem, state, noise, free, std, svd, root)
     result.consistency = consistency
     result.std_noise = dict(consistency.std_noise)
     if consistency.consistent:

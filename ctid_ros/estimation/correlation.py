@@ -10,6 +10,7 @@ The same correlation of the data themselves, after prewhitening the input, gives
 dead-time guess (:func:`prewhitened_delay`, section 12).
 """
 
+from functools import lru_cache
 from typing import Optional
 
 from ctid_ros.core.data import Data
@@ -31,6 +32,9 @@ _RESIDUAL_WHITENING_ORDER = 4
 _NORMAL_CONDITION = 1e3
 
 
+# The sizes asked for are few (a record's length plus a few lag ranges) and the search is a
+# Python loop of dozens of steps: remembered.
+@lru_cache(maxsize=256)
 def fft_size(count: int) -> int:
     """
     Return the smallest ``2^a 3^b 5^c`` of at least ``count`` (1 for none): a fast FFT length.

@@ -39,9 +39,10 @@ from ctid_ros.estimation.consistency import Consistency, with_consistency
 from ctid_ros.estimation.identifiability import (blind_combination, BlindCombination,
                                                  Sensitivities, structurally_blind)
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
-from ctid_ros.estimation.iteration import (column_scales, Iteration, IterationPolicy,
-                                           IterationResult, on_bounds, Opening)
-from ctid_ros.estimation.noise import coloured_covariance, measured_every, NoiseModel
+from ctid_ros.estimation.iteration import (Iteration, IterationPolicy, IterationResult,
+                                           on_bounds, Opening)
+from ctid_ros.estimation.noise import (coloured_covariance, measured_every, noise_model,
+                                       NoiseModel, unit_root)
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem,
@@ -279,6 +280,15 @@ class Uncertainty:
     restored_factors : ndarray or None
         Per parameter, the standard deviation with the restored noise model over that with the
         residual's own (1 for held parameters); None where the noise model was not restored.
+    svd : tuple of ndarray or None
+        The thin SVD of the column-scaled sensitivities of the free parameters, which the
+        checks after the covariance reuse (None if no parameter is free).
+    residual_noise : NoiseModel or None
+        The autoregressive model of the residual itself, before it was restored (``noise``
+        where it was not).
+    root : ndarray or None
+        ``U`` of ``svd`` filtered through ``noise``'s ``1/A`` backwards for unit innovations
+        (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
 
     """
 
@@ -290,6 +300,9 @@ class Uncertainty:
     free: np.ndarray
     removed_share: float = 0.0
     restored_factors: Optional[np.ndarray] = None
+    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+    residual_noise: Optional[NoiseModel] = None
+    root: Optional[np.ndarray] = None
 
 
 def covariance(problem: Problem, state: State,
@@ -313,17 +326,19 @@ def covariance(problem: Problem, state: State,
     variance = float(error @ error) / max(count - params, 1)
     free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
     scales = np.where(norms > 0.0, norms, 1.0)
-    if lin.delay_jump is not None or svd is None:
-        # At a kink of the cost in the dead time (on the sample lattice) the two one-sided
-        # sensitivities differ; their mean stands for both.
-        psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
-        psi = psi[:, free]
-        scales = column_scales(psi)
+    if svd is None:
+        # A zero column, which the identifiability check's decomposition leaves out (scaled
+        # by 1 here). At a kink of the cost in the dead time ``psi`` is already the mean of
+        # the two one-sided sensitivities (:class:`Sensitivities`).
         svd = np.linalg.svd(psi / scales, full_matrices=False)
+    model = noise_model(error, autocorrelation=autocorrelation)
+    # The sensitivities' basis filtered once, for the sandwich and the checks after it.
+    root = unit_root(svd[0], model) if model.order and np.any(free) else None
     scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
-                                        autocorrelation)
+                                        model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(psi / scales, error, svd, start=model)
+    residual_noise = model
     removed_share = 0.0
     restored_factors = None
     if restored is not None:
@@ -333,6 +348,7 @@ def covariance(problem: Problem, state: State,
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
         scaled, model = restored
+        root = None
     result = np.full((params, params), np.nan)
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
@@ -342,7 +358,7 @@ def covariance(problem: Problem, state: State,
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors)
+                       restored_factors, svd if np.any(free) else None, residual_noise, root)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -474,7 +490,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
-                            uncertainty.removed_share, uncertainty.restored_factors)
+                            uncertainty.removed_share, uncertainty.restored_factors,
+                            svd=uncertainty.svd, residual_noise=uncertainty.residual_noise,
+                            root=uncertainty.root)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

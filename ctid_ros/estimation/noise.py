@@ -26,7 +26,7 @@ import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
            'measured_every', 'model_score', 'noise_memory', 'noise_model', 'noise_root',
-           'rational_form', 'shaped_noise_model']
+           'rational_form', 'shaped_noise_model', 'unit_root']
 
 # Largest autoregressive order tried, and the fraction of the record it may reach.
 _MAX_ORDER = 30
@@ -183,6 +183,12 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
         num = np.convolve(den, impulse[:order + 1])[:order + 1]
         if not (np.all(np.isfinite(den)) and num[0] != 0.0):
             continue
+        # den * (impulse - response) is den * impulse after the first order + 1 samples: where
+        # that exceeds |den|_1 times the tolerance, so does the error itself (no filtering).
+        recurrence = np.convolve(den, impulse)[order + 1:impulse.size]
+        if np.max(np.abs(recurrence), initial=0.0) > \
+                2.0 * np.sum(np.abs(den)) * _RATIONAL_TOLERANCE * peak:
+            continue
         pulse = np.zeros(impulse.size)
         pulse[:order + 1] = num
         with np.errstate(all='ignore'):
@@ -239,7 +245,9 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                         autocorrelation: Optional[np.ndarray] = None,
                         criterion: str = DEFAULT_CRITERION,
-                        shaping: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
+                        shaping: Optional[np.ndarray] = None,
+                        model: Optional[NoiseModel] = None,
+                        root: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
     """
     Return ``(Psi^T Psi)^-1 Psi^T Sigma Psi (Psi^T Psi)^-1`` and the noise model behind it.
 
@@ -253,14 +261,17 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     ``autocorrelation``: that of the residual, if the caller has them; ``criterion``: how the
     noise model's order is chosen (:func:`noise_model`); ``shaping``: the impulse response of a
     known filter the noise may pass through (:func:`shaped_noise_model`), used if its model
-    scores better than the plain one (:func:`model_score`).
+    scores better than the plain one (:func:`model_score`); ``model``: the noise model to use,
+    if the caller has chosen it (then ``autocorrelation``, ``criterion`` and ``shaping`` are
+    not used), and ``root``: ``unit_root(U, model)``, if the caller has it.
     """
     count = residual.size
-    model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
-    if shaping is not None:
-        shaped = shaped_noise_model(residual, shaping, criterion)
-        if model_score(shaped, count, criterion) < model_score(model, count, criterion):
-            model = shaped
+    if model is None:
+        model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
+        if shaping is not None:
+            shaped = shaped_noise_model(residual, shaping, criterion)
+            if model_score(shaped, count, criterion) < model_score(model, count, criterion):
+                model = shaped
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
@@ -268,7 +279,9 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     if model.order == 0 and model.shaping is None:
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
-    filtered = noise_root(left, model, count / max(count - parameters, 1))
+    scale = count / max(count - parameters, 1)
+    filtered = noise_root(left, model, scale) if root is None else \
+        np.sqrt(scale * model.innovation_variance) * root
     return mapping @ (filtered.T @ filtered) @ mapping.T, model
 
 
@@ -293,6 +306,16 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     if model.order:
         columns = all_pole(model.ar, columns[::-1])[::-1]
     return np.sqrt(scale * model.innovation_variance) * columns
+
+
+def unit_root(columns: np.ndarray, model: NoiseModel) -> np.ndarray:
+    """
+    Return :func:`noise_root` of ``columns`` for unit innovations: the filtering alone.
+
+    ``noise_root(columns, model, scale)`` is ``sqrt(scale sigma_w^2)`` times it, to the last
+    bit: one filter pass serves every scale and every use of the same model's filter.
+    """
+    return noise_root(columns, NoiseModel(model.ar, 1.0, model.variance, model.shaping))
 
 
 def noise_memory(model: NoiseModel, limit: int) -> int:
@@ -350,6 +373,9 @@ def measured_every(y: np.ndarray) -> int:
         # on (nearly) every sample, rule out every factor at once.
         largest = int(min(_MAX_FACTOR, differences.size / (_PHASE_SHARE * moving.size) + 1))
         for factor in range(2, largest + 1):
+            if -(-differences.size // factor) < _PHASE_SHARE * moving.size:
+                # No phase of this or a larger factor has room for the share.
+                break
             phases = np.bincount(moving % factor, minlength=factor)
             if phases.max() >= _PHASE_SHARE * moving.size and \
                     phases.max() >= 0.5 * differences.size / factor:

@@ -157,8 +157,8 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
     return mapping @ (filtered.T @ filtered) @ mapping.T, model
 
 
-def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel
-                  ) -> Tuple[np.ndarray, np.ndarray]:
+def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
+                  root: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
     """
     Return ``log d`` and its gradient in ``a_1 .. a_p``, ``d`` the diagonal of ``M Z^T Z M^T``.
 
@@ -166,10 +166,10 @@ def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel
     innovations (``S`` the lower shift). ``dH/da_k = -S^k H^2``: lower triangular Toeplitz
     matrices commute, so ``dZ/da_k = -(S^T)^k Y`` with ``Y = H^T Z``, the root filtered once
     more, moved ``k`` samples earlier. Two filter passes give the exact gradient, where
-    differences would take one pass per coefficient.
+    differences would take one pass per coefficient. ``root``: ``Z``, if the caller has it.
     """
     unit = NoiseModel(model.ar, 1.0, model.variance)
-    root = noise_root(left, unit)
+    root = noise_root(left, unit) if root is None else root
     again = noise_root(root, unit)
     # Through p x p Gram matrices: numpy's product of the long, reversed root with the
     # mapping does not reach BLAS speed.
@@ -184,7 +184,8 @@ def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel
 
 
 def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, count: int,
-                  parameters: int, removed_share: float = 0.0) -> np.ndarray:
+                  parameters: int, removed_share: float = 0.0,
+                  root: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return each standard deviation's effective degrees of freedom (module docstring).
 
@@ -202,6 +203,9 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
         Share of the noise's low-frequency level the fit's projection took out of the
         residual: the coefficients are determined by that share fewer samples' worth of
         residual (``count (1 - removed_share)``).
+    root : ndarray, optional
+        ``left`` filtered through ``1/A`` backwards in time for unit innovations
+        (:func:`~ctid_ros.estimation.noise.noise_root`), if the caller has it.
 
     Returns
     -------
@@ -218,7 +222,7 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
     variance = np.full(rows, 2.0 / residual_freedom)
     order = model.order
     if order:
-        _, gradient = _log_diagonal(mapping, left, model)
+        _, gradient = _log_diagonal(mapping, left, model, root)
         coefficients = model.ar
         first = np.tril(np.array([[coefficients[i - j] if i >= j else 0.0
                                    for j in range(order)] for i in range(order)]))
