@@ -18,12 +18,13 @@ guess (a warm start) this way first, the dead-time search its equation-error sta
 The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
+from functools import lru_cache
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.core.simulation import ContinuousFilter, shifted
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, shifted
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
@@ -57,6 +58,9 @@ _REMEMBERED_FRACTIONS = 4
 # Dead times whose triangular factors are kept per filter: the warm start's look at the data's
 # guess and the automatic start after it factor the same ones.
 _REMEMBERED_FACTORS = 8
+# Discretised state-variable filters kept for every problem: the records of one length and
+# sample time (a node's windows, a benchmark's records, a record's halves) use the same ones.
+_SHARED_FILTERS = 64
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -329,17 +333,17 @@ class StateVariableFilters:
         self._bank, self._ts = problem.bank, data.ts
         self._filters = []
         for lam in lams:
-            realization = ContinuousFilter(np.poly(np.full(n, -lam)) if n else np.ones(1))
-            y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
+            filter_of = (n, float(lam), data.ts)
+            y_parts = _filter_discretized(*filter_of, 0.0, 'foh').outputs(data.y, powers[::-1])
             nuisance = []
             if problem.initial_state or problem.output_offset:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
-                undelayed = realization.discretize(data.ts)
+                undelayed = _filter_discretized(*filter_of, 0.0, 'zoh')
                 if problem.initial_state:
                     nuisance.append(undelayed.free_responses(len(data)))
                 if problem.output_offset:
                     nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append((realization, y_parts.T, nuisance, {}, {}))
+            self._filters.append((filter_of, y_parts.T, nuisance, {}, {}))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
@@ -355,14 +359,14 @@ class StateVariableFilters:
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
         factors = []
-        for realization, y_parts, nuisance, by_fraction, by_shift in self._filters:
+        for filter_of, y_parts, nuisance, by_fraction, by_shift in self._filters:
             if (whole, fraction) in by_shift:
                 factors.append(by_shift[whole, fraction])
                 continue
             if fraction not in by_fraction:
                 if len(by_fraction) >= _REMEMBERED_FRACTIONS:
                     del by_fraction[next(iter(by_fraction))]
-                by_fraction[fraction] = self._input_parts(realization, fraction * ts)
+                by_fraction[fraction] = self._input_parts(filter_of, fraction * ts)
             u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
             columns = np.hstack(nuisance + [y_parts, -u_parts])
             scales = np.linalg.norm(columns, axis=0)
@@ -390,16 +394,30 @@ class StateVariableFilters:
         chosen._filters = self._filters[index:index + 1]
         return chosen
 
-    def _input_parts(self, realization: ContinuousFilter, delay: float) -> np.ndarray:
+    def _input_parts(self, filter_of: Tuple[int, float, float], delay: float) -> np.ndarray:
         """
         Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns.
 
-        The input is the one the simulations run on (extended by a sample under an output
-        skew, whose extra dead time ``delay`` includes): the caller drops the first row then.
+        ``filter_of`` is the filter's ``(order, lam, ts)``. The input is the one the simulations
+        run on (extended by a sample under an output skew, whose extra dead time ``delay``
+        includes): the caller drops the first row then.
         """
-        discrete = realization.discretize(self._ts, delay, self._bank.intersample)
+        discrete = _filter_discretized(*filter_of, delay, self._bank.intersample)
         return np.vstack([discrete.outputs(channel, self._u_powers)
                           for channel in self._bank.driving.T]).T
+
+
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _filter_discretized(order: int, lam: float, ts: float, delay: float, hold: str
+                        ) -> DiscreteFilter:
+    """
+    Return ``1/(p + lam)^order`` discretised with sample time ``ts``, dead time and hold.
+
+    It depends on these numbers only, not on the data: every problem of the same sample time
+    and length (:func:`filter_bandwidths`) shares it.
+    """
+    realization = ContinuousFilter(np.poly(np.full(order, -lam)) if order else np.ones(1))
+    return realization.discretize(ts, delay, hold)
 
 
 def _triangular_factor(columns: np.ndarray) -> np.ndarray:
