@@ -109,9 +109,17 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     if delay_index is not None:
         free[delay_index] = False
     taus = _initial_delays(problem, given, pinned, delay_index, delay_range)
+    # The starts at a dead time are drawn once: the fits and the competition as given use them.
+    points: Dict[float, List[np.ndarray]] = {}
+
+    def starts_at(tau: float) -> List[np.ndarray]:
+        if tau not in points:
+            points[tau] = _start_points(problem, given, pinned, delay_index, tau)
+        return points[tau]
+
     fit = None
     for tau in taus:
-        starts = _start_points(problem, given, pinned, delay_index, tau)
+        starts = starts_at(tau)
         # Every filter fits from the hint; the random starts of a non-affine structure then
         # look for other equation-error minima with the filter that simulated best.
         found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
@@ -122,13 +130,12 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     # The user's values compete as given, their dead time not rounded to a sample.
     hinted_tau = taus[0] if delay_index is None else \
         given.get(model.parameters[delay_index], taus[0])
-    best = _lower_cost(fit, best_candidate(
-        problem, _start_points(problem, given, pinned, delay_index, hinted_tau)))
+    best = _lower_cost(fit, best_candidate(problem, starts_at(hinted_tau)))
     if best is None and model.is_affine:
         # Every fit has an unstable D (a lightly damped plant, a biased equation error): its
         # unstable roots mirrored into the left half plane give a stable start nearby.
         for tau in taus:
-            hint = _start_points(problem, given, pinned, delay_index, tau)[:1]
+            hint = starts_at(tau)[:1]
             for index in range(filters.count):
                 fits = equation_error_fits(problem, hint, free, tau, filters.select(index))
                 mirrored = (stabilized(problem, theta, free) for theta in fits)
@@ -498,7 +505,11 @@ class _EquationError:
         if isinstance(model, Model):
             nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
             self._order = np.r_[nums:nums + model.den_degree + 1, 0:nums]
-            self._rows = nums + model.den_degree + 2          # ... and the dead time
+            rows = nums + model.den_degree + 2          # ... and the dead time
+            # After the coefficients, one row per coefficient of its derivatives by the
+            # parameters: the free ones' gradients of [den; num], read by one indexing.
+            self._gradient = rows + self._order[None, :] * free.size + \
+                np.flatnonzero(free)[:, None]
 
     def _evaluated(self, values: np.ndarray, start: np.ndarray):
         # least_squares asks for the Jacobian where it has just evaluated the residual.
@@ -520,9 +531,7 @@ class _EquationError:
     def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
         evaluated = self._evaluated(values, start)
         if self._order is not None:
-            # Rows of the flat Jacobian: one per coefficient, its derivatives by the parameters.
-            derivatives = evaluated[self._rows:].reshape(self._rows, start.size)
-            gradient = np.ascontiguousarray(derivatives[self._order].T)[self._free]
+            gradient = evaluated[self._gradient]
         else:
             gradient = np.hstack([evaluated.den_jacobian,
                                   evaluated.num_jacobian.reshape(start.size, -1)])[self._free]
@@ -544,7 +553,8 @@ class _EquationError:
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
-        diagonal = np.arange(values.size)
+        # Every (values.size + 1)-th entry of the flattened Gram matrix is on its diagonal.
+        diagonal = slice(None, None, values.size + 1)
         for _ in range(_START_ITERATIONS):
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
@@ -554,7 +564,7 @@ class _EquationError:
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
                 damped = gram.copy()
-                damped[diagonal, diagonal] += damping * scaling
+                damped.ravel()[diagonal] += damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular).
                 solution, info = lapack.dgesv(damped, gradient)[2:]
