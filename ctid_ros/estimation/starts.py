@@ -290,32 +290,48 @@ def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[
 
     """
     model = problem.model
-    rng = np.random.default_rng(20131)
     count = len(model.parameters)
     lower, upper = problem.lower, problem.upper
     boxed = np.isfinite(lower) & np.isfinite(upper)
     positive_box = boxed & (lower > 0)
     hinted = np.array([hints.get(name, np.nan) for name in model.parameters])
     fixed = np.array([pinned.get(name, np.nan) for name in model.parameters])
-    starts = []
+    guesses = [np.where(np.isnan(hinted), 1.0, hinted)]
     # The equation error of an affine structure is linear in theta: one start finds its optimum.
-    for draw in range(1 if model.is_affine else _RANDOM_STARTS + 1):
-        if draw == 0:
-            guess = np.where(np.isnan(hinted), 1.0, hinted)
-        else:
-            guess = 10.0 ** rng.uniform(-2.0, 2.0, count)
-            in_log_box = np.exp(rng.uniform(np.log(np.where(positive_box, lower, 1.0)),
-                                            np.log(np.where(positive_box, upper, 1.0))))
-            guess = np.where(positive_box, in_log_box, guess)
-            guess = np.where(boxed & ~positive_box, rng.uniform(np.where(boxed, lower, 0.0),
-                                                                np.where(boxed, upper, 1.0)),
-                             guess)
+    if not model.is_affine:
+        # low + (high - low) * draw, as Generator.uniform computes it from the same draws.
+        draws = _uniform_draws(count)
+        wide = -2.0 + 4.0 * draws[:, 0]
+        log_lower = np.log(np.where(positive_box, lower, 1.0))
+        log_upper = np.log(np.where(positive_box, upper, 1.0))
+        in_log_box = np.exp(log_lower + (log_upper - log_lower) * draws[:, 1])
+        box_lower, box_upper = np.where(boxed, lower, 0.0), np.where(boxed, upper, 1.0)
+        in_box = box_lower + (box_upper - box_lower) * draws[:, 2]
+        guesses.extend(np.where(boxed & ~positive_box, in_box,
+                                np.where(positive_box, in_log_box, 10.0 ** wide)))
+    starts = []
+    for guess in guesses:
         guess = np.clip(guess, lower, upper)
         guess = np.where(np.isnan(fixed), guess, fixed)
         if delay_index is not None:
             guess[delay_index] = tau
         starts.append(guess)
     return starts
+
+
+@lru_cache(maxsize=16)
+def _uniform_draws(count: int) -> np.ndarray:
+    """
+    Return the seeded uniform draws behind :func:`_start_points`'s random starts.
+
+    Shape ``(_RANDOM_STARTS, 3, count)``: per start, the draws of the log-uniform value over
+    1e-2..1e2, of the log-uniform value in a positive box and of the uniform value in a box,
+    in the order one generator gave them. They depend on the number of parameters only, so a
+    generator is seeded and drawn from once, not at every start.
+    """
+    draws = np.random.default_rng(20131).random((_RANDOM_STARTS, 3, count))
+    draws.setflags(write=False)
+    return draws
 
 
 class StateVariableFilters:
