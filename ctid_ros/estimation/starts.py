@@ -599,7 +599,10 @@ class _EquationError:
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = (np.abs(trial - values) / np.maximum(np.abs(values), 1e-12)).max()
+            # The same quotients in Python floats: for a handful of parameters numpy's per-call
+            # cost would be most of the update's.
+            change = max(abs(new - old) / max(abs(old), 1e-12)
+                         for new, old in zip(trial.tolist(), values.tolist()))
             decrease = 1.0 - trial_cost / cost
             values, residual = trial, trial_residual
             cost = trial_cost
