@@ -18,12 +18,13 @@ guess (a warm start) this way first, the dead-time search its equation-error sta
 The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
+from functools import lru_cache
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.core.simulation import ContinuousFilter, shifted
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, shifted
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
@@ -57,6 +58,9 @@ _REMEMBERED_FRACTIONS = 4
 # Dead times whose triangular factors are kept per filter: the warm start's look at the data's
 # guess and the automatic start after it factor the same ones.
 _REMEMBERED_FACTORS = 8
+# Discretised state-variable filters kept for every problem: the records of one length and
+# sample time (a node's windows, a benchmark's records, a record's halves) use the same ones.
+_SHARED_FILTERS = 64
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -105,9 +109,17 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     if delay_index is not None:
         free[delay_index] = False
     taus = _initial_delays(problem, given, pinned, delay_index, delay_range)
+    # The starts at a dead time are drawn once: the fits and the competition as given use them.
+    points: Dict[float, List[np.ndarray]] = {}
+
+    def starts_at(tau: float) -> List[np.ndarray]:
+        if tau not in points:
+            points[tau] = _start_points(problem, given, pinned, delay_index, tau)
+        return points[tau]
+
     fit = None
     for tau in taus:
-        starts = _start_points(problem, given, pinned, delay_index, tau)
+        starts = starts_at(tau)
         # Every filter fits from the hint; the random starts of a non-affine structure then
         # look for other equation-error minima with the filter that simulated best.
         found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
@@ -118,13 +130,12 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     # The user's values compete as given, their dead time not rounded to a sample.
     hinted_tau = taus[0] if delay_index is None else \
         given.get(model.parameters[delay_index], taus[0])
-    best = _lower_cost(fit, best_candidate(
-        problem, _start_points(problem, given, pinned, delay_index, hinted_tau)))
+    best = _lower_cost(fit, best_candidate(problem, starts_at(hinted_tau)))
     if best is None and model.is_affine:
         # Every fit has an unstable D (a lightly damped plant, a biased equation error): its
         # unstable roots mirrored into the left half plane give a stable start nearby.
         for tau in taus:
-            hint = _start_points(problem, given, pinned, delay_index, tau)[:1]
+            hint = starts_at(tau)[:1]
             for index in range(filters.count):
                 fits = equation_error_fits(problem, hint, free, tau, filters.select(index))
                 mirrored = (stabilized(problem, theta, free) for theta in fits)
@@ -279,32 +290,48 @@ def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[
 
     """
     model = problem.model
-    rng = np.random.default_rng(20131)
     count = len(model.parameters)
     lower, upper = problem.lower, problem.upper
     boxed = np.isfinite(lower) & np.isfinite(upper)
     positive_box = boxed & (lower > 0)
     hinted = np.array([hints.get(name, np.nan) for name in model.parameters])
     fixed = np.array([pinned.get(name, np.nan) for name in model.parameters])
-    starts = []
+    guesses = [np.where(np.isnan(hinted), 1.0, hinted)]
     # The equation error of an affine structure is linear in theta: one start finds its optimum.
-    for draw in range(1 if model.is_affine else _RANDOM_STARTS + 1):
-        if draw == 0:
-            guess = np.where(np.isnan(hinted), 1.0, hinted)
-        else:
-            guess = 10.0 ** rng.uniform(-2.0, 2.0, count)
-            in_log_box = np.exp(rng.uniform(np.log(np.where(positive_box, lower, 1.0)),
-                                            np.log(np.where(positive_box, upper, 1.0))))
-            guess = np.where(positive_box, in_log_box, guess)
-            guess = np.where(boxed & ~positive_box, rng.uniform(np.where(boxed, lower, 0.0),
-                                                                np.where(boxed, upper, 1.0)),
-                             guess)
+    if not model.is_affine:
+        # low + (high - low) * draw, as Generator.uniform computes it from the same draws.
+        draws = _uniform_draws(count)
+        wide = -2.0 + 4.0 * draws[:, 0]
+        log_lower = np.log(np.where(positive_box, lower, 1.0))
+        log_upper = np.log(np.where(positive_box, upper, 1.0))
+        in_log_box = np.exp(log_lower + (log_upper - log_lower) * draws[:, 1])
+        box_lower, box_upper = np.where(boxed, lower, 0.0), np.where(boxed, upper, 1.0)
+        in_box = box_lower + (box_upper - box_lower) * draws[:, 2]
+        guesses.extend(np.where(boxed & ~positive_box, in_box,
+                                np.where(positive_box, in_log_box, 10.0 ** wide)))
+    starts = []
+    for guess in guesses:
         guess = np.clip(guess, lower, upper)
         guess = np.where(np.isnan(fixed), guess, fixed)
         if delay_index is not None:
             guess[delay_index] = tau
         starts.append(guess)
     return starts
+
+
+@lru_cache(maxsize=16)
+def _uniform_draws(count: int) -> np.ndarray:
+    """
+    Return the seeded uniform draws behind :func:`_start_points`'s random starts.
+
+    Shape ``(_RANDOM_STARTS, 3, count)``: per start, the draws of the log-uniform value over
+    1e-2..1e2, of the log-uniform value in a positive box and of the uniform value in a box,
+    in the order one generator gave them. They depend on the number of parameters only, so a
+    generator is seeded and drawn from once, not at every start.
+    """
+    draws = np.random.default_rng(20131).random((_RANDOM_STARTS, 3, count))
+    draws.setflags(write=False)
+    return draws
 
 
 class StateVariableFilters:
@@ -329,17 +356,17 @@ class StateVariableFilters:
         self._bank, self._ts = problem.bank, data.ts
         self._filters = []
         for lam in lams:
-            realization = ContinuousFilter(np.poly(np.full(n, -lam)) if n else np.ones(1))
-            y_parts = realization.discretize(data.ts, 0.0, 'foh').outputs(data.y, powers[::-1])
+            filter_of = (n, float(lam), data.ts)
+            y_parts = _filter_discretized(*filter_of, 0.0, 'foh').outputs(data.y, powers[::-1])
             nuisance = []
             if problem.initial_state or problem.output_offset:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
-                undelayed = realization.discretize(data.ts)
+                undelayed = _filter_discretized(*filter_of, 0.0, 'zoh')
                 if problem.initial_state:
                     nuisance.append(undelayed.free_responses(len(data)))
                 if problem.output_offset:
                     nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append((realization, y_parts.T, nuisance, {}, {}))
+            self._filters.append((filter_of, y_parts.T, nuisance, {}, {}))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
@@ -355,14 +382,14 @@ class StateVariableFilters:
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
         factors = []
-        for realization, y_parts, nuisance, by_fraction, by_shift in self._filters:
+        for filter_of, y_parts, nuisance, by_fraction, by_shift in self._filters:
             if (whole, fraction) in by_shift:
                 factors.append(by_shift[whole, fraction])
                 continue
             if fraction not in by_fraction:
                 if len(by_fraction) >= _REMEMBERED_FRACTIONS:
                     del by_fraction[next(iter(by_fraction))]
-                by_fraction[fraction] = self._input_parts(realization, fraction * ts)
+                by_fraction[fraction] = self._input_parts(filter_of, fraction * ts)
             u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
             columns = np.hstack(nuisance + [y_parts, -u_parts])
             scales = np.linalg.norm(columns, axis=0)
@@ -390,16 +417,30 @@ class StateVariableFilters:
         chosen._filters = self._filters[index:index + 1]
         return chosen
 
-    def _input_parts(self, realization: ContinuousFilter, delay: float) -> np.ndarray:
+    def _input_parts(self, filter_of: Tuple[int, float, float], delay: float) -> np.ndarray:
         """
         Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns.
 
-        The input is the one the simulations run on (extended by a sample under an output
-        skew, whose extra dead time ``delay`` includes): the caller drops the first row then.
+        ``filter_of`` is the filter's ``(order, lam, ts)``. The input is the one the simulations
+        run on (extended by a sample under an output skew, whose extra dead time ``delay``
+        includes): the caller drops the first row then.
         """
-        discrete = realization.discretize(self._ts, delay, self._bank.intersample)
+        discrete = _filter_discretized(*filter_of, delay, self._bank.intersample)
         return np.vstack([discrete.outputs(channel, self._u_powers)
                           for channel in self._bank.driving.T]).T
+
+
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _filter_discretized(order: int, lam: float, ts: float, delay: float, hold: str
+                        ) -> DiscreteFilter:
+    """
+    Return ``1/(p + lam)^order`` discretised with sample time ``ts``, dead time and hold.
+
+    It depends on these numbers only, not on the data: every problem of the same sample time
+    and length (:func:`filter_bandwidths`) shares it.
+    """
+    realization = ContinuousFilter(np.poly(np.full(order, -lam)) if order else np.ones(1))
+    return realization.discretize(ts, delay, hold)
 
 
 def _triangular_factor(columns: np.ndarray) -> np.ndarray:
@@ -480,7 +521,11 @@ class _EquationError:
         if isinstance(model, Model):
             nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
             self._order = np.r_[nums:nums + model.den_degree + 1, 0:nums]
-            self._rows = nums + model.den_degree + 2          # ... and the dead time
+            rows = nums + model.den_degree + 2          # ... and the dead time
+            # After the coefficients, one row per coefficient of its derivatives by the
+            # parameters: the free ones' gradients of [den; num], read by one indexing.
+            self._gradient = rows + self._order[None, :] * free.size + \
+                np.flatnonzero(free)[:, None]
 
     def _evaluated(self, values: np.ndarray, start: np.ndarray):
         # least_squares asks for the Jacobian where it has just evaluated the residual.
@@ -502,9 +547,7 @@ class _EquationError:
     def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
         evaluated = self._evaluated(values, start)
         if self._order is not None:
-            # Rows of the flat Jacobian: one per coefficient, its derivatives by the parameters.
-            derivatives = evaluated[self._rows:].reshape(self._rows, start.size)
-            gradient = np.ascontiguousarray(derivatives[self._order].T)[self._free]
+            gradient = evaluated[self._gradient]
         else:
             gradient = np.hstack([evaluated.den_jacobian,
                                   evaluated.num_jacobian.reshape(start.size, -1)])[self._free]
@@ -526,7 +569,8 @@ class _EquationError:
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
-        diagonal = np.arange(values.size)
+        # Every (values.size + 1)-th entry of the flattened Gram matrix is on its diagonal.
+        diagonal = slice(None, None, values.size + 1)
         for _ in range(_START_ITERATIONS):
             jacobian = self.jacobian(values, start)
             gram = jacobian.T @ jacobian
@@ -536,7 +580,7 @@ class _EquationError:
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
                 damped = gram.copy()
-                damped[diagonal, diagonal] += damping * scaling
+                damped.ravel()[diagonal] += damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular).
                 solution, info = lapack.dgesv(damped, gradient)[2:]
@@ -555,7 +599,10 @@ class _EquationError:
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = (np.abs(trial - values) / np.maximum(np.abs(values), 1e-12)).max()
+            # The same quotients in Python floats: for a handful of parameters numpy's per-call
+            # cost would be most of the update's.
+            change = max(abs(new - old) / max(abs(old), 1e-12)
+                         for new, old in zip(trial.tolist(), values.tolist()))
             decrease = 1.0 - trial_cost / cost
             values, residual = trial, trial_residual
             cost = trial_cost
