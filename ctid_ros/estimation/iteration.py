@@ -406,12 +406,13 @@ def on_bounds(theta: np.ndarray, problem: Problem, tolerance: float = 1e-9
     constant of 5e-10 s identified at a sample time of 1e-12 s is not on its bound at 0 (the
     iteration clips to a bound exactly, so a parameter held there equals it).
     """
-    lower, upper = problem.lower, problem.upper
-    near_lower = np.isfinite(lower) & (theta - lower <= tolerance * np.maximum(np.abs(theta),
-                                                                               np.abs(lower)))
-    near_upper = np.isfinite(upper) & (upper - theta <= tolerance * np.maximum(np.abs(theta),
-                                                                               np.abs(upper)))
-    return near_lower, near_upper
+    # Every update asks, for a handful of parameters: Python floats, not numpy's dispatch.
+    values = theta.tolist()
+    near_lower = [math.isfinite(low) and value - low <= tolerance * max(abs(value), abs(low))
+                  for value, low in zip(values, problem.lower.tolist())]
+    near_upper = [math.isfinite(high) and high - value <= tolerance * max(abs(value), abs(high))
+                  for value, high in zip(values, problem.upper.tolist())]
+    return np.array(near_lower, dtype=bool), np.array(near_upper, dtype=bool)
 
 
 def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: np.ndarray
@@ -423,8 +424,10 @@ def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: 
     rises inward (the one-sided derivative into the box), and a dead time on the sample
     lattice is held where the cost rises on both sides.
     """
-    rising, falling = _one_sided_gradients(linear)
     at_lower, at_upper = bounded
+    if not (linear.kinked or frozen.any() or at_lower.any() or at_upper.any()):
+        return np.ones(frozen.size, dtype=bool)         # no bound, no kink: every one is free
+    rising, falling = _one_sided_gradients(linear)
     kink = (rising < 0) & (falling < 0)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
 
@@ -550,7 +553,8 @@ def _step_size(linear: _Linear, step: np.ndarray) -> float:
     if linear.variance == 0.0:
         return np.inf
     side = linear.side('up' if linear.delay_change(step) >= 0.0 else 'down')
-    return float(np.linalg.norm(side.psi @ step) / np.sqrt(linear.variance))
+    change = side.psi @ step
+    return math.sqrt(change.dot(change)) / math.sqrt(linear.variance)       # np.linalg.norm
 
 
 def _slow(costs: List[float], struggled: List[bool], min_progress: float) -> bool:
@@ -883,7 +887,8 @@ class _Run:
             (self.near or size < _NEAR_MINIMUM)
         self.struggling += struggled
         state = self.state
-        change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
+        change = max(abs(scale * move) / max(abs(value), 1e-12)
+                     for move, value in zip(step.tolist(), state.theta.tolist()))
         previous = max(state.cost, _TINY)
         decrease = (state.cost - new_state.cost) / previous
         self.state = new_state
