@@ -103,6 +103,8 @@ def _realization(den: bytes) -> ContinuousFilter:
 
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
     """Return coefficients (highest power first; rows of a 2-D array) with leading zeros."""
+    if poly.shape[-1] == length:
+        return poly                 # read only here: no copy
     padded = np.zeros(poly.shape[:-1] + (length,))
     padded[..., length - poly.shape[-1]:] = poly
     return padded
@@ -190,7 +192,8 @@ class SignalBank:
         params = coefficients.num_jacobian.shape[0]
         delay_used = bool(coefficients.delay_gradient.any())
         delay = coefficients.delay + self.extra_delay
-        bank_u = self._discrete(den, delay, self.intersample)
+        # Only a dead time's jump reads the discretisation itself.
+        bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
                                               _REMEMBERED_RESPONSES)
         sensitivity_responses: Optional[List[StateResponse]] = None
