@@ -14,6 +14,8 @@ Gauss-Newton and Levenberg-Marquardt fallbacks. What a run does is one frozen
 
 from dataclasses import dataclass
 import enum
+from functools import lru_cache
+import math
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from ctid_ros.estimation.problem import Problem, State
@@ -57,6 +59,7 @@ _PROGRESS_SPAN = 2
 # Gauss-Newton steps for as long as they are accepted in full. Chosen on the reference systems
 # of bench/estimator.py: among 10, 30 and no limit, 30 needs the fewest simulations on most.
 _NEAR_MINIMUM = 30.0
+_TINY = np.finfo(float).tiny
 
 
 # A bound a step ran into: (parameter index, bound value).
@@ -297,7 +300,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
                          rcond: Optional[float] = None) -> Optional[np.ndarray]:
     """Direction of :func:`_direction` with the sensitivities of one side."""
     scales = side.scales(free)
-    outer = np.outer(scales, scales)
+    outer = scales[:, None] * scales                          # np.outer's own product
     rhs = side.gradient[free] / scales
     if kind == 'ls':
         phi_s = side.phi[:, free] / scales
@@ -320,6 +323,8 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
                 return None
     if not np.isfinite(step).all():
         return None
+    if free.all():
+        return step
     full = np.zeros(free.size)
     full[free] = step
     return full
@@ -337,7 +342,7 @@ def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.nd
     down to rounding.
     """
     values, vectors = np.linalg.eigh(gram)
-    largest = max(values[-1], np.finfo(float).tiny)
+    largest = max(values[-1], _TINY)
     if rcond is not None:
         kept = values > rcond ** 2 * largest
     elif values[0] > _NORMAL_CONDITION * largest:
@@ -359,17 +364,18 @@ def _box_limit(theta: np.ndarray, step: np.ndarray, lower: np.ndarray, upper: np
     A step the box cuts stops 0.999 of the way to the bound, and the bound is returned as
     ``(index, value)`` (None for a whole step).
     """
-    moving = step != 0.0
-    if not moving.any():
-        return 1.0, None
-    distance = np.where(step > 0.0, upper - theta, lower - theta)
-    reach = np.full(step.size, np.inf)
-    reach[moving] = distance[moving] / step[moving]
-    index = int(np.argmin(reach))
-    if not reach[index] < 1.0:
+    # A handful of parameters: Python floats, not numpy's dispatch (the same IEEE quotients).
+    nearest, index = math.inf, 0
+    for i, (value, change, low, high) in enumerate(zip(theta.tolist(), step.tolist(),
+                                                       lower.tolist(), upper.tolist())):
+        if change != 0.0:
+            reach = ((high if change > 0.0 else low) - value) / change
+            if reach < nearest:                              # the first of equal reaches
+                nearest, index = reach, i
+    if not nearest < 1.0:
         return 1.0, None
     bound = float(upper[index] if step[index] > 0 else lower[index])
-    return _INSIDE_BOX * float(reach[index]), (index, bound)
+    return _INSIDE_BOX * nearest, (index, bound)
 
 
 def _one_sided_gradients(linear: _Linear) -> Tuple[np.ndarray, np.ndarray]:
@@ -400,12 +406,13 @@ def on_bounds(theta: np.ndarray, problem: Problem, tolerance: float = 1e-9
     constant of 5e-10 s identified at a sample time of 1e-12 s is not on its bound at 0 (the
     iteration clips to a bound exactly, so a parameter held there equals it).
     """
-    lower, upper = problem.lower, problem.upper
-    near_lower = np.isfinite(lower) & (theta - lower <= tolerance * np.maximum(np.abs(theta),
-                                                                               np.abs(lower)))
-    near_upper = np.isfinite(upper) & (upper - theta <= tolerance * np.maximum(np.abs(theta),
-                                                                               np.abs(upper)))
-    return near_lower, near_upper
+    # Every update asks, for a handful of parameters: Python floats, not numpy's dispatch.
+    values = theta.tolist()
+    near_lower = [math.isfinite(low) and value - low <= tolerance * max(abs(value), abs(low))
+                  for value, low in zip(values, problem.lower.tolist())]
+    near_upper = [math.isfinite(high) and high - value <= tolerance * max(abs(value), abs(high))
+                  for value, high in zip(values, problem.upper.tolist())]
+    return np.array(near_lower, dtype=bool), np.array(near_upper, dtype=bool)
 
 
 def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: np.ndarray
@@ -417,8 +424,10 @@ def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: 
     rises inward (the one-sided derivative into the box), and a dead time on the sample
     lattice is held where the cost rises on both sides.
     """
-    rising, falling = _one_sided_gradients(linear)
     at_lower, at_upper = bounded
+    if not (linear.kinked or frozen.any() or at_lower.any() or at_upper.any()):
+        return np.ones(frozen.size, dtype=bool)         # no bound, no kink: every one is free
+    rising, falling = _one_sided_gradients(linear)
     kink = (rising < 0) & (falling < 0)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
 
@@ -509,7 +518,7 @@ def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
     side = linear.side()
     scales = side.scales(free)
     values, vectors = np.linalg.eigh(_block(side.gram, free) / np.outer(scales, scales))
-    kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], np.finfo(float).tiny)
+    kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], _TINY)
     projected = vectors[:, kept].T @ (side.gradient[free] / scales)
     return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / linear.variance))
 
@@ -544,7 +553,8 @@ def _step_size(linear: _Linear, step: np.ndarray) -> float:
     if linear.variance == 0.0:
         return np.inf
     side = linear.side('up' if linear.delay_change(step) >= 0.0 else 'down')
-    return float(np.linalg.norm(side.psi @ step) / np.sqrt(linear.variance))
+    change = side.psi @ step
+    return math.sqrt(change.dot(change)) / math.sqrt(linear.variance)       # np.linalg.norm
 
 
 def _slow(costs: List[float], struggled: List[bool], min_progress: float) -> bool:
@@ -652,14 +662,21 @@ class Schedule(enum.Enum):
                Attempt('gn', 0.0, _ALL_STEPS, True)) + _LEVENBERG_MARQUARDT
     PROJECTION = (Attempt(_PRIMARY, 0.0, _ALL_STEPS, False),)
 
-    def attempts(self, primary: str, full_only: bool) -> List[Attempt]:
+    def attempts(self, primary: str, full_only: bool) -> Tuple[Attempt, ...]:
         """Return the attempts with ``primary`` as the primary direction, full steps only."""
-        attempts = [attempt._replace(kind=primary) if attempt.kind == _PRIMARY else attempt
-                    for attempt in self.value]
-        if full_only:
-            attempts = [attempt._replace(scales=_FULL_STEP) for attempt in attempts
-                        if attempt.kind != 'lm']
-        return attempts
+        return _attempts(self, primary, full_only)
+
+
+# Every update asks for one of a few schedules: each is formed once.
+@lru_cache(maxsize=None)
+def _attempts(schedule: Schedule, primary: str, full_only: bool) -> Tuple[Attempt, ...]:
+    """:meth:`Schedule.attempts`, formed once per schedule, primary direction and choice."""
+    attempts = [attempt._replace(kind=primary) if attempt.kind == _PRIMARY else attempt
+                for attempt in schedule.value]
+    if full_only:
+        attempts = [attempt._replace(scales=_FULL_STEP) for attempt in attempts
+                    if attempt.kind != 'lm']
+    return tuple(attempts)
 
 
 @dataclass(frozen=True)
@@ -870,8 +887,9 @@ class _Run:
             (self.near or size < _NEAR_MINIMUM)
         self.struggling += struggled
         state = self.state
-        change = np.max(np.abs(scale * step) / np.maximum(np.abs(state.theta), 1e-12))
-        previous = max(state.cost, np.finfo(float).tiny)
+        change = max(abs(scale * move) / max(abs(value), 1e-12)
+                     for move, value in zip(step.tolist(), state.theta.tolist()))
+        previous = max(state.cost, _TINY)
         decrease = (state.cost - new_state.cost) / previous
         self.state = new_state
         self.history.append(Iteration(new_state.theta.copy(), new_state.cost, scale, kind))

@@ -103,6 +103,8 @@ def _realization(den: bytes) -> ContinuousFilter:
 
 def _pad(poly: np.ndarray, length: int) -> np.ndarray:
     """Return coefficients (highest power first; rows of a 2-D array) with leading zeros."""
+    if poly.shape[-1] == length:
+        return poly                 # read only here: no copy
     padded = np.zeros(poly.shape[:-1] + (length,))
     padded[..., length - poly.shape[-1]:] = poly
     return padded
@@ -190,15 +192,12 @@ class SignalBank:
         params = coefficients.num_jacobian.shape[0]
         delay_used = bool(coefficients.delay_gradient.any())
         delay = coefficients.delay + self.extra_delay
-        bank_u = self._discrete(den, delay, self.intersample)
+        # Only a dead time's jump reads the discretisation itself.
+        bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
                                               _REMEMBERED_RESPONSES)
         sensitivity_responses: Optional[List[StateResponse]] = None
-        output = np.zeros(self.y.size)
-        derivative = np.zeros(self.y.size)
-        jump = np.zeros(self.y.size)
-        psi = np.zeros((params, self.y.size))
-        u_regressors = np.zeros((params, self.y.size))
+        output = derivative = jump = psi = u_regressors = None
         trim = self.trim
         for j, num in enumerate(coefficients.num):
             signal = self.driving[:, j]
@@ -217,19 +216,18 @@ class SignalBank:
             if regressors:
                 u_numerators.extend(num_jac)
             u_parts = u_responses[j].outputs(u_numerators)[:, trim:]
-            output += u_parts[0]
+            output = _summed(output, u_parts[0])
             if delay_used:
-                derivative += u_parts[1]
+                derivative = _summed(derivative, u_parts[1])
                 # d yhat / d tau = -s yhat, whose feedthrough of the delayed held input takes
                 # the input just before t_k for a growing dead time (its left limit).
                 on_lattice = bank_u.feed_left is not None and bank_u.feed_left != bank_u.feed
-                feedthrough = bank_u.continuous.output_map(u_numerators[1])[1] \
-                    if on_lattice else 0.0
+                feedthrough = bank_u.continuous.output_map(times_s)[1] if on_lattice else 0.0
                 if feedthrough != 0.0:
-                    jump += feedthrough * (bank_u.delayed_input(signal, left=True)
-                                           - bank_u.delayed_input(signal))[trim:]
+                    jump = _summed(jump, feedthrough * (bank_u.delayed_input(signal, left=True)
+                                                        - bank_u.delayed_input(signal))[trim:])
             if regressors:
-                u_regressors += u_parts[-params:]
+                u_regressors = _summed(u_regressors, u_parts[-params:])
             # Both products have degree 2 deg D: the coefficient arrays align.
             sensitivity_numerators = [
                 np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
@@ -242,14 +240,17 @@ class SignalBank:
                     sensitivity_responses = self._channel_responses(
                         self._sensitivities, np.convolve(den, den), delay, 1)
                 sensitivities = sensitivity_responses[j].outputs(sensitivity_numerators)
-            psi += sensitivities[:, trim:]
+            psi = _summed(psi, sensitivities[:, trim:])
+        # Contiguous rows (a complex simulation's real part is strided): every product of an
+        # update runs over them.
+        psi = np.ascontiguousarray(psi)
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_jump = None
         if delay_used:
             # np.outer's products, without its dispatch.
             gradient = coefficients.delay_gradient[:, None]
-            delay_term = -(gradient * (derivative + jump))
-            if jump.any():
+            delay_term = -(gradient * (derivative if jump is None else derivative + jump))
+            if jump is not None and jump.any():
                 delay_jump = (gradient * jump).T
             psi += delay_term
         phi = None
@@ -261,6 +262,12 @@ class SignalBank:
             if delay_used:
                 phi += delay_term
             phi = phi.T
+        output = np.array(output)           # its own array, not a view of the mapped rows
         output.setflags(write=False)
         _remembered(self._outputs, self._output_key(coefficients), lambda: output)
         return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)
+
+
+def _summed(total: Optional[np.ndarray], part: np.ndarray) -> np.ndarray:
+    """Return ``total + part`` (a new array), or ``part`` itself for the first input channel."""
+    return part if total is None else total + part
