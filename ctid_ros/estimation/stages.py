@@ -207,7 +207,9 @@ def against_the_data_guess(problem: Problem, start: Start, delay_range: DelayRan
     Then, unless the guess and the warm end are the same place to the data
     (:func:`_came_from_far`: a node's warm start from the previous window's estimate), the
     guess the automatic start makes from the data alone
-    (:func:`~ctid_ros.estimation.starts.initial_estimate` without hints), at its own cost. If
+    (:func:`~ctid_ros.estimation.starts.initial_estimate` without hints), at its own cost: its
+    best equation-error fit (the all-ones vector and the random draws it starts from compete
+    as given only where no fit is admissible; as given they came nowhere near a warm end). If
     either is below the warm end's cost by more than :data:`_SAME_BASIN`, None: the automatic
     start and search run as if the warm start had not explained the data (every point seen,
     the screened neighbours too, stays a candidate, section 8). Otherwise the warm start
@@ -228,7 +230,7 @@ def against_the_data_guess(problem: Problem, start: Start, delay_range: DelayRan
     if not _came_from_far(problem, start):
         return start
     try:
-        guess = initial_estimate(problem, 'auto', delay_range)
+        guess = initial_estimate(problem, 'auto', delay_range, as_given=False)
     except (EstimationError, ModelError):
         return start
     if guess.cost < (1.0 - _SAME_BASIN) * warm_cost:

@@ -86,7 +86,8 @@ def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
 
 
 def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange,
-                     pin: Optional[Mapping[str, float]] = None) -> State:
+                     pin: Optional[Mapping[str, float]] = None, as_given: bool = True
+                     ) -> State:
     """
     Return the starting state of the iteration.
 
@@ -94,7 +95,10 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
     docstring (missing values are fitted, given ones serve as hints, or stay fixed while others
     are missing); the candidate with the lowest output-error cost wins. A far or unstable guess
     therefore costs robustness nothing. ``pin`` holds further parameters at given values (a
-    nested structure: a lag at its limit).
+    nested structure: a lag at its limit). Without ``as_given`` the starts themselves (the
+    user's values; without them the all-ones vector and the random draws) compete only if no
+    equation-error fit gives an admissible model: a caller that looks for the data's own
+    guess, not for a start, need not simulate them.
 
     """
     model = problem.model
@@ -132,10 +136,12 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
             more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
             found = _lower_cost(found, more)
         fit = _lower_cost(fit, found)
-    # The user's values compete as given, their dead time not rounded to a sample.
-    hinted_tau = taus[0] if delay_index is None else \
-        given.get(model.parameters[delay_index], taus[0])
-    best = _lower_cost(fit, best_candidate(problem, starts_at(hinted_tau)))
+    best = fit
+    if as_given or best is None:
+        # The user's values compete as given, their dead time not rounded to a sample.
+        hinted_tau = taus[0] if delay_index is None else \
+            given.get(model.parameters[delay_index], taus[0])
+        best = _lower_cost(fit, best_candidate(problem, starts_at(hinted_tau)))
     if best is None and model.is_affine:
         # Every fit has an unstable D (a lightly damped plant, a biased equation error): its
         # unstable roots mirrored into the left half plane give a stable start nearby.
