@@ -26,7 +26,7 @@ Python loop runs per sample.
 
 import cmath
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 import math
 import threading
 from typing import Dict, Iterable, List, Optional, Tuple
@@ -195,16 +195,31 @@ class ContinuousFilter:
             a[:] = -self._monic_ascending[:-1]
             sc = np.ones(n)
         self._balance = sc
-        self.a = a / sc[:, None] * sc[None, :] if n else a
-        unit = np.zeros(n)
-        if n:
-            unit[-1] = 1.0
-        self.b = unit / sc
+        self._companion = a
         self._modal: Optional[_ContinuousModes] = None
         self._modal_checked = False
         self._repeated: Optional[Tuple[Optional[float]]] = None
         # Set by :attr:`modal`: (nearly) repeated roots have no eigenvector basis to try.
         self.repeated_roots = False
+
+    @cached_property
+    def a(self) -> np.ndarray:
+        """
+        Return the balanced companion matrix (in the scaled time), formed when first asked for.
+
+        Only the state-space form (repeated or ill-conditioned poles, free and impulse
+        responses) uses it: the modes are read off the roots.
+        """
+        a, scales = self._companion, self._balance
+        return a / scales[:, None] * scales[None, :] if self.order else a
+
+    @cached_property
+    def b(self) -> np.ndarray:
+        """Return the balanced input vector of :attr:`a`'s realisation (the last state's)."""
+        unit = np.zeros(self.order)
+        if self.order:
+            unit[-1] = 1.0
+        return unit / self._balance
 
     @property
     def modal(self) -> Optional['_ContinuousModes']:
