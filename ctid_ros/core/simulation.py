@@ -138,11 +138,11 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     return np.array([half / a, c / half])
 
 
-def _time_scale(den: np.ndarray) -> float:
+def _time_scale(roots: np.ndarray) -> float:
     """Geometric mean of the nonzero root magnitudes: makes the scaled coefficients O(1)."""
-    if den.size < 2:
+    if roots.size == 0:
         return 1.0
-    magnitudes = np.abs(polynomial_roots(den))
+    magnitudes = abs(roots)
     magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
@@ -168,7 +168,9 @@ class ContinuousFilter:
             raise ModelError('denominator is identically zero')
         self.den = den
         self.order = den.size - 1
-        self.scale = _time_scale(den)
+        # The roots scale the realisation and give its modes: found once.
+        self._roots = polynomial_roots(den) if den.size > 1 else np.zeros(0)
+        self.scale = _time_scale(self._roots)
         n = self.order
         # D(scale * z) / (den[0] * scale**n) is monic in the scaled Laplace variable z.
         with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
@@ -392,7 +394,10 @@ class ContinuousFilter:
 def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
                 vector: np.ndarray) -> None:
     for sample, weight in combination.items():
-        terms[sample] = terms.get(sample, 0.0) + weight * vector
+        # A weight of 1 (every held input's) and a first term need no arithmetic: the same
+        # values. Terms are never written in place, so one array may serve several samples.
+        term = vector if weight == 1.0 else weight * vector
+        terms[sample] = terms[sample] + term if sample in terms else term
 
 
 # A sample of the signal relative to the current step k: (offset, masked). ``masked`` marks the
@@ -1042,7 +1047,7 @@ class _ContinuousModes:
 
     poles: np.ndarray          # kept scaled continuous poles z_i
     basis: np.ndarray          # balanced states of each mode (all modes, columns)
-    keep: np.ndarray
+    keep: Optional[np.ndarray]  # the modes kept, None for all (real poles)
     weights: np.ndarray
     residues: np.ndarray       # r_i of the kept modes
     spread: np.ndarray         # sum over j != i of 1/(z_i - z_j), i.e. D''(z_i) / (2 D'(z_i))
@@ -1215,21 +1220,22 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
-                                np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
-                                True)
+                                None, np.ones(1), np.ones(1), np.zeros(1), True)
     # Asked for every new denominator: array methods and operators, not numpy's dispatch.
-    poles = polynomial_roots(realisation.den).astype(complex) / realisation.scale
+    poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
         return None
     magnitudes = abs(poles)
-    if not _all_finite(magnitudes):
+    # The largest magnitude is NaN or infinite if any is (none is negative).
+    largest = magnitudes.max()
+    if not math.isfinite(largest):
         return None
     nonzero = magnitudes[magnitudes > 0.0]
-    if nonzero.size and nonzero.max() > _MODAL_RANGE_LIMIT * nonzero.min():
+    if nonzero.size and largest > _MODAL_RANGE_LIMIT * nonzero.min():
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
     differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
-    if abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
+    if abs(differences).min() <= 1e-8 * max(largest, 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
@@ -1240,17 +1246,22 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         condition = _condition(basis / norms)
     if not condition <= _MODAL_CONDITION_LIMIT:
         return None
-    keep = poles.imag >= 0.0
-    residues = 1.0 / differences.prod(axis=1)[keep]
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
-    spread = inverse.sum(axis=1)[keep]
+    if poles.imag.any():
+        keep = poles.imag >= 0.0
+        kept = poles[keep]
+        residues = 1.0 / differences.prod(axis=1)[keep]
+        spread = inverse.sum(axis=1)[keep]
+        weights = np.where(kept.imag > 0.0, 2.0, 1.0)
+    else:
+        # Real poles: every mode kept, real arithmetic throughout, as the eigen-decomposition
+        # path has it.
+        keep, kept, basis, weights = None, poles.real, basis.real, np.ones(n)
+        residues = (1.0 / differences.prod(axis=1)).real
+        spread = inverse.sum(axis=1).real
     amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
-    if not poles.imag.any():
-        # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
-        poles, basis, residues, spread = poles.real, basis.real, residues.real, spread.real
-    return _ContinuousModes(poles[keep], basis, keep,
-                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues, spread,
+    return _ContinuousModes(kept, basis, keep, weights, residues, spread,
                             bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT))
 
 
