@@ -852,11 +852,11 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
 
     Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, without importing
-    :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows of
-    stable poles run in blocks (:func:`_blocked_recursions`); other rows as lower bidiagonal
-    triangular solves (LAPACK ``?tbtrs``, the same forward substitution), several rows per
-    solve up to :data:`_BAND_SIZE` samples (a longer band leaves the cache and runs several
-    times slower per sample).
+    :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows
+    or long complex ones of stable poles run in blocks (:func:`_blocked_recursions`); other
+    rows as lower bidiagonal triangular solves (LAPACK ``?tbtrs``, the same forward
+    substitution), several rows per solve up to :data:`_BAND_SIZE` samples (a longer band
+    leaves the cache and runs several times slower per sample).
     """
     poles = np.asarray(poles)
     rows, length = values.shape
@@ -867,9 +867,9 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     values = values.astype(dtype, copy=False)
     # Finite values only: a block's product would spread a NaN or inf to the samples before it.
     # The checks are array methods, without numpy's dispatch.
-    if not complex_valued and _blocked_size(rows, length) and abs(poles).max() <= 1.0 and \
+    if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
             _all_finite(values):
-        return _blocked_recursions(poles.astype(float, copy=False), values)
+        return _blocked_recursions(poles.astype(dtype, copy=False), values)
     return _banded_recursions(poles, values, complex_valued)
 
 
@@ -900,6 +900,9 @@ _BAND_SIZE = 16384
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
 _BLOCKED_MIN_SIZE = 1536
+# The shortest complex row run in blocks: its block products cost four real ones, and break
+# even with the complex substitution at about this length.
+_BLOCKED_MIN_COMPLEX_LENGTH = 2560
 # The exponents of a block's pole powers p^0 .. p^B, and where each entry of the transposed
 # block matrix reads them: p^(k - j) at row j, column k for k >= j, else the zero appended
 # after p^B (index B + 1). Constant: built once, not per run.
@@ -908,27 +911,30 @@ _BLOCK_LAG = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))    # j - k
 _BLOCK_INDEX = np.where(_BLOCK_LAG <= 0, -_BLOCK_LAG, _BLOCK + 1)
 
 
-def _blocked_size(rows: int, length: int) -> bool:
+def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
     """Return True if ``rows`` recursions of ``length`` samples are worth running in blocks."""
+    if complex_valued:
+        return length >= _BLOCKED_MIN_COMPLEX_LENGTH
     return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     """
-    :func:`recursions` for real poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
+    :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
     A substitution carries one sample at a time, a chain of dependent multiply-adds. Instead
     each block's response from rest is a matrix product with the block's lower triangular
     Toeplitz matrix of pole powers (all blocks of a row in one product), then the state carried
     into block ``b`` is a recursion over blocks with pole ``p^B`` and adds
     ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
-    round no worse than the substitution's.
+    round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
+    type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
-    padded = np.zeros((rows, blocks, _BLOCK))
+    padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
     padded.reshape(rows, -1)[:, :length] = values
-    powers = np.zeros((rows, _BLOCK + 2))
+    powers = np.zeros((rows, _BLOCK + 2), dtype=values.dtype)
     powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
     # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
     transposed = powers[:, _BLOCK_INDEX]
@@ -937,13 +943,15 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     if rows == 1:
         response = (padded[0] @ transposed[0])[None]
     else:
-        response = np.empty((rows, blocks, _BLOCK))
+        response = np.empty((rows, blocks, _BLOCK), dtype=values.dtype)
         for row, matrix, out in zip(padded, transposed, response):
             np.matmul(row, matrix, out=out)
     # The state at each block's end, carried over blocks (blocked again if they are many).
     ends = response[:, :, -1]
-    carried = recursions(powers[:, _BLOCK], ends) if _blocked_size(rows, blocks) else \
-        _banded_recursions(powers[:, _BLOCK], ends, False)
+    complex_valued = values.dtype.kind == 'c'
+    carried = recursions(powers[:, _BLOCK], ends) \
+        if _blocked_size(rows, blocks, complex_valued) else \
+        _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
     response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
     return response.reshape(rows, -1)[:, :length]
 
