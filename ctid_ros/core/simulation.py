@@ -104,7 +104,7 @@ def _roots(key: bytes) -> np.ndarray:
     coefficients = np.frombuffer(key)
     roots = _low_order_roots(coefficients)
     if roots is None:
-        roots = np.roots(coefficients)
+        roots = _companion_roots(coefficients)
     roots.setflags(write=False)
     return roots
 
@@ -136,6 +136,23 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     if half == 0.0:
         return None
     return np.array([half / a, c / half])
+
+
+def _companion_roots(coefficients: np.ndarray) -> np.ndarray:
+    """
+    Return ``np.roots(coefficients)``: the eigenvalues of its own companion matrix.
+
+    Formed here as ``np.roots`` forms it, without its stripping of zero coefficients and
+    stacking of zero roots where there are none (every candidate denominator of a fit); else
+    ``np.roots`` itself.
+    """
+    n = coefficients.size - 1
+    if n < 2 or coefficients[0] == 0.0 or coefficients[-1] == 0.0:
+        return np.roots(coefficients)
+    companion = np.zeros((n, n))
+    companion.flat[n::n + 1] = 1.0                  # the subdiagonal
+    companion[0, :] = -coefficients[1:] / coefficients[0]
+    return np.linalg.eigvals(companion)
 
 
 def _time_scale(roots: np.ndarray) -> float:
@@ -1202,10 +1219,14 @@ def _condition(matrix: np.ndarray) -> float:
     Return the 2-norm condition number of a square matrix (inf if singular).
 
     A 2 x 2 one from its Frobenius norm and determinant (``s1^2 + s2^2 = |M|_F^2``,
-    ``s1 s2 = |det M|``), without the SVD's call overhead; larger ones by ``np.linalg.cond``.
+    ``s1 s2 = |det M|``), without the SVD's call overhead; larger ones as ``np.linalg.cond``
+    forms it (the ratio of the extreme singular values), without its checks.
     """
     if matrix.shape != (2, 2):
-        return float(np.linalg.cond(matrix))
+        singular = np.linalg.svd(matrix, compute_uv=False)
+        if not singular[-1] > 0.0:
+            return math.inf
+        return float(singular[0] / singular[-1])
     frobenius = float((abs(matrix) ** 2).sum())
     determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
     if not determinant > 0.0:
