@@ -249,12 +249,11 @@ class Model:
         evaluate = self._evaluate
         # Python floats where the program can take them (the same values, without numpy's
         # dispatch per operation); numpy scalars where a value becomes infinite or NaN.
-        values = evaluate.floats(theta.tolist()) \
+        flat = evaluate.floats(theta.tolist()) \
             if isinstance(evaluate, model_cache.CoefficientProgram) else None
-        if values is None:
+        if flat is None:
             with np.errstate(all='ignore'):
-                values = evaluate(*theta)
-        flat = np.asarray(values, dtype=float)
+                flat = np.asarray(evaluate(*theta), dtype=float)
         if not math.isfinite(flat.sum()) and not np.isfinite(flat).all():
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')

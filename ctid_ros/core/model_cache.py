@@ -162,9 +162,9 @@ class CoefficientProgram:
                 slots.append(_BINARY[code](slots[operands[0]], slots[operands[1]]))
         return [slots[slot] for slot in self.outputs]
 
-    def floats(self, theta: Sequence[float]) -> Optional[List[float]]:
+    def floats(self, theta: Sequence[float]) -> Optional[np.ndarray]:
         """
-        Return the program's outputs for parameter values that are Python floats, or None.
+        Return the program's outputs as a float array for Python float parameters, or None.
 
         Python's float arithmetic and ``math.sqrt`` round as numpy's float scalars do (IEEE
         operations, the C library's ``pow``), so the values are those of calling the program
@@ -182,13 +182,11 @@ class CoefficientProgram:
         try:
             for slot, function, first, second in self._steps:
                 slots[slot] = function(slots[first], slots[second])
+            # A negative number to a fractional power is complex in Python (NaN in numpy):
+            # the conversion to floats refuses it.
+            return np.array([slots[slot] for slot in self.outputs], dtype=float)
         except (ArithmeticError, ValueError, TypeError):
             return None
-        values = [slots[slot] for slot in self.outputs]
-        # A negative number to a fractional power is complex in Python, NaN in numpy.
-        if any(type(value) is complex for value in values):
-            return None
-        return values
 
     def to_data(self) -> Dict[str, Any]:
         """Return the program as JSON-ready data."""
