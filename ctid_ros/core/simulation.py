@@ -872,8 +872,9 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows
     or long complex ones of stable poles run in blocks (:func:`_blocked_recursions`); other
     rows as lower bidiagonal triangular solves (LAPACK ``?tbtrs``, the same forward
-    substitution), several rows per solve up to :data:`_BAND_SIZE` samples (a longer band
-    leaves the cache and runs several times slower per sample).
+    substitution), several rows per solve up to :data:`_BAND_SIZE` real samples or half as
+    many complex ones (a longer band leaves the cache and runs several times slower per
+    sample).
     """
     poles = np.asarray(poles)
     rows, length = values.shape
@@ -895,7 +896,8 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     """:func:`recursions` as banded triangular solves, for values of the solve's type."""
     rows, length = values.shape
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
-    step = max(1, _BAND_SIZE // length)
+    # A complex sample takes twice the memory of a real one: half as many per solve.
+    step = max(1, (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length)
     parts = []
     for first in range(0, rows, step):
         count = min(step, rows - first)
@@ -911,7 +913,7 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-# Samples per banded solve of recursions.
+# Real samples per banded solve of recursions (complex ones: half as many).
 _BAND_SIZE = 16384
 # Block length of the blocked recursions, the shortest row and the fewest samples they run.
 _BLOCK = 16
