@@ -240,14 +240,25 @@ class Model:
 
         """
         # The estimator's own vectors (thousands per fit): read, never kept, not copied. A sum
-        # is finite if every value is (a finite sum overflowing takes the full check).
+        # (of Python floats, without numpy's dispatch) is finite if every value is (a finite
+        # sum overflowing takes the full check).
+        theta = None
         if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
-                params.size == len(self.parameters) and math.isfinite(params.sum()):
-            theta = params
-        else:
+                params.size == len(self.parameters):
+            values = params.tolist()
+            if math.isfinite(sum(values)):
+                theta = params
+        if theta is None:
             theta = self.vector(params)
-        with np.errstate(all='ignore'):
-            flat = np.asarray(self._evaluate(*theta), dtype=float)
+            values = theta.tolist()
+        evaluate = self._evaluate
+        # Python floats where the program can take them (the same values, without numpy's
+        # dispatch per operation); numpy scalars where a value becomes infinite or NaN.
+        flat = evaluate.floats(values) \
+            if isinstance(evaluate, model_cache.CoefficientProgram) else None
+        if flat is None:
+            with np.errstate(all='ignore'):
+                flat = np.asarray(evaluate(*theta), dtype=float)
         if not math.isfinite(flat.sum()) and not np.isfinite(flat).all():
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')

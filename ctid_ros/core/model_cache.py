@@ -55,6 +55,11 @@ _BINARY: Dict[str, Callable[[Any, Any], Any]] = {
     '+': operator.add, '-': operator.sub, '*': operator.mul, '/': operator.truediv,
     '**': operator.pow,
 }
+# The operations of CoefficientProgram.floats, each of two values (a unary one ignores its
+# second, the same operand).
+_FLOAT_OPERATIONS: Dict[str, Callable[[Any, Any], Any]] = {
+    **_BINARY, 'neg': lambda value, _: -value, 'sqrt': lambda value, _: math.sqrt(value),
+}
 _AST_BINARY = {ast.Add: '+', ast.Sub: '-', ast.Mult: '*', ast.Div: '/', ast.Pow: '**'}
 # Names of the generated function's namespace (sympy's numpy printer) and what they are.
 _FUNCTIONS = {'sqrt': np.sqrt}
@@ -82,10 +87,14 @@ class CoefficientProgram:
         self.parameters = parameters
         self.operations = [tuple(operation) for operation in operations]
         self.outputs = list(outputs)
-        self._check()
+        self._template, self._steps = self._float_steps(self._check())
 
-    def _check(self) -> None:
-        """Raise ValueError unless every operation is well formed (see the module notes)."""
+    def _check(self) -> List[Any]:
+        """
+        Raise ValueError unless every operation is well formed (see the module notes).
+
+        Returns the value of every slot that depends on no parameter (None for the others).
+        """
         if type(self.parameters) is not int or self.parameters < 0:
             raise ValueError('bad parameter count')
         integer = [False] * self.parameters     # which slots hold Python integers
@@ -120,6 +129,23 @@ class CoefficientProgram:
             constant.append(None if None in values else _folded(code, values))
         if any(type(slot) is not int or not 0 <= slot < len(integer) for slot in self.outputs):
             raise ValueError('bad output slot')
+        return constant
+
+    def _float_steps(self, constant: List[Any]) -> Tuple[List[Any], List[Tuple]]:
+        """
+        Return the slots :meth:`floats` starts from and the operations it performs.
+
+        The slots that depend on no parameter hold their values (as Python numbers: the same
+        values); each step is ``(slot, function of two values, operand, operand)``, a unary
+        operation reading its one operand twice.
+        """
+        template = [value if type(value) is int else None if value is None else float(value)
+                    for value in constant]
+        steps = []
+        for slot, (code, *operands) in enumerate(self.operations, start=self.parameters):
+            if template[slot] is None:
+                steps.append((slot, _FLOAT_OPERATIONS[code], operands[0], operands[-1]))
+        return template, steps
 
     def __call__(self, *theta) -> List[Any]:
         if len(theta) != self.parameters:
@@ -135,6 +161,32 @@ class CoefficientProgram:
             else:
                 slots.append(_BINARY[code](slots[operands[0]], slots[operands[1]]))
         return [slots[slot] for slot in self.outputs]
+
+    def floats(self, theta: Sequence[float]) -> Optional[np.ndarray]:
+        """
+        Return the program's outputs as a float array for Python float parameters, or None.
+
+        Python's float arithmetic and ``math.sqrt`` round as numpy's float scalars do (IEEE
+        operations, the C library's ``pow``), so the values are those of calling the program
+        with numpy scalars, bit for bit, without numpy's dispatch per operation and with the
+        slots that depend on no parameter filled once (the estimator evaluates thousands of
+        parameter vectors per fit). None where Python refuses what numpy completes with an
+        infinity or NaN (a division by zero, a power that overflows, a negative number to a
+        fractional power, the square root of a negative number): call the program with numpy
+        scalars then.
+        """
+        if len(theta) != self.parameters:
+            raise TypeError(f'expected {self.parameters} parameter values, got {len(theta)}')
+        slots = self._template.copy()
+        slots[:self.parameters] = theta
+        try:
+            for slot, function, first, second in self._steps:
+                slots[slot] = function(slots[first], slots[second])
+            # A negative number to a fractional power is complex in Python (NaN in numpy):
+            # the conversion to floats refuses it.
+            return np.array([slots[slot] for slot in self.outputs], dtype=float)
+        except (ArithmeticError, ValueError, TypeError):
+            return None
 
     def to_data(self) -> Dict[str, Any]:
         """Return the program as JSON-ready data."""

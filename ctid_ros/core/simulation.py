@@ -26,7 +26,7 @@ Python loop runs per sample.
 
 import cmath
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 import math
 import threading
 from typing import Dict, Iterable, List, Optional, Tuple
@@ -104,7 +104,7 @@ def _roots(key: bytes) -> np.ndarray:
     coefficients = np.frombuffer(key)
     roots = _low_order_roots(coefficients)
     if roots is None:
-        roots = np.roots(coefficients)
+        roots = _companion_roots(coefficients)
     roots.setflags(write=False)
     return roots
 
@@ -138,11 +138,28 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     return np.array([half / a, c / half])
 
 
-def _time_scale(den: np.ndarray) -> float:
+def _companion_roots(coefficients: np.ndarray) -> np.ndarray:
+    """
+    Return ``np.roots(coefficients)``: the eigenvalues of its own companion matrix.
+
+    Formed here as ``np.roots`` forms it, without its stripping of zero coefficients and
+    stacking of zero roots where there are none (every candidate denominator of a fit); else
+    ``np.roots`` itself.
+    """
+    n = coefficients.size - 1
+    if n < 2 or coefficients[0] == 0.0 or coefficients[-1] == 0.0:
+        return np.roots(coefficients)
+    companion = np.zeros((n, n))
+    companion.flat[n::n + 1] = 1.0                  # the subdiagonal
+    companion[0, :] = -coefficients[1:] / coefficients[0]
+    return np.linalg.eigvals(companion)
+
+
+def _time_scale(roots: np.ndarray) -> float:
     """Geometric mean of the nonzero root magnitudes: makes the scaled coefficients O(1)."""
-    if den.size < 2:
+    if roots.size == 0:
         return 1.0
-    magnitudes = np.abs(polynomial_roots(den))
+    magnitudes = abs(roots)
     magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
@@ -168,7 +185,9 @@ class ContinuousFilter:
             raise ModelError('denominator is identically zero')
         self.den = den
         self.order = den.size - 1
-        self.scale = _time_scale(den)
+        # The roots scale the realisation and give its modes: found once.
+        self._roots = polynomial_roots(den) if den.size > 1 else np.zeros(0)
+        self.scale = _time_scale(self._roots)
         n = self.order
         # D(scale * z) / (den[0] * scale**n) is monic in the scaled Laplace variable z.
         with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
@@ -195,16 +214,31 @@ class ContinuousFilter:
             a[:] = -self._monic_ascending[:-1]
             sc = np.ones(n)
         self._balance = sc
-        self.a = a / sc[:, None] * sc[None, :] if n else a
-        unit = np.zeros(n)
-        if n:
-            unit[-1] = 1.0
-        self.b = unit / sc
+        self._companion = a
         self._modal: Optional[_ContinuousModes] = None
         self._modal_checked = False
         self._repeated: Optional[Tuple[Optional[float]]] = None
         # Set by :attr:`modal`: (nearly) repeated roots have no eigenvector basis to try.
         self.repeated_roots = False
+
+    @cached_property
+    def a(self) -> np.ndarray:
+        """
+        Return the balanced companion matrix (in the scaled time), formed when first asked for.
+
+        Only the state-space form (repeated or ill-conditioned poles, free and impulse
+        responses) uses it: the modes are read off the roots.
+        """
+        a, scales = self._companion, self._balance
+        return a / scales[:, None] * scales[None, :] if self.order else a
+
+    @cached_property
+    def b(self) -> np.ndarray:
+        """Return the balanced input vector of :attr:`a`'s realisation (the last state's)."""
+        unit = np.zeros(self.order)
+        if self.order:
+            unit[-1] = 1.0
+        return unit / self._balance
 
     @property
     def modal(self) -> Optional['_ContinuousModes']:
@@ -377,7 +411,10 @@ class ContinuousFilter:
 def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
                 vector: np.ndarray) -> None:
     for sample, weight in combination.items():
-        terms[sample] = terms.get(sample, 0.0) + weight * vector
+        # A weight of 1 (every held input's) and a first term need no arithmetic: the same
+        # values. Terms are never written in place, so one array may serve several samples.
+        term = vector if weight == 1.0 else weight * vector
+        terms[sample] = terms[sample] + term if sample in terms else term
 
 
 # A sample of the signal relative to the current step k: (offset, masked). ``masked`` marks the
@@ -832,11 +869,12 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
 
     Each row is ``scipy.signal.lfilter([1], [1, -pole], row)``, without importing
-    :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows of
-    stable poles run in blocks (:func:`_blocked_recursions`); other rows as lower bidiagonal
-    triangular solves (LAPACK ``?tbtrs``, the same forward substitution), several rows per
-    solve up to :data:`_BAND_SIZE` samples (a longer band leaves the cache and runs several
-    times slower per sample).
+    :mod:`scipy.signal` (and with it :mod:`scipy.stats`) for the simulation. Many real rows
+    or long complex ones of stable poles run in blocks (:func:`_blocked_recursions`); other
+    rows as lower bidiagonal triangular solves (LAPACK ``?tbtrs``, the same forward
+    substitution), several rows per solve up to :data:`_BAND_SIZE` real samples or half as
+    many complex ones (a longer band leaves the cache and runs several times slower per
+    sample).
     """
     poles = np.asarray(poles)
     rows, length = values.shape
@@ -847,9 +885,9 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     values = values.astype(dtype, copy=False)
     # Finite values only: a block's product would spread a NaN or inf to the samples before it.
     # The checks are array methods, without numpy's dispatch.
-    if not complex_valued and _blocked_size(rows, length) and abs(poles).max() <= 1.0 and \
+    if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
             _all_finite(values):
-        return _blocked_recursions(poles.astype(float, copy=False), values)
+        return _blocked_recursions(poles.astype(dtype, copy=False), values)
     return _banded_recursions(poles, values, complex_valued)
 
 
@@ -858,7 +896,8 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     """:func:`recursions` as banded triangular solves, for values of the solve's type."""
     rows, length = values.shape
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
-    step = max(1, _BAND_SIZE // length)
+    # A complex sample takes twice the memory of a real one: half as many per solve.
+    step = max(1, (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length)
     parts = []
     for first in range(0, rows, step):
         count = min(step, rows - first)
@@ -874,12 +913,15 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-# Samples per banded solve of recursions.
+# Real samples per banded solve of recursions (complex ones: half as many).
 _BAND_SIZE = 16384
 # Block length of the blocked recursions, the shortest row and the fewest samples they run.
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
 _BLOCKED_MIN_SIZE = 1536
+# The shortest complex row run in blocks: its block products cost four real ones, and break
+# even with the complex substitution at about this length.
+_BLOCKED_MIN_COMPLEX_LENGTH = 2560
 # The exponents of a block's pole powers p^0 .. p^B, and where each entry of the transposed
 # block matrix reads them: p^(k - j) at row j, column k for k >= j, else the zero appended
 # after p^B (index B + 1). Constant: built once, not per run.
@@ -888,27 +930,30 @@ _BLOCK_LAG = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))    # j - k
 _BLOCK_INDEX = np.where(_BLOCK_LAG <= 0, -_BLOCK_LAG, _BLOCK + 1)
 
 
-def _blocked_size(rows: int, length: int) -> bool:
+def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
     """Return True if ``rows`` recursions of ``length`` samples are worth running in blocks."""
+    if complex_valued:
+        return length >= _BLOCKED_MIN_COMPLEX_LENGTH
     return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     """
-    :func:`recursions` for real poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
+    :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
     A substitution carries one sample at a time, a chain of dependent multiply-adds. Instead
     each block's response from rest is a matrix product with the block's lower triangular
     Toeplitz matrix of pole powers (all blocks of a row in one product), then the state carried
     into block ``b`` is a recursion over blocks with pole ``p^B`` and adds
     ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
-    round no worse than the substitution's.
+    round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
+    type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
-    padded = np.zeros((rows, blocks, _BLOCK))
+    padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
     padded.reshape(rows, -1)[:, :length] = values
-    powers = np.zeros((rows, _BLOCK + 2))
+    powers = np.zeros((rows, _BLOCK + 2), dtype=values.dtype)
     powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
     # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
     transposed = powers[:, _BLOCK_INDEX]
@@ -917,13 +962,15 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     if rows == 1:
         response = (padded[0] @ transposed[0])[None]
     else:
-        response = np.empty((rows, blocks, _BLOCK))
+        response = np.empty((rows, blocks, _BLOCK), dtype=values.dtype)
         for row, matrix, out in zip(padded, transposed, response):
             np.matmul(row, matrix, out=out)
     # The state at each block's end, carried over blocks (blocked again if they are many).
     ends = response[:, :, -1]
-    carried = recursions(powers[:, _BLOCK], ends) if _blocked_size(rows, blocks) else \
-        _banded_recursions(powers[:, _BLOCK], ends, False)
+    complex_valued = values.dtype.kind == 'c'
+    carried = recursions(powers[:, _BLOCK], ends) \
+        if _blocked_size(rows, blocks, complex_valued) else \
+        _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
     response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
     return response.reshape(rows, -1)[:, :length]
 
@@ -1027,7 +1074,7 @@ class _ContinuousModes:
 
     poles: np.ndarray          # kept scaled continuous poles z_i
     basis: np.ndarray          # balanced states of each mode (all modes, columns)
-    keep: np.ndarray
+    keep: Optional[np.ndarray]  # the modes kept, None for all (real poles)
     weights: np.ndarray
     residues: np.ndarray       # r_i of the kept modes
     spread: np.ndarray         # sum over j != i of 1/(z_i - z_j), i.e. D''(z_i) / (2 D'(z_i))
@@ -1174,10 +1221,14 @@ def _condition(matrix: np.ndarray) -> float:
     Return the 2-norm condition number of a square matrix (inf if singular).
 
     A 2 x 2 one from its Frobenius norm and determinant (``s1^2 + s2^2 = |M|_F^2``,
-    ``s1 s2 = |det M|``), without the SVD's call overhead; larger ones by ``np.linalg.cond``.
+    ``s1 s2 = |det M|``), without the SVD's call overhead; larger ones as ``np.linalg.cond``
+    forms it (the ratio of the extreme singular values), without its checks.
     """
     if matrix.shape != (2, 2):
-        return float(np.linalg.cond(matrix))
+        singular = np.linalg.svd(matrix, compute_uv=False)
+        if not singular[-1] > 0.0:
+            return math.inf
+        return float(singular[0] / singular[-1])
     frobenius = float((abs(matrix) ** 2).sum())
     determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
     if not determinant > 0.0:
@@ -1200,21 +1251,22 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
-                                np.ones(1, dtype=bool), np.ones(1), np.ones(1), np.zeros(1),
-                                True)
+                                None, np.ones(1), np.ones(1), np.zeros(1), True)
     # Asked for every new denominator: array methods and operators, not numpy's dispatch.
-    poles = polynomial_roots(realisation.den).astype(complex) / realisation.scale
+    poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
         return None
     magnitudes = abs(poles)
-    if not _all_finite(magnitudes):
+    # The largest magnitude is NaN or infinite if any is (none is negative).
+    largest = magnitudes.max()
+    if not math.isfinite(largest):
         return None
     nonzero = magnitudes[magnitudes > 0.0]
-    if nonzero.size and nonzero.max() > _MODAL_RANGE_LIMIT * nonzero.min():
+    if nonzero.size and largest > _MODAL_RANGE_LIMIT * nonzero.min():
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
     differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
-    if abs(differences).min() <= 1e-8 * max(magnitudes.max(), 1.0):
+    if abs(differences).min() <= 1e-8 * max(largest, 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
@@ -1225,17 +1277,22 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         condition = _condition(basis / norms)
     if not condition <= _MODAL_CONDITION_LIMIT:
         return None
-    keep = poles.imag >= 0.0
-    residues = 1.0 / differences.prod(axis=1)[keep]
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
-    spread = inverse.sum(axis=1)[keep]
+    if poles.imag.any():
+        keep = poles.imag >= 0.0
+        kept = poles[keep]
+        residues = 1.0 / differences.prod(axis=1)[keep]
+        spread = inverse.sum(axis=1)[keep]
+        weights = np.where(kept.imag > 0.0, 2.0, 1.0)
+    else:
+        # Real poles: every mode kept, real arithmetic throughout, as the eigen-decomposition
+        # path has it.
+        keep, kept, basis, weights = None, poles.real, basis.real, np.ones(n)
+        residues = (1.0 / differences.prod(axis=1)).real
+        spread = inverse.sum(axis=1).real
     amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
-    if not poles.imag.any():
-        # Real poles: real arithmetic throughout, as the eigen-decomposition path has it.
-        poles, basis, residues, spread = poles.real, basis.real, residues.real, spread.real
-    return _ContinuousModes(poles[keep], basis, keep,
-                            np.where(poles[keep].imag > 0.0, 2.0, 1.0), residues, spread,
+    return _ContinuousModes(kept, basis, keep, weights, residues, spread,
                             bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT))
 
 

@@ -57,6 +57,21 @@ def test_program_gives_the_generated_functions_numbers_bit_for_bit(key):
         theta = rng.uniform(0.1, 5.0, len(attributes['parameters']))
         expected = np.asarray(captured[0](*theta), dtype=float)
         assert np.array_equal(np.asarray(program(*theta), dtype=float), expected)
+        # The Python float path the estimator takes gives the same numbers.
+        assert np.array_equal(np.asarray(program.floats(theta.tolist()), dtype=float), expected)
+
+
+@pytest.mark.parametrize('theta, operations', [
+    ([0.0], [['const', 1.0], ['/', 1, 0]]),                 # 1/p at p = 0: inf in numpy
+    ([-2.0], [['const', 0.5], ['**', 0, 1]]),               # p**0.5 at p < 0: NaN in numpy
+    ([-2.0], [['sqrt', 0]]),
+    ([1e300], [['const', 3], ['**', 0, 1]]),                 # overflow: inf in numpy
+])
+def test_float_path_leaves_what_python_refuses_to_numpy(theta, operations):
+    program = CoefficientProgram(1, operations, [len(operations)])
+    assert program.floats(theta) is None
+    with np.errstate(all='ignore'):
+        assert not np.isfinite(program(*np.array(theta))[0])
 
 
 @pytest.mark.parametrize('key', TEXTS)

@@ -390,8 +390,8 @@ def test_close_poles_leave_the_squared_denominator_to_its_own_simulation():
 @pytest.mark.parametrize('rows, length', [(1, 50), (3, 5000), (2, 20000), (40, 1000)])
 @pytest.mark.parametrize('kind', ['stable', 'complex', 'unstable'])
 def test_recursions_equal_first_order_lfilter_per_row(rows, length, kind):
-    # Blocked products (many real samples of stable poles), banded solves (the rest, several
-    # rows per solve): each row as scipy.signal.lfilter runs it, to rounding.
+    # Blocked products (many real samples or long complex rows of stable poles), banded solves
+    # (the rest, several rows per solve): each row as scipy.signal.lfilter runs it, to rounding.
     rng = np.random.default_rng(12)
     values = rng.standard_normal((rows, length))
     poles = rng.uniform(-0.999, 1.0, rows)
