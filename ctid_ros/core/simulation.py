@@ -684,17 +684,25 @@ class StateResponse:
                          * self._continuous._gain ** 2)
         if not _all_finite(ascending):
             return None
+        modal = self._modes.trajectories
+        # Complex modes: the chains above the modes, so that one product reads both off
+        # (real ones, cheaper, are read off as two).
+        stacked = modal.dtype.kind == 'c'
         if self._chains is None:
-            self._chains = modes.chains(self._modes.trajectories, self._signals)
+            chains = modes.chains(modal, self._signals)
+            self._chains = np.concatenate([chains, modal]) if stacked else chains
         continuous = modes.continuous
         poles = continuous.poles
         powers = poles[:, None] ** np.arange(size)
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
-        out = (_product(values * weighted, self._chains)
-               + _product((slopes - 2.0 * values * continuous.spread) * weighted,
-                          self._modes.trajectories)).real
+        on_chains = values * weighted
+        on_modes = (slopes - 2.0 * values * continuous.spread) * weighted
+        if stacked:
+            out = (np.concatenate([on_chains, on_modes], axis=1) @ self._chains).real
+        else:
+            out = _product(on_chains, self._chains) + _product(on_modes, modal)
         if size == 2 * order + 1 and ascending[:, -1].any():
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
