@@ -34,7 +34,7 @@ from typing import Dict, Iterable, List, Optional, Tuple
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
 from scipy import linalg
-from scipy.linalg import blas, lapack
+from scipy.linalg import lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
            'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses', 'shifted',
@@ -927,8 +927,6 @@ _BAND_SIZE = 16384
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
 _BLOCKED_MIN_SIZE = 1536
-# The fewest blocks per row whose carried states are added by a BLAS call per row.
-_RANK_ONE_MIN_BLOCKS = 256
 # The shortest complex row run in blocks: its block products cost four real ones, and break
 # even with the complex substitution at about this length.
 _BLOCKED_MIN_COMPLEX_LENGTH = 2560
@@ -981,16 +979,7 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     carried = recursions(powers[:, _BLOCK], ends) \
         if _blocked_size(rows, blocks, complex_valued) else \
         _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
-    # Sample k of block b gains p^(k+1) carried[b-1]: a rank-one update of each row's blocks.
-    # Long rows take it in place (BLAS ?ger on the transposed, Fortran-ordered view), without
-    # numpy's temporary product of the whole response; short ones in one broadcast, cheaper
-    # than a call per row.
-    if blocks >= _RANK_ONE_MIN_BLOCKS:
-        update = blas.zgeru if complex_valued else blas.dger
-        for out, carry, power in zip(response, carried, powers):
-            update(1.0, power[1:_BLOCK + 1], carry[:-1], a=out[1:].T, overwrite_a=True)
-    else:
-        response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
+    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
     return response.reshape(rows, -1)[:, :length]
 
 
