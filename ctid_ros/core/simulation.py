@@ -684,17 +684,25 @@ class StateResponse:
                          * self._continuous._gain ** 2)
         if not _all_finite(ascending):
             return None
+        modal = self._modes.trajectories
+        # Complex modes: the chains above the modes, so that one product reads both off
+        # (real ones, cheaper, are read off as two).
+        stacked = modal.dtype.kind == 'c'
         if self._chains is None:
-            self._chains = modes.chains(self._modes.trajectories, self._signals)
+            chains = modes.chains(modal, self._signals)
+            self._chains = np.concatenate([chains, modal]) if stacked else chains
         continuous = modes.continuous
         poles = continuous.poles
         powers = poles[:, None] ** np.arange(size)
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
-        out = (_product(values * weighted, self._chains)
-               + _product((slopes - 2.0 * values * continuous.spread) * weighted,
-                          self._modes.trajectories)).real
+        on_chains = values * weighted
+        on_modes = (slopes - 2.0 * values * continuous.spread) * weighted
+        if stacked:
+            out = (np.concatenate([on_chains, on_modes], axis=1) @ self._chains).real
+        else:
+            out = _product(on_chains, self._chains) + _product(on_modes, modal)
         if size == 2 * order + 1 and ascending[:, -1].any():
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
@@ -1001,62 +1009,77 @@ def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
 # Below this magnitude of ``pole * length`` the hold integrals are summed as power series
 # (their closed forms cancel); 19 terms reach rounding at 0.5.
 _SERIES_LIMIT = 0.5
-_SERIES_POWERS = np.arange(19)
+_SERIES_TERMS = 19
+_SERIES_POWERS = np.arange(_SERIES_TERMS)
 _FACTORIALS = np.cumprod(np.arange(1, 22, dtype=float))       # 1!, 2!, ..., 21!
-_SERIES_FIRST = 1.0 / _FACTORIALS[:19]                          # 1/(k+1)!
-_SERIES_SECOND = 1.0 / _FACTORIALS[1:20]                        # 1/(k+2)!
-_SERIES_FIRST_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[1:20]   # (k+1)/(k+2)!
-_SERIES_SECOND_SLOPE = (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]  # (k+1)/(k+3)!
+# The coefficients of x^k in the hold factors and their slopes, one column each:
+# 1/(k+1)!, 1/(k+2)!, (k+1)/(k+2)!, (k+1)/(k+3)!. One product sums all four series.
+_SERIES = np.stack([1.0 / _FACTORIALS[:19], 1.0 / _FACTORIALS[1:20],
+                    (_SERIES_POWERS + 1.0) / _FACTORIALS[1:20],
+                    (_SERIES_POWERS + 1.0) / _FACTORIALS[2:21]], axis=1)
 
 
-def _series_powers(x: np.ndarray) -> Optional[np.ndarray]:
+def _powers(x: np.ndarray) -> np.ndarray:
     """
-    Return ``x^0 .. x^18`` for every element (one row each) if every ``|x|`` is small, else None.
+    Return ``x^0 .. x^18`` for every element of ``x``, one row each.
 
-    The hold factors and their slopes of one sub-interval sum the same powers.
+    Running products: ``x ** k`` calls ``pow`` per real element, several times slower.
+    """
+    powers = np.empty((x.size, _SERIES_TERMS), dtype=x.dtype)
+    powers[:, 0] = 1.0
+    powers[:, 1:] = x[:, None]
+    return np.multiply.accumulate(powers, axis=1, out=powers)
+
+
+def _series_factors(x: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return the hold factors of ``x`` and their slopes as series, if every ``|x|`` is small.
+
+    Rows: :func:`_hold_factors` and :func:`_hold_factor_slopes` summed as power series, from
+    one product of the powers of ``x``; None if some ``|x|`` reaches :data:`_SERIES_LIMIT`.
     """
     if abs(x).max() < _SERIES_LIMIT:
-        return x[:, None] ** _SERIES_POWERS
+        return (_powers(x) @ _SERIES).T
     return None
 
 
-def _hold_factors(x: np.ndarray, powers: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+def _hold_factors(x: np.ndarray, series: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
     """
     ``(e^x - 1)/x`` and ``(e^x - 1 - x)/x^2`` elementwise (1 and 1/2 at 0).
 
-    ``powers``: :func:`_series_powers` of ``x``.
+    ``series``: :func:`_series_factors` of ``x``.
     """
-    if powers is not None:
+    if series is not None:
         # Fast sampling makes every |x| small: the series alone, the same values.
-        return powers @ _SERIES_FIRST, powers @ _SERIES_SECOND
+        return series[0], series[1]
     small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
         if small.any():
-            powers = x[:, None] ** _SERIES_POWERS
-            first = np.where(small, powers @ _SERIES_FIRST, first)
-            second = np.where(small, powers @ _SERIES_SECOND, second)
+            factors = (_powers(x) @ _SERIES[:, :2]).T
+            first = np.where(small, factors[0], first)
+            second = np.where(small, factors[1], second)
     return first, second
 
 
 def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray,
-                        powers: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+                        series: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
     """
     Return the derivatives in x of :func:`_hold_factors`: ``(e^x - f)/x``, ``(f - 2g)/x``.
 
-    ``powers``: :func:`_series_powers` of ``x``.
+    ``series``: :func:`_series_factors` of ``x``.
     """
-    if powers is not None:
-        return powers @ _SERIES_FIRST_SLOPE, powers @ _SERIES_SECOND_SLOPE
+    if series is not None:
+        return series[2], series[3]
     small = np.abs(x) < _SERIES_LIMIT
     with np.errstate(all='ignore'):
         first_slope = (np.exp(x) - first) / x
         second_slope = (first - 2.0 * second) / x
         if small.any():
-            powers = x[:, None] ** _SERIES_POWERS
-            first_slope = np.where(small, powers @ _SERIES_FIRST_SLOPE, first_slope)
-            second_slope = np.where(small, powers @ _SERIES_SECOND_SLOPE, second_slope)
+            slopes = (_powers(x) @ _SERIES[:, 2:]).T
+            first_slope = np.where(small, slopes[0], first_slope)
+            second_slope = np.where(small, slopes[1], second_slope)
     return first_slope, second_slope
 
 
@@ -1088,9 +1111,9 @@ class _ContinuousModes:
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
-            powers = _series_powers(x)
-            first, second = _hold_factors(x, powers)
-            factors.append((length, start, end, x, e, first, second, powers))
+            series = _series_factors(x)
+            first, second = _hold_factors(x, series)
+            factors.append((length, start, end, x, e, first, second, series))
             q = length * second * self.residues
             # The first sub-interval's transition is its exponential itself (times 1, exact).
             transition = e if transition is None else e * transition
@@ -1107,14 +1130,14 @@ class _ContinuousModes:
         Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
 
         ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
-        end, ``x``, ``e^x``, the hold factors and :func:`_series_powers`). Returns
+        end, ``x``, ``e^x``, the hold factors and :func:`_series_factors`). Returns
         ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
         ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
         """
         drive: Dict[Sample, np.ndarray] = {}
         slope: Dict[Sample, np.ndarray] = {}
-        for length, start, end, x, e, first, second, powers in factors:
-            first_slope, second_slope = _hold_factor_slopes(x, first, second, powers)
+        for length, start, end, x, e, first, second, series in factors:
+            first_slope, second_slope = _hold_factor_slopes(x, first, second, series)
             q = length * second * self.residues
             q_slope = length * length * second_slope * self.residues
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector

@@ -35,6 +35,11 @@ __all__ = ['Linearization', 'SignalBank', 'is_stable']
 # An iteration evaluates the cost at a candidate, then linearises there if it is accepted, and
 # the final estimate is simulated again for its fit: a few recent results serve all of these.
 _REMEMBERED = 4
+# Outputs are kept up to this many bytes in all, up to _REMEMBERED_OUTPUTS of them (at least
+# _REMEMBERED): the data's guess and the restarts evaluate several points between the final
+# estimate's linearisation and its residual analysis, which would push a shorter list's out.
+_OUTPUT_BYTES = 1 << 23
+_REMEMBERED_OUTPUTS = 16
 # State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
 # of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
 # of the others the latest linearisation's (linearised again at once for the regressors after
@@ -133,6 +138,8 @@ class SignalBank:
         self.extra_delay = skew_delay(ts, output_skew)
         self.trim = 1 if output_skew else 0
         self._outputs: Dict[Hashable, np.ndarray] = {}
+        self._outputs_kept = max(_REMEMBERED, min(_REMEMBERED_OUTPUTS,
+                                                  _OUTPUT_BYTES // max(y.nbytes, 1)))
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
         self._responses: Dict[Hashable, List[StateResponse]] = {}
@@ -178,7 +185,8 @@ class SignalBank:
             output.setflags(write=False)
             return output
 
-        return _remembered(self._outputs, self._output_key(coefficients), simulate)
+        return _remembered(self._outputs, self._output_key(coefficients), simulate,
+                           self._outputs_kept)
 
     def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
         """
@@ -197,6 +205,9 @@ class SignalBank:
         u_responses = self._channel_responses(self._responses, den, delay,
                                               _REMEMBERED_RESPONSES)
         sensitivity_responses: Optional[List[StateResponse]] = None
+        # An accepted candidate's output is remembered from its cost: not mapped again.
+        key = self._output_key(coefficients)
+        known = self._outputs.get(key)
         output = derivative = jump = psi = u_regressors = None
         trim = self.trim
         for j, num in enumerate(coefficients.num):
@@ -208,17 +219,19 @@ class SignalBank:
                     'cannot estimate the dead time of a biproper model (numerator and '
                     'denominator of equal degree): its output jumps with the held input; fix '
                     'the dead time or use a strictly proper model')
-            u_numerators = [num_full]
+            u_numerators = [] if known is not None else [num_full]
+            derivative_row = len(u_numerators)
             if delay_used:
                 times_s = np.zeros(order + 1)                       # s N, strictly proper
                 times_s[:-1] = num_full[1:]
                 u_numerators.append(times_s)
             if regressors:
                 u_numerators.extend(num_jac)
-            u_parts = u_responses[j].outputs(u_numerators)[:, trim:]
-            output = _summed(output, u_parts[0])
+            u_parts = u_responses[j].outputs(u_numerators)[:, trim:] if u_numerators else None
+            if known is None:
+                output = _summed(output, u_parts[0])
             if delay_used:
-                derivative = _summed(derivative, u_parts[1])
+                derivative = _summed(derivative, u_parts[derivative_row])
                 # d yhat / d tau = -s yhat, whose feedthrough of the delayed held input takes
                 # the input just before t_k for a growing dead time (its left limit).
                 on_lattice = bank_u.feed_left is not None and bank_u.feed_left != bank_u.feed
@@ -262,9 +275,12 @@ class SignalBank:
             if delay_used:
                 phi += delay_term
             phi = phi.T
-        output = np.array(output)           # its own array, not a view of the mapped rows
-        output.setflags(write=False)
-        _remembered(self._outputs, self._output_key(coefficients), lambda: output)
+        if known is None:
+            output = np.array(output)       # its own array, not a view of the mapped rows
+            output.setflags(write=False)
+        _remembered(self._outputs, key, lambda: output if known is None else known,
+                    self._outputs_kept)
+        output = self._outputs[key]
         return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)
 
 
