@@ -533,7 +533,8 @@ class _EquationError:
         self._model = model
         self._factor = factor
         self._free = free
-        self._latest = None
+        # Integer positions: a trial's values go into its parameter vector by one indexing.
+        self._positions = np.flatnonzero(free)
         # A Model's flat coefficient array is read directly (thousands of evaluations per fit);
         # [den; num] are these of its entries. A StabilizedModel changes D: it goes through
         # its coefficients.
@@ -544,33 +545,28 @@ class _EquationError:
             rows = nums + model.den_degree + 2          # ... and the dead time
             # After the coefficients, one row per coefficient of its derivatives by the
             # parameters: the free ones' gradients of [den; num], read by one indexing.
-            self._gradient = rows + self._order[None, :] * free.size + \
-                np.flatnonzero(free)[:, None]
+            self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
 
-    def _evaluated(self, values: np.ndarray, start: np.ndarray):
-        # least_squares asks for the Jacobian where it has just evaluated the residual.
-        key = values.tobytes() + start.tobytes()
-        if self._latest is None or self._latest[0] != key:
-            theta = start.copy()
-            theta[self._free] = values
-            model = self._model
-            self._latest = (key, model.coefficients(theta) if self._order is None
-                            else model.coefficient_array(theta))
-        return self._latest[1]
+    def _evaluated(self, theta: np.ndarray):
+        """Return the model's coefficients at ``theta`` (its flat array for a Model)."""
+        model = self._model
+        return model.coefficients(theta) if self._order is None \
+            else model.coefficient_array(theta)
 
-    def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        evaluated = self._evaluated(values, start)
+    def _residual(self, evaluated) -> np.ndarray:
+        """Return the residual of coefficients from :meth:`_evaluated`."""
         if self._order is not None:
             return self._factor @ evaluated[self._order]
         return self._factor @ np.concatenate([evaluated.den, evaluated.num.ravel()])
 
-    def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        evaluated = self._evaluated(values, start)
+    def _jacobian(self, evaluated) -> np.ndarray:
+        """Return the residual's derivatives by the free parameters (one column each)."""
         if self._order is not None:
             gradient = evaluated[self._gradient]
         else:
             gradient = np.hstack([evaluated.den_jacobian,
-                                  evaluated.num_jacobian.reshape(start.size, -1)])[self._free]
+                                  evaluated.num_jacobian.reshape(self._free.size, -1)]
+                                 )[self._free]
         return self._factor @ gradient.T
 
     def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
@@ -584,15 +580,21 @@ class _EquationError:
         ``_START_TOLERANCE``).
 
         """
+        positions = self._positions
         values = np.clip(start[self._free], lower, upper)
-        residual = self.residual(values, start)
+        # The whole parameter vector of the current point: each trial copies it and changes
+        # the free entries, and its coefficients serve the next Jacobian if it is accepted.
+        theta = start.copy()
+        theta[positions] = values
+        evaluated = self._evaluated(theta)
+        residual = self._residual(evaluated)
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
         # Every (values.size + 1)-th entry of the flattened Gram matrix is on its diagonal.
         diagonal = slice(None, None, values.size + 1)
         for _ in range(_START_ITERATIONS):
-            jacobian = self.jacobian(values, start)
+            jacobian = self._jacobian(evaluated)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
             # Each damping is tried on the same matrices: the diagonal is read once.
@@ -608,8 +610,11 @@ class _EquationError:
                 if step is not None and np.isfinite(step).all():
                     # np.clip, without its dispatch overhead (the step is finite).
                     trial = np.minimum(np.maximum(values + step, lower), upper)
+                    trial_theta = theta.copy()
+                    trial_theta[positions] = trial
                     try:
-                        trial_residual = self.residual(trial, start)
+                        trial_evaluated = self._evaluated(trial_theta)
+                        trial_residual = self._residual(trial_evaluated)
                     except ModelError:
                         trial_residual = None
                     if trial_residual is not None:
@@ -624,7 +629,8 @@ class _EquationError:
             change = max(abs(new - old) / max(abs(old), 1e-12)
                          for new, old in zip(trial.tolist(), values.tolist()))
             decrease = 1.0 - trial_cost / cost
-            values, residual = trial, trial_residual
+            values, residual, theta, evaluated = trial, trial_residual, trial_theta, \
+                trial_evaluated
             cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
             if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
@@ -635,8 +641,9 @@ class _EquationError:
                         ) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        jacobian = self.jacobian(values, start)
-        residual = self.residual(values, start)
+        evaluated = self._evaluated(start)
+        jacobian = self._jacobian(evaluated)
+        residual = self._residual(evaluated)
         step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
         if np.all(values + step >= lower) and np.all(values + step <= upper):
             return values + step
