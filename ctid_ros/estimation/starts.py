@@ -591,12 +591,19 @@ class _EquationError:
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
-        # Every (values.size + 1)-th entry of the flattened Gram matrix is on its diagonal.
-        diagonal = slice(None, None, values.size + 1)
+        bounds = lower.tolist(), upper.tolist()
         for _ in range(_START_ITERATIONS):
             jacobian = self._jacobian(evaluated)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
+            moving = _moving(values, gradient, *bounds)
+            if moving is not None:
+                if not moving.size:
+                    return values           # no descent direction inside the box
+                gram = gram[np.ix_(moving, moving)]
+                gradient = gradient[moving]
+            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal.
+            diagonal = slice(None, None, gram.shape[0] + 1)
             # Each damping is tried on the same matrices: the diagonal is read once.
             scaling = np.maximum(gram.diagonal(), tiny)
             while True:
@@ -607,6 +614,9 @@ class _EquationError:
                 # (the same solution to the bit; info > 0: singular).
                 solution, info = lapack.dgesv(damped, gradient)[2:]
                 step = -solution if info == 0 else None
+                if step is not None and moving is not None:
+                    step = np.zeros(values.size)
+                    step[moving] = -solution
                 if step is not None and np.isfinite(step).all():
                     # np.clip, without its dispatch overhead (the step is finite).
                     trial = np.minimum(np.maximum(values + step, lower), upper)
@@ -652,6 +662,23 @@ class _EquationError:
         return values + optimize.lsq_linear(jacobian, -residual,
                                             bounds=(lower - values, upper - values),
                                             method='bvls').x
+
+
+def _moving(values: np.ndarray, gradient: np.ndarray, lower: List[float], upper: List[float]
+            ) -> Optional[np.ndarray]:
+    """
+    Return the positions of the parameters a projected step may move; None for all of them.
+
+    A parameter on a bound that the cost's gradient pushes outward is held there. Moving it
+    would be clipped back, and the other parameters' part of that step, solved as if it moved,
+    then creeps along the bound by damped steps (a lag collapsing to its lower bound took up
+    to the iteration limit instead of a few steps).
+    """
+    held = [(value <= low and slope > 0.0) or (value >= high and slope < 0.0)
+            for value, slope, low, high in zip(values.tolist(), gradient.tolist(), lower, upper)]
+    if not any(held):
+        return None
+    return np.flatnonzero(np.logical_not(held))
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
