@@ -127,13 +127,16 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
         return points[tau]
 
     fit = None
+    # The models the fits gave so far: a fit that is one of them again is not simulated again.
+    seen: List[np.ndarray] = []
     for tau in taus:
         starts = starts_at(tau)
         # Every filter fits from the hint; the random starts of a non-affine structure then
         # look for other equation-error minima with the filter that simulated best.
-        found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
+        found, index = _best_filter_fit(problem, starts[:1], free, tau, filters, seen)
         if found is not None and len(starts) > 1:
-            more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
+            more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index),
+                                       seen)
             found = _lower_cost(found, more)
         fit = _lower_cost(fit, found)
     best = fit
@@ -201,17 +204,35 @@ def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
     return problem.state(theta, coefficients)
 
 
-def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Optional[State]:
-    """Return the admissible candidate with the lowest output-error cost (a state), or None."""
+def best_candidate(problem: Problem, candidates: Sequence[np.ndarray],
+                   seen: Optional[List[np.ndarray]] = None) -> Optional[State]:
+    """
+    Return the admissible candidate with the lowest output-error cost (a state), or None.
+
+    With ``seen`` (a list, extended here), a candidate whose model is one scored before (its
+    coefficients equal to 1e-6 relative, :func:`_model_vector`) is skipped: it would simulate
+    to the same cost up to rounding. Fits from different starts often reach the same model,
+    by the same parameters or by a twin (two lags swapped).
+    """
     best = None
     for theta in candidates:
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
+        if seen is not None:
+            model = _model_vector(coefficients)
+            if any(np.allclose(model, other, rtol=1e-6, atol=0.0) for other in seen):
+                continue
+            seen.append(model)
         state = problem.state(theta, coefficients)
         if best is None or state.cost < best.cost:
             best = state
     return best
+
+
+def _model_vector(coefficients) -> np.ndarray:
+    """Return the numerators, denominator and dead time of a model as one vector."""
+    return np.concatenate([coefficients.num.ravel(), coefficients.den, [coefficients.delay]])
 
 
 def _lower_cost(first: Optional[State], second: Optional[State]) -> Optional[State]:
@@ -236,18 +257,19 @@ def distinct(thetas: Sequence[np.ndarray]) -> List[np.ndarray]:
 
 
 def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
-                     tau: float, filters: 'StateVariableFilters'
+                     tau: float, filters: 'StateVariableFilters', seen: List[np.ndarray]
                      ) -> Tuple[Optional[State], Optional[int]]:
     """
     Return the equation-error fit that simulates best over all filters, and its filter index.
 
-    Returns ``(None, None)`` if no fit gives an admissible model.
+    Returns ``(None, None)`` if no fit gives an admissible model not ``seen`` before
+    (:func:`best_candidate`).
 
     """
     best, chosen = None, None
     for index in range(filters.count):
         state = best_candidate(problem, distinct(equation_error_fits(
-            problem, starts, free, tau, filters.select(index))))
+            problem, starts, free, tau, filters.select(index))), seen)
         if state is not None and (best is None or state.cost < best.cost):
             best, chosen = state, index
     return best, chosen

@@ -123,6 +123,23 @@ def test_best_candidate_skips_inadmissible_ones_and_distinct_drops_repeats():
     assert len(distinct(candidates)) == 3
 
 
+
+def test_best_candidate_scores_a_model_seen_before_once():
+    # Two lags swapped are one model: with the models seen so far, the twin is not simulated
+    # again, and a model seen in an earlier call is not a candidate of this one.
+    system = systems.two_lags_dead_time()
+    problem = problem_for(system.model, system.data(seed=2), system.bounds)
+    theta = system.model.vector(system.truth)
+    twin = theta.copy()
+    twin[2:] = theta[[3, 2]]
+    assert not np.array_equal(twin, theta)
+    seen = []
+    best = best_candidate(problem, [twin, theta], seen)
+    np.testing.assert_array_equal(best.theta, twin)
+    assert len(seen) == 1
+    assert best_candidate(problem, [theta], seen) is None
+    assert best_candidate(problem, [theta]).cost == pytest.approx(best.cost, rel=1e-12)
+
 def test_an_equation_error_fit_holds_a_collapsing_lag_on_its_bound():
     # A first-order plant fitted with two lags: one lag collapses to its lower bound. Held
     # there, the other parameters converge from any start to the one bounded minimum of each
