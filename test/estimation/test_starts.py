@@ -123,7 +123,6 @@ def test_best_candidate_skips_inadmissible_ones_and_distinct_drops_repeats():
     assert len(distinct(candidates)) == 3
 
 
-
 def test_best_candidate_scores_a_model_seen_before_once():
     # Two lags swapped are one model: with the models seen so far, the twin is not simulated
     # again, and a model seen in an earlier call is not a candidate of this one.
@@ -139,6 +138,7 @@ def test_best_candidate_scores_a_model_seen_before_once():
     assert len(seen) == 1
     assert best_candidate(problem, [theta], seen) is None
     assert best_candidate(problem, [theta]).cost == pytest.approx(best.cost, rel=1e-12)
+
 
 def test_an_equation_error_fit_holds_a_collapsing_lag_on_its_bound():
     # A first-order plant fitted with two lags: one lag collapses to its lower bound. Held
