@@ -128,7 +128,7 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
 
     fit = None
     # The models the fits gave so far: a fit that is one of them again is not simulated again.
-    seen: List[np.ndarray] = []
+    seen: List[List[float]] = []
     for tau in taus:
         starts = starts_at(tau)
         # Every filter fits from the hint; the random starts of a non-affine structure then
@@ -205,7 +205,7 @@ def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
 
 
 def best_candidate(problem: Problem, candidates: Sequence[np.ndarray],
-                   seen: Optional[List[np.ndarray]] = None) -> Optional[State]:
+                   seen: Optional[List[List[float]]] = None) -> Optional[State]:
     """
     Return the admissible candidate with the lowest output-error cost (a state), or None.
 
@@ -221,7 +221,7 @@ def best_candidate(problem: Problem, candidates: Sequence[np.ndarray],
             continue
         if seen is not None:
             model = _model_vector(coefficients)
-            if any(np.allclose(model, other, rtol=1e-6, atol=0.0) for other in seen):
+            if any(_equal_to_a_millionth(model, other) for other in seen):
                 continue
             seen.append(model)
         state = problem.state(theta, coefficients)
@@ -230,9 +230,19 @@ def best_candidate(problem: Problem, candidates: Sequence[np.ndarray],
     return best
 
 
-def _model_vector(coefficients) -> np.ndarray:
-    """Return the numerators, denominator and dead time of a model as one vector."""
-    return np.concatenate([coefficients.num.ravel(), coefficients.den, [coefficients.delay]])
+def _model_vector(coefficients) -> List[float]:
+    """Return the numerators, denominator and dead time of a model as one list."""
+    return coefficients.num.ravel().tolist() + coefficients.den.tolist() + [coefficients.delay]
+
+
+def _equal_to_a_millionth(first: Sequence[float], second: Sequence[float]) -> bool:
+    """
+    Return ``np.allclose(first, second, rtol=1e-6, atol=0)`` for finite values.
+
+    The same test in Python floats: lists of a few numbers, compared many times, where numpy's
+    per-call cost would be most of the work.
+    """
+    return all(abs(one - other) <= 1e-6 * abs(other) for one, other in zip(first, second))
 
 
 def _lower_cost(first: Optional[State], second: Optional[State]) -> Optional[State]:
@@ -250,14 +260,17 @@ def distinct(thetas: Sequence[np.ndarray]) -> List[np.ndarray]:
 
     """
     kept: List[np.ndarray] = []
+    values: List[List[float]] = []
     for theta in thetas:
-        if not any(np.allclose(theta, other, rtol=1e-6, atol=0.0) for other in kept):
+        listed = theta.tolist()
+        if not any(_equal_to_a_millionth(listed, other) for other in values):
             kept.append(theta)
+            values.append(listed)
     return kept
 
 
 def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
-                     tau: float, filters: 'StateVariableFilters', seen: List[np.ndarray]
+                     tau: float, filters: 'StateVariableFilters', seen: List[List[float]]
                      ) -> Tuple[Optional[State], Optional[int]]:
     """
     Return the equation-error fit that simulates best over all filters, and its filter index.
