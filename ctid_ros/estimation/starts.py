@@ -127,13 +127,16 @@ def initial_estimate(problem: Problem, initial: Initial, delay_range: DelayRange
         return points[tau]
 
     fit = None
+    # The models the fits gave so far: a fit that is one of them again is not simulated again.
+    seen: List[List[float]] = []
     for tau in taus:
         starts = starts_at(tau)
         # Every filter fits from the hint; the random starts of a non-affine structure then
         # look for other equation-error minima with the filter that simulated best.
-        found, index = _best_filter_fit(problem, starts[:1], free, tau, filters)
+        found, index = _best_filter_fit(problem, starts[:1], free, tau, filters, seen)
         if found is not None and len(starts) > 1:
-            more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index))
+            more, _ = _best_filter_fit(problem, starts[1:], free, tau, filters.select(index),
+                                       seen)
             found = _lower_cost(found, more)
         fit = _lower_cost(fit, found)
     best = fit
@@ -201,17 +204,45 @@ def complete_guess(problem: Problem, initial: Initial) -> Optional[State]:
     return problem.state(theta, coefficients)
 
 
-def best_candidate(problem: Problem, candidates: Sequence[np.ndarray]) -> Optional[State]:
-    """Return the admissible candidate with the lowest output-error cost (a state), or None."""
+def best_candidate(problem: Problem, candidates: Sequence[np.ndarray],
+                   seen: Optional[List[List[float]]] = None) -> Optional[State]:
+    """
+    Return the admissible candidate with the lowest output-error cost (a state), or None.
+
+    With ``seen`` (a list, extended here), a candidate whose model is one scored before (its
+    coefficients equal to 1e-6 relative, :func:`_model_vector`) is skipped: it would simulate
+    to the same cost up to rounding. Fits from different starts often reach the same model,
+    by the same parameters or by a twin (two lags swapped).
+    """
     best = None
     for theta in candidates:
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
+        if seen is not None:
+            model = _model_vector(coefficients)
+            if any(_equal_to_a_millionth(model, other) for other in seen):
+                continue
+            seen.append(model)
         state = problem.state(theta, coefficients)
         if best is None or state.cost < best.cost:
             best = state
     return best
+
+
+def _model_vector(coefficients) -> List[float]:
+    """Return the numerators, denominator and dead time of a model as one list."""
+    return coefficients.num.ravel().tolist() + coefficients.den.tolist() + [coefficients.delay]
+
+
+def _equal_to_a_millionth(first: Sequence[float], second: Sequence[float]) -> bool:
+    """
+    Return ``np.allclose(first, second, rtol=1e-6, atol=0)`` for finite values.
+
+    The same test in Python floats: lists of a few numbers, compared many times, where numpy's
+    per-call cost would be most of the work.
+    """
+    return all(abs(one - other) <= 1e-6 * abs(other) for one, other in zip(first, second))
 
 
 def _lower_cost(first: Optional[State], second: Optional[State]) -> Optional[State]:
@@ -229,25 +260,29 @@ def distinct(thetas: Sequence[np.ndarray]) -> List[np.ndarray]:
 
     """
     kept: List[np.ndarray] = []
+    values: List[List[float]] = []
     for theta in thetas:
-        if not any(np.allclose(theta, other, rtol=1e-6, atol=0.0) for other in kept):
+        listed = theta.tolist()
+        if not any(_equal_to_a_millionth(listed, other) for other in values):
             kept.append(theta)
+            values.append(listed)
     return kept
 
 
 def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
-                     tau: float, filters: 'StateVariableFilters'
+                     tau: float, filters: 'StateVariableFilters', seen: List[List[float]]
                      ) -> Tuple[Optional[State], Optional[int]]:
     """
     Return the equation-error fit that simulates best over all filters, and its filter index.
 
-    Returns ``(None, None)`` if no fit gives an admissible model.
+    Returns ``(None, None)`` if no fit gives an admissible model not ``seen`` before
+    (:func:`best_candidate`).
 
     """
     best, chosen = None, None
     for index in range(filters.count):
         state = best_candidate(problem, distinct(equation_error_fits(
-            problem, starts, free, tau, filters.select(index))))
+            problem, starts, free, tau, filters.select(index))), seen)
         if state is not None and (best is None or state.cost < best.cost):
             best, chosen = state, index
     return best, chosen
@@ -533,7 +568,8 @@ class _EquationError:
         self._model = model
         self._factor = factor
         self._free = free
-        self._latest = None
+        # Integer positions: a trial's values go into its parameter vector by one indexing.
+        self._positions = np.flatnonzero(free)
         # A Model's flat coefficient array is read directly (thousands of evaluations per fit);
         # [den; num] are these of its entries. A StabilizedModel changes D: it goes through
         # its coefficients.
@@ -544,33 +580,28 @@ class _EquationError:
             rows = nums + model.den_degree + 2          # ... and the dead time
             # After the coefficients, one row per coefficient of its derivatives by the
             # parameters: the free ones' gradients of [den; num], read by one indexing.
-            self._gradient = rows + self._order[None, :] * free.size + \
-                np.flatnonzero(free)[:, None]
+            self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
 
-    def _evaluated(self, values: np.ndarray, start: np.ndarray):
-        # least_squares asks for the Jacobian where it has just evaluated the residual.
-        key = values.tobytes() + start.tobytes()
-        if self._latest is None or self._latest[0] != key:
-            theta = start.copy()
-            theta[self._free] = values
-            model = self._model
-            self._latest = (key, model.coefficients(theta) if self._order is None
-                            else model.coefficient_array(theta))
-        return self._latest[1]
+    def _evaluated(self, theta: np.ndarray):
+        """Return the model's coefficients at ``theta`` (its flat array for a Model)."""
+        model = self._model
+        return model.coefficients(theta) if self._order is None \
+            else model.coefficient_array(theta)
 
-    def residual(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        evaluated = self._evaluated(values, start)
+    def _residual(self, evaluated) -> np.ndarray:
+        """Return the residual of coefficients from :meth:`_evaluated`."""
         if self._order is not None:
             return self._factor @ evaluated[self._order]
         return self._factor @ np.concatenate([evaluated.den, evaluated.num.ravel()])
 
-    def jacobian(self, values: np.ndarray, start: np.ndarray) -> np.ndarray:
-        evaluated = self._evaluated(values, start)
+    def _jacobian(self, evaluated) -> np.ndarray:
+        """Return the residual's derivatives by the free parameters (one column each)."""
         if self._order is not None:
             gradient = evaluated[self._gradient]
         else:
             gradient = np.hstack([evaluated.den_jacobian,
-                                  evaluated.num_jacobian.reshape(start.size, -1)])[self._free]
+                                  evaluated.num_jacobian.reshape(self._free.size, -1)]
+                                 )[self._free]
         return self._factor @ gradient.T
 
     def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
@@ -584,17 +615,30 @@ class _EquationError:
         ``_START_TOLERANCE``).
 
         """
+        positions = self._positions
         values = np.clip(start[self._free], lower, upper)
-        residual = self.residual(values, start)
+        # The whole parameter vector of the current point: each trial copies it and changes
+        # the free entries, and its coefficients serve the next Jacobian if it is accepted.
+        theta = start.copy()
+        theta[positions] = values
+        evaluated = self._evaluated(theta)
+        residual = self._residual(evaluated)
         cost = residual @ residual
         damping = 1e-3
         tiny = np.finfo(float).tiny
-        # Every (values.size + 1)-th entry of the flattened Gram matrix is on its diagonal.
-        diagonal = slice(None, None, values.size + 1)
+        bounds = lower.tolist(), upper.tolist()
         for _ in range(_START_ITERATIONS):
-            jacobian = self.jacobian(values, start)
+            jacobian = self._jacobian(evaluated)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
+            moving = _moving(values, gradient, *bounds)
+            if moving is not None:
+                if not moving.size:
+                    return values           # no descent direction inside the box
+                gram = gram[np.ix_(moving, moving)]
+                gradient = gradient[moving]
+            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal.
+            diagonal = slice(None, None, gram.shape[0] + 1)
             # Each damping is tried on the same matrices: the diagonal is read once.
             scaling = np.maximum(gram.diagonal(), tiny)
             while True:
@@ -605,11 +649,17 @@ class _EquationError:
                 # (the same solution to the bit; info > 0: singular).
                 solution, info = lapack.dgesv(damped, gradient)[2:]
                 step = -solution if info == 0 else None
+                if step is not None and moving is not None:
+                    step = np.zeros(values.size)
+                    step[moving] = -solution
                 if step is not None and np.isfinite(step).all():
                     # np.clip, without its dispatch overhead (the step is finite).
                     trial = np.minimum(np.maximum(values + step, lower), upper)
+                    trial_theta = theta.copy()
+                    trial_theta[positions] = trial
                     try:
-                        trial_residual = self.residual(trial, start)
+                        trial_evaluated = self._evaluated(trial_theta)
+                        trial_residual = self._residual(trial_evaluated)
                     except ModelError:
                         trial_residual = None
                     if trial_residual is not None:
@@ -624,7 +674,8 @@ class _EquationError:
             change = max(abs(new - old) / max(abs(old), 1e-12)
                          for new, old in zip(trial.tolist(), values.tolist()))
             decrease = 1.0 - trial_cost / cost
-            values, residual = trial, trial_residual
+            values, residual, theta, evaluated = trial, trial_residual, trial_theta, \
+                trial_evaluated
             cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
             if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
@@ -635,8 +686,9 @@ class _EquationError:
                         ) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        jacobian = self.jacobian(values, start)
-        residual = self.residual(values, start)
+        evaluated = self._evaluated(start)
+        jacobian = self._jacobian(evaluated)
+        residual = self._residual(evaluated)
         step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
         if np.all(values + step >= lower) and np.all(values + step <= upper):
             return values + step
@@ -645,6 +697,23 @@ class _EquationError:
         return values + optimize.lsq_linear(jacobian, -residual,
                                             bounds=(lower - values, upper - values),
                                             method='bvls').x
+
+
+def _moving(values: np.ndarray, gradient: np.ndarray, lower: List[float], upper: List[float]
+            ) -> Optional[np.ndarray]:
+    """
+    Return the positions of the parameters a projected step may move; None for all of them.
+
+    A parameter on a bound that the cost's gradient pushes outward is held there. Moving it
+    would be clipped back, and the other parameters' part of that step, solved as if it moved,
+    then creeps along the bound by damped steps (a lag collapsing to its lower bound took up
+    to the iteration limit instead of a few steps).
+    """
+    held = [(value <= low and slope > 0.0) or (value >= high and slope < 0.0)
+            for value, slope, low, high in zip(values.tolist(), gradient.tolist(), lower, upper)]
+    if not any(held):
+        return None
+    return np.flatnonzero(np.logical_not(held))
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,

@@ -9,7 +9,8 @@ from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.iteration import StopReason
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, complete_guess, default_filters,
-                                        distinct, explains_data, filter_bandwidths,
+                                        distinct, equation_error_fits, explains_data,
+                                        filter_bandwidths,
                                         FILTER_COUNT, initial_estimate,
                                         local_fit, resembles_output, stabilized,
                                         StateVariableFilters)
@@ -120,6 +121,42 @@ def test_best_candidate_skips_inadmissible_ones_and_distinct_drops_repeats():
     np.testing.assert_array_equal(best.theta, [0.5, 1.0, 50.0])
     assert best_candidate(problem, candidates[:1]) is None
     assert len(distinct(candidates)) == 3
+
+
+def test_best_candidate_scores_a_model_seen_before_once():
+    # Two lags swapped are one model: with the models seen so far, the twin is not simulated
+    # again, and a model seen in an earlier call is not a candidate of this one.
+    system = systems.two_lags_dead_time()
+    problem = problem_for(system.model, system.data(seed=2), system.bounds)
+    theta = system.model.vector(system.truth)
+    twin = theta.copy()
+    twin[2:] = theta[[3, 2]]
+    assert not np.array_equal(twin, theta)
+    seen = []
+    best = best_candidate(problem, [twin, theta], seen)
+    np.testing.assert_array_equal(best.theta, twin)
+    assert len(seen) == 1
+    assert best_candidate(problem, [theta], seen) is None
+    assert best_candidate(problem, [theta]).cost == pytest.approx(best.cost, rel=1e-12)
+
+
+def test_an_equation_error_fit_holds_a_collapsing_lag_on_its_bound():
+    # A first-order plant fitted with two lags: one lag collapses to its lower bound. Held
+    # there, the other parameters converge from any start to the one bounded minimum of each
+    # filter (a projected step that moved the lag too crept along the bound instead).
+    model = Model('K/((T1*s + 1)*(T2*s + 1))')
+    u = prbs(9, 5)
+    data = Data(u, Model('K/(T*s + 1)').simulate({'K': 1.5, 'T': 0.5}, u, 0.02), 0.02)
+    problem = problem_for(model, data, {'T1': (1e-3, None), 'T2': (1e-3, None)})
+    filters = default_filters(problem)
+    free = np.ones(3, dtype=bool)
+    fits = [equation_error_fits(problem, [np.array(start)], free, 0.0, filters)
+            for start in ([1.0, 2.0, 0.05], [3.0, 0.1, 5.0])]
+    for first, second in zip(*fits):
+        assert min(first[1:]) == 1e-3 and min(second[1:]) == 1e-3
+        np.testing.assert_allclose(sorted(first), sorted(second), rtol=1e-6)
+        assert first[0] == pytest.approx(1.5, rel=0.02)
+        assert max(first[1:]) == pytest.approx(0.5, rel=0.02)
 
 
 def test_filters_span_ten_periods_per_record_to_three_tenths_of_nyquist():
