@@ -2,8 +2,8 @@
 ``make bench``: every benchmark, each against a baseline measured in the same run.
 
 ``python -m bench`` runs them all in the order below; ``python -m bench NAME...`` runs the named
-ones (extra arguments such as ``--runs N`` go to the estimator, user-baseline and
-cli start-up benchmarks). A benchmark that needs
+ones (extra arguments such as ``--runs N`` go to the estimator, user-baseline, stage-cost,
+cli start-up and replay start-up benchmarks). A benchmark that needs
 rclpy is skipped with a message where rclpy is not installed.
 """
 
@@ -18,6 +18,7 @@ BENCHMARKS: Dict[str, List[str]] = {
     'model_text': ['--json', 'bench/results-model-text.json'],
     'estimator': ['--runs', '100', '--json', 'bench/results-estimator.json'],
     'user_baseline': ['--json', 'bench/results-user-baseline.json'],
+    'stage_costs': ['--json', 'bench/results-stage-costs.json'],
     'against_commit': [],
     'stamps': [],
     'coverage': ['--runs', '200', '--json', 'bench/results-coverage.json'],
@@ -35,7 +36,8 @@ BENCHMARKS: Dict[str, List[str]] = {
 
 
 # The benchmarks that take the extra arguments of the command line.
-_EXTRA_ARGUMENTS = ('estimator', 'user_baseline', 'cli_startup', 'replay_startup')
+_EXTRA_ARGUMENTS = ('estimator', 'user_baseline', 'stage_costs', 'cli_startup',
+                    'replay_startup')
 
 
 def _runner(name: str) -> Callable[[List[str]], object]:

@@ -1,0 +1,109 @@
+"""
+Where an estimate's time goes: the stages of ``estimate`` on each reference system (issue #26).
+
+For every reference system, ``--runs`` seeded records with the starts of ``bench/estimator.py``
+(log-uniform within x10 of the truth, the same draws as ``bench user_baseline``) are fitted
+twice: once plainly, for the median CPU time of an estimate, and once under ``cProfile``, for
+the share of that time each stage of the pipeline (``docs/algorithm.md`` section 1) takes.
+A stage's share is its cumulative profiled time over the estimate's; the milliseconds printed
+are that share of the plain median, so the profiler's own overhead (which weighs on small
+calls) does not inflate them. A stage that calls another includes it (the final check of a
+warm start from afar, stage 3b, iterates again). The user's hand-written fit
+(:func:`bench.user_baseline.user_fit`) is timed on the same records for the ratio issue #26
+bounds at 0.4.
+
+Run with ``python -m bench stage_costs --runs N`` or ``python -m bench.stage_costs``.
+"""
+
+import cProfile
+import pstats
+import time
+from typing import Dict, List, Optional
+
+from bench.estimator import draw_start, run_on_reference_systems
+from bench.user_baseline import ctid_fit, user_fit
+from ctid_ros.core.reference_systems import ReferenceSystem
+from ctid_ros.errors import EstimationError
+from ctid_ros.estimation import consistency, estimate, stages
+import numpy as np
+
+__all__ = ['STAGES', 'main', 'print_table', 'run_system']
+
+# The stages as the pipeline runs them: (label, module, function name).
+STAGES = [
+    ('warm start', stages, 'warm_start'),
+    ("data's guess", stages, 'against_the_data_guess'),
+    ('automatic start', stages, 'automatic_start'),
+    ('final iteration', stages, 'final_iteration'),
+    ('basin check', stages, 'against_the_data_basin'),
+    ('symmetry', stages, 'symmetry_restarts'),
+    ('look elsewhere', stages, 'look_elsewhere'),
+    ('residual test', estimate, '_residual_analysis'),
+    ('covariance', estimate, 'covariance'),
+    ('consistency', consistency, 'with_consistency'),
+]
+
+
+def _fits(system: ReferenceSystem, runs: int, seed: int) -> List[tuple]:
+    rng = np.random.default_rng(seed)
+    return [(system.data(seed=seed * 1000 + run), draw_start(system, rng))
+            for run in range(runs)]
+
+
+def _median_time(fit, system: ReferenceSystem, records: List[tuple]) -> float:
+    times = []
+    for data, start in records:
+        began = time.process_time()
+        try:
+            fit(system, data, start)
+        except (EstimationError, ValueError, np.linalg.LinAlgError):
+            pass
+        times.append(time.process_time() - began)
+    return float(np.median(times))
+
+
+def _cumulative(profile: cProfile.Profile) -> Dict[tuple, float]:
+    """Return the cumulative time of every profiled function by (file, name)."""
+    return {(filename, name): entry[3]
+            for (filename, _, name), entry in pstats.Stats(profile).stats.items()}
+
+
+def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
+    """Time ``runs`` estimates plainly and profiled; return each stage's share and time."""
+    records = _fits(system, runs, seed)
+    ctid_fit(system, *records[0])         # the model's first use is not the estimate's
+    median = _median_time(ctid_fit, system, records)
+    user = _median_time(user_fit, system, records)
+    profile = cProfile.Profile()
+    profile.enable()
+    for data, start in records:
+        ctid_fit(system, data, start)
+    profile.disable()
+    cumulative = _cumulative(profile)
+    whole = cumulative[(estimate.__file__, 'estimate')]
+    shares = {label: cumulative.get((module.__file__, name), 0.0) / whole
+              for label, module, name in STAGES}
+    return {'system': system.name, 'runs': runs, 'median_time': median,
+            'user_median_time': user, 'ratio': median / user, 'shares': shares,
+            'stage_ms': {label: 1e3 * share * median for label, share in shares.items()}}
+
+
+def print_table(results: List[dict]) -> None:
+    """Print one line per system: estimate and user times, ratio, then ms per stage."""
+    labels = [label for label, _, _ in STAGES]
+    print(f'{"system":<34} {"ctid ms":>7} {"user ms":>7} {"ratio":>5} ' +
+          ' '.join(f'{label:>{len(label)}}' for label in labels))
+    for result in results:
+        print(f'{result["system"][:34]:<34} {1e3 * result["median_time"]:>7.2f} '
+              f'{1e3 * result["user_median_time"]:>7.2f} {result["ratio"]:>5.2f} ' +
+              ' '.join(f'{result["stage_ms"][label]:>{len(label)}.2f}' for label in labels))
+
+
+def main(argv: Optional[List[str]] = None) -> List[dict]:
+    """Run the benchmark and print its table."""
+    return run_on_reference_systems(argv, __doc__.split('\n\n')[0].strip(), 20, run_system,
+                                    print_table)
+
+
+if __name__ == '__main__':
+    main()
