@@ -23,7 +23,7 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core import model_cache
 from ctid_ros.core.data import as_inputs
-from ctid_ros.core.simulation import (ContinuousFilter, INTERSAMPLE, skew_delay,
+from ctid_ros.core.simulation import (all_finite, ContinuousFilter, INTERSAMPLE, skew_delay,
                                       skew_extended)
 from ctid_ros.errors import ModelError
 import numpy as np
@@ -259,7 +259,7 @@ class Model:
         if flat is None:
             with np.errstate(all='ignore'):
                 flat = np.asarray(evaluate(*theta), dtype=float)
-        if not math.isfinite(flat.sum()) and not np.isfinite(flat).all():
+        if not all_finite(flat):
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')
         return flat

@@ -37,8 +37,8 @@ from scipy import linalg
 from scipy.linalg import lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
-           'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses', 'shifted',
-           'skew_delay', 'skew_extended']
+           'all_finite', 'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses',
+           'shifted', 'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
 # Discretisations kept for every caller (:meth:`ContinuousFilter.discretize`), latest last.
@@ -64,7 +64,7 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     array = np.atleast_1d(np.asarray(coefficients, dtype=float))
     if array.ndim != 1 or array.size == 0:
         raise ModelError(f'{what} must be a 1-D coefficient sequence')
-    if not _all_finite(array):
+    if not all_finite(array):
         raise ModelError(f'{what} has non-finite coefficients: {array}')
     if array[0] != 0.0:
         return array
@@ -74,7 +74,7 @@ def _polynomial(coefficients, what: str) -> np.ndarray:
     return array[nonzero[0]:]
 
 
-def _all_finite(values: np.ndarray) -> bool:
+def all_finite(values: np.ndarray) -> bool:
     """
     Return True if every value (real or complex) is finite.
 
@@ -120,7 +120,7 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     their product, so neither cancels.
     """
     if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
-            not _all_finite(coefficients):
+            not all_finite(coefficients):
         return None
     if coefficients.size == 2:
         return np.array([-coefficients[1] / coefficients[0]])
@@ -197,7 +197,7 @@ class ContinuousFilter:
             self._powers = powers[::-1].copy()
         # Roots hundreds of decades apart (numbers like 1.5**490 in the model text) overflow
         # the scaled coefficients: say so instead of failing inside scipy with NaNs.
-        if not (_all_finite(monic) and math.isfinite(self._gain) and self._gain != 0.0):
+        if not (all_finite(monic) and math.isfinite(self._gain) and self._gain != 0.0):
             raise ModelError(f'the denominator {den} has roots too many decades apart to '
                              'simulate in floating point')
         self._monic_ascending = monic[::-1]            # a_0 .. a_n with a_n = 1
@@ -318,7 +318,7 @@ class ContinuousFilter:
 
         """
         numerators = np.asarray(numerators, dtype=float)
-        if not _all_finite(numerators):
+        if not all_finite(numerators):
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
         numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
@@ -682,7 +682,7 @@ class StateResponse:
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
             ascending = (numerators[:, ::-1] * self._continuous.scale ** np.arange(size)
                          * self._continuous._gain ** 2)
-        if not _all_finite(ascending):
+        if not all_finite(ascending):
             return None
         modal = self._modes.trajectories
         # Complex modes: the chains above the modes, so that one product reads both off
@@ -894,7 +894,7 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     # Finite values only: a block's product would spread a NaN or inf to the samples before it.
     # The checks are array methods, without numpy's dispatch.
     if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
-            _all_finite(values):
+            all_finite(values):
         return _blocked_recursions(poles.astype(dtype, copy=False), values)
     return _banded_recursions(poles, values, complex_valued)
 
@@ -1121,7 +1121,7 @@ class _ContinuousModes:
             _accumulate(drive, start, length * first * self.residues - q)
             _accumulate(drive, end, q)
         drives = np.array(list(drive.values()))
-        if not (_all_finite(transition) and _all_finite(drives)):
+        if not (all_finite(transition) and all_finite(drives)):
             return None
         return _DiscreteModes(self, transition, list(drive), drives, factors)
 
@@ -1217,7 +1217,7 @@ class _Chain:
             _accumulate(drive, start, integral - ramp)
             _accumulate(drive, end, ramp)
         drives = np.array(list(drive.values()))
-        if not (_all_finite(transition) and _all_finite(drives)):
+        if not (all_finite(transition) and all_finite(drives)):
             return None
         basis = np.zeros((n, n))
         for j in range(n):

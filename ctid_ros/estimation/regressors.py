@@ -21,12 +21,11 @@ instrumental-variable iteration consistent (``docs/algorithm.md`` sections 3 and
 
 from dataclasses import dataclass
 from functools import lru_cache
-import math
 from typing import Callable, Dict, Hashable, List, Optional, TypeVar
 
 from ctid_ros.core.model import Coefficients, Model
-from ctid_ros.core.simulation import (ContinuousFilter, DiscreteFilter, polynomial_roots,
-                                      skew_delay, skew_extended, StateResponse)
+from ctid_ros.core.simulation import (all_finite, ContinuousFilter, DiscreteFilter,
+                                      polynomial_roots, skew_delay, skew_extended, StateResponse)
 from ctid_ros.errors import EstimationError
 import numpy as np
 
@@ -74,9 +73,8 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     """Return True if every root of ``den`` lies left of ``-margin * max|root|``."""
     if den.size < 2:
         return den.size == 1 and den[0] != 0.0
-    # Every candidate parameter vector is checked: the array methods, not numpy's dispatch
-    # (a finite sum has finite terms; one that overflows is checked elementwise).
-    if den[0] == 0.0 or not (math.isfinite(den.sum()) or np.isfinite(den).all()):
+    # Every candidate parameter vector is checked: by its sum, not elementwise (all_finite).
+    if den[0] == 0.0 or not all_finite(den):
         return False
     roots = polynomial_roots(den)
     scale = max(abs(roots).max(), _TINY)
