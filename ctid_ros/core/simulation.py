@@ -397,15 +397,26 @@ class ContinuousFilter:
         :func:`_delayed_segments` gives them with lengths times ``ts * scale``: one matrix
         exponential per sub-interval.
         """
-        transition = np.eye(self.order)
-        drive: Dict[Sample, np.ndarray] = {}
-        for length, start, end in segments:
-            e, p, q = _hold_integrals(self.a, self.b, length)
-            transition = e @ transition
-            drive = {sample: e @ vector for sample, vector in drive.items()}
-            _accumulate(drive, start, p - q)
-            _accumulate(drive, end, q)
-        return transition, drive
+        return _state_discretization(self.a, self.b, segments)
+
+
+def _state_discretization(a: np.ndarray, b: np.ndarray, segments
+                          ) -> Tuple[np.ndarray, Dict['Sample', np.ndarray]]:
+    """
+    Return ``Ad`` and the drive vectors ``B_o`` of ``x' = a x + b u`` over ``segments``.
+
+    ``segments`` as :meth:`ContinuousFilter.state_discretization` takes them: one matrix
+    exponential with its hold integrals per sub-interval (:func:`_hold_integrals`).
+    """
+    transition = np.eye(a.shape[0])
+    drive: Dict[Sample, np.ndarray] = {}
+    for length, start, end in segments:
+        e, integral, ramp = _hold_integrals(a, b, length)
+        transition = e @ transition
+        drive = {sample: e @ vector for sample, vector in drive.items()}
+        _accumulate(drive, start, integral - ramp)
+        _accumulate(drive, end, ramp)
+    return transition, drive
 
 
 def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
@@ -1114,16 +1125,29 @@ class _ContinuousModes:
             series = _series_factors(x)
             first, second = _hold_factors(x, series)
             factors.append((length, start, end, x, e, first, second, series))
-            q = length * second * self.residues
             # The first sub-interval's transition is its exponential itself (times 1, exact).
             transition = e if transition is None else e * transition
-            drive = {sample: e * vector for sample, vector in drive.items()}
-            _accumulate(drive, start, length * first * self.residues - q)
-            _accumulate(drive, end, q)
+            drive = self._advanced(drive, length, start, end, e, first, second)
         drives = np.array(list(drive.values()))
         if not (all_finite(transition) and all_finite(drives)):
             return None
         return _DiscreteModes(self, transition, list(drive), drives, factors)
+
+    def _advanced(self, drive: Dict['Sample', np.ndarray], length: float, start, end,
+                  e: np.ndarray, first: np.ndarray, second: np.ndarray
+                  ) -> Dict['Sample', np.ndarray]:
+        """
+        Return the modes' drives carried over one sub-interval and its hold integrals added.
+
+        ``drive``: the drives up to the sub-interval's start; ``e``, ``first``, ``second``: its
+        ``e^x`` and hold factors (:func:`_hold_factors`) for ``x`` = pole times ``length``;
+        ``start``, ``end``: the input values at its ends.
+        """
+        q = length * second * self.residues
+        drive = {sample: e * vector for sample, vector in drive.items()}
+        _accumulate(drive, start, length * first * self.residues - q)
+        _accumulate(drive, end, q)
+        return drive
 
     def drive_slopes(self, factors, samples: List[Sample]) -> np.ndarray:
         """
@@ -1138,13 +1162,10 @@ class _ContinuousModes:
         slope: Dict[Sample, np.ndarray] = {}
         for length, start, end, x, e, first, second, series in factors:
             first_slope, second_slope = _hold_factor_slopes(x, first, second, series)
-            q = length * second * self.residues
             q_slope = length * length * second_slope * self.residues
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
                      for sample, vector in drive.items()}
-            drive = {sample: e * vector for sample, vector in drive.items()}
-            _accumulate(drive, start, length * first * self.residues - q)
-            _accumulate(drive, end, q)
+            drive = self._advanced(drive, length, start, end, e, first, second)
             _accumulate(slope, start, length * length * first_slope * self.residues - q_slope)
             _accumulate(slope, end, q_slope)
         zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
@@ -1206,16 +1227,8 @@ class _Chain:
                    segments) -> Optional['_Chain']:
         """Return the chain of ``continuous`` over ``segments``; None on overflow."""
         n = continuous.order
-        a = root * np.eye(n) + np.eye(n, k=-1)
-        b = np.eye(n)[0]
-        transition = np.eye(n)
-        drive: Dict[Sample, np.ndarray] = {}
-        for length, start, end in segments:
-            e, integral, ramp = _hold_integrals(a, b, length)
-            transition = e @ transition
-            drive = {sample: e @ vector for sample, vector in drive.items()}
-            _accumulate(drive, start, integral - ramp)
-            _accumulate(drive, end, ramp)
+        chain = root * np.eye(n) + np.eye(n, k=-1)
+        transition, drive = _state_discretization(chain, np.eye(n)[0], segments)
         drives = np.array(list(drive.values()))
         if not (all_finite(transition) and all_finite(drives)):
             return None
