@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
+from ctid_ros.estimation.iteration import column_scales
 from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
                                        noise_model, noise_root, NoiseModel,
                                        shaped_noise_model, unit_root)
@@ -414,9 +415,7 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
                            std_noise=std_noise)
     psi, error = _sensitivities(problem, state, free)
     count = error.size
-    scales = np.linalg.norm(psi, axis=0)
-    scales = np.where(scales > 0.0, scales, 1.0)
-    scaled = psi / scales
+    scaled = psi / column_scales(psi)
     scale = count / max(count - params, 1)
     filtered = None
     if svd is not None and root is not None and root.shape[1] == params:
@@ -563,8 +562,7 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     count = error.size
     if not model_score(shaped, count) < model_score(plain, count):
         return None
-    scales = np.linalg.norm(psi, axis=0)
-    scales = np.where(scales > 0.0, scales, 1.0)
+    scales = column_scales(psi)
     scaled, _ = coloured_covariance(psi / scales, error, int(np.sum(free)), svd, model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
     covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
@@ -595,8 +593,7 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     if svd is None:
         root = None
         psi, _ = _sensitivities(problem, state, free)
-        scales = np.linalg.norm(psi, axis=0)
-        svd = np.linalg.svd(psi / np.where(scales > 0.0, scales, 1.0), full_matrices=False)
+        svd = np.linalg.svd(psi / column_scales(psi), full_matrices=False)
     left, singular, right_t = svd
     if singular[-1] <= 0.0:
         return factors

@@ -276,9 +276,8 @@ class SignalBank:
         if known is None:
             output = np.array(output)       # its own array, not a view of the mapped rows
             output.setflags(write=False)
-        _remembered(self._outputs, key, lambda: output if known is None else known,
-                    self._outputs_kept)
-        output = self._outputs[key]
+        output = _remembered(self._outputs, key, lambda: output if known is None else known,
+                             self._outputs_kept)
         return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)
 
 
