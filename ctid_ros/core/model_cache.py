@@ -55,10 +55,13 @@ _BINARY: Dict[str, Callable[[Any, Any], Any]] = {
     '+': operator.add, '-': operator.sub, '*': operator.mul, '/': operator.truediv,
     '**': operator.pow,
 }
-# The operations of CoefficientProgram.floats, each of two values (a unary one ignores its
-# second, the same operand).
+# The operations of a program, each of two values (a unary one ignores its second, the same
+# operand): on numpy scalars (CoefficientProgram.__call__) and on Python floats (.floats).
+_OPERATIONS: Dict[str, Callable[[Any, Any], Any]] = {
+    **_BINARY, 'neg': lambda value, _: -value, 'sqrt': lambda value, _: np.sqrt(value),
+}
 _FLOAT_OPERATIONS: Dict[str, Callable[[Any, Any], Any]] = {
-    **_BINARY, 'neg': lambda value, _: -value, 'sqrt': lambda value, _: math.sqrt(value),
+    **_OPERATIONS, 'sqrt': lambda value, _: math.sqrt(value),
 }
 _AST_BINARY = {ast.Add: '+', ast.Sub: '-', ast.Mult: '*', ast.Div: '/', ast.Pow: '**'}
 # Names of the generated function's namespace (sympy's numpy printer) and what they are.
@@ -152,14 +155,8 @@ class CoefficientProgram:
             raise TypeError(f'expected {self.parameters} parameter values, got {len(theta)}')
         slots = list(theta)
         for code, *operands in self.operations:
-            if code == 'const':
-                slots.append(operands[0])
-            elif code == 'neg':
-                slots.append(-slots[operands[0]])
-            elif code == 'sqrt':
-                slots.append(np.sqrt(slots[operands[0]]))
-            else:
-                slots.append(_BINARY[code](slots[operands[0]], slots[operands[1]]))
+            slots.append(operands[0] if code == 'const' else
+                         _OPERATIONS[code](slots[operands[0]], slots[operands[-1]]))
         return [slots[slot] for slot in self.outputs]
 
     def floats(self, theta: Sequence[float]) -> Optional[np.ndarray]:
@@ -225,11 +222,7 @@ def _folded(code: str, values: List[Any]) -> Any:
     """Return the value of an operation on numbers, as the program computes it, or ValueError."""
     try:
         with np.errstate(all='ignore'):     # numpy's nan and inf are the run time's too
-            if code == 'neg':
-                return -values[0]
-            if code == 'sqrt':
-                return np.sqrt(values[0])
-            return _BINARY[code](*values)
+            return _OPERATIONS[code](values[0], values[-1])
     except (ArithmeticError, ValueError, TypeError, AttributeError) as error:
         raise ValueError(f'arithmetic on numbers fails: {error}') from None
 
