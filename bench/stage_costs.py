@@ -20,10 +20,9 @@ import pstats
 import time
 from typing import Dict, List, Optional
 
-from bench.estimator import draw_start, run_on_reference_systems
+from bench.estimator import run_on_reference_systems, timed_fits
 from bench.user_baseline import ctid_fit, user_fit
 from ctid_ros.core.reference_systems import ReferenceSystem
-from ctid_ros.errors import EstimationError
 from ctid_ros.estimation import consistency, estimate, stages
 import numpy as np
 
@@ -44,24 +43,6 @@ STAGES = [
 ]
 
 
-def _fits(system: ReferenceSystem, runs: int, seed: int) -> List[tuple]:
-    rng = np.random.default_rng(seed)
-    return [(system.data(seed=seed * 1000 + run), draw_start(system, rng))
-            for run in range(runs)]
-
-
-def _median_time(fit, system: ReferenceSystem, records: List[tuple]) -> float:
-    times = []
-    for data, start in records:
-        began = time.process_time()
-        try:
-            fit(system, data, start)
-        except (EstimationError, ValueError, np.linalg.LinAlgError):
-            pass
-        times.append(time.process_time() - began)
-    return float(np.median(times))
-
-
 def _cumulative(profile: cProfile.Profile) -> Dict[tuple, float]:
     """Return the cumulative time of every profiled function by (file, name)."""
     return {(filename, name): entry[3]
@@ -70,15 +51,22 @@ def _cumulative(profile: cProfile.Profile) -> Dict[tuple, float]:
 
 def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
     """Time ``runs`` estimates plainly and profiled; return each stage's share and time."""
-    records = _fits(system, runs, seed)
-    ctid_fit(system, *records[0])         # the model's first use is not the estimate's
-    median = _median_time(ctid_fit, system, records)
-    user = _median_time(user_fit, system, records)
     profile = cProfile.Profile()
-    profile.enable()
-    for data, start in records:
-        ctid_fit(system, data, start)
-    profile.disable()
+
+    def profiled(system: ReferenceSystem, data, start: np.ndarray) -> np.ndarray:
+        profile.enable()
+        try:
+            return ctid_fit(system, data, start)
+        finally:
+            profile.disable()
+
+    # Every record is fitted plainly, by the user's fit and under the profiler, in turn.
+    fits = {'ctid_ros': ctid_fit, 'user': user_fit, 'profiled': profiled}
+    times: Dict[str, List[float]] = {name: [] for name in fits}
+    for name, _, seconds in timed_fits(system, runs, seed, fits, time.process_time):
+        times[name].append(seconds)
+    median = float(np.median(times['ctid_ros']))
+    user = float(np.median(times['user']))
     cumulative = _cumulative(profile)
     whole = cumulative[(estimate.__file__, 'estimate')]
     shares = {label: cumulative.get((module.__file__, name), 0.0) / whole
