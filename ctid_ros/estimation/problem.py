@@ -141,6 +141,19 @@ def bound_vectors(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, n
     return lower, upper
 
 
+def _same_coefficients(first: Coefficients, second: Coefficients) -> bool:
+    """Return True if two coefficient sets hold the same values (bit for bit)."""
+    if first is second:
+        return True             # the iteration asks again with its state's own coefficients
+    # The denominator first: a new candidate differs there, and the comparison stops.
+    return all(np.ascontiguousarray(one).tobytes() == np.ascontiguousarray(other).tobytes()
+               for one, other in ((first.den, second.den), (first.num, second.num),
+                                  (first.delay, second.delay),
+                                  (first.den_jacobian, second.den_jacobian),
+                                  (first.num_jacobian, second.num_jacobian),
+                                  (first.delay_gradient, second.delay_gradient)))
+
+
 def delay_parameter(model: Model) -> Optional[int]:
     """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
     if not model.delay_is_estimated:
@@ -187,8 +200,9 @@ class Problem:
         self.best: Optional[State] = None
         self.reductions: Dict[int, float] = {}
         self._leading_sign = None
-        # The latest linearisation: its key, itself, and the coefficients and skip it was for.
-        self._latest: Optional[Tuple[bytes, Linearization, Coefficients, int]] = None
+        # The latest linearisation: the coefficients and skip it was for, the bank's own and
+        # the fitted samples' one.
+        self._latest: Optional[Tuple[Coefficients, int, Linearization, Linearization]] = None
 
     @cached_property
     def delay_guess(self) -> float:
@@ -231,27 +245,30 @@ class Problem:
         Output, regressors and instruments on the fitted samples (nuisance projected out).
 
         The latest result is kept: the final estimate is linearised once for the stopping
-        rule, the identifiability check and the covariance.
+        rule, the identifiability check and the covariance. Asked for the regressors where it
+        has none, only those are added.
 
         """
         latest = self._latest
-        # The iteration asks again with the same coefficients object (kept alive here, so its
-        # identity is its value); other callers with equal values are found by their bytes.
-        same = latest is not None and latest[2] is coefficients and latest[3] == self.skip
-        key = None if same else b''.join(np.ascontiguousarray(part).tobytes() for part in (
-            coefficients.den, coefficients.num, coefficients.delay, coefficients.den_jacobian,
-            coefficients.num_jacobian, coefficients.delay_gradient, self.skip))
-        if latest is not None and (same or latest[0] == key) and (
-                latest[1].phi is not None or not regressors):
-            return latest[1]
-        lin = self._linearized(coefficients, regressors)
-        if key is None:
-            key = latest[0]
-        self._latest = (key, lin, coefficients, self.skip)
+        instruments = None
+        if latest is not None and latest[1] == self.skip and \
+                _same_coefficients(latest[0], coefficients):
+            if latest[3].phi is not None or not regressors:
+                return latest[3]
+            instruments = latest[2]
+        bank_lin, lin = self._linearized(coefficients, regressors, instruments)
+        self._latest = (coefficients, self.skip, bank_lin, lin)
         return lin
 
-    def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:
-        lin = self.bank.linearize(coefficients, regressors)
+    def _linearized(self, coefficients: Coefficients, regressors: bool,
+                    instruments: Optional[Linearization] = None
+                    ) -> Tuple[Linearization, Linearization]:
+        """Return the bank's linearisation and the fitted samples' one (nuisance projected)."""
+        bank_lin = self.bank.linearize(coefficients, regressors, instruments)
+        return bank_lin, self._fitted(coefficients, bank_lin)
+
+    def _fitted(self, coefficients: Coefficients, lin: Linearization) -> Linearization:
+        """Return the bank's ``lin`` on the fitted samples, nuisance projected out."""
         skip = self.skip
         output, phi, psi = (lin.output[skip:], None if lin.phi is None else lin.phi[skip:],
                             lin.psi[skip:])

@@ -186,12 +186,16 @@ class SignalBank:
         return _remembered(self._outputs, self._output_key(coefficients), simulate,
                            self._outputs_kept)
 
-    def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
+    def linearize(self, coefficients: Coefficients, regressors: bool = True,
+                  instruments: Optional[Linearization] = None) -> Linearization:
         """
         Return the output, the regressors ``phi`` (if requested) and instruments ``psi``.
 
         ``phi`` and ``psi`` are equations (3.2)-(3.4) and (4.1) of ``docs/algorithm.md``, one
         column per parameter, computed by the three simulations of its section 4.
+        ``instruments``: this bank's linearisation at the same coefficients without the
+        regressors, whose output, ``psi`` and ``delay_jump`` are taken over: only ``phi`` is
+        computed (the values a whole linearisation gives).
         """
         den = coefficients.den
         order = den.size - 1
@@ -210,7 +214,7 @@ class SignalBank:
         sensitivity_responses: Optional[List[StateResponse]] = None
         # An accepted candidate's output is remembered from its cost: not mapped again.
         key = self._output_key(coefficients)
-        known = self._outputs.get(key)
+        known = self._outputs.get(key) if instruments is None else instruments.output
         output = derivative = jump = psi = u_regressors = None
         trim = self.trim
         for j, num in enumerate(coefficients.num):
@@ -247,6 +251,8 @@ class SignalBank:
             if regressors and regressor_row < len(u_numerators):
                 u_regressors = _summed(u_regressors,
                                        _spread(u_parts[regressor_row:], num_moves))
+            if instruments is not None:
+                continue
             # Both products have degree 2 deg D: the coefficient arrays align. Every row is
             # mapped, the dead time's zero one too: the rounding of the others depends on how
             # many rows one product maps, and the covariance of a near-singular fit shows it.
@@ -264,7 +270,8 @@ class SignalBank:
             psi = _summed(psi, sensitivities[:, trim:])
         # Contiguous rows (a complex simulation's real part is strided): every product of an
         # update runs over them.
-        psi = np.ascontiguousarray(psi)
+        if instruments is None:
+            psi = np.ascontiguousarray(psi)
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_jump = None
         # The dead time's term -dtau/dtheta_i s G u, in the rows of the parameters that move it
@@ -275,9 +282,12 @@ class SignalBank:
             gradient = coefficients.delay_gradient
             for row in np.flatnonzero(gradient).tolist():
                 term = gradient[row] * moved
-                psi[row] -= term
+                if instruments is None:
+                    psi[row] -= term
                 delay_terms.append((row, term))
-            if jump is not None and jump.any():
+            if instruments is not None:
+                delay_jump = instruments.delay_jump
+            elif jump is not None and jump.any():
                 delay_jump = (gradient[:, None] * jump).T          # np.outer's product
         phi = None
         if regressors:
@@ -297,7 +307,8 @@ class SignalBank:
             output.setflags(write=False)
         output = _remembered(self._outputs, key, lambda: output if known is None else known,
                              self._outputs_kept)
-        return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)
+        return Linearization(output, phi, psi.T if instruments is None else instruments.psi,
+                             delay_jump, coefficients.delay_gradient)
 
 
 def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
