@@ -88,6 +88,9 @@ def settling_time(coefficients: Coefficients) -> float:
     return 5.0 * slowest + max(coefficients.delay, 0.0)
 
 
+# Nuisance bases kept per problem: a candidate's cost and its linearisation share one, and an
+# iteration tries a few candidates before it linearises at the one it accepts.
+_REMEMBERED_BASES = 4
 # A pole this many times faster than the Nyquist frequency leaves no trace in sampled data.
 _NEGLIGIBLE_POLE = 1000.0
 
@@ -200,6 +203,8 @@ class Problem:
         self.best: Optional[State] = None
         self.reductions: Dict[int, float] = {}
         self._leading_sign = None
+        # Nuisance bases of the latest denominators (:meth:`_basis`), oldest first.
+        self._bases: Dict[Tuple[bytes, float, int], np.ndarray] = {}
         # The latest linearisation: the coefficients and skip it was for, the bank's own and
         # the fitted samples' one.
         self._latest: Optional[Tuple[Coefficients, int, Linearization, Linearization]] = None
@@ -228,12 +233,23 @@ class Problem:
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
         if not (self.initial_state or self.output_offset):
             return None             # nothing fitted besides G u (every cost asks)
+        # A candidate's cost and then its linearisation ask for the same basis: the latest
+        # few are kept (they depend on D, the dead time's discretisation and the skip only).
+        key = (coefficients.den.tobytes(), float(coefficients.delay), self.skip)
+        bases = self._bases
+        if key in bases:
+            bases[key] = bases.pop(key)                 # the most recent last
+            return bases[key]
         # The simulation's own discretisation of 1/D serves the free responses too.
         discrete = self.bank.realized(coefficients.den, coefficients.delay) \
             if self.initial_state else None
         columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
                                    self.initial_state, self.output_offset, discrete)
-        return None if columns is None else orthonormal_basis(columns[self.skip:])
+        basis = orthonormal_basis(columns[self.skip:])
+        bases[key] = basis
+        if len(bases) > _REMEMBERED_BASES:
+            del bases[next(iter(bases))]
+        return basis
 
     def prediction(self, coefficients: Coefficients) -> np.ndarray:
         """Model output on the fitted samples, with the fitted initial state and offset."""
