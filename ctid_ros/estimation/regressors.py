@@ -41,8 +41,8 @@ _OUTPUT_BYTES = 1 << 23
 _REMEMBERED_OUTPUTS = 16
 # State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
 # of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
-# of the others the latest linearisation's (linearised again at once for the regressors after
-# an optimality check).
+# of the others the latest linearisation's only (a point that needs its regressors after its
+# instruments takes the instruments over: SignalBank.linearize's ``instruments``).
 _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
 # Realisations shared by every bank (a few tens of small objects).
