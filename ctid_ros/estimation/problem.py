@@ -88,6 +88,9 @@ def settling_time(coefficients: Coefficients) -> float:
     return 5.0 * slowest + max(coefficients.delay, 0.0)
 
 
+# Nuisance bases kept per problem: a candidate's cost and its linearisation share one, and an
+# iteration tries a few candidates before it linearises at the one it accepts.
+_REMEMBERED_BASES = 4
 # A pole this many times faster than the Nyquist frequency leaves no trace in sampled data.
 _NEGLIGIBLE_POLE = 1000.0
 
@@ -141,6 +144,19 @@ def bound_vectors(model: Model, bounds: Optional[Bounds]) -> Tuple[np.ndarray, n
     return lower, upper
 
 
+def _same_coefficients(first: Coefficients, second: Coefficients) -> bool:
+    """Return True if two coefficient sets hold the same values (bit for bit)."""
+    if first is second:
+        return True             # the iteration asks again with its state's own coefficients
+    # The denominator first: a new candidate differs there, and the comparison stops.
+    return all(np.ascontiguousarray(one).tobytes() == np.ascontiguousarray(other).tobytes()
+               for one, other in ((first.den, second.den), (first.num, second.num),
+                                  (first.delay, second.delay),
+                                  (first.den_jacobian, second.den_jacobian),
+                                  (first.num_jacobian, second.num_jacobian),
+                                  (first.delay_gradient, second.delay_gradient)))
+
+
 def delay_parameter(model: Model) -> Optional[int]:
     """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
     if not model.delay_is_estimated:
@@ -187,8 +203,11 @@ class Problem:
         self.best: Optional[State] = None
         self.reductions: Dict[int, float] = {}
         self._leading_sign = None
-        # The latest linearisation: its key, itself, and the coefficients and skip it was for.
-        self._latest: Optional[Tuple[bytes, Linearization, Coefficients, int]] = None
+        # Nuisance bases of the latest denominators (:meth:`_basis`), oldest first.
+        self._bases: Dict[Tuple[bytes, float, int], np.ndarray] = {}
+        # The latest linearisation: the coefficients and skip it was for, the bank's own and
+        # the fitted samples' one.
+        self._latest: Optional[Tuple[Coefficients, int, Linearization, Linearization]] = None
 
     @cached_property
     def delay_guess(self) -> float:
@@ -214,12 +233,23 @@ class Problem:
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
         if not (self.initial_state or self.output_offset):
             return None             # nothing fitted besides G u (every cost asks)
+        # A candidate's cost and then its linearisation ask for the same basis: the latest
+        # few are kept (they depend on D, the dead time's discretisation and the skip only).
+        key = (coefficients.den.tobytes(), float(coefficients.delay), self.skip)
+        bases = self._bases
+        if key in bases:
+            bases[key] = bases.pop(key)                 # the most recent last
+            return bases[key]
         # The simulation's own discretisation of 1/D serves the free responses too.
         discrete = self.bank.realized(coefficients.den, coefficients.delay) \
             if self.initial_state else None
         columns = nuisance_columns(coefficients.den, len(self.data), self.data.ts,
                                    self.initial_state, self.output_offset, discrete)
-        return None if columns is None else orthonormal_basis(columns[self.skip:])
+        basis = orthonormal_basis(columns[self.skip:])
+        bases[key] = basis
+        if len(bases) > _REMEMBERED_BASES:
+            del bases[next(iter(bases))]
+        return basis
 
     def prediction(self, coefficients: Coefficients) -> np.ndarray:
         """Model output on the fitted samples, with the fitted initial state and offset."""
@@ -231,27 +261,30 @@ class Problem:
         Output, regressors and instruments on the fitted samples (nuisance projected out).
 
         The latest result is kept: the final estimate is linearised once for the stopping
-        rule, the identifiability check and the covariance.
+        rule, the identifiability check and the covariance. Asked for the regressors where it
+        has none, only those are added.
 
         """
         latest = self._latest
-        # The iteration asks again with the same coefficients object (kept alive here, so its
-        # identity is its value); other callers with equal values are found by their bytes.
-        same = latest is not None and latest[2] is coefficients and latest[3] == self.skip
-        key = None if same else b''.join(np.ascontiguousarray(part).tobytes() for part in (
-            coefficients.den, coefficients.num, coefficients.delay, coefficients.den_jacobian,
-            coefficients.num_jacobian, coefficients.delay_gradient, self.skip))
-        if latest is not None and (same or latest[0] == key) and (
-                latest[1].phi is not None or not regressors):
-            return latest[1]
-        lin = self._linearized(coefficients, regressors)
-        if key is None:
-            key = latest[0]
-        self._latest = (key, lin, coefficients, self.skip)
+        instruments = None
+        if latest is not None and latest[1] == self.skip and \
+                _same_coefficients(latest[0], coefficients):
+            if latest[3].phi is not None or not regressors:
+                return latest[3]
+            instruments = latest[2]
+        bank_lin, lin = self._linearized(coefficients, regressors, instruments)
+        self._latest = (coefficients, self.skip, bank_lin, lin)
         return lin
 
-    def _linearized(self, coefficients: Coefficients, regressors: bool) -> Linearization:
-        lin = self.bank.linearize(coefficients, regressors)
+    def _linearized(self, coefficients: Coefficients, regressors: bool,
+                    instruments: Optional[Linearization] = None
+                    ) -> Tuple[Linearization, Linearization]:
+        """Return the bank's linearisation and the fitted samples' one (nuisance projected)."""
+        bank_lin = self.bank.linearize(coefficients, regressors, instruments)
+        return bank_lin, self._fitted(coefficients, bank_lin)
+
+    def _fitted(self, coefficients: Coefficients, lin: Linearization) -> Linearization:
+        """Return the bank's ``lin`` on the fitted samples, nuisance projected out."""
         skip = self.skip
         output, phi, psi = (lin.output[skip:], None if lin.phi is None else lin.phi[skip:],
                             lin.psi[skip:])

@@ -41,8 +41,8 @@ _OUTPUT_BYTES = 1 << 23
 _REMEMBERED_OUTPUTS = 16
 # State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
 # of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
-# of the others the latest linearisation's (linearised again at once for the regressors after
-# an optimality check).
+# of the others the latest linearisation's only (a point that needs its regressors after its
+# instruments takes the instruments over: SignalBank.linearize's ``instruments``).
 _REMEMBERED_RESPONSES = 2
 Value = TypeVar('Value')
 # Realisations shared by every bank (a few tens of small objects).
@@ -186,18 +186,27 @@ class SignalBank:
         return _remembered(self._outputs, self._output_key(coefficients), simulate,
                            self._outputs_kept)
 
-    def linearize(self, coefficients: Coefficients, regressors: bool = True) -> Linearization:
+    def linearize(self, coefficients: Coefficients, regressors: bool = True,
+                  instruments: Optional[Linearization] = None) -> Linearization:
         """
         Return the output, the regressors ``phi`` (if requested) and instruments ``psi``.
 
         ``phi`` and ``psi`` are equations (3.2)-(3.4) and (4.1) of ``docs/algorithm.md``, one
         column per parameter, computed by the three simulations of its section 4.
+        ``instruments``: this bank's linearisation at the same coefficients without the
+        regressors, whose output, ``psi`` and ``delay_jump`` are taken over: only ``phi`` is
+        computed (the values a whole linearisation gives).
         """
         den = coefficients.den
         order = den.size - 1
-        params = coefficients.num_jacobian.shape[0]
+        den_jacobian = coefficients.den_jacobian
+        params = den_jacobian.shape[0]
+        count = self.y.shape[0]
         delay_used = bool(coefficients.delay_gradient.any())
         delay = coefficients.delay + self.extra_delay
+        # A zero row of a Jacobian (a gain moves no D, a lag no N) maps to a zero regressor:
+        # only the parameters that move a polynomial are mapped for phi.
+        den_moves = den_jacobian.any(axis=1)
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
@@ -205,13 +214,14 @@ class SignalBank:
         sensitivity_responses: Optional[List[StateResponse]] = None
         # An accepted candidate's output is remembered from its cost: not mapped again.
         key = self._output_key(coefficients)
-        known = self._outputs.get(key)
+        known = self._outputs.get(key) if instruments is None else instruments.output
         output = derivative = jump = psi = u_regressors = None
         trim = self.trim
         for j, num in enumerate(coefficients.num):
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
             num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
+            num_moves = num_jac.any(axis=1)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -223,8 +233,9 @@ class SignalBank:
                 times_s = np.zeros(order + 1)                       # s N, strictly proper
                 times_s[:-1] = num_full[1:]
                 u_numerators.append(times_s)
+            regressor_row = len(u_numerators)
             if regressors:
-                u_numerators.extend(num_jac)
+                u_numerators.extend(num_jac[num_moves])
             u_parts = u_responses[j].outputs(u_numerators)[:, trim:] if u_numerators else None
             if known is None:
                 output = _summed(output, u_parts[0])
@@ -237,11 +248,16 @@ class SignalBank:
                 if feedthrough != 0.0:
                     jump = _summed(jump, feedthrough * (bank_u.delayed_input(signal, left=True)
                                                         - bank_u.delayed_input(signal))[trim:])
-            if regressors:
-                u_regressors = _summed(u_regressors, u_parts[-params:])
-            # Both products have degree 2 deg D: the coefficient arrays align.
+            if regressors and regressor_row < len(u_numerators):
+                u_regressors = _summed(u_regressors,
+                                       _spread(u_parts[regressor_row:], num_moves))
+            if instruments is not None:
+                continue
+            # Both products have degree 2 deg D: the coefficient arrays align. Every row is
+            # mapped, the dead time's zero one too: the rounding of the others depends on how
+            # many rows one product maps, and the covariance of a near-singular fit shows it.
             sensitivity_numerators = [
-                np.convolve(num_jac[i], den) - np.convolve(coefficients.den_jacobian[i], num_full)
+                np.convolve(num_jac[i], den) - np.convolve(den_jacobian[i], num_full)
                 for i in range(params)]
             # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
             sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
@@ -254,31 +270,54 @@ class SignalBank:
             psi = _summed(psi, sensitivities[:, trim:])
         # Contiguous rows (a complex simulation's real part is strided): every product of an
         # update runs over them.
-        psi = np.ascontiguousarray(psi)
+        if instruments is None:
+            psi = np.ascontiguousarray(psi)
         # psi for a growing dead time; a shrinking one gets back the feedthrough's jump.
         delay_jump = None
+        # The dead time's term -dtau/dtheta_i s G u, in the rows of the parameters that move it
+        # (one, as a rule): the other rows would add zeros.
+        delay_terms = []
         if delay_used:
-            # np.outer's products, without its dispatch.
-            gradient = coefficients.delay_gradient[:, None]
-            delay_term = -(gradient * (derivative if jump is None else derivative + jump))
-            if jump is not None and jump.any():
-                delay_jump = (gradient * jump).T
-            psi += delay_term
+            moved = derivative if jump is None else derivative + jump
+            gradient = coefficients.delay_gradient
+            for row in np.flatnonzero(gradient).tolist():
+                term = gradient[row] * moved
+                if instruments is None:
+                    psi[row] -= term
+                delay_terms.append((row, term))
+            if instruments is not None:
+                delay_jump = instruments.delay_jump
+            elif jump is not None and jump.any():
+                delay_jump = (gradient[:, None] * jump).T          # np.outer's product
         phi = None
         if regressors:
-            bank_y = _remembered(self._output_filtered, den.tobytes(),
-                                 lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-            y_parts = bank_y.outputs(coefficients.den_jacobian)
-            phi = u_regressors - y_parts
-            if delay_used:
-                phi += delay_term
+            phi = np.zeros((params, count)) if u_regressors is None else u_regressors
+            if den_moves.any():
+                bank_y = _remembered(self._output_filtered, den.tobytes(),
+                                     lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
+                if den_moves.all():
+                    phi = phi - bank_y.outputs(den_jacobian)
+                else:
+                    phi[den_moves] -= bank_y.outputs(den_jacobian[den_moves])
+            for row, term in delay_terms:
+                phi[row] -= term
             phi = phi.T
         if known is None:
             output = np.array(output)       # its own array, not a view of the mapped rows
             output.setflags(write=False)
         output = _remembered(self._outputs, key, lambda: output if known is None else known,
                              self._outputs_kept)
-        return Linearization(output, phi, psi.T, delay_jump, coefficients.delay_gradient)
+        return Linearization(output, phi, psi.T if instruments is None else instruments.psi,
+                             delay_jump, coefficients.delay_gradient)
+
+
+def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Return ``values``, the signals of the ``rows`` marked, as every row (zeros elsewhere)."""
+    if rows.all():
+        return values
+    spread = np.zeros((rows.size, values.shape[1]))
+    spread[rows] = values
+    return spread
 
 
 def _summed(total: Optional[np.ndarray], part: np.ndarray) -> np.ndarray:

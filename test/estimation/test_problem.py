@@ -172,6 +172,32 @@ def test_projected_cost_gradient_is_exact_with_an_initial_state(offset, transien
         assert gradient[index] == pytest.approx(difference, rel=1e-5, abs=1e-9)
 
 
+@pytest.mark.parametrize('factory,options', [
+    (systems.first_order_dead_time, {}), (systems.rao_garnier, {}),
+    (systems.two_lags_dead_time, {'initial_state': True, 'output_offset': True})])
+def test_regressors_asked_after_the_instruments_are_those_of_a_whole_linearisation(
+        factory, options):
+    # The instruments are kept and only phi is added: the values a whole linearisation gives.
+    system = factory()
+    data = system.data(seed=2)
+    theta = system.model.vector(system.truth) * 1.05
+    whole = problem_for(system.model, data, **options)
+    coefficients = whole.admissible(theta)
+    expected = whole.linearize(coefficients)
+    problem = problem_for(system.model, data, **options)
+    first = problem.linearize(problem.admissible(theta), regressors=False)
+    # Equal coefficients, another object: found by their values.
+    lin = problem.linearize(problem.admissible(theta))
+    assert first.phi is None
+    np.testing.assert_array_equal(lin.psi, first.psi)
+    assert problem.linearize(problem.admissible(theta), regressors=False) is lin
+    np.testing.assert_allclose(lin.phi, expected.phi, rtol=0,
+                               atol=1e-12 * np.max(np.abs(expected.phi)))
+    np.testing.assert_allclose(lin.psi, expected.psi, rtol=0,
+                               atol=1e-12 * np.max(np.abs(expected.psi)))
+    np.testing.assert_array_equal(lin.output, expected.output)
+
+
 def test_best_state_is_remembered_and_forgotten_when_the_fitted_samples_change():
     system = systems.first_order_dead_time()
     problem = problem_for(system.model, system.data(seed=1))
