@@ -19,6 +19,7 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
 from functools import lru_cache
+import math
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
@@ -40,6 +41,8 @@ __all__ = [
     'initial_estimate', 'local_fit', 'random_starts', 'resembles_output', 'stabilized',
 ]
 
+# The smallest positive normal float: a zero diagonal's stand-in in the damped step.
+_TINY = np.finfo(float).tiny
 # Initial values by parameter name, or 'auto'/None for none.
 Initial = Union[str, None, Mapping[str, float]]
 
@@ -625,22 +628,25 @@ class _EquationError:
         residual = self._residual(evaluated)
         cost = residual @ residual
         damping = 1e-3
-        tiny = np.finfo(float).tiny
-        bounds = lower.tolist(), upper.tolist()
+        low, high = lower.tolist(), upper.tolist()
+        # The free values as Python floats too: the step's bookkeeping (held parameters, box,
+        # finiteness, change) is on a handful of numbers, where numpy's per-call cost would be
+        # most of it.
+        current = values.tolist()
         for _ in range(_START_ITERATIONS):
             jacobian = self._jacobian(evaluated)
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            moving = _moving(values, gradient, *bounds)
+            moving = _moving(current, gradient.tolist(), low, high)
             if moving is not None:
-                if not moving.size:
+                if not moving:
                     return values           # no descent direction inside the box
                 gram = gram[np.ix_(moving, moving)]
                 gradient = gradient[moving]
             # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal.
             diagonal = slice(None, None, gram.shape[0] + 1)
             # Each damping is tried on the same matrices: the diagonal is read once.
-            scaling = np.maximum(gram.diagonal(), tiny)
+            scaling = np.maximum(gram.diagonal(), _TINY)
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
                 damped = gram.copy()
@@ -648,13 +654,9 @@ class _EquationError:
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular).
                 solution, info = lapack.dgesv(damped, gradient)[2:]
-                step = -solution if info == 0 else None
-                if step is not None and moving is not None:
-                    step = np.zeros(values.size)
-                    step[moving] = -solution
-                if step is not None and np.isfinite(step).all():
-                    # np.clip, without its dispatch overhead (the step is finite).
-                    trial = np.minimum(np.maximum(values + step, lower), upper)
+                trial = None if info else \
+                    _boxed_trial(current, solution.tolist(), moving, low, high)
+                if trial is not None:
                     trial_theta = theta.copy()
                     trial_theta[positions] = trial
                     try:
@@ -669,13 +671,11 @@ class _EquationError:
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            # The same quotients in Python floats: for a handful of parameters numpy's per-call
-            # cost would be most of the update's.
             change = max(abs(new - old) / max(abs(old), 1e-12)
-                         for new, old in zip(trial.tolist(), values.tolist()))
+                         for new, old in zip(trial, current))
             decrease = 1.0 - trial_cost / cost
-            values, residual, theta, evaluated = trial, trial_residual, trial_theta, \
-                trial_evaluated
+            values, current, residual, theta, evaluated = trial_theta[positions], trial, \
+                trial_residual, trial_theta, trial_evaluated
             cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
             if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
@@ -699,8 +699,8 @@ class _EquationError:
                                             method='bvls').x
 
 
-def _moving(values: np.ndarray, gradient: np.ndarray, lower: List[float], upper: List[float]
-            ) -> Optional[np.ndarray]:
+def _moving(values: List[float], gradient: List[float], lower: List[float],
+            upper: List[float]) -> Optional[List[int]]:
     """
     Return the positions of the parameters a projected step may move; None for all of them.
 
@@ -710,10 +710,35 @@ def _moving(values: np.ndarray, gradient: np.ndarray, lower: List[float], upper:
     to the iteration limit instead of a few steps).
     """
     held = [(value <= low and slope > 0.0) or (value >= high and slope < 0.0)
-            for value, slope, low, high in zip(values.tolist(), gradient.tolist(), lower, upper)]
+            for value, slope, low, high in zip(values, gradient, lower, upper)]
     if not any(held):
         return None
-    return np.flatnonzero(np.logical_not(held))
+    return [index for index, stays in enumerate(held) if not stays]
+
+
+def _boxed_trial(values: List[float], solution: List[float], moving: Optional[List[int]],
+                 lower: List[float], upper: List[float]) -> Optional[List[float]]:
+    """
+    Return ``values - solution`` (on the ``moving`` positions) clipped into the box.
+
+    None if the step is not finite. The arithmetic of ``np.clip(values + step, lower, upper)``
+    with ``step = -solution`` (zero where a parameter is held), in Python floats; a tie with a
+    bound takes the bound, as numpy's maximum and minimum do.
+    """
+    if moving is None:
+        step = [-value for value in solution]
+    else:
+        step = [0.0] * len(values)
+        for index, value in zip(moving, solution):
+            step[index] = -value
+    if not (math.isfinite(sum(step)) or all(map(math.isfinite, step))):
+        return None
+    trial = []
+    for value, move, low, high in zip(values, step, lower, upper):
+        moved = value + move
+        moved = moved if moved > low else low
+        trial.append(moved if moved < high else high)
+    return trial
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
