@@ -117,9 +117,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     if autocorrelation is not None and autocorrelation.size > top:
         autocovariance = variance * autocorrelation[:top + 1]
     else:
-        size = fft_size(count + top + 1)
-        spectrum = np.fft.rfft(centred, size)
-        autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
+        autocovariance = _autocovariance(centred, top)
     best = (count * math.log(variance), 0, variance)
     # a_0 .. a_top, grown in place: the first order + 1 are the model of that order.
     ar = np.zeros(top + 1)
@@ -141,6 +139,26 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
             # Each further order costs at least 2; ten without a gain end the search.
             break
     return NoiseModel(kept, float(best[2]), variance)
+
+
+def _autocovariance(centred: np.ndarray, top: int) -> np.ndarray:
+    """
+    Return ``sum_t x_t x_t+k / N`` for ``k = 0..top`` (``top < N``) of a centred series.
+
+    Up to the default order's lags directly, one dot product per lag, where an FFT pair of
+    the padded record costs several times that: the products over the first ``N - top``
+    samples run as one correlation, and the last ``top`` samples add a triangle of their own
+    products. More lags by FFT.
+    """
+    count = centred.size
+    if top > _MAX_ORDER:
+        size = fft_size(count + top + 1)
+        spectrum = np.fft.rfft(centred, size)
+        return np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
+    sums = np.correlate(centred, centred[:count - top])
+    tail = centred[count - top:]
+    sums[:top] += np.correlate(tail, tail, 'full')[top - 1:]
+    return sums / count
 
 
 def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERION) -> float:
