@@ -441,15 +441,7 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
     free_names = [name for name, keep in zip(names, free) if keep]
-    z_table: Dict[str, Dict[str, float]] = {}
-    worst: Optional[Tuple[str, str]] = None
-    max_z = 0.0
-    for block, deviation, variance in blocks:
-        z = np.where(variance > 0.0, deviation / np.sqrt(np.maximum(variance, 1e-300)), 0.0)
-        z_table[block] = dict(zip(free_names, map(float, z)))
-        top = int(np.argmax(np.abs(z)))
-        if abs(z[top]) > max_z:
-            max_z, worst = float(abs(z[top])), (free_names[top], block)
+    z_table, max_z, worst = _z_table(blocks, free_names)
     tests = sum(len(values) for values in z_table.values())
     bound = consistency_bound(tests)
     consistent = max_z <= bound
@@ -463,6 +455,34 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
                 len(values) > 1 else float('nan')
     result.verdict = _verdict(result)
     return result
+
+
+def _z_table(blocks: List[Tuple[str, np.ndarray, np.ndarray]], names: List[str]
+             ) -> Tuple[Dict[str, Dict[str, float]], float, Optional[Tuple[str, str]]]:
+    """
+    Return ``{block: {parameter: z}}``, the largest ``|z|`` and its parameter and block.
+
+    ``z = d_b / std(d_b)`` (0 where the variance is not positive); the first largest in block
+    then parameter order is the worst, None if every ``z`` is 0. All blocks in one array.
+    """
+    if not blocks:
+        return {}, 0.0, None
+    deviations = np.array([deviation for _, deviation, _ in blocks])
+    variances = np.array([variance for _, _, variance in blocks])
+    z = np.where(variances > 0.0, deviations / np.sqrt(np.maximum(variances, 1e-300)), 0.0)
+    table = {block: dict(zip(names, row)) for (block, _, _), row in zip(blocks, z.tolist())}
+    magnitudes = np.abs(z)
+    if not np.isfinite(magnitudes.sum()):
+        # A NaN ends its own block's search for the largest, as it always has.
+        max_z, worst = 0.0, None
+        for (block, _, _), row in zip(blocks, magnitudes):
+            top = int(np.argmax(row))
+            if row[top] > max_z:
+                max_z, worst = float(row[top]), (names[top], block)
+        return table, max_z, worst
+    block, top = divmod(int(np.argmax(magnitudes)), len(names))
+    max_z = float(magnitudes[block, top])
+    return table, max_z, ((names[top], blocks[block][0]) if max_z > 0.0 else None)
 
 
 def _quarter_estimates(problem: Problem, state: State, free: np.ndarray
