@@ -21,16 +21,17 @@ the record (two halves and four quarters) and compares each block with the whole
   consistent if ``max |z|`` stays below a Bonferroni bound over the parameters and blocks
   tested at about 1 % false alarms.
 
-Cost: the sensitivities are the covariance's (cached by the problem), filtered backwards once
-(the covariance's filter pass, reused: :func:`block_deviations`); their products are summed
-once over the pieces between the blocks' edges, and per block there is a p x p inverse and two
-free responses of the noise filter over its memory, all stacked into single calls. For white
-noise the variances are ``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise
-model is shaped, a block's sensitivities are ill conditioned or the filter's memory is as long
-as a block: an SVD and one backward filter of the block's map per block. Only a flagged
-estimate is refined: each quarter's estimate is iterated (Gauss-Newton on the block's rows of
-the full-record simulation, at most :data:`REFINE_ITERATIONS` updates) and the reported
-standard deviations become at least the scatter of the quarter estimates.
+Cost: the column-scaled sensitivities and the residual are the covariance's (handed on by the
+estimate), filtered backwards once (the covariance's filter pass, reused:
+:func:`block_deviations`); their products are summed once over the pieces between the blocks'
+edges, and per block there is a p x p inverse and two free responses of the noise filter over
+its memory, all stacked into single calls. For white noise the variances are
+``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise model is shaped, a
+block's sensitivities are ill conditioned or the filter's memory is as long as a block: an SVD
+and one backward filter of the block's map per block. Only a flagged estimate is refined:
+each quarter's estimate is iterated (Gauss-Newton on the block's rows of the full-record
+simulation, at most :data:`REFINE_ITERATIONS` updates) and the reported standard deviations
+become at least the scatter of the quarter estimates.
 """
 
 from dataclasses import dataclass, field
