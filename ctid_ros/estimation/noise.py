@@ -119,26 +119,26 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     else:
         autocovariance = _autocovariance(centred, top)
     best = (count * math.log(variance), 0, variance)
-    # a_0 .. a_top, grown in place: the first order + 1 are the model of that order.
-    ar = np.zeros(top + 1)
-    ar[0] = 1.0
-    kept = ar[:1].copy()
-    error = float(autocovariance[0])
+    # The recursion in Python floats: its vectors hold at most 31 values, where numpy's work
+    # per call would cost more than the arithmetic. ar is a_0 .. a_order of the current order.
+    lags = autocovariance.tolist()
+    ar = kept = [1.0]
+    error = lags[0]
     for order in range(1, top + 1):
-        reflection = -(autocovariance[order] + ar[1:order] @ autocovariance[order - 1:0:-1]
+        reflection = -(lags[order] + sum(a * lag for a, lag in zip(ar[1:], lags[order - 1:0:-1]))
                        ) / error
-        ar[1:order + 1] = ar[1:order + 1] + reflection * ar[order - 1::-1]
+        ar = [1.0] + [a + reflection * b for a, b in zip(ar[1:], ar[:0:-1])] + [reflection]
         error *= 1.0 - reflection ** 2
         if error <= 0.0:
             break
         score = count * math.log(error) + penalty(order, count)
         if score < best[0]:
             best = (score, order, error)
-            kept = ar[:order + 1].copy()
+            kept = ar
         elif order - best[1] >= _PATIENCE:
             # Each further order costs at least 2; ten without a gain end the search.
             break
-    return NoiseModel(kept, float(best[2]), variance)
+    return NoiseModel(np.array(kept), float(best[2]), variance)
 
 
 def _autocovariance(centred: np.ndarray, top: int) -> np.ndarray:
