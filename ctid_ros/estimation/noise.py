@@ -351,7 +351,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
     order = model.order
     if order == 0:
         return min(shaping, limit)
-    radius = float(np.max(np.abs(np.roots(model.ar))))
+    radius = float(np.max(np.abs(_roots(model.ar))))
     if not radius < 1.0:
         return limit
     span = order + (1 if radius == 0.0 else
@@ -364,6 +364,20 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
             return span + shaping
         span *= 2
     return limit
+
+
+def _roots(polynomial: np.ndarray) -> np.ndarray:
+    """
+    Return ``np.roots(polynomial)`` for a polynomial without a zero first or last coefficient.
+
+    The same companion matrix and eigenvalue call, without ``np.roots``'s own checks: the same
+    roots to the bit. Others go through ``np.roots``.
+    """
+    if polynomial[0] == 0.0 or polynomial[-1] == 0.0 or polynomial.size < 2:
+        return np.roots(polynomial)
+    companion = np.diag(np.ones(polynomial.size - 2), -1)
+    companion[0, :] = -polynomial[1:] / polynomial[0]
+    return np.linalg.eigvals(companion)
 
 
 # What a filtered state may keep of its size once noise_memory's samples have passed.
