@@ -396,11 +396,17 @@ def measured_every(y: np.ndarray) -> int:
     y = np.asarray(y, dtype=float)
     scale = float(np.max(np.abs(y))) if y.size else 0.0
     best = 1
+    differences = y
     for order in (1, 2):
-        differences = np.diff(y, order)
-        moving = np.flatnonzero(np.abs(differences) > 1e-9 * scale)
-        if moving.size < 4:
+        # np.diff(y, 2) is the difference of np.diff(y): the first order's, differenced again.
+        differences = np.diff(differences)
+        changing = np.abs(differences) > 1e-9 * scale
+        count = int(np.count_nonzero(changing))
+        if count < 4 or -(-differences.size // 2) < _PHASE_SHARE * count:
+            # Too few changes, or none of the factors below has room for them (measured
+            # data, which move on nearly every sample).
             continue
+        moving = np.flatnonzero(changing)
         # One phase of m holds at most a 1/m share of the samples: measured data, which move
         # on (nearly) every sample, rule out every factor at once.
         largest = int(min(_MAX_FACTOR, differences.size / (_PHASE_SHARE * moving.size) + 1))
