@@ -435,8 +435,9 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     scale = count / max(count - params, 1)
     filtered = None
     if svd is not None and root is not None and root.shape[1] == params:
-        filtered = np.sqrt(scale * noise.innovation_variance) * (root @ (svd[1][:, None] *
-                                                                         svd[2]))
+        # The scale folded into the p x p factor: one N x p product, no scaled copy of it.
+        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * svd[1][:, None] *
+                           svd[2])
     blocks = block_deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',

@@ -298,9 +298,12 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
     scale = count / max(count - parameters, 1)
-    filtered = noise_root(left, model, scale) if root is None else \
-        np.sqrt(scale * model.innovation_variance) * root
-    return mapping @ (filtered.T @ filtered) @ mapping.T, model
+    if root is None:
+        filtered = noise_root(left, model, scale)
+        return mapping @ (filtered.T @ filtered) @ mapping.T, model
+    # The unit root's p x p products scaled, rather than a scaled copy of the N x p root.
+    gram = (scale * model.innovation_variance) * (root.T @ root)
+    return mapping @ gram @ mapping.T, model
 
 
 def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np.ndarray:
