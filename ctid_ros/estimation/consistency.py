@@ -21,19 +21,21 @@ the record (two halves and four quarters) and compares each block with the whole
   consistent if ``max |z|`` stays below a Bonferroni bound over the parameters and blocks
   tested at about 1 % false alarms.
 
-Cost: the sensitivities are the covariance's (cached by the problem), filtered backwards once
-(the covariance's filter pass, reused: :func:`block_deviations`); their products are summed
-once over the pieces between the blocks' edges, and per block there is a p x p inverse and two
-free responses of the noise filter over its memory, all stacked into single calls. For white
-noise the variances are ``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise
-model is shaped, a block's sensitivities are ill conditioned or the filter's memory is as long
-as a block: an SVD and one backward filter of the block's map per block. Only a flagged
-estimate is refined: each quarter's estimate is iterated (Gauss-Newton on the block's rows of
-the full-record simulation, at most :data:`REFINE_ITERATIONS` updates) and the reported
-standard deviations become at least the scatter of the quarter estimates.
+Cost: the column-scaled sensitivities and the residual are the covariance's (handed on by the
+estimate), filtered backwards once (the covariance's filter pass, reused:
+:func:`block_deviations`); their products are summed once over the pieces between the blocks'
+edges, and per block there is a p x p inverse and two free responses of the noise filter over
+its memory, all stacked into single calls. For white noise the variances are
+``c^2 (G_b^-1 - G^-1)`` from the p x p inverses alone. Where the noise model is shaped, a
+block's sensitivities are ill conditioned or the filter's memory is as long as a block: an SVD
+and one backward filter of the block's map per block. Only a flagged estimate is refined:
+each quarter's estimate is iterated (Gauss-Newton on the block's rows of the full-record
+simulation, at most :data:`REFINE_ITERATIONS` updates) and the reported standard deviations
+become at least the scatter of the quarter estimates.
 """
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
@@ -129,14 +131,18 @@ def consistency_bound(tests: int) -> float:
     return float(special.ndtri(1.0 - (1.0 - FAMILY) / (2.0 * max(tests, 1))))
 
 
-def _block_rows(count: int) -> List[Tuple[str, slice]]:
+# One record length per estimate, and the same lengths again and again in a stream of windows:
+# remembered.
+@lru_cache(maxsize=64)
+def _block_rows(count: int) -> Tuple[Tuple[str, slice], ...]:
     names = {2: ('first half', 'second half'),
              4: ('quarter 1', 'quarter 2', 'quarter 3', 'quarter 4')}
-    rows = []
+    rows: List[Tuple[str, slice]] = []
     for parts in BLOCKS:
         edges = np.linspace(0, count, parts + 1).round().astype(int)
-        rows += [(names[parts][i], slice(edges[i], edges[i + 1])) for i in range(parts)]
-    return rows
+        rows += [(names[parts][i], slice(int(edges[i]), int(edges[i + 1])))
+                 for i in range(parts)]
+    return tuple(rows)
 
 
 def _sensitivities(problem: Problem, state: State, free: np.ndarray
@@ -381,7 +387,9 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
                       std: np.ndarray,
                       svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                      root: Optional[np.ndarray] = None) -> Consistency:
+                      root: Optional[np.ndarray] = None,
+                      sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None
+                      ) -> Consistency:
     """
     Test whether one parameter vector holds over the record (module docstring).
 
@@ -404,37 +412,38 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         ``U`` filtered through the noise model's ``1/A`` backwards in time for unit
         innovations, if the caller has it: the sensitivities' filtered form is then
         ``root S V^T`` scaled, without another filter pass.
+    sensitivities : (ndarray, ndarray), optional
+        The column-scaled sensitivities of ``free`` (each column over its norm, 1 for a zero
+        column) and the residual at ``state``, if the caller has them (the covariance's).
 
     """
     names = problem.model.parameters
     std_noise = {name: float(value) for name, value in zip(names, std)}
-    free = np.asarray(free, dtype=bool) & np.isfinite(std)
+    given = np.asarray(free, dtype=bool)
+    free = given & np.isfinite(std)
     params = int(np.sum(free))
     if params == 0:
         return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
                            std_noise=std_noise)
-    psi, error = _sensitivities(problem, state, free)
+    if sensitivities is not None and sensitivities[0] is not None and \
+            np.array_equal(free, given):
+        scaled, error = sensitivities
+    else:
+        psi, error = _sensitivities(problem, state, free)
+        scaled = psi / column_scales(psi)
     count = error.size
-    scaled = psi / column_scales(psi)
     scale = count / max(count - params, 1)
     filtered = None
     if svd is not None and root is not None and root.shape[1] == params:
-        filtered = np.sqrt(scale * noise.innovation_variance) * (root @ (svd[1][:, None] *
-                                                                         svd[2]))
+        # The scale folded into the p x p factor: one N x p product, no scaled copy of it.
+        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * svd[1][:, None] *
+                           svd[2])
     blocks = block_deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
     free_names = [name for name, keep in zip(names, free) if keep]
-    z_table: Dict[str, Dict[str, float]] = {}
-    worst: Optional[Tuple[str, str]] = None
-    max_z = 0.0
-    for block, deviation, variance in blocks:
-        z = np.where(variance > 0.0, deviation / np.sqrt(np.maximum(variance, 1e-300)), 0.0)
-        z_table[block] = dict(zip(free_names, map(float, z)))
-        top = int(np.argmax(np.abs(z)))
-        if abs(z[top]) > max_z:
-            max_z, worst = float(abs(z[top])), (free_names[top], block)
+    z_table, max_z, worst = _z_table(blocks, free_names)
     tests = sum(len(values) for values in z_table.values())
     bound = consistency_bound(tests)
     consistent = max_z <= bound
@@ -448,6 +457,34 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
                 len(values) > 1 else float('nan')
     result.verdict = _verdict(result)
     return result
+
+
+def _z_table(blocks: List[Tuple[str, np.ndarray, np.ndarray]], names: List[str]
+             ) -> Tuple[Dict[str, Dict[str, float]], float, Optional[Tuple[str, str]]]:
+    """
+    Return ``{block: {parameter: z}}``, the largest ``|z|`` and its parameter and block.
+
+    ``z = d_b / std(d_b)`` (0 where the variance is not positive); the first largest in block
+    then parameter order is the worst, None if every ``z`` is 0. All blocks in one array.
+    """
+    if not blocks:
+        return {}, 0.0, None
+    deviations = np.array([deviation for _, deviation, _ in blocks])
+    variances = np.array([variance for _, _, variance in blocks])
+    z = np.where(variances > 0.0, deviations / np.sqrt(np.maximum(variances, 1e-300)), 0.0)
+    table = {block: dict(zip(names, row)) for (block, _, _), row in zip(blocks, z.tolist())}
+    magnitudes = np.abs(z)
+    if not np.isfinite(magnitudes.sum()):
+        # A NaN ends its own block's search for the largest, as it always has.
+        max_z, worst = 0.0, None
+        for (block, _, _), row in zip(blocks, magnitudes):
+            top = int(np.argmax(row))
+            if row[top] > max_z:
+                max_z, worst = float(row[top]), (names[top], block)
+        return table, max_z, worst
+    block, top = divmod(int(np.argmax(magnitudes)), len(names))
+    max_z = float(magnitudes[block, top])
+    return table, max_z, ((names[top], blocks[block][0]) if max_z > 0.0 else None)
 
 
 def _quarter_estimates(problem: Problem, state: State, free: np.ndarray
@@ -542,7 +579,8 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
 
 def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
                     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                    residual_noise: Optional[NoiseModel] = None
+                    residual_noise: Optional[NoiseModel] = None,
+                    sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None
                     ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
     """
     Return the covariance and noise model with the noise shaped by the loop, if that fits better.
@@ -551,19 +589,28 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     one passed through the loop's sensitivity (:func:`loop_sensitivity`), whichever scores
     better (:func:`~ctid_ros.estimation.noise.model_score`). None if the model is open loop or
     the plain one wins (the estimate's covariance stands). ``svd``: that of the column-scaled
-    sensitivities, ``residual_noise``: the plain model, if the caller has them.
+    sensitivities, ``residual_noise``: the plain model, and ``sensitivities``: the
+    column-scaled sensitivities of ``free`` and the residual, if the caller has them.
     """
     shaping = loop_sensitivity(problem, state)
     if shaping is None or not np.any(free):
         return None
-    psi, error = _sensitivities(problem, state, free)
+    if sensitivities is None or sensitivities[0] is None:
+        psi, error = _sensitivities(problem, state, free)
+        scales = column_scales(psi)
+        columns = psi / scales
+    else:
+        columns, error = sensitivities
+        scales = None
     plain = noise_model(error) if residual_noise is None else residual_noise
     shaped = shaped_noise_model(error, shaping)
     count = error.size
     if not model_score(shaped, count) < model_score(plain, count):
         return None
-    scales = column_scales(psi)
-    scaled, _ = coloured_covariance(psi / scales, error, int(np.sum(free)), svd, model=shaped)
+    if scales is None:
+        psi, _ = _sensitivities(problem, state, free)
+        scales = column_scales(psi)
+    scaled, _ = coloured_covariance(columns, error, int(np.sum(free)), svd, model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
     covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     return covariance, shaped
@@ -609,7 +656,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
                      restored_factors: Optional[np.ndarray] = None,
                      svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                      residual_noise: Optional[NoiseModel] = None,
-                     root: Optional[np.ndarray] = None) -> Any:
+                     root: Optional[np.ndarray] = None,
+                     sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -625,7 +673,9 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     (the thin SVD of the column-scaled sensitivities of the free parameters) and
     ``residual_noise`` (the residual's own noise model, before any restoring): the
     covariance's, so they are not computed again; ``root``: the SVD's ``U`` filtered for
-    ``noise`` (:func:`~ctid_ros.estimation.noise.unit_root`), if the caller has it.
+    ``noise`` (:func:`~ctid_ros.estimation.noise.unit_root`), and ``sensitivities``: the
+    column-scaled sensitivities of ``free`` (each column over its norm, 1 for a zero column)
+    and the residual, if the caller has them.
 
     Sets ``result.consistency``, ``result.std_noise`` (the noise-only standard deviations) and
     ``result.std_change`` (those before the t factors and the restored noise: a change test's,
@@ -637,7 +687,7 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     """
     names = problem.model.parameters
     fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool), svd,
-                               residual_noise)
+                               residual_noise, sensitivities)
     restored = np.ones(len(names)) if restored_factors is None else \
         np.asarray(restored_factors, dtype=float)
     if fed_back is not None:
@@ -662,7 +712,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
-    consistency = check_consistency(problem, state, noise, free, std, svd, root)
+    consistency = check_consistency(problem, state, noise, free, std, svd, root,
+                                    sensitivities)
     result.consistency = consistency
     result.std_noise = dict(consistency.std_noise)
     if consistency.consistent:

@@ -169,6 +169,9 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     inputs = np.asarray(inputs, dtype=float).reshape(residual.size, -1)
     if bound not in ('prewhitened', 'bartlett', 'white'):
         raise ValueError(f"bound must be 'prewhitened', 'bartlett' or 'white', got {bound!r}")
+    if bound == 'bartlett' and first == 0 and max_lag <= bartlett_span(count, max_lag):
+        return _within_spread(residual, inputs, max_lag, bartlett_span(count, max_lag),
+                              confidence)
     if bound != 'prewhitened':
         correlation = input_correlation(residual, inputs, max_lag)
         if bound == 'white':
@@ -192,14 +195,50 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     if lags < 1 or not np.any(filtered):
         return True
     span = bartlett_span(filtered.size, lags)
+    whitened = np.column_stack([np.convolve(column - np.mean(column), polynomial)[start:count]
+                                for column in inputs[first:].T])
+    if filtered[0] != 0.0:
+        return _within_spread(filtered, whitened, lags, span, confidence)
+    # Leading zeros, which input_correlation leaves out of the residual's mean.
     rho_e = autocorrelations(filtered, span)[:, 0]
-    for column in inputs[first:].T:
-        whitened = np.convolve(column - np.mean(column), polynomial)[start:count]
-        correlation = input_correlation(filtered, whitened, lags)[:, 0]
-        spread = chance_spread(rho_e, autocorrelations(whitened, span)[:, 0], filtered.size)
+    for column in whitened.T:
+        correlation = input_correlation(filtered, column, lags)[:, 0]
+        spread = chance_spread(rho_e, autocorrelations(column, span)[:, 0], filtered.size)
         if np.max(np.abs(correlation)) > confidence * spread:
             return False
     return True
+
+
+def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: int,
+                   confidence: float) -> bool:
+    """
+    Return True if every input's correlation with ``residual`` stays within Bartlett's bound.
+
+    The correlations of :func:`input_correlation` at lags ``0..lags`` within ``confidence``
+    times :func:`chance_spread` of the autocorrelations at ``-span..span``
+    (:func:`autocorrelations`), for a residual without leading zeros (``inputs``: shape
+    ``(N, m)``). The three come from one zero-padded FFT of each series: ``span >= lags``.
+    """
+    count = residual.size
+    error = residual - np.mean(residual)
+    centred = inputs - np.mean(inputs, axis=0)
+    size = fft_size(count + span + 1)
+    spectrum = np.fft.rfft(error, size)
+    spectra = np.fft.rfft(centred, size, axis=0)
+    energy = np.sum(error ** 2)
+    energies = np.sum(centred ** 2, axis=0)
+    full = np.fft.irfft(spectrum * np.conj(spectrum), size)
+    rho_e = np.concatenate([full[size - span:], full[:span + 1]]) / \
+        (energy if energy > 0.0 else 1.0)
+    full = np.fft.irfft(spectra * np.conj(spectra), size, axis=0)
+    rho_u = np.concatenate([full[size - span:], full[:span + 1]]) / \
+        np.where(energies > 0.0, energies, 1.0)
+    scale = np.sqrt(energy * energies)
+    correlation = np.fft.irfft(spectrum[:, None] * np.conj(spectra), size, axis=0)[:lags + 1] \
+        / np.where(scale > 0.0, scale, 1.0)
+    spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
+                        for j in range(inputs.shape[1])])
+    return bool(np.all(np.max(np.abs(correlation), axis=0) <= confidence * spreads))
 
 
 def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np.ndarray:

@@ -289,6 +289,11 @@ class Uncertainty:
     root : ndarray or None
         ``U`` of ``svd`` filtered through ``noise``'s ``1/A`` backwards for unit innovations
         (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
+    scaled : ndarray or None
+        The sensitivities of the free parameters over their column norms (1 for a zero
+        column): the matrix ``svd`` decomposes, for the checks after the covariance.
+    residual : ndarray or None
+        The residual at the estimate, on the fitted samples.
 
     """
 
@@ -303,6 +308,8 @@ class Uncertainty:
     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
     residual_noise: Optional[NoiseModel] = None
     root: Optional[np.ndarray] = None
+    scaled: Optional[np.ndarray] = None
+    residual: Optional[np.ndarray] = None
 
 
 def covariance(problem: Problem, state: State,
@@ -326,18 +333,20 @@ def covariance(problem: Problem, state: State,
     variance = float(error @ error) / max(count - params, 1)
     free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
     scales = np.where(norms > 0.0, norms, 1.0)
+    # The column-scaled sensitivities, once for the sandwich and the checks after it.
+    columns = psi / scales
     if svd is None:
         # A zero column, which the identifiability check's decomposition leaves out (scaled
         # by 1 here). At a kink of the cost in the dead time ``psi`` is already the mean of
         # the two one-sided sensitivities (:class:`Sensitivities`).
-        svd = np.linalg.svd(psi / scales, full_matrices=False)
+        svd = np.linalg.svd(columns, full_matrices=False)
     model = noise_model(error, autocorrelation=autocorrelation)
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.
     root = unit_root(svd[0], model) if model.order and np.any(free) else None
-    scaled, model = coloured_covariance(psi / scales, error, int(np.sum(free)), svd,
+    scaled, model = coloured_covariance(columns, error, int(np.sum(free)), svd,
                                         model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
-    restored = restored_covariance(psi / scales, error, svd, start=model)
+    restored = restored_covariance(columns, error, svd, start=model)
     residual_noise = model
     removed_share = 0.0
     restored_factors = None
@@ -358,7 +367,8 @@ def covariance(problem: Problem, state: State,
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors, svd if np.any(free) else None, residual_noise, root)
+                       restored_factors, svd if np.any(free) else None, residual_noise, root,
+                       columns, error)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -492,7 +502,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
                             uncertainty.removed_share, uncertainty.restored_factors,
                             svd=uncertainty.svd, residual_noise=uncertainty.residual_noise,
-                            root=uncertainty.root)
+                            root=uncertainty.root,
+                            sensitivities=(uncertainty.scaled, uncertainty.residual))
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

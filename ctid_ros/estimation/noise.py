@@ -117,30 +117,48 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     if autocorrelation is not None and autocorrelation.size > top:
         autocovariance = variance * autocorrelation[:top + 1]
     else:
-        size = fft_size(count + top + 1)
-        spectrum = np.fft.rfft(centred, size)
-        autocovariance = np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
+        autocovariance = _autocovariance(centred, top)
     best = (count * math.log(variance), 0, variance)
-    # a_0 .. a_top, grown in place: the first order + 1 are the model of that order.
-    ar = np.zeros(top + 1)
-    ar[0] = 1.0
-    kept = ar[:1].copy()
-    error = float(autocovariance[0])
+    # The recursion in Python floats: its vectors hold at most 31 values, where numpy's work
+    # per call would cost more than the arithmetic. ar is a_0 .. a_order of the current order.
+    lags = autocovariance.tolist()
+    ar = kept = [1.0]
+    error = lags[0]
     for order in range(1, top + 1):
-        reflection = -(autocovariance[order] + ar[1:order] @ autocovariance[order - 1:0:-1]
+        reflection = -(lags[order] + sum(a * lag for a, lag in zip(ar[1:], lags[order - 1:0:-1]))
                        ) / error
-        ar[1:order + 1] = ar[1:order + 1] + reflection * ar[order - 1::-1]
+        ar = [1.0] + [a + reflection * b for a, b in zip(ar[1:], ar[:0:-1])] + [reflection]
         error *= 1.0 - reflection ** 2
         if error <= 0.0:
             break
         score = count * math.log(error) + penalty(order, count)
         if score < best[0]:
             best = (score, order, error)
-            kept = ar[:order + 1].copy()
+            kept = ar
         elif order - best[1] >= _PATIENCE:
             # Each further order costs at least 2; ten without a gain end the search.
             break
-    return NoiseModel(kept, float(best[2]), variance)
+    return NoiseModel(np.array(kept), float(best[2]), variance)
+
+
+def _autocovariance(centred: np.ndarray, top: int) -> np.ndarray:
+    """
+    Return ``sum_t x_t x_t+k / N`` for ``k = 0..top`` (``top < N``) of a centred series.
+
+    Up to the default order's lags directly, one dot product per lag, where an FFT pair of
+    the padded record costs several times that: the products over the first ``N - top``
+    samples run as one correlation, and the last ``top`` samples add a triangle of their own
+    products. More lags by FFT.
+    """
+    count = centred.size
+    if top > _MAX_ORDER:
+        size = fft_size(count + top + 1)
+        spectrum = np.fft.rfft(centred, size)
+        return np.fft.irfft(spectrum * np.conj(spectrum), size)[:top + 1] / count
+    sums = np.correlate(centred, centred[:count - top])
+    tail = centred[count - top:]
+    sums[:top] += np.correlate(tail, tail, 'full')[top - 1:]
+    return sums / count
 
 
 def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERION) -> float:
@@ -280,9 +298,12 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
         variance = float(residual @ residual) / max(count - parameters, 1)
         return variance * (mapping @ mapping.T), model
     scale = count / max(count - parameters, 1)
-    filtered = noise_root(left, model, scale) if root is None else \
-        np.sqrt(scale * model.innovation_variance) * root
-    return mapping @ (filtered.T @ filtered) @ mapping.T, model
+    if root is None:
+        filtered = noise_root(left, model, scale)
+        return mapping @ (filtered.T @ filtered) @ mapping.T, model
+    # The unit root's p x p products scaled, rather than a scaled copy of the N x p root.
+    gram = (scale * model.innovation_variance) * (root.T @ root)
+    return mapping @ gram @ mapping.T, model
 
 
 def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np.ndarray:
@@ -333,7 +354,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
     order = model.order
     if order == 0:
         return min(shaping, limit)
-    radius = float(np.max(np.abs(np.roots(model.ar))))
+    radius = float(np.max(np.abs(_roots(model.ar))))
     if not radius < 1.0:
         return limit
     span = order + (1 if radius == 0.0 else
@@ -346,6 +367,20 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
             return span + shaping
         span *= 2
     return limit
+
+
+def _roots(polynomial: np.ndarray) -> np.ndarray:
+    """
+    Return ``np.roots(polynomial)`` for a polynomial without a zero first or last coefficient.
+
+    The same companion matrix and eigenvalue call, without ``np.roots``'s own checks: the same
+    roots to the bit. Others go through ``np.roots``.
+    """
+    if polynomial[0] == 0.0 or polynomial[-1] == 0.0 or polynomial.size < 2:
+        return np.roots(polynomial)
+    companion = np.diag(np.ones(polynomial.size - 2), -1)
+    companion[0, :] = -polynomial[1:] / polynomial[0]
+    return np.linalg.eigvals(companion)
 
 
 # What a filtered state may keep of its size once noise_memory's samples have passed.
@@ -364,11 +399,17 @@ def measured_every(y: np.ndarray) -> int:
     y = np.asarray(y, dtype=float)
     scale = float(np.max(np.abs(y))) if y.size else 0.0
     best = 1
+    differences = y
     for order in (1, 2):
-        differences = np.diff(y, order)
-        moving = np.flatnonzero(np.abs(differences) > 1e-9 * scale)
-        if moving.size < 4:
+        # np.diff(y, 2) is the difference of np.diff(y): the first order's, differenced again.
+        differences = np.diff(differences)
+        changing = np.abs(differences) > 1e-9 * scale
+        count = int(np.count_nonzero(changing))
+        if count < 4 or -(-differences.size // 2) < _PHASE_SHARE * count:
+            # Too few changes, or none of the factors below has room for them (measured
+            # data, which move on nearly every sample).
             continue
+        moving = np.flatnonzero(changing)
         # One phase of m holds at most a 1/m share of the samples: measured data, which move
         # on (nearly) every sample, rule out every factor at once.
         largest = int(min(_MAX_FACTOR, differences.size / (_PHASE_SHARE * moving.size) + 1))

@@ -174,12 +174,12 @@ def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
     # Through p x p Gram matrices: numpy's product of the long, reversed root with the
     # mapping does not reach BLAS speed.
     diagonal = np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
-    gradient = np.empty((mapping.shape[0], model.order))
-    for lag in range(1, model.order + 1):
-        cross = root[:-lag].T @ again[lag:] if lag < root.shape[0] else \
-            np.zeros((root.shape[1],) * 2)
-        gradient[:, lag - 1] = -np.einsum('ij,jk,ik->i', mapping, cross + cross.T,
-                                          mapping) / diagonal
+    crosses = np.zeros((model.order,) + (root.shape[1],) * 2)
+    for lag in range(1, min(model.order, root.shape[0] - 1) + 1):
+        crosses[lag - 1] = root[:-lag].T @ again[lag:]
+    # Every lag's quadratic forms in one call.
+    gradient = -np.einsum('ij,ljk,ik->il', mapping, crosses + crosses.transpose(0, 2, 1),
+                          mapping) / diagonal[:, None]
     return np.log(diagonal), gradient
 
 
@@ -223,12 +223,11 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
     order = model.order
     if order:
         _, gradient = _log_diagonal(mapping, left, model, root)
-        coefficients = model.ar
-        first = np.tril(np.array([[coefficients[i - j] if i >= j else 0.0
-                                   for j in range(order)] for i in range(order)]))
-        reversed_ = coefficients[:0:-1]
-        second = np.tril(np.array([[reversed_[i - j] if i >= j else 0.0
-                                    for j in range(order)] for i in range(order)]))
+        # Lower triangular Toeplitz matrices of a_0 .. a_p-1 and a_p .. a_1, by indexing.
+        steps = np.subtract.outer(np.arange(order), np.arange(order))
+        below = steps >= 0
+        first = np.where(below, model.ar[np.where(below, steps, 0)], 0.0)
+        second = np.where(below, model.ar[:0:-1][np.where(below, steps, 0)], 0.0)
         inverse = first @ first.T - second @ second.T
         informative = count * (1.0 - min(max(removed_share, 0.0), 0.9))
         variance += np.einsum('ij,jk,ik->i', gradient, inverse, gradient) / informative

@@ -18,6 +18,7 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 """
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any, List, Optional, Sequence, Tuple
 
 from ctid_ros.estimation.correlation import bartlett_span, chance_spread, fft_size
@@ -29,6 +30,8 @@ __all__ = ['DEFAULT_LAGS', 'ResidualAnalysis', 'analyse_residual', 'cross_correl
 DEFAULT_LAGS = 25
 _PER_LAG = 0.99
 _FAMILY = 0.99
+# The per-lag bound's normal quantile.
+_Z_LAG = float(special.ndtri(0.5 + _PER_LAG / 2.0))
 
 
 def cross_correlation(first: np.ndarray, second: np.ndarray, lags: int) -> np.ndarray:
@@ -171,6 +174,8 @@ class ResidualAnalysis:
         }
 
 
+# A few test counts recur (the lags of each estimate): remembered.
+@lru_cache(maxsize=64)
 def _family_bound(tests: int) -> float:
     """Return the normal quantile for about 1 % false alarms over ``tests`` values."""
     return float(special.ndtri(1.0 - (1.0 - _FAMILY) / (2.0 * max(tests, 1))))
@@ -201,8 +206,7 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     error = _Spectrum(residual, span)
     rho_e = error.correlation(error, span)
     auto = rho_e[span:span + lags + 1]
-    z_lag = float(special.ndtri(0.5 + _PER_LAG / 2.0))
-    auto_bound = z_lag / np.sqrt(count)
+    auto_bound = _Z_LAG / np.sqrt(count)
     # Bartlett: var r_eu(k) = sum_j rho_e(j) rho_u(j) / N, summed where both are correlated.
     cross = np.zeros((2 * lags + 1, inputs.shape[1]))
     spreads = np.zeros(inputs.shape[1])
@@ -210,7 +214,7 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
         signal = _Spectrum(inputs[:, j], span)
         cross[:, j] = error.correlation(signal, lags)
         spreads[j] = chance_spread(rho_e, signal.correlation(signal, span), count)
-    cross_bounds = z_lag * spreads
+    cross_bounds = _Z_LAG * spreads
     z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
     white = bool(np.all(np.abs(auto[1:]) <= z_all / np.sqrt(count)))
     correlated, worst = [], []
