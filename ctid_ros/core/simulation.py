@@ -34,7 +34,7 @@ from typing import Dict, Iterable, List, Optional, Tuple
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
 from scipy import linalg
-from scipy.linalg import lapack
+from scipy.linalg import blas, lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
            'all_finite', 'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses',
@@ -494,23 +494,28 @@ def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
     return shifted(values, offset)
 
 
-def _sampled_rows(values: np.ndarray, samples: Iterable[Sample]) -> np.ndarray:
+def _sampled_rows(values: np.ndarray, samples: Iterable[Sample],
+                  length: Optional[int] = None) -> np.ndarray:
     """
     Return :func:`_sampled` of every sample as the rows of one array.
 
     Written into the array directly, without a temporary per sample and the stacking copy.
+    ``length``: rows of that many samples instead of the signal's, cut or padded with zeros.
     """
     samples = list(samples)
     count = values.shape[0]
-    rows = np.zeros((len(samples), count), dtype=values.dtype)
+    length = count if length is None else length
+    rows = np.zeros((len(samples), length), dtype=values.dtype)
     for row, (offset, masked) in zip(rows, samples):
+        # row[k] = values[k + offset] where both exist.
+        end = min(length, count - offset)
         if offset >= 0:
-            if offset < count:
-                row[:count - offset] = values[offset:]
-        elif -offset < count:
-            row[-offset:] = values[:count + offset]
+            if end > 0:
+                row[:end] = values[offset:offset + end]
+        elif -offset < end:
+            row[-offset:end] = values[:end + offset]
         # The masked first sample, wherever the shift put it.
-        if masked and count and offset <= 0 and -offset < count:
+        if masked and 0 <= -offset < length:
             row[-offset] = 0.0
     return rows
 
@@ -652,10 +657,16 @@ class StateResponse:
         self._discrete_modes: Optional[_DiscreteModes] = None
         self._signals: Optional[np.ndarray] = None
         self._chains: Optional[np.ndarray] = None
+        self._padded: Optional[np.ndarray] = None
         if self._continuous.order:
             if discrete.modes is not None:
-                signals = _sampled_rows(values, discrete.modes.samples)
-                self._modes = discrete.modes.run(signals)
+                # Padded to whole blocks: the recursions read them without another copy.
+                signals = _sampled_rows(values, discrete.modes.samples,
+                                        -(-self._count // _BLOCK) * _BLOCK)
+                modes = discrete.modes.continuous
+                self._padded = discrete.modes.run(signals)
+                self._modes = _Modes.uncoupled(modes.basis, modes.keep, modes.weights,
+                                               self._padded[:, :self._count], modes.real)
                 self._discrete_modes, self._signals = discrete.modes, signals
             elif discrete.chain is not None:
                 signals = _sampled_rows(values, discrete.chain.samples)
@@ -696,24 +707,20 @@ class StateResponse:
         if not all_finite(ascending):
             return None
         modal = self._modes.trajectories
-        # Complex modes: the chains above the modes, so that one product reads both off
-        # (real ones, cheaper, are read off as two).
-        stacked = modal.dtype.kind == 'c'
         if self._chains is None:
-            chains = modes.chains(modal, self._signals)
-            self._chains = np.concatenate([chains, modal]) if stacked else chains
+            length = self._signals.shape[1]
+            self._chains = modes.chains(self._padded[:, :length],
+                                        self._signals)[:, :self._count]
         continuous = modes.continuous
         poles = continuous.poles
         powers = poles[:, None] ** np.arange(size)
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
-        on_chains = values * weighted
-        on_modes = (slopes - 2.0 * values * continuous.spread) * weighted
-        if stacked:
-            out = (np.concatenate([on_chains, on_modes], axis=1) @ self._chains).real
-        else:
-            out = _product(on_chains, self._chains) + _product(on_modes, modal)
+        on_chains = _form_map(values * weighted, continuous.real)
+        on_modes = _form_map((slopes - 2.0 * values * continuous.spread) * weighted,
+                             continuous.real)
+        out = _product(on_chains, self._chains) + _product(on_modes, modal)
         if size == 2 * order + 1 and ascending[:, -1].any():
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
@@ -788,21 +795,33 @@ class _Modes:
 
     def __init__(self, transition: Optional[np.ndarray], signals: np.ndarray,
                  drives: np.ndarray, repeated: bool = False):
+        self._real: Optional[int] = None
         if transition is not None:
             self._basis, self._keep, self._weights, self._modal = _modes(transition, signals,
                                                                          drives, repeated)
 
     @classmethod
-    def uncoupled(cls, basis: np.ndarray, keep: np.ndarray, weights: np.ndarray,
-                  modal: np.ndarray) -> '_Modes':
-        """Return the modes already run (:meth:`_DiscreteModes.run`)."""
+    def uncoupled(cls, basis: np.ndarray, keep: Optional[np.ndarray], weights: np.ndarray,
+                  modal: np.ndarray, real: int) -> '_Modes':
+        """
+        Return the modes already run (:meth:`_DiscreteModes.run`).
+
+        ``modal``: their trajectories in the real form of :func:`_form_recursions`, whose
+        first ``real`` modes are real.
+        """
         modes = cls.__new__(cls)
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
+        modes._real = real
         return modes
 
     @property
     def trajectories(self) -> np.ndarray:
-        """Return the modal trajectories, one row per mode run (kept modes if uncoupled)."""
+        """
+        Return the modal trajectories, one row per mode run (kept modes if uncoupled).
+
+        Uncoupled modes (:meth:`uncoupled`) in real form, the others complex where their poles
+        are.
+        """
         return self._modal
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
@@ -810,6 +829,8 @@ class _Modes:
         out_map = rows @ self._basis
         if self._keep is not None:
             out_map = out_map[:, self._keep] * self._weights
+        if self._real is not None:
+            return _product(_form_map(out_map, self._real), self._modal)
         return _product(out_map, self._modal).real
 
 
@@ -869,6 +890,165 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
     return modal
 
 
+def _form_drives(drives: np.ndarray, real: int) -> np.ndarray:
+    """
+    Return the real-form rows (:func:`_form_recursions`' ``out``) of the kept modes' drives.
+
+    ``drives``: one row per kept mode, one column per signal row, the first ``real`` modes
+    real. A real signal drives a complex mode's real part by the drive's real part and its
+    imaginary part by the imaginary one; a real mode's drive has only rounding in any
+    imaginary part, dropped.
+    """
+    if drives.dtype.kind != 'c':
+        return drives
+    out = np.empty((2 * drives.shape[0] - real, drives.shape[1]))
+    out[:real] = drives[:real].real
+    out[real::2] = drives[real:].real
+    out[real + 1::2] = drives[real:].imag
+    return out
+
+
+def _form_scaling(factors: np.ndarray, real: int) -> np.ndarray:
+    """
+    Return the real matrix that multiplies each kept mode by its factor, in real form.
+
+    A complex factor ``a + ib`` acts on a complex mode's parts as ``[[a, -b], [b, a]]``; a
+    real mode's factor has only rounding in any imaginary part, dropped.
+    """
+    if factors.dtype.kind != 'c':
+        return np.diag(factors)
+    rows = 2 * factors.size - real
+    out = np.zeros((rows, rows))
+    out.flat[:real * (rows + 1):rows + 1] = factors[:real].real
+    pairs = np.arange(real, rows, 2)
+    out[pairs, pairs] = out[pairs + 1, pairs + 1] = factors[real:].real
+    out[pairs, pairs + 1] = -factors[real:].imag
+    out[pairs + 1, pairs] = factors[real:].imag
+    return out
+
+
+def _form_map(coefficients: np.ndarray, real: int) -> np.ndarray:
+    """
+    Return the real map that reads ``(coefficients @ modes).real`` off the modes' real form.
+
+    ``coefficients``: one column per kept mode, the first ``real`` modes real;
+    ``Re(c m) = Re(c) Re(m) - Im(c) Im(m)``.
+    """
+    if coefficients.dtype.kind != 'c':
+        return coefficients
+    out = np.empty((coefficients.shape[0], 2 * coefficients.shape[1] - real))
+    out[:, :real] = coefficients[:, :real].real
+    out[:, real::2] = coefficients[:, real:].real
+    out[:, real + 1::2] = -coefficients[:, real:].imag
+    return out
+
+
+def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: np.ndarray,
+                     coefficients: np.ndarray, out: np.ndarray) -> None:
+    """
+    Write uncoupled modes ``m_i[k] = p_i m_i[k-1] + d_i[k]`` into ``out``, from rest.
+
+    In real form: ``poles`` the kept poles, the first ``real`` of them real; ``driving`` the
+    drives ``d_i`` of the real modes (one row each); a complex mode ``i`` is driven by
+    ``sum_j c_ij x_j`` of the real ``inputs`` rows ``x_j`` and the rows of ``coefficients``
+    ``c_ij`` (one per complex mode); ``out``: one row per real mode, then two per complex
+    mode (its real and imaginary parts). Every row is contiguous, all of one length. A
+    complex mode driven by real rows runs without complex arrays where it runs in blocks
+    (:func:`_blocked_pairs`): its block products are real ones, and every output map is a
+    real product.
+    """
+    rows, length = out.shape
+    if length == 0:
+        return
+    if real:
+        recursions(poles[:real].real, driving, out=out[:real])
+    if rows == real:
+        return
+    pairs = poles[real:]
+    if length % _BLOCK == 0 and length >= _BLOCKED_MIN_PAIR_LENGTH and \
+            abs(pairs).max() <= 1.0 and all_finite(coefficients) and all_finite(inputs):
+        _blocked_pairs(pairs, inputs, coefficients, out[real:])
+        return
+    runs = _banded_recursions(pairs, coefficients @ inputs, True)
+    out[real::2] = runs.real
+    out[real + 1::2] = runs.imag
+
+
+def _block_matrices(poles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the pole powers ``p^0 .. p^B`` and the transposed block matrices of the poles.
+
+    ``matrices[i, j, k] = p_i^(k - j)`` for ``k >= j``, else 0: ``block @ matrices[i]`` runs a
+    block of :data:`_BLOCK` samples from rest.
+    """
+    powers = np.zeros((poles.size, _BLOCK + 2), dtype=poles.dtype)
+    powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
+    return powers[:, :_BLOCK + 1], powers[:, _BLOCK_INDEX]
+
+
+def _blocks(rows: np.ndarray) -> Optional[List[np.ndarray]]:
+    """
+    Return views of each row's blocks of :data:`_BLOCK` samples, (blocks, B) each.
+
+    None unless the rows are of whole blocks and each contiguous (the rows themselves may be
+    apart): no copy is ever made.
+    """
+    if rows.shape[1] % _BLOCK or (rows.shape[1] > 1 and rows.strides[1] != rows.itemsize):
+        return None
+    return [row.reshape(-1, _BLOCK) for row in rows]
+
+
+def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
+                   out: np.ndarray) -> None:
+    """
+    Run the complex modes of :func:`_form_recursions` in blocks of :data:`_BLOCK`.
+
+    As :func:`_blocked_recursions`, with a complex mode's blocks the sum over its inputs of
+    the input's block times ``c T``, its block matrix scaled by the input's coefficient: the
+    real products with the real and imaginary parts of ``c T``, none of a complex product's
+    terms spent on the inputs' zero imaginary parts. The products and the carried states'
+    corrections accumulate in ``out`` (the modes' real and imaginary parts, a row each) in
+    place: BLAS ``dgemm`` on the transposed, Fortran-ordered views of the blocks.
+    """
+    blocks = out.shape[1] // _BLOCK
+    powers, matrices = _block_matrices(poles)
+    views = _blocks(out)
+    sources = _blocks(inputs)
+    # c T for every complex mode and input, its real and imaginary parts contiguous.
+    scaled = coefficients[:, :, None, None] * matrices[:, None]
+    parts = np.ascontiguousarray(scaled.real), np.ascontiguousarray(scaled.imag)
+    for index, weights in enumerate(coefficients):
+        targets = views[2 * index:2 * index + 2]
+        started = False
+        for source in np.flatnonzero(weights):
+            for target, part in zip(targets, parts):
+                if started:
+                    blas.dgemm(1.0, part[index, source].T, sources[source].T, 1.0, target.T,
+                               overwrite_c=True)
+                else:
+                    np.matmul(sources[source], part[index, source], out=target)
+            started = True
+        if not started:
+            for target in targets:
+                target[:] = 0.0
+    # The state at each block's end, carried over blocks: block b + 1 gains p^(k+1) times
+    # the state carried out of block b at its sample k, [Re p^(k+1), -Im p^(k+1)] times its
+    # parts in the real part, [Im p^(k+1), Re p^(k+1)] in the imaginary one.
+    ends = np.empty((poles.size, blocks), dtype=complex)
+    ends.real = out[0::2, _BLOCK - 1::_BLOCK]
+    ends.imag = out[1::2, _BLOCK - 1::_BLOCK]
+    carried = np.zeros((poles.size, blocks), dtype=complex)
+    carried[:, 1:] = recursions(powers[:, _BLOCK], ends)[:, :-1]
+    following = powers[:, 1:]
+    updates = np.stack([following.real, -following.imag, following.imag, following.real],
+                       axis=2).reshape(poles.size, _BLOCK, 2, 2)
+    for index, state in enumerate(carried):
+        parts_of_state = state.view(float).reshape(blocks, 2).T
+        for part in range(2):
+            blas.dgemm(1.0, updates[index, :, part], parts_of_state, 1.0,
+                       views[2 * index + part].T, overwrite_c=True)
+
+
 def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> np.ndarray:
     """
     Return the numerator rows (highest power first) cut to ``degree + 1`` coefficients.
@@ -883,7 +1063,8 @@ def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> n
     return numerators
 
 
-def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+def recursions(poles: np.ndarray, values: np.ndarray,
+               out: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
 
@@ -894,20 +1075,28 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     substitution), several rows per solve up to :data:`_BAND_SIZE` real samples or half as
     many complex ones (a longer band leaves the cache and runs several times slower per
     sample).
+
+    ``out``, if given, receives the result (of the values' shape and the result's type) and
+    is returned; blocks of whole rows are written in place (:func:`_blocked_recursions`).
     """
     poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
     dtype = complex if complex_valued else float
     if rows == 0 or length == 0:
-        return np.zeros((rows, length), dtype=dtype)
-    values = values.astype(dtype, copy=False)
-    # Finite values only: a block's product would spread a NaN or inf to the samples before it.
-    # The checks are array methods, without numpy's dispatch.
-    if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
-            all_finite(values):
-        return _blocked_recursions(poles.astype(dtype, copy=False), values)
-    return _banded_recursions(poles, values, complex_valued)
+        result = np.zeros((rows, length), dtype=dtype)
+    else:
+        values = values.astype(dtype, copy=False)
+        # Finite values only: a block's product would spread a NaN or inf to the samples
+        # before it. The checks are array methods, without numpy's dispatch.
+        if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
+                all_finite(values):
+            return _blocked_recursions(poles.astype(dtype, copy=False), values, out)
+        result = _banded_recursions(poles, values, complex_valued)
+    if out is None:
+        return result
+    out[...] = result
+    return out
 
 
 def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bool
@@ -941,6 +1130,8 @@ _BLOCKED_MIN_SIZE = 1536
 # The shortest complex row run in blocks: its block products cost four real ones, and break
 # even with the complex substitution at about this length.
 _BLOCKED_MIN_COMPLEX_LENGTH = 2560
+# The shortest rows of complex modes driven by real rows (in real form) run in blocks.
+_BLOCKED_MIN_PAIR_LENGTH = 4096
 # The exponents of a block's pole powers p^0 .. p^B, and where each entry of the transposed
 # block matrix reads them: p^(k - j) at row j, column k for k >= j, else the zero appended
 # after p^B (index B + 1). Constant: built once, not per run.
@@ -956,7 +1147,8 @@ def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
     return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
-def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
+                        out: Optional[np.ndarray] = None) -> np.ndarray:
     """
     :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
@@ -967,31 +1159,42 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
     round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
     type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
+    Rows of whole blocks are read and written (``out``) in place, others through zero-padded
+    copies.
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
-    padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
-    padded.reshape(rows, -1)[:, :length] = values
-    powers = np.zeros((rows, _BLOCK + 2), dtype=values.dtype)
-    powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
-    # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
-    transposed = powers[:, _BLOCK_INDEX]
+    padded = _blocks(values)
+    if padded is None:
+        padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
+        padded.reshape(rows, -1)[:, :length] = values
+    powers, transposed = _block_matrices(poles)
+    response = _blocks(out) if out is not None and out.dtype == values.dtype else None
+    in_place = response is not None
+    if in_place:
+        ends = out[:, _BLOCK - 1::_BLOCK]
+    else:
+        whole = np.empty((rows, blocks, _BLOCK), dtype=values.dtype)
+        response, ends = whole, whole[:, :, -1]
     # One 2-D product per row (numpy's stacked matmul can miss BLAS for these shapes), each
     # written in place.
-    if rows == 1:
-        response = (padded[0] @ transposed[0])[None]
-    else:
-        response = np.empty((rows, blocks, _BLOCK), dtype=values.dtype)
-        for row, matrix, out in zip(padded, transposed, response):
-            np.matmul(row, matrix, out=out)
+    for row, matrix, into in zip(padded, transposed, response):
+        np.matmul(row, matrix, out=into)
     # The state at each block's end, carried over blocks (blocked again if they are many).
-    ends = response[:, :, -1]
     complex_valued = values.dtype.kind == 'c'
     carried = recursions(powers[:, _BLOCK], ends) \
         if _blocked_size(rows, blocks, complex_valued) else \
         _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
-    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
-    return response.reshape(rows, -1)[:, :length]
+    if in_place:
+        for into, state, power in zip(response, carried, powers):
+            into[1:] += state[:-1, None] * power[1:]
+        return out
+    whole[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+    result = whole.reshape(rows, -1)[:, :length]
+    if out is None:
+        return result
+    out[...] = result
+    return out
 
 
 def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -1103,16 +1306,17 @@ class _ContinuousModes:
     ``sum_i z_i^j r_i/(s - z_i)``, ``r_i = 1/D'(z_i)``: the eigenvectors are the Vandermonde
     columns and every mode is discretised in closed form, without matrix exponentials,
     eigen-decompositions or solves. Only one mode of each conjugate pair is kept (``keep``),
-    the other being its conjugate (``weights`` 2).
+    the other being its conjugate (``weights`` 2); the real modes come first.
     """
 
     poles: np.ndarray          # kept scaled continuous poles z_i
     basis: np.ndarray          # balanced states of each mode (all modes, columns)
-    keep: Optional[np.ndarray]  # the modes kept, None for all (real poles)
+    keep: Optional[np.ndarray]  # indices of the modes kept, None for all (real poles)
     weights: np.ndarray
     residues: np.ndarray       # r_i of the kept modes
     spread: np.ndarray         # sum over j != i of 1/(z_i - z_j), i.e. D''(z_i) / (2 D'(z_i))
     squared: bool              # 1/D^2 is read off these modes (StateResponse.squared_outputs)
+    real: int                  # how many of the kept modes (the first ones) are real
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
@@ -1189,18 +1393,51 @@ class _DiscreteModes:
         The derivative of ``m[k+1] = p m[k] + g . u`` with respect to the pole ``z_i``
         (``p = e^{z_i h}``, ``dp/dz_i = h p``) is
         ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
-        pole, one recursion per kept mode.
+        pole, one recursion per kept mode. ``signals`` as :meth:`run` takes them, ``modal`` its
+        trajectories over their length; returns the same rows as :meth:`run`.
         """
+        continuous = self.continuous
+        real = continuous.real
         length = sum(factor[0] for factor in self.factors)
-        slopes = self.continuous.drive_slopes(self.factors, self.samples)
-        driving = (length * self.poles)[:, None] * modal + _product(slopes.T, signals)
-        return _run(self.poles, None, driving)
+        slopes = continuous.drive_slopes(self.factors, self.samples)
+        # One driving row per real mode and two per complex one (its real and imaginary
+        # parts), each complex mode then driven by its own two rows.
+        pairs = self.poles.size - real
+        factors = length * self.poles
+        driving = _form_scaling(factors, real) @ modal if pairs else factors[:, None] * modal
+        driving += _product(_form_drives(slopes.T, real), signals)
+        coefficients = np.zeros((pairs, 2 * pairs), dtype=complex)
+        coefficients[np.arange(pairs), 2 * np.arange(pairs)] = 1.0
+        coefficients[np.arange(pairs), 2 * np.arange(pairs) + 1] = 1j
+        return self._run_form(driving[:real], driving[real:], coefficients)
 
-    def run(self, signals: np.ndarray) -> _Modes:
-        """Run every kept mode over the signals of :attr:`samples` (one row each)."""
-        modes = self.continuous
-        modal = _run(self.poles, None, _product(self.drives.T, signals))
-        return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
+    def run(self, signals: np.ndarray) -> np.ndarray:
+        """
+        Run every kept mode over the signals of :attr:`samples` (one row each).
+
+        ``signals``: rows padded with zeros to whole blocks of :data:`_BLOCK` samples, whose
+        responses come after the record (:func:`_sampled_rows`). Returns the modes'
+        trajectories in the real form of :func:`_form_recursions`, one sample longer than the
+        signals (``m[k+1]`` takes the drive of ``u[k]``).
+        """
+        real = self.continuous.real
+        drives = self.drives.T
+        return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
+
+    def _run_form(self, driving: np.ndarray, inputs: np.ndarray,
+                  coefficients: np.ndarray) -> np.ndarray:
+        """
+        Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
+
+        ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
+        at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
+        """
+        trajectories = np.empty((2 * self.poles.size - self.continuous.real,
+                                 inputs.shape[1] + 1))
+        trajectories[:, 0] = 0.0
+        _form_recursions(self.poles, self.continuous.real, driving, inputs, coefficients,
+                         trajectories[:, 1:])
+        return trajectories
 
 
 @dataclass
@@ -1249,7 +1486,7 @@ class _Chain:
                 if m:
                     driving[m] += self.transition[m, :m] @ modal[:m]
                 modal[m, 1:] = recursions(pole, driving[m:m + 1, :count - 1])[0]
-        return _Modes.uncoupled(self.basis, None, None, modal)
+        return _Modes.uncoupled(self.basis, None, None, modal, modal.shape[0])
 
 
 def _condition(matrix: np.ndarray) -> float:
@@ -1287,7 +1524,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
-                                None, np.ones(1), np.ones(1), np.zeros(1), True)
+                                None, np.ones(1), np.ones(1), np.zeros(1), True, 1)
     # Asked for every new denominator: array methods and operators, not numpy's dispatch.
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
@@ -1316,7 +1553,10 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
     if poles.imag.any():
-        keep = poles.imag >= 0.0
+        # The real modes first, then one of each conjugate pair: their trajectories run in the
+        # real form of :func:`_form_recursions` without selecting rows.
+        keep = np.concatenate([np.flatnonzero(poles.imag == 0.0),
+                               np.flatnonzero(poles.imag > 0.0)])
         kept = poles[keep]
         residues = 1.0 / differences.prod(axis=1)[keep]
         spread = inverse.sum(axis=1)[keep]
@@ -1329,7 +1569,8 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         spread = inverse.sum(axis=1).real
     amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
-                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT))
+                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
+                            int(np.count_nonzero(kept.imag == 0.0)) if keep is not None else n)
 
 
 def skew_delay(ts: float, output_skew: float) -> float:
