@@ -896,16 +896,15 @@ def _form_drives(drives: np.ndarray, real: int) -> np.ndarray:
 
     ``drives``: one row per kept mode, one column per signal row, the first ``real`` modes
     real. A real signal drives a complex mode's real part by the drive's real part and its
-    imaginary part by the imaginary one; a real mode's drive has only rounding in any
-    imaginary part, dropped.
+    imaginary part by the imaginary one (the interleaved parts of the complex numbers
+    themselves); a real mode's drive has only rounding in any imaginary part, dropped.
     """
     if drives.dtype.kind != 'c':
         return drives
-    out = np.empty((2 * drives.shape[0] - real, drives.shape[1]))
-    out[:real] = drives[:real].real
-    out[real::2] = drives[real:].real
-    out[real + 1::2] = drives[real:].imag
-    return out
+    count, signals = drives.shape
+    parts = np.ascontiguousarray(drives[real:]).view(float).reshape(count - real, signals, 2)
+    parts = parts.transpose(0, 2, 1).reshape(-1, signals)
+    return np.concatenate([drives[:real].real, parts]) if real else parts
 
 
 def _form_scaling(factors: np.ndarray, real: int) -> np.ndarray:
@@ -919,11 +918,15 @@ def _form_scaling(factors: np.ndarray, real: int) -> np.ndarray:
         return np.diag(factors)
     rows = 2 * factors.size - real
     out = np.zeros((rows, rows))
-    out.flat[:real * (rows + 1):rows + 1] = factors[:real].real
-    pairs = np.arange(real, rows, 2)
-    out[pairs, pairs] = out[pairs + 1, pairs + 1] = factors[real:].real
-    out[pairs, pairs + 1] = -factors[real:].imag
-    out[pairs + 1, pairs] = factors[real:].imag
+    # Python scalars: a handful of modes, no fancy indexing per call.
+    for index, factor in enumerate(factors.tolist()):
+        if index < real:
+            out[index, index] = factor.real
+        else:
+            first = 2 * index - real
+            out[first, first] = out[first + 1, first + 1] = factor.real
+            out[first, first + 1] = -factor.imag
+            out[first + 1, first] = factor.imag
     return out
 
 
@@ -932,15 +935,12 @@ def _form_map(coefficients: np.ndarray, real: int) -> np.ndarray:
     Return the real map that reads ``(coefficients @ modes).real`` off the modes' real form.
 
     ``coefficients``: one column per kept mode, the first ``real`` modes real;
-    ``Re(c m) = Re(c) Re(m) - Im(c) Im(m)``.
+    ``Re(c m) = Re(c) Re(m) - Im(c) Im(m)``: the interleaved parts of ``conj(c)``.
     """
     if coefficients.dtype.kind != 'c':
         return coefficients
-    out = np.empty((coefficients.shape[0], 2 * coefficients.shape[1] - real))
-    out[:, :real] = coefficients[:, :real].real
-    out[:, real::2] = coefficients[:, real:].real
-    out[:, real + 1::2] = -coefficients[:, real:].imag
-    return out
+    parts = np.conjugate(coefficients[:, real:], order='C').view(float)
+    return np.concatenate([coefficients[:, :real].real, parts], axis=1) if real else parts
 
 
 def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: np.ndarray,
@@ -969,7 +969,7 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
             abs(pairs).max() <= 1.0 and all_finite(coefficients) and all_finite(inputs):
         _blocked_pairs(pairs, inputs, coefficients, out[real:])
         return
-    runs = _banded_recursions(pairs, coefficients @ inputs, True)
+    runs = _banded_recursions(pairs, _product(coefficients, inputs), True)
     out[real::2] = runs.real
     out[real + 1::2] = runs.imag
 
