@@ -890,6 +890,25 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
     return modal
 
 
+# The coefficients of no complex modes (:func:`_form_recursions`).
+_NO_PAIRS = np.zeros((0, 0), dtype=complex)
+
+
+@lru_cache(maxsize=8)
+def _pair_rows(pairs: int) -> np.ndarray:
+    """
+    Return the coefficients that drive each complex mode by its own two real-form rows.
+
+    Mode ``i`` of ``pairs``: the real part of its driving in row ``2i``, the imaginary part
+    in row ``2i + 1`` (:func:`_form_recursions`). Read-only, shared.
+    """
+    coefficients = np.zeros((pairs, 2 * pairs), dtype=complex)
+    coefficients[np.arange(pairs), 2 * np.arange(pairs)] = 1.0
+    coefficients[np.arange(pairs), 2 * np.arange(pairs) + 1] = 1j
+    coefficients.setflags(write=False)
+    return coefficients
+
+
 def _form_drives(drives: np.ndarray, real: int) -> np.ndarray:
     """
     Return the real-form rows (:func:`_form_recursions`' ``out``) of the kept modes' drives.
@@ -1404,12 +1423,13 @@ class _DiscreteModes:
         # parts), each complex mode then driven by its own two rows.
         pairs = self.poles.size - real
         factors = length * self.poles
-        driving = _form_scaling(factors, real) @ modal if pairs else factors[:, None] * modal
+        if not pairs:
+            driving = factors[:, None] * modal
+            driving += _product(slopes.T, signals)
+            return self._run_form(driving, driving[:0], _NO_PAIRS)
+        driving = _form_scaling(factors, real) @ modal
         driving += _product(_form_drives(slopes.T, real), signals)
-        coefficients = np.zeros((pairs, 2 * pairs), dtype=complex)
-        coefficients[np.arange(pairs), 2 * np.arange(pairs)] = 1.0
-        coefficients[np.arange(pairs), 2 * np.arange(pairs) + 1] = 1j
-        return self._run_form(driving[:real], driving[real:], coefficients)
+        return self._run_form(driving[:real], driving[real:], _pair_rows(pairs))
 
     def run(self, signals: np.ndarray) -> np.ndarray:
         """
@@ -1422,6 +1442,8 @@ class _DiscreteModes:
         """
         real = self.continuous.real
         drives = self.drives.T
+        if real == drives.shape[0]:
+            return self._run_form(_product(drives.real, signals), signals, _NO_PAIRS)
         return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
 
     def _run_form(self, driving: np.ndarray, inputs: np.ndarray,
