@@ -707,12 +707,15 @@ class StateResponse:
         if not all_finite(ascending):
             return None
         modal = self._modes.trajectories
-        if self._chains is None:
-            length = self._signals.shape[1]
-            self._chains = modes.chains(self._padded[:, :length],
-                                        self._signals)[:, :self._count]
         continuous = modes.continuous
         poles = continuous.poles
+        # Complex modes: the modes copied under the chains, so that one real product reads both
+        # off (real ones, cheaper, are read off as two).
+        stacked = continuous.real < poles.size
+        if self._chains is None:
+            length = self._signals.shape[1]
+            self._chains = modes.chains(self._padded[:, :length], self._signals,
+                                        self._padded if stacked else None)[:, :self._count]
         powers = poles[:, None] ** np.arange(size)
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
@@ -720,7 +723,10 @@ class StateResponse:
         on_chains = _form_map(values * weighted, continuous.real)
         on_modes = _form_map((slopes - 2.0 * values * continuous.spread) * weighted,
                              continuous.real)
-        out = _product(on_chains, self._chains) + _product(on_modes, modal)
+        if stacked:
+            out = np.concatenate([on_chains, on_modes], axis=1) @ self._chains
+        else:
+            out = _product(on_chains, self._chains) + _product(on_modes, modal)
         if size == 2 * order + 1 and ascending[:, -1].any():
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
@@ -1405,7 +1411,8 @@ class _DiscreteModes:
     drives: np.ndarray         # (samples, kept modes)
     factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
 
-    def chains(self, modal: np.ndarray, signals: np.ndarray) -> np.ndarray:
+    def chains(self, modal: np.ndarray, signals: np.ndarray,
+               below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Run ``r_i/(z - z_i)^2`` over the signals, given the modes ``modal`` (:meth:`run`'s).
 
@@ -1413,7 +1420,8 @@ class _DiscreteModes:
         (``p = e^{z_i h}``, ``dp/dz_i = h p``) is
         ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
         pole, one recursion per kept mode. ``signals`` as :meth:`run` takes them, ``modal`` its
-        trajectories over their length; returns the same rows as :meth:`run`.
+        trajectories over their length; returns the same rows as :meth:`run`, and ``below``
+        (rows of the result's length) under them if given.
         """
         continuous = self.continuous
         real = continuous.real
@@ -1429,7 +1437,7 @@ class _DiscreteModes:
             return self._run_form(driving, driving[:0], _NO_PAIRS)
         driving = _form_scaling(factors, real) @ modal
         driving += _product(_form_drives(slopes.T, real), signals)
-        return self._run_form(driving[:real], driving[real:], _pair_rows(pairs))
+        return self._run_form(driving[:real], driving[real:], _pair_rows(pairs), below)
 
     def run(self, signals: np.ndarray) -> np.ndarray:
         """
@@ -1446,19 +1454,23 @@ class _DiscreteModes:
             return self._run_form(_product(drives.real, signals), signals, _NO_PAIRS)
         return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
 
-    def _run_form(self, driving: np.ndarray, inputs: np.ndarray,
-                  coefficients: np.ndarray) -> np.ndarray:
+    def _run_form(self, driving: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
+                  below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
 
         ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
         at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
+        ``below``: rows of the result's length copied under the modes' rows.
         """
-        trajectories = np.empty((2 * self.poles.size - self.continuous.real,
+        rows = 2 * self.poles.size - self.continuous.real
+        trajectories = np.empty((rows + (0 if below is None else below.shape[0]),
                                  inputs.shape[1] + 1))
-        trajectories[:, 0] = 0.0
+        trajectories[:rows, 0] = 0.0
         _form_recursions(self.poles, self.continuous.real, driving, inputs, coefficients,
-                         trajectories[:, 1:])
+                         trajectories[:rows, 1:])
+        if below is not None:
+            trajectories[rows:] = below
         return trajectories
 
 
