@@ -669,8 +669,9 @@ class StateResponse:
                                                self._padded[:, :self._count], modes.real)
                 self._discrete_modes, self._signals = discrete.modes, signals
             elif discrete.chain is not None:
-                signals = _sampled_rows(values, discrete.chain.samples)
-                self._modes = discrete.chain.run(signals)
+                signals = _sampled_rows(values, discrete.chain.samples,
+                                        -(-self._count // _BLOCK) * _BLOCK)
+                self._modes = discrete.chain.run(signals, self._count)
             else:
                 drive = discrete.drive
                 signals = _sampled_rows(values, drive)
@@ -1509,18 +1510,24 @@ class _Chain:
                 basis[j, n - power - 1] = math.comb(j, power) * root ** (j - power)
         return cls(basis / continuous._balance[:, None], transition, list(drive), drives)
 
-    def run(self, signals: np.ndarray) -> '_Modes':
-        """Run the chain over the signals of :attr:`samples` (one row each)."""
+    def run(self, signals: np.ndarray, count: int) -> '_Modes':
+        """
+        Run the chain over the signals of :attr:`samples` (one row each).
+
+        ``signals``: rows of ``count`` samples padded with zeros to whole blocks, as
+        :meth:`_DiscreteModes.run` takes them: each state's recursion writes one sample on
+        into its row of the trajectories in place.
+        """
         driving = _product(self.drives.T, signals)
-        count = driving.shape[1]
-        modal = np.zeros(driving.shape)
+        rows, length = driving.shape
+        trajectories = np.empty((rows, length + 1))
+        trajectories[:, 0] = 0.0
         pole = self.transition[:1, 0]
-        if count > 1:
-            for m in range(driving.shape[0]):
-                if m:
-                    driving[m] += self.transition[m, :m] @ modal[:m]
-                modal[m, 1:] = recursions(pole, driving[m:m + 1, :count - 1])[0]
-        return _Modes.uncoupled(self.basis, None, None, modal, modal.shape[0])
+        for m in range(rows):
+            if m:
+                driving[m] += self.transition[m, :m] @ trajectories[:m, :length]
+            recursions(pole, driving[m:m + 1], out=trajectories[m:m + 1, 1:])
+        return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count], rows)
 
 
 def _condition(matrix: np.ndarray) -> float:
