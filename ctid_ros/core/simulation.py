@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache
 import math
 import threading
-from typing import Dict, Iterable, List, Optional, Tuple
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
@@ -1012,15 +1012,18 @@ def _block_matrices(poles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return powers[:, :_BLOCK + 1], powers[:, _BLOCK_INDEX]
 
 
-def _blocks(rows: np.ndarray) -> Optional[List[np.ndarray]]:
+def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:
     """
     Return views of each row's blocks of :data:`_BLOCK` samples, (blocks, B) each.
 
     None unless the rows are of whole blocks and each contiguous (the rows themselves may be
     apart): no copy is ever made.
     """
-    if rows.shape[1] % _BLOCK or (rows.shape[1] > 1 and rows.strides[1] != rows.itemsize):
+    count, length = rows.shape
+    if length % _BLOCK or rows.strides[1] != rows.itemsize:
         return None
+    if rows.flags.c_contiguous:
+        return rows.reshape(count, length // _BLOCK, _BLOCK)       # one view of them all
     return [row.reshape(-1, _BLOCK) for row in rows]
 
 
