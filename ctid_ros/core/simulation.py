@@ -969,8 +969,27 @@ def _form_map(coefficients: np.ndarray, real: int) -> np.ndarray:
     return np.concatenate([coefficients[:, :real].real, parts], axis=1) if real else parts
 
 
+def _trajectories(rows: int, length: int) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """
+    Return rows of ``length + 1`` samples starting at rest, and the blocks of the rest.
+
+    Recursions write sample ``k + 1`` from the drive of sample ``k``: into ``[:, 1:]``, whose
+    blocks of :data:`_BLOCK` samples (if ``length`` is whole blocks) are given as one view,
+    rows apart by one sample more than their length (a strided view of the same memory).
+    """
+    trajectories = np.empty((rows, length + 1))
+    trajectories[:, 0] = 0.0
+    if not rows or not length or length % _BLOCK:
+        return trajectories, None
+    return trajectories, np.ndarray((rows, length // _BLOCK, _BLOCK), float, trajectories,
+                                    trajectories.itemsize,
+                                    (trajectories.strides[0], _BLOCK * trajectories.itemsize,
+                                     trajectories.itemsize))
+
+
 def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: np.ndarray,
-                     coefficients: np.ndarray, out: np.ndarray) -> None:
+                     coefficients: np.ndarray, out: np.ndarray,
+                     blocks: Optional[np.ndarray] = None) -> None:
     """
     Write uncoupled modes ``m_i[k] = p_i m_i[k-1] + d_i[k]`` into ``out``, from rest.
 
@@ -978,7 +997,8 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     drives ``d_i`` of the real modes (one row each); a complex mode ``i`` is driven by
     ``sum_j c_ij x_j`` of the real ``inputs`` rows ``x_j`` and the rows of ``coefficients``
     ``c_ij`` (one per complex mode); ``out``: one row per real mode, then two per complex
-    mode (its real and imaginary parts). Every row is contiguous, all of one length. A
+    mode (its real and imaginary parts), and ``blocks`` its blocks as one view if known
+    (:func:`_trajectories`). Every row is contiguous, all of one length. A
     complex mode driven by real rows runs without complex arrays where it runs in blocks
     (:func:`_blocked_pairs`): its block products are real ones, and every output map is a
     real product.
@@ -987,15 +1007,21 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     if length == 0:
         return
     if real:
-        recursions(poles[:real].real, driving, out=out[:real])
+        _recursions(poles[:real].real, driving, out[:real], None if blocks is None else
+                    blocks[:real])
     if rows == real:
         return
     pairs = poles[real:]
-    if length % _BLOCK == 0 and length >= _BLOCKED_MIN_PAIR_LENGTH and \
-            abs(pairs).max() <= 1.0 and all_finite(coefficients) and all_finite(inputs):
-        _blocked_pairs(pairs, inputs, coefficients, out[real:])
+    # One real input: its products with the real and imaginary parts of c T, half a complex
+    # product's. Several: one complex driving per mode and the complex recursions, whose
+    # product has as many terms as the inputs' real ones and fewer calls.
+    if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
+            length >= _BLOCKED_MIN_PAIR_LENGTH and abs(pairs).max() <= 1.0 and \
+            all_finite(coefficients) and all_finite(inputs):
+        _blocked_pairs(pairs, inputs, coefficients, out[real:],
+                       None if blocks is None else blocks[real:])
         return
-    runs = _banded_recursions(pairs, _product(coefficients, inputs), True)
+    runs = recursions(pairs, _product(coefficients, inputs))
     out[real::2] = runs.real
     out[real + 1::2] = runs.imag
 
@@ -1028,7 +1054,7 @@ def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:
 
 
 def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
-                   out: np.ndarray) -> None:
+                   out: np.ndarray, out_blocks: Optional[np.ndarray] = None) -> None:
     """
     Run the complex modes of :func:`_form_recursions` in blocks of :data:`_BLOCK`.
 
@@ -1037,11 +1063,12 @@ def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarr
     real products with the real and imaginary parts of ``c T``, none of a complex product's
     terms spent on the inputs' zero imaginary parts. The products and the carried states'
     corrections accumulate in ``out`` (the modes' real and imaginary parts, a row each) in
-    place: BLAS ``dgemm`` on the transposed, Fortran-ordered views of the blocks.
+    place: BLAS ``dgemm`` on the transposed, Fortran-ordered views of the blocks
+    (``out_blocks``, if given: ``out``'s as one view).
     """
     blocks = out.shape[1] // _BLOCK
     powers, matrices = _block_matrices(poles)
-    views = _blocks(out)
+    views = _blocks(out) if out_blocks is None else out_blocks
     sources = _blocks(inputs)
     # c T for every complex mode and input, its real and imaginary parts contiguous.
     scaled = coefficients[:, :, None, None] * matrices[:, None]
@@ -1108,6 +1135,12 @@ def recursions(poles: np.ndarray, values: np.ndarray,
     ``out``, if given, receives the result (of the values' shape and the result's type) and
     is returned; blocks of whole rows are written in place (:func:`_blocked_recursions`).
     """
+    return _recursions(poles, values, out, None)
+
+
+def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray],
+                blocks: Optional[np.ndarray]) -> np.ndarray:
+    """:func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known."""
     poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
@@ -1120,7 +1153,7 @@ def recursions(poles: np.ndarray, values: np.ndarray,
         # before it. The checks are array methods, without numpy's dispatch.
         if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
                 all_finite(values):
-            return _blocked_recursions(poles.astype(dtype, copy=False), values, out)
+            return _blocked_recursions(poles.astype(dtype, copy=False), values, out, blocks)
         result = _banded_recursions(poles, values, complex_valued)
     if out is None:
         return result
@@ -1177,7 +1210,8 @@ def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
-                        out: Optional[np.ndarray] = None) -> np.ndarray:
+                        out: Optional[np.ndarray] = None,
+                        out_blocks: Optional[np.ndarray] = None) -> np.ndarray:
     """
     :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
@@ -1188,8 +1222,8 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
     round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
     type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
-    Rows of whole blocks are read and written (``out``) in place, others through zero-padded
-    copies.
+    Rows of whole blocks are read and written (``out``, or its blocks as one view
+    ``out_blocks``) in place, others through zero-padded copies.
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
@@ -1198,7 +1232,8 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
         padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
         padded.reshape(rows, -1)[:, :length] = values
     powers, transposed = _block_matrices(poles)
-    response = _blocks(out) if out is not None and out.dtype == values.dtype else None
+    response = out_blocks if out_blocks is not None else \
+        _blocks(out) if out is not None and out.dtype == values.dtype else None
     in_place = response is not None
     if in_place:
         ends = out[:, _BLOCK - 1::_BLOCK]
@@ -1214,9 +1249,12 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     carried = recursions(powers[:, _BLOCK], ends) \
         if _blocked_size(rows, blocks, complex_valued) else \
         _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
-    if in_place:
+    if isinstance(response, list):
         for into, state, power in zip(response, carried, powers):
             into[1:] += state[:-1, None] * power[1:]
+        return out
+    if in_place:
+        response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
         return out
     whole[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
     result = whole.reshape(rows, -1)[:, :length]
@@ -1468,11 +1506,10 @@ class _DiscreteModes:
         ``below``: rows of the result's length copied under the modes' rows.
         """
         rows = 2 * self.poles.size - self.continuous.real
-        trajectories = np.empty((rows + (0 if below is None else below.shape[0]),
-                                 inputs.shape[1] + 1))
-        trajectories[:rows, 0] = 0.0
+        trajectories, blocks = _trajectories(rows + (0 if below is None else below.shape[0]),
+                                             inputs.shape[1])
         _form_recursions(self.poles, self.continuous.real, driving, inputs, coefficients,
-                         trajectories[:rows, 1:])
+                         trajectories[:rows, 1:], None if blocks is None else blocks[:rows])
         if below is not None:
             trajectories[rows:] = below
         return trajectories
@@ -1523,13 +1560,13 @@ class _Chain:
         """
         driving = _product(self.drives.T, signals)
         rows, length = driving.shape
-        trajectories = np.empty((rows, length + 1))
-        trajectories[:, 0] = 0.0
+        trajectories, blocks = _trajectories(rows, length)
         pole = self.transition[:1, 0]
         for m in range(rows):
             if m:
                 driving[m] += self.transition[m, :m] @ trajectories[:m, :length]
-            recursions(pole, driving[m:m + 1], out=trajectories[m:m + 1, 1:])
+            _recursions(pole, driving[m:m + 1], trajectories[m:m + 1, 1:],
+                        None if blocks is None else blocks[m:m + 1])
         return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count], rows)
 
 

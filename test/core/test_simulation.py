@@ -459,10 +459,10 @@ def test_discretisations_are_shared_by_equal_denominators_only():
 @pytest.mark.parametrize('delay, intersample', [(0.0, 'zoh'), (0.0137, 'zoh'), (0.0137, 'foh')])
 def test_complex_modes_of_long_records_run_in_blocks_as_substitutions(
         monkeypatch, den, delay, intersample):
-    # Records long enough for the complex modes' real block products (a real mode and a pair,
-    # two pairs; one sampled input row, two): outputs, squared outputs and state trajectories
-    # equal those of the forward substitutions, to rounding; the undelayed held response
-    # equals lsim's.
+    # Records long enough for the complex modes' block products (a real mode and a pair, two
+    # pairs; one sampled input row, real products; several, complex ones): outputs, squared
+    # outputs and state trajectories equal those of the forward substitutions, to rounding;
+    # the undelayed held response equals lsim's.
     rng = np.random.default_rng(14)
     values = test_input(rng, 6007, hold=9)
     order = den.size - 1
@@ -478,6 +478,7 @@ def test_complex_modes_of_long_records_run_in_blocks_as_substitutions(
     blocked = simulated()
     monkeypatch.setattr(simulation, '_BLOCKED_MIN_PAIR_LENGTH', 10 ** 9)
     monkeypatch.setattr(simulation, '_BLOCKED_MIN_LENGTH', 10 ** 9)
+    monkeypatch.setattr(simulation, '_BLOCKED_MIN_COMPLEX_LENGTH', 10 ** 9)
     for value, reference in zip(blocked, simulated()):
         np.testing.assert_allclose(value, reference, rtol=0.0,
                                    atol=1e-11 * np.abs(reference).max())
