@@ -664,9 +664,10 @@ class StateResponse:
                 signals = _sampled_rows(values, discrete.modes.samples,
                                         -(-self._count // _BLOCK) * _BLOCK)
                 modes = discrete.modes.continuous
-                self._padded = discrete.modes.run(signals)
-                self._modes = _Modes.uncoupled(modes.basis, modes.keep, modes.weights,
-                                               self._padded[:, :self._count], modes.real)
+                self._padded = discrete.modes.run(signals, self._count)
+                self._modes = _Modes.uncoupled(
+                    modes.basis, modes.keep, modes.weights, self._padded[:, :self._count],
+                    None if self._padded.dtype.kind == 'c' else modes.real)
                 self._discrete_modes, self._signals = discrete.modes, signals
             elif discrete.chain is not None:
                 signals = _sampled_rows(values, discrete.chain.samples,
@@ -710,22 +711,24 @@ class StateResponse:
         modal = self._modes.trajectories
         continuous = modes.continuous
         poles = continuous.poles
-        # Complex modes: the modes copied under the chains, so that one real product reads both
-        # off (real ones, cheaper, are read off as two).
+        # Complex modes: the modes copied under the chains, so that one product reads both off
+        # (real ones, cheaper, are read off as two).
         stacked = continuous.real < poles.size
         if self._chains is None:
             length = self._signals.shape[1]
-            self._chains = modes.chains(self._padded[:, :length], self._signals,
+            self._chains = modes.chains(self._padded[:, :length], self._signals, self._count,
                                         self._padded if stacked else None)[:, :self._count]
         powers = poles[:, None] ** np.arange(size)
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
-        on_chains = _form_map(values * weighted, continuous.real)
-        on_modes = _form_map((slopes - 2.0 * values * continuous.spread) * weighted,
-                             continuous.real)
-        if stacked:
-            out = np.concatenate([on_chains, on_modes], axis=1) @ self._chains
+        on_chains = values * weighted
+        on_modes = (slopes - 2.0 * values * continuous.spread) * weighted
+        if self._padded.dtype.kind == 'c':
+            out = (np.concatenate([on_chains, on_modes], axis=1) @ self._chains).real
+        elif stacked:
+            out = np.concatenate([_form_map(on_chains, continuous.real),
+                                  _form_map(on_modes, continuous.real)], axis=1) @ self._chains
         else:
             out = _product(on_chains, self._chains) + _product(on_modes, modal)
         if size == 2 * order + 1 and ascending[:, -1].any():
@@ -809,12 +812,12 @@ class _Modes:
 
     @classmethod
     def uncoupled(cls, basis: np.ndarray, keep: Optional[np.ndarray], weights: np.ndarray,
-                  modal: np.ndarray, real: int) -> '_Modes':
+                  modal: np.ndarray, real: Optional[int]) -> '_Modes':
         """
         Return the modes already run (:meth:`_DiscreteModes.run`).
 
         ``modal``: their trajectories in the real form of :func:`_form_recursions`, whose
-        first ``real`` modes are real.
+        first ``real`` modes are real; or one row per mode (``real`` None).
         """
         modes = cls.__new__(cls)
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
@@ -1453,7 +1456,7 @@ class _DiscreteModes:
     drives: np.ndarray         # (samples, kept modes)
     factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
 
-    def chains(self, modal: np.ndarray, signals: np.ndarray,
+    def chains(self, modal: np.ndarray, signals: np.ndarray, count: int,
                below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Run ``r_i/(z - z_i)^2`` over the signals, given the modes ``modal`` (:meth:`run`'s).
@@ -1461,9 +1464,10 @@ class _DiscreteModes:
         The derivative of ``m[k+1] = p m[k] + g . u`` with respect to the pole ``z_i``
         (``p = e^{z_i h}``, ``dp/dz_i = h p``) is
         ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
-        pole, one recursion per kept mode. ``signals`` as :meth:`run` takes them, ``modal`` its
-        trajectories over their length; returns the same rows as :meth:`run`, and ``below``
-        (rows of the result's length) under them if given.
+        pole, one recursion per kept mode. ``signals`` and ``count`` as :meth:`run` takes them,
+        ``modal`` its trajectories over the signals' length; returns the same rows as
+        :meth:`run` (real form or complex as ``modal``), and ``below`` (rows of the result's
+        length) under them if given.
         """
         continuous = self.continuous
         real = continuous.real
@@ -1473,6 +1477,9 @@ class _DiscreteModes:
         # parts), each complex mode then driven by its own two rows.
         pairs = self.poles.size - real
         factors = length * self.poles
+        if modal.dtype.kind == 'c':
+            return self._run_complex(factors[:, None] * modal + _product(slopes.T, signals),
+                                     count, below)
         if not pairs:
             driving = factors[:, None] * modal
             driving += _product(slopes.T, signals)
@@ -1481,20 +1488,47 @@ class _DiscreteModes:
         driving += _product(_form_drives(slopes.T, real), signals)
         return self._run_form(driving[:real], driving[real:], _pair_rows(pairs), below)
 
-    def run(self, signals: np.ndarray) -> np.ndarray:
+    def run(self, signals: np.ndarray, count: int) -> np.ndarray:
         """
         Run every kept mode over the signals of :attr:`samples` (one row each).
 
-        ``signals``: rows padded with zeros to whole blocks of :data:`_BLOCK` samples, whose
-        responses come after the record (:func:`_sampled_rows`). Returns the modes'
-        trajectories in the real form of :func:`_form_recursions`, one sample longer than the
-        signals (``m[k+1]`` takes the drive of ``u[k]``).
+        ``signals``: rows of ``count`` samples padded with zeros to whole blocks of
+        :data:`_BLOCK` samples, whose responses come after the record (:func:`_sampled_rows`).
+        Returns the modes' trajectories, one sample longer than the signals (``m[k+1]``
+        takes the drive of ``u[k]``): in the real form of :func:`_form_recursions`, or as
+        complex rows (:meth:`_run_complex`) for complex modes of records too short for their
+        block products.
         """
         real = self.continuous.real
         drives = self.drives.T
         if real == drives.shape[0]:
             return self._run_form(_product(drives.real, signals), signals, _NO_PAIRS)
+        if signals.shape[1] < _BLOCKED_MIN_PAIR_LENGTH:
+            return self._run_complex(_product(drives, signals), count)
         return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
+
+    def _run_complex(self, driving: np.ndarray, count: int,
+                     below: Optional[np.ndarray] = None) -> np.ndarray:
+        """
+        Return the kept modes as complex rows driven by ``driving`` (one row each), from rest.
+
+        The first ``count`` samples, zero after them: on a short record one complex
+        substitution per mode and complex output maps take fewer calls than the real form;
+        a real mode has only rounding in any imaginary part of its driving, dropped.
+        ``below``: rows of the result's length copied under the modes' rows.
+        """
+        real, kept = self.continuous.real, self.poles.size
+        trajectories = np.zeros((kept + (0 if below is None else below.shape[0]),
+                                 driving.shape[1] + 1), dtype=complex)
+        if count > 1:
+            if real:
+                trajectories[:real, 1:count] = recursions(self.poles[:real].real,
+                                                          driving[:real, :count - 1].real)
+            trajectories[real:kept, 1:count] = recursions(self.poles[real:],
+                                                          driving[real:, :count - 1])
+        if below is not None:
+            trajectories[kept:] = below
+        return trajectories
 
     def _run_form(self, driving: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
                   below: Optional[np.ndarray] = None) -> np.ndarray:
@@ -1635,9 +1669,11 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     inverse.flat[::n + 1] = 0.0
     if poles.imag.any():
         # The real modes first, then one of each conjugate pair: their trajectories run in the
-        # real form of :func:`_form_recursions` without selecting rows.
-        keep = np.concatenate([np.flatnonzero(poles.imag == 0.0),
-                               np.flatnonzero(poles.imag > 0.0)])
+        # real form of :func:`_form_recursions` without selecting rows. Python lists: a
+        # handful of poles, for every new denominator.
+        imaginary = poles.imag.tolist()
+        real = [index for index, value in enumerate(imaginary) if value == 0.0]
+        keep = np.array(real + [index for index, value in enumerate(imaginary) if value > 0.0])
         kept = poles[keep]
         residues = 1.0 / differences.prod(axis=1)[keep]
         spread = inverse.sum(axis=1)[keep]
@@ -1651,7 +1687,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
                             bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
-                            int(np.count_nonzero(kept.imag == 0.0)) if keep is not None else n)
+                            n if keep is None else len(real))
 
 
 def skew_delay(ts: float, output_skew: float) -> float:
