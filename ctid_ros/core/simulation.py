@@ -19,7 +19,9 @@ realised in controllable canonical form whose states are ``s^j/D(s)`` applied to
 balanced, discretised with one matrix exponential per sub-interval, and propagated in modal
 (eigenvector, else complex Schur) coordinates where every mode is a first-order recursion run by
 :func:`recursions` (LAPACK's banded triangular solve, the forward substitution of
-``scipy.signal.lfilter``, for all modes at once).
+``scipy.signal.lfilter``, for all modes at once, or block products of pole powers on long
+records). On long records the uncoupled modes are held in real form, a complex mode as its real
+and imaginary parts (:func:`_form_recursions`), so that output maps are real products.
 No high-order difference equation is ever formed, so precision holds up to high orders, and no
 Python loop runs per sample.
 """
