@@ -19,7 +19,9 @@ realised in controllable canonical form whose states are ``s^j/D(s)`` applied to
 balanced, discretised with one matrix exponential per sub-interval, and propagated in modal
 (eigenvector, else complex Schur) coordinates where every mode is a first-order recursion run by
 :func:`recursions` (LAPACK's banded triangular solve, the forward substitution of
-``scipy.signal.lfilter``, for all modes at once).
+``scipy.signal.lfilter``, for all modes at once, or block products of pole powers on long
+records). On long records the uncoupled modes are held in real form, a complex mode as its real
+and imaginary parts (:func:`_form_recursions`), so that output maps are real products.
 No high-order difference equation is ever formed, so precision holds up to high orders, and no
 Python loop runs per sample.
 """
@@ -29,12 +31,12 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache
 import math
 import threading
-from typing import Dict, Iterable, List, Optional, Tuple
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
 from scipy import linalg
-from scipy.linalg import lapack
+from scipy.linalg import blas, lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
            'all_finite', 'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses',
@@ -494,23 +496,28 @@ def _sampled(values: np.ndarray, sample: Sample) -> np.ndarray:
     return shifted(values, offset)
 
 
-def _sampled_rows(values: np.ndarray, samples: Iterable[Sample]) -> np.ndarray:
+def _sampled_rows(values: np.ndarray, samples: Iterable[Sample],
+                  length: Optional[int] = None) -> np.ndarray:
     """
     Return :func:`_sampled` of every sample as the rows of one array.
 
     Written into the array directly, without a temporary per sample and the stacking copy.
+    ``length``: rows of that many samples instead of the signal's, cut or padded with zeros.
     """
     samples = list(samples)
     count = values.shape[0]
-    rows = np.zeros((len(samples), count), dtype=values.dtype)
+    length = count if length is None else length
+    rows = np.zeros((len(samples), length), dtype=values.dtype)
     for row, (offset, masked) in zip(rows, samples):
+        # row[k] = values[k + offset] where both exist.
+        end = min(length, count - offset)
         if offset >= 0:
-            if offset < count:
-                row[:count - offset] = values[offset:]
-        elif -offset < count:
-            row[-offset:] = values[:count + offset]
+            if end > 0:
+                row[:end] = values[offset:offset + end]
+        elif -offset < end:
+            row[-offset:end] = values[:end + offset]
         # The masked first sample, wherever the shift put it.
-        if masked and count and offset <= 0 and -offset < count:
+        if masked and 0 <= -offset < length:
             row[-offset] = 0.0
     return rows
 
@@ -652,14 +659,22 @@ class StateResponse:
         self._discrete_modes: Optional[_DiscreteModes] = None
         self._signals: Optional[np.ndarray] = None
         self._chains: Optional[np.ndarray] = None
+        self._padded: Optional[np.ndarray] = None
         if self._continuous.order:
             if discrete.modes is not None:
-                signals = _sampled_rows(values, discrete.modes.samples)
-                self._modes = discrete.modes.run(signals)
+                # Padded to whole blocks: the recursions read them without another copy.
+                signals = _sampled_rows(values, discrete.modes.samples,
+                                        -(-self._count // _BLOCK) * _BLOCK)
+                modes = discrete.modes.continuous
+                self._padded = discrete.modes.run(signals, self._count)
+                self._modes = _Modes.uncoupled(
+                    modes.basis, modes.keep, modes.weights, self._padded[:, :self._count],
+                    None if self._padded.dtype.kind == 'c' else modes.real)
                 self._discrete_modes, self._signals = discrete.modes, signals
             elif discrete.chain is not None:
-                signals = _sampled_rows(values, discrete.chain.samples)
-                self._modes = discrete.chain.run(signals)
+                signals = _sampled_rows(values, discrete.chain.samples,
+                                        -(-self._count // _BLOCK) * _BLOCK)
+                self._modes = discrete.chain.run(signals, self._count)
             else:
                 drive = discrete.drive
                 signals = _sampled_rows(values, drive)
@@ -696,22 +711,26 @@ class StateResponse:
         if not all_finite(ascending):
             return None
         modal = self._modes.trajectories
-        # Complex modes: the chains above the modes, so that one product reads both off
-        # (real ones, cheaper, are read off as two).
-        stacked = modal.dtype.kind == 'c'
-        if self._chains is None:
-            chains = modes.chains(modal, self._signals)
-            self._chains = np.concatenate([chains, modal]) if stacked else chains
         continuous = modes.continuous
         poles = continuous.poles
+        # Complex modes: the modes copied under the chains, so that one product reads both off
+        # (real ones, cheaper, are read off as two).
+        stacked = continuous.real < poles.size
+        if self._chains is None:
+            length = self._signals.shape[1]
+            self._chains = modes.chains(self._padded[:, :length], self._signals, self._count,
+                                        self._padded if stacked else None)[:, :self._count]
         powers = poles[:, None] ** np.arange(size)
         values = ascending @ powers.T                                   # N(z_i)
         slopes = (ascending[:, 1:] * np.arange(1, size)) @ powers[:, :size - 1].T   # N'(z_i)
         weighted = continuous.residues * continuous.weights
         on_chains = values * weighted
         on_modes = (slopes - 2.0 * values * continuous.spread) * weighted
-        if stacked:
+        if self._padded.dtype.kind == 'c':
             out = (np.concatenate([on_chains, on_modes], axis=1) @ self._chains).real
+        elif stacked:
+            out = np.concatenate([_form_map(on_chains, continuous.real),
+                                  _form_map(on_modes, continuous.real)], axis=1) @ self._chains
         else:
             out = _product(on_chains, self._chains) + _product(on_modes, modal)
         if size == 2 * order + 1 and ascending[:, -1].any():
@@ -788,21 +807,33 @@ class _Modes:
 
     def __init__(self, transition: Optional[np.ndarray], signals: np.ndarray,
                  drives: np.ndarray, repeated: bool = False):
+        self._real: Optional[int] = None
         if transition is not None:
             self._basis, self._keep, self._weights, self._modal = _modes(transition, signals,
                                                                          drives, repeated)
 
     @classmethod
-    def uncoupled(cls, basis: np.ndarray, keep: np.ndarray, weights: np.ndarray,
-                  modal: np.ndarray) -> '_Modes':
-        """Return the modes already run (:meth:`_DiscreteModes.run`)."""
+    def uncoupled(cls, basis: np.ndarray, keep: Optional[np.ndarray], weights: np.ndarray,
+                  modal: np.ndarray, real: Optional[int]) -> '_Modes':
+        """
+        Return the modes already run (:meth:`_DiscreteModes.run`).
+
+        ``modal``: their trajectories in the real form of :func:`_form_recursions`, whose
+        first ``real`` modes are real; or one row per mode (``real`` None).
+        """
         modes = cls.__new__(cls)
         modes._basis, modes._keep, modes._weights, modes._modal = basis, keep, weights, modal
+        modes._real = real
         return modes
 
     @property
     def trajectories(self) -> np.ndarray:
-        """Return the modal trajectories, one row per mode run (kept modes if uncoupled)."""
+        """
+        Return the modal trajectories, one row per mode run (kept modes if uncoupled).
+
+        Uncoupled modes (:meth:`uncoupled`) in real form, the others complex where their poles
+        are.
+        """
         return self._modal
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
@@ -810,6 +841,8 @@ class _Modes:
         out_map = rows @ self._basis
         if self._keep is not None:
             out_map = out_map[:, self._keep] * self._weights
+        if self._real is not None:
+            return _product(_form_map(out_map, self._real), self._modal)
         return _product(out_map, self._modal).real
 
 
@@ -869,6 +902,214 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
     return modal
 
 
+# The coefficients of no complex modes (:func:`_form_recursions`).
+_NO_PAIRS = np.zeros((0, 0), dtype=complex)
+
+
+@lru_cache(maxsize=8)
+def _pair_rows(pairs: int) -> np.ndarray:
+    """
+    Return the coefficients that drive each complex mode by its own two real-form rows.
+
+    Mode ``i`` of ``pairs``: the real part of its driving in row ``2i``, the imaginary part
+    in row ``2i + 1`` (:func:`_form_recursions`). Read-only, shared.
+    """
+    coefficients = np.zeros((pairs, 2 * pairs), dtype=complex)
+    coefficients[np.arange(pairs), 2 * np.arange(pairs)] = 1.0
+    coefficients[np.arange(pairs), 2 * np.arange(pairs) + 1] = 1j
+    coefficients.setflags(write=False)
+    return coefficients
+
+
+def _form_drives(drives: np.ndarray, real: int) -> np.ndarray:
+    """
+    Return the real-form rows (:func:`_form_recursions`' ``out``) of the kept modes' drives.
+
+    ``drives``: one row per kept mode, one column per signal row, the first ``real`` modes
+    real. A real signal drives a complex mode's real part by the drive's real part and its
+    imaginary part by the imaginary one (the interleaved parts of the complex numbers
+    themselves); a real mode's drive has only rounding in any imaginary part, dropped.
+    """
+    if drives.dtype.kind != 'c':
+        return drives
+    count, signals = drives.shape
+    parts = np.ascontiguousarray(drives[real:]).view(float).reshape(count - real, signals, 2)
+    parts = parts.transpose(0, 2, 1).reshape(-1, signals)
+    return np.concatenate([drives[:real].real, parts]) if real else parts
+
+
+def _form_scaling(factors: np.ndarray, real: int) -> np.ndarray:
+    """
+    Return the real matrix that multiplies each kept mode by its factor, in real form.
+
+    A complex factor ``a + ib`` acts on a complex mode's parts as ``[[a, -b], [b, a]]``; a
+    real mode's factor has only rounding in any imaginary part, dropped.
+    """
+    if factors.dtype.kind != 'c':
+        return np.diag(factors)
+    rows = 2 * factors.size - real
+    out = np.zeros((rows, rows))
+    # Python scalars: a handful of modes, no fancy indexing per call.
+    for index, factor in enumerate(factors.tolist()):
+        if index < real:
+            out[index, index] = factor.real
+        else:
+            first = 2 * index - real
+            out[first, first] = out[first + 1, first + 1] = factor.real
+            out[first, first + 1] = -factor.imag
+            out[first + 1, first] = factor.imag
+    return out
+
+
+def _form_map(coefficients: np.ndarray, real: int) -> np.ndarray:
+    """
+    Return the real map that reads ``(coefficients @ modes).real`` off the modes' real form.
+
+    ``coefficients``: one column per kept mode, the first ``real`` modes real;
+    ``Re(c m) = Re(c) Re(m) - Im(c) Im(m)``: the interleaved parts of ``conj(c)``.
+    """
+    if coefficients.dtype.kind != 'c':
+        return coefficients
+    parts = np.conjugate(coefficients[:, real:], order='C').view(float)
+    return np.concatenate([coefficients[:, :real].real, parts], axis=1) if real else parts
+
+
+def _trajectories(rows: int, length: int) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """
+    Return rows of ``length + 1`` samples starting at rest, and the blocks of the rest.
+
+    Recursions write sample ``k + 1`` from the drive of sample ``k``: into ``[:, 1:]``, whose
+    blocks of :data:`_BLOCK` samples (if ``length`` is whole blocks) are given as one view,
+    rows apart by one sample more than their length (a strided view of the same memory).
+    """
+    trajectories = np.empty((rows, length + 1))
+    trajectories[:, 0] = 0.0
+    if not rows or not length or length % _BLOCK:
+        return trajectories, None
+    return trajectories, np.ndarray((rows, length // _BLOCK, _BLOCK), float, trajectories,
+                                    trajectories.itemsize,
+                                    (trajectories.strides[0], _BLOCK * trajectories.itemsize,
+                                     trajectories.itemsize))
+
+
+def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: np.ndarray,
+                     coefficients: np.ndarray, out: np.ndarray,
+                     blocks: Optional[np.ndarray] = None) -> None:
+    """
+    Write uncoupled modes ``m_i[k] = p_i m_i[k-1] + d_i[k]`` into ``out``, from rest.
+
+    In real form: ``poles`` the kept poles, the first ``real`` of them real; ``driving`` the
+    drives ``d_i`` of the real modes (one row each); a complex mode ``i`` is driven by
+    ``sum_j c_ij x_j`` of the real ``inputs`` rows ``x_j`` and the rows of ``coefficients``
+    ``c_ij`` (one per complex mode); ``out``: one row per real mode, then two per complex
+    mode (its real and imaginary parts), and ``blocks`` its blocks as one view if known
+    (:func:`_trajectories`). Every row is contiguous, all of one length. A
+    complex mode driven by real rows runs without complex arrays where it runs in blocks
+    (:func:`_blocked_pairs`): its block products are real ones, and every output map is a
+    real product.
+    """
+    rows, length = out.shape
+    if length == 0:
+        return
+    if real:
+        _recursions(poles[:real].real, driving, out[:real], None if blocks is None else
+                    blocks[:real])
+    if rows == real:
+        return
+    pairs = poles[real:]
+    # One real input: its products with the real and imaginary parts of c T, half a complex
+    # product's. Several: one complex driving per mode and the complex recursions, whose
+    # product has as many terms as the inputs' real ones and fewer calls.
+    if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
+            length >= _BLOCKED_MIN_PAIR_LENGTH and abs(pairs).max() <= 1.0 and \
+            all_finite(coefficients) and all_finite(inputs):
+        _blocked_pairs(pairs, inputs, coefficients, out[real:],
+                       None if blocks is None else blocks[real:])
+        return
+    runs = recursions(pairs, _product(coefficients, inputs))
+    out[real::2] = runs.real
+    out[real + 1::2] = runs.imag
+
+
+def _block_matrices(poles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the pole powers ``p^0 .. p^B`` and the transposed block matrices of the poles.
+
+    ``matrices[i, j, k] = p_i^(k - j)`` for ``k >= j``, else 0: ``block @ matrices[i]`` runs a
+    block of :data:`_BLOCK` samples from rest.
+    """
+    powers = np.zeros((poles.size, _BLOCK + 2), dtype=poles.dtype)
+    powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
+    return powers[:, :_BLOCK + 1], powers[:, _BLOCK_INDEX]
+
+
+def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:
+    """
+    Return views of each row's blocks of :data:`_BLOCK` samples, (blocks, B) each.
+
+    None unless the rows are of whole blocks and each contiguous (the rows themselves may be
+    apart): no copy is ever made.
+    """
+    count, length = rows.shape
+    if length % _BLOCK or rows.strides[1] != rows.itemsize:
+        return None
+    if rows.flags.c_contiguous:
+        return rows.reshape(count, length // _BLOCK, _BLOCK)       # one view of them all
+    return [row.reshape(-1, _BLOCK) for row in rows]
+
+
+def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
+                   out: np.ndarray, out_blocks: Optional[np.ndarray] = None) -> None:
+    """
+    Run the complex modes of :func:`_form_recursions` in blocks of :data:`_BLOCK`.
+
+    As :func:`_blocked_recursions`, with a complex mode's blocks the sum over its inputs of
+    the input's block times ``c T``, its block matrix scaled by the input's coefficient: the
+    real products with the real and imaginary parts of ``c T``, none of a complex product's
+    terms spent on the inputs' zero imaginary parts. The products and the carried states'
+    corrections accumulate in ``out`` (the modes' real and imaginary parts, a row each) in
+    place: BLAS ``dgemm`` on the transposed, Fortran-ordered views of the blocks
+    (``out_blocks``, if given: ``out``'s as one view).
+    """
+    blocks = out.shape[1] // _BLOCK
+    powers, matrices = _block_matrices(poles)
+    views = _blocks(out) if out_blocks is None else out_blocks
+    sources = _blocks(inputs)
+    # c T for every complex mode and input, its real and imaginary parts contiguous.
+    scaled = coefficients[:, :, None, None] * matrices[:, None]
+    parts = np.ascontiguousarray(scaled.real), np.ascontiguousarray(scaled.imag)
+    for index, weights in enumerate(coefficients):
+        targets = views[2 * index:2 * index + 2]
+        started = False
+        for source in np.flatnonzero(weights):
+            for target, part in zip(targets, parts):
+                if started:
+                    blas.dgemm(1.0, part[index, source].T, sources[source].T, 1.0, target.T,
+                               overwrite_c=True)
+                else:
+                    np.matmul(sources[source], part[index, source], out=target)
+            started = True
+        if not started:
+            for target in targets:
+                target[:] = 0.0
+    # The state at each block's end, carried over blocks: block b + 1 gains p^(k+1) times
+    # the state carried out of block b at its sample k, [Re p^(k+1), -Im p^(k+1)] times its
+    # parts in the real part, [Im p^(k+1), Re p^(k+1)] in the imaginary one.
+    ends = np.empty((poles.size, blocks), dtype=complex)
+    ends.real = out[0::2, _BLOCK - 1::_BLOCK]
+    ends.imag = out[1::2, _BLOCK - 1::_BLOCK]
+    carried = np.zeros((poles.size, blocks), dtype=complex)
+    carried[:, 1:] = recursions(powers[:, _BLOCK], ends)[:, :-1]
+    following = powers[:, 1:]
+    updates = np.stack([following.real, -following.imag, following.imag, following.real],
+                       axis=2).reshape(poles.size, _BLOCK, 2, 2)
+    for index, state in enumerate(carried):
+        parts_of_state = state.view(float).reshape(blocks, 2).T
+        for part in range(2):
+            blas.dgemm(1.0, updates[index, :, part], parts_of_state, 1.0,
+                       views[2 * index + part].T, overwrite_c=True)
+
+
 def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> np.ndarray:
     """
     Return the numerator rows (highest power first) cut to ``degree + 1`` coefficients.
@@ -883,7 +1124,8 @@ def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> n
     return numerators
 
 
-def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+def recursions(poles: np.ndarray, values: np.ndarray,
+               out: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Run ``out[i, k] = poles[i] * out[i, k-1] + values[i, k]`` from rest, for every row ``i``.
 
@@ -894,20 +1136,34 @@ def recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     substitution), several rows per solve up to :data:`_BAND_SIZE` real samples or half as
     many complex ones (a longer band leaves the cache and runs several times slower per
     sample).
+
+    ``out``, if given, receives the result (of the values' shape and the result's type) and
+    is returned; blocks of whole rows are written in place (:func:`_blocked_recursions`).
     """
+    return _recursions(poles, values, out, None)
+
+
+def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray],
+                blocks: Optional[np.ndarray]) -> np.ndarray:
+    """:func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known."""
     poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
     dtype = complex if complex_valued else float
     if rows == 0 or length == 0:
-        return np.zeros((rows, length), dtype=dtype)
-    values = values.astype(dtype, copy=False)
-    # Finite values only: a block's product would spread a NaN or inf to the samples before it.
-    # The checks are array methods, without numpy's dispatch.
-    if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
-            all_finite(values):
-        return _blocked_recursions(poles.astype(dtype, copy=False), values)
-    return _banded_recursions(poles, values, complex_valued)
+        result = np.zeros((rows, length), dtype=dtype)
+    else:
+        values = values.astype(dtype, copy=False)
+        # Finite values only: a block's product would spread a NaN or inf to the samples
+        # before it. The checks are array methods, without numpy's dispatch.
+        if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
+                all_finite(values):
+            return _blocked_recursions(poles.astype(dtype, copy=False), values, out, blocks)
+        result = _banded_recursions(poles, values, complex_valued)
+    if out is None:
+        return result
+    out[...] = result
+    return out
 
 
 def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bool
@@ -941,6 +1197,8 @@ _BLOCKED_MIN_SIZE = 1536
 # The shortest complex row run in blocks: its block products cost four real ones, and break
 # even with the complex substitution at about this length.
 _BLOCKED_MIN_COMPLEX_LENGTH = 2560
+# The shortest rows of complex modes driven by real rows (in real form) run in blocks.
+_BLOCKED_MIN_PAIR_LENGTH = 4096
 # The exponents of a block's pole powers p^0 .. p^B, and where each entry of the transposed
 # block matrix reads them: p^(k - j) at row j, column k for k >= j, else the zero appended
 # after p^B (index B + 1). Constant: built once, not per run.
@@ -956,7 +1214,9 @@ def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
     return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
-def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
+def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
+                        out: Optional[np.ndarray] = None,
+                        out_blocks: Optional[np.ndarray] = None) -> np.ndarray:
     """
     :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
@@ -967,31 +1227,46 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray) -> np.ndarray:
     ``p^(k+1) carry[b-1]`` to sample ``k``. Every power is at most 1 in magnitude, so the sums
     round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
     type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
+    Rows of whole blocks are read and written (``out``, or its blocks as one view
+    ``out_blocks``) in place, others through zero-padded copies.
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
-    padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
-    padded.reshape(rows, -1)[:, :length] = values
-    powers = np.zeros((rows, _BLOCK + 2), dtype=values.dtype)
-    powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
-    # transposed[i, j, k] = p_i^(k - j) for k >= j: block @ transposed runs the block.
-    transposed = powers[:, _BLOCK_INDEX]
+    padded = _blocks(values)
+    if padded is None:
+        padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
+        padded.reshape(rows, -1)[:, :length] = values
+    powers, transposed = _block_matrices(poles)
+    response = out_blocks if out_blocks is not None else \
+        _blocks(out) if out is not None and out.dtype == values.dtype else None
+    in_place = response is not None
+    if in_place:
+        ends = out[:, _BLOCK - 1::_BLOCK]
+    else:
+        whole = np.empty((rows, blocks, _BLOCK), dtype=values.dtype)
+        response, ends = whole, whole[:, :, -1]
     # One 2-D product per row (numpy's stacked matmul can miss BLAS for these shapes), each
     # written in place.
-    if rows == 1:
-        response = (padded[0] @ transposed[0])[None]
-    else:
-        response = np.empty((rows, blocks, _BLOCK), dtype=values.dtype)
-        for row, matrix, out in zip(padded, transposed, response):
-            np.matmul(row, matrix, out=out)
+    for row, matrix, into in zip(padded, transposed, response):
+        np.matmul(row, matrix, out=into)
     # The state at each block's end, carried over blocks (blocked again if they are many).
-    ends = response[:, :, -1]
     complex_valued = values.dtype.kind == 'c'
     carried = recursions(powers[:, _BLOCK], ends) \
         if _blocked_size(rows, blocks, complex_valued) else \
         _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
-    response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:_BLOCK + 1]
-    return response.reshape(rows, -1)[:, :length]
+    if isinstance(response, list):
+        for into, state, power in zip(response, carried, powers):
+            into[1:] += state[:-1, None] * power[1:]
+        return out
+    if in_place:
+        response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+        return out
+    whole[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
+    result = whole.reshape(rows, -1)[:, :length]
+    if out is None:
+        return result
+    out[...] = result
+    return out
 
 
 def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -1103,16 +1378,17 @@ class _ContinuousModes:
     ``sum_i z_i^j r_i/(s - z_i)``, ``r_i = 1/D'(z_i)``: the eigenvectors are the Vandermonde
     columns and every mode is discretised in closed form, without matrix exponentials,
     eigen-decompositions or solves. Only one mode of each conjugate pair is kept (``keep``),
-    the other being its conjugate (``weights`` 2).
+    the other being its conjugate (``weights`` 2); the real modes come first.
     """
 
     poles: np.ndarray          # kept scaled continuous poles z_i
     basis: np.ndarray          # balanced states of each mode (all modes, columns)
-    keep: Optional[np.ndarray]  # the modes kept, None for all (real poles)
+    keep: Optional[np.ndarray]  # indices of the modes kept, None for all (real poles)
     weights: np.ndarray
     residues: np.ndarray       # r_i of the kept modes
     spread: np.ndarray         # sum over j != i of 1/(z_i - z_j), i.e. D''(z_i) / (2 D'(z_i))
     squared: bool              # 1/D^2 is read off these modes (StateResponse.squared_outputs)
+    real: int                  # how many of the kept modes (the first ones) are real
 
     def discretize(self, segments) -> Optional['_DiscreteModes']:
         """Closed-form hold integrals per mode over the sub-intervals; None on overflow."""
@@ -1182,25 +1458,97 @@ class _DiscreteModes:
     drives: np.ndarray         # (samples, kept modes)
     factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
 
-    def chains(self, modal: np.ndarray, signals: np.ndarray) -> np.ndarray:
+    def chains(self, modal: np.ndarray, signals: np.ndarray, count: int,
+               below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Run ``r_i/(z - z_i)^2`` over the signals, given the modes ``modal`` (:meth:`run`'s).
 
         The derivative of ``m[k+1] = p m[k] + g . u`` with respect to the pole ``z_i``
         (``p = e^{z_i h}``, ``dp/dz_i = h p``) is
         ``n[k+1] = p n[k] + h p m[k] + (dg/dz_i) . u``: the exact discretisation of the double
-        pole, one recursion per kept mode.
+        pole, one recursion per kept mode. ``signals`` and ``count`` as :meth:`run` takes them,
+        ``modal`` its trajectories over the signals' length; returns the same rows as
+        :meth:`run` (real form or complex as ``modal``), and ``below`` (rows of the result's
+        length) under them if given.
         """
+        continuous = self.continuous
+        real = continuous.real
         length = sum(factor[0] for factor in self.factors)
-        slopes = self.continuous.drive_slopes(self.factors, self.samples)
-        driving = (length * self.poles)[:, None] * modal + _product(slopes.T, signals)
-        return _run(self.poles, None, driving)
+        slopes = continuous.drive_slopes(self.factors, self.samples)
+        # One driving row per real mode and two per complex one (its real and imaginary
+        # parts), each complex mode then driven by its own two rows.
+        pairs = self.poles.size - real
+        factors = length * self.poles
+        if modal.dtype.kind == 'c':
+            return self._run_complex(factors[:, None] * modal + _product(slopes.T, signals),
+                                     count, below)
+        if not pairs:
+            driving = factors[:, None] * modal
+            driving += _product(slopes.T, signals)
+            return self._run_form(driving, driving[:0], _NO_PAIRS)
+        driving = _form_scaling(factors, real) @ modal
+        driving += _product(_form_drives(slopes.T, real), signals)
+        return self._run_form(driving[:real], driving[real:], _pair_rows(pairs), below)
 
-    def run(self, signals: np.ndarray) -> _Modes:
-        """Run every kept mode over the signals of :attr:`samples` (one row each)."""
-        modes = self.continuous
-        modal = _run(self.poles, None, _product(self.drives.T, signals))
-        return _Modes.uncoupled(modes.basis, modes.keep, modes.weights, modal)
+    def run(self, signals: np.ndarray, count: int) -> np.ndarray:
+        """
+        Run every kept mode over the signals of :attr:`samples` (one row each).
+
+        ``signals``: rows of ``count`` samples padded with zeros to whole blocks of
+        :data:`_BLOCK` samples, whose responses come after the record (:func:`_sampled_rows`).
+        Returns the modes' trajectories, one sample longer than the signals (``m[k+1]``
+        takes the drive of ``u[k]``): in the real form of :func:`_form_recursions`, or as
+        complex rows (:meth:`_run_complex`) for complex modes of records too short for their
+        block products.
+        """
+        real = self.continuous.real
+        drives = self.drives.T
+        if real == drives.shape[0]:
+            return self._run_form(_product(drives.real, signals), signals, _NO_PAIRS)
+        if signals.shape[1] < _BLOCKED_MIN_PAIR_LENGTH:
+            return self._run_complex(_product(drives, signals), count)
+        return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
+
+    def _run_complex(self, driving: np.ndarray, count: int,
+                     below: Optional[np.ndarray] = None) -> np.ndarray:
+        """
+        Return the kept modes as complex rows driven by ``driving`` (one row each), from rest.
+
+        The first ``count`` samples, zero after them: on a short record one complex
+        substitution per mode and complex output maps take fewer calls than the real form;
+        a real mode has only rounding in any imaginary part of its driving, dropped.
+        ``below``: rows of the result's length copied under the modes' rows.
+        """
+        real, kept = self.continuous.real, self.poles.size
+        trajectories = np.zeros((kept + (0 if below is None else below.shape[0]),
+                                 driving.shape[1] + 1), dtype=complex)
+        if count > 1:
+            if real:
+                trajectories[:real, 1:count] = recursions(self.poles[:real].real,
+                                                          driving[:real, :count - 1].real)
+            trajectories[real:kept, 1:count] = recursions(self.poles[real:],
+                                                          driving[real:, :count - 1])
+        if below is not None:
+            trajectories[kept:] = below
+        return trajectories
+
+    def _run_form(self, driving: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
+                  below: Optional[np.ndarray] = None) -> np.ndarray:
+        """
+        Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
+
+        ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
+        at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
+        ``below``: rows of the result's length copied under the modes' rows.
+        """
+        rows = 2 * self.poles.size - self.continuous.real
+        trajectories, blocks = _trajectories(rows + (0 if below is None else below.shape[0]),
+                                             inputs.shape[1])
+        _form_recursions(self.poles, self.continuous.real, driving, inputs, coefficients,
+                         trajectories[:rows, 1:], None if blocks is None else blocks[:rows])
+        if below is not None:
+            trajectories[rows:] = below
+        return trajectories
 
 
 @dataclass
@@ -1238,18 +1586,24 @@ class _Chain:
                 basis[j, n - power - 1] = math.comb(j, power) * root ** (j - power)
         return cls(basis / continuous._balance[:, None], transition, list(drive), drives)
 
-    def run(self, signals: np.ndarray) -> '_Modes':
-        """Run the chain over the signals of :attr:`samples` (one row each)."""
+    def run(self, signals: np.ndarray, count: int) -> '_Modes':
+        """
+        Run the chain over the signals of :attr:`samples` (one row each).
+
+        ``signals``: rows of ``count`` samples padded with zeros to whole blocks, as
+        :meth:`_DiscreteModes.run` takes them: each state's recursion writes one sample on
+        into its row of the trajectories in place.
+        """
         driving = _product(self.drives.T, signals)
-        count = driving.shape[1]
-        modal = np.zeros(driving.shape)
+        rows, length = driving.shape
+        trajectories, blocks = _trajectories(rows, length)
         pole = self.transition[:1, 0]
-        if count > 1:
-            for m in range(driving.shape[0]):
-                if m:
-                    driving[m] += self.transition[m, :m] @ modal[:m]
-                modal[m, 1:] = recursions(pole, driving[m:m + 1, :count - 1])[0]
-        return _Modes.uncoupled(self.basis, None, None, modal)
+        for m in range(rows):
+            if m:
+                driving[m] += self.transition[m, :m] @ trajectories[:m, :length]
+            _recursions(pole, driving[m:m + 1], trajectories[m:m + 1, 1:],
+                        None if blocks is None else blocks[m:m + 1])
+        return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count], rows)
 
 
 def _condition(matrix: np.ndarray) -> float:
@@ -1287,7 +1641,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
-                                None, np.ones(1), np.ones(1), np.zeros(1), True)
+                                None, np.ones(1), np.ones(1), np.zeros(1), True, 1)
     # Asked for every new denominator: array methods and operators, not numpy's dispatch.
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
@@ -1316,7 +1670,12 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
     if poles.imag.any():
-        keep = poles.imag >= 0.0
+        # The real modes first, then one of each conjugate pair: their trajectories run in the
+        # real form of :func:`_form_recursions` without selecting rows. Python lists: a
+        # handful of poles, for every new denominator.
+        imaginary = poles.imag.tolist()
+        real = [index for index, value in enumerate(imaginary) if value == 0.0]
+        keep = np.array(real + [index for index, value in enumerate(imaginary) if value > 0.0])
         kept = poles[keep]
         residues = 1.0 / differences.prod(axis=1)[keep]
         spread = inverse.sum(axis=1)[keep]
@@ -1329,7 +1688,8 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         spread = inverse.sum(axis=1).real
     amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
-                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT))
+                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
+                            n if keep is None else len(real))
 
 
 def skew_delay(ts: float, output_skew: float) -> float:

@@ -452,3 +452,47 @@ def test_discretisations_are_shared_by_equal_denominators_only():
     values = np.random.default_rng(3).standard_normal(500)
     np.testing.assert_array_equal(first.outputs(values, [[1.0]])[0],
                                   response([1.0], den, values, 0.01, delay=0.0137))
+
+
+@pytest.mark.parametrize('den', [np.poly([-44.9, -0.68, -2.45 + 3.2j, -2.45 - 3.2j]).real,
+                                 RAO_GARNIER[1]])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'zoh'), (0.0137, 'zoh'), (0.0137, 'foh')])
+def test_complex_modes_of_long_records_run_in_blocks_as_substitutions(
+        monkeypatch, den, delay, intersample):
+    # Records long enough for the complex modes' block products (a real mode and a pair, two
+    # pairs; one sampled input row, real products; several, complex ones): outputs, squared
+    # outputs and state trajectories equal those of the forward substitutions, to rounding;
+    # the undelayed held response equals lsim's.
+    rng = np.random.default_rng(14)
+    values = test_input(rng, 6007, hold=9)
+    order = den.size - 1
+    numerators = rng.standard_normal((3, order))
+    squared_numerators = rng.standard_normal((2, 2 * order))
+
+    def simulated():
+        state = ContinuousFilter(den).discretize(0.01, delay, intersample).response(values)
+        simulation._DISCRETIZATIONS.clear()
+        return (state.outputs(numerators), state.squared_outputs(squared_numerators),
+                state.mapped(np.eye(order)))
+
+    blocked = simulated()
+    monkeypatch.setattr(simulation, '_BLOCKED_MIN_PAIR_LENGTH', 10 ** 9)
+    monkeypatch.setattr(simulation, '_BLOCKED_MIN_LENGTH', 10 ** 9)
+    monkeypatch.setattr(simulation, '_BLOCKED_MIN_COMPLEX_LENGTH', 10 ** 9)
+    for value, reference in zip(blocked, simulated()):
+        np.testing.assert_allclose(value, reference, rtol=0.0,
+                                   atol=1e-11 * np.abs(reference).max())
+    if delay == 0.0 and intersample == 'zoh':
+        reference = lsim_reference(numerators[0], den, values, 0.01, interp=False)
+        assert relative_error(blocked[0][0], reference) < ZOH_TOLERANCE
+
+
+def test_recursions_write_into_out():
+    rng = np.random.default_rng(15)
+    values = rng.standard_normal((2, 4096))
+    poles = np.array([0.99, -0.5])
+    buffer = np.zeros((2, 4100))
+    out = recursions(poles, values, out=buffer[:, 3:4099])
+    assert out is not None and np.shares_memory(out, buffer)
+    np.testing.assert_array_equal(buffer[:, 3:4099], recursions(poles, values))
+    assert not buffer[:, :3].any() and not buffer[:, 4099:].any()
