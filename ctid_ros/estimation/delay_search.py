@@ -403,7 +403,7 @@ def _normal_solution(gram: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
     :data:`_NORMAL_CONDITION`.
     """
     scales = np.sqrt(np.diag(gram))
-    if not np.all(scales > 0.0):
+    if not np.all((scales > 0.0) & (scales < np.inf)):
         return None
     eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales))
     if not eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
