@@ -128,6 +128,16 @@ def chance_spread(residual_autocorrelation: np.ndarray, input_autocorrelation: n
     return float(np.sqrt(max(total, 1.0) / max(count, 1)))
 
 
+def _white_spread(count: int) -> float:
+    """
+    Return :func:`chance_spread`'s floor ``1/sqrt(N)``, rounded as it rounds it.
+
+    No spread is below it, so a correlation within ``confidence`` times it passes every bound
+    without the autocorrelations behind the spread.
+    """
+    return float(np.sqrt(1.0 / max(count, 1)))
+
+
 def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
                          confidence: float = CONFIDENCE, bound: str = 'prewhitened',
                          sensitivities: Optional[np.ndarray] = None) -> bool:
@@ -176,12 +186,15 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
         correlation = input_correlation(residual, inputs, max_lag)
         if bound == 'white':
             return bool(np.max(np.abs(correlation)) <= confidence / np.sqrt(count))
+        largest = np.max(np.abs(correlation), axis=0)
+        if np.all(largest <= confidence * _white_spread(count)):
+            return True
         span = bartlett_span(count, max_lag)
         rho_e = autocorrelations(residual[first:], span)[:, 0]
         rho_u = autocorrelations(inputs[first:], span)
         spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
                             for j in range(inputs.shape[1])])
-        return bool(np.all(np.max(np.abs(correlation), axis=0) <= confidence * spreads))
+        return bool(np.all(largest <= confidence * spreads))
     polynomial = whitening_filter(residual[first:], _RESIDUAL_WHITENING_ORDER)
     start = polynomial.size - 1
     filtered = np.convolve(residual[first:] - np.mean(residual[first:]), polynomial)[start:count]
@@ -200,11 +213,15 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     if filtered[0] != 0.0:
         return _within_spread(filtered, whitened, lags, span, confidence)
     # Leading zeros, which input_correlation leaves out of the residual's mean.
-    rho_e = autocorrelations(filtered, span)[:, 0]
+    rho_e = None
     for column in whitened.T:
-        correlation = input_correlation(filtered, column, lags)[:, 0]
+        largest = np.max(np.abs(input_correlation(filtered, column, lags)[:, 0]))
+        if largest <= confidence * _white_spread(filtered.size):
+            continue
+        if rho_e is None:
+            rho_e = autocorrelations(filtered, span)[:, 0]
         spread = chance_spread(rho_e, autocorrelations(column, span)[:, 0], filtered.size)
-        if np.max(np.abs(correlation)) > confidence * spread:
+        if largest > confidence * spread:
             return False
     return True
 
@@ -218,6 +235,8 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
     times :func:`chance_spread` of the autocorrelations at ``-span..span``
     (:func:`autocorrelations`), for a residual without leading zeros (``inputs``: shape
     ``(N, m)``). The three come from one zero-padded FFT of each series: ``span >= lags``.
+    Correlations within the white bound ``confidence/sqrt(N)``, which no spread goes below,
+    pass without the autocorrelations.
     """
     count = residual.size
     error = residual - np.mean(residual)
@@ -227,18 +246,22 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
     spectra = np.fft.rfft(centred, size, axis=0)
     energy = np.sum(error ** 2)
     energies = np.sum(centred ** 2, axis=0)
+    scale = np.sqrt(energy * energies)
+    correlation = np.fft.irfft(spectrum[:, None] * np.conj(spectra), size, axis=0)[:lags + 1] \
+        / np.where(scale > 0.0, scale, 1.0)
+    largest = np.max(np.abs(correlation), axis=0)
+    # A model that explains the data passes here.
+    if np.all(largest <= confidence * _white_spread(count)):
+        return True
     full = np.fft.irfft(spectrum * np.conj(spectrum), size)
     rho_e = np.concatenate([full[size - span:], full[:span + 1]]) / \
         (energy if energy > 0.0 else 1.0)
     full = np.fft.irfft(spectra * np.conj(spectra), size, axis=0)
     rho_u = np.concatenate([full[size - span:], full[:span + 1]]) / \
         np.where(energies > 0.0, energies, 1.0)
-    scale = np.sqrt(energy * energies)
-    correlation = np.fft.irfft(spectrum[:, None] * np.conj(spectra), size, axis=0)[:lags + 1] \
-        / np.where(scale > 0.0, scale, 1.0)
     spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
                         for j in range(inputs.shape[1])])
-    return bool(np.all(np.max(np.abs(correlation), axis=0) <= confidence * spreads))
+    return bool(np.all(largest <= confidence * spreads))
 
 
 def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np.ndarray:

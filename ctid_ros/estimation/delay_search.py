@@ -40,6 +40,9 @@ _LAG_SHARES = (0.5, 0.25, 0.75)
 _SUB_SAMPLE_LAGS = (0.05, 0.25)
 # A lag shorter than this many sample times is tried below the sample time at whole samples.
 _SHORT_LAG = 0.1
+# Shifted sensitivities (columns of unit norm) conditioned within this are solved by normal
+# equations.
+_NORMAL_CONDITION = 1e3
 # Joint refinement of every candidate: IV projections from a start refined already.
 _JOINT = IterationPolicy(max_iterations=_JOINT_ITERATIONS, opening=Opening.PROJECTION)
 
@@ -326,6 +329,8 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
     # The warm start's last update linearised at best already: usually no new simulation.
     linearised = problem.linearize(best.coefficients, regressors=False)
     sensitivities = linearised.psi[:, others]
+    # Both neighbours' normal matrices are this one less the row their shift drops.
+    gram = sensitivities.T @ sensitivities
     lowest = None
     for offset in _PROBE_OFFSETS:
         theta = best.theta.copy()
@@ -335,10 +340,8 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
         coefficients = problem.admissible(theta)
         if coefficients is None:
             continue
-        samples = int(offset)
         screened, error = _linearised_refit(problem, theta, coefficients, others,
-                                            _shifted(linearised.output[:, None], samples)[:, 0],
-                                            _shifted(sensitivities, samples))
+                                            linearised.output, sensitivities, gram, int(offset))
         if screened.cost - error >= best.cost:
             continue
         joint = iterate(problem, screened, _JOINT)
@@ -347,40 +350,62 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
     return lowest
 
 
-def _shifted(columns: np.ndarray, samples: int) -> np.ndarray:
-    """Return ``columns`` delayed by ``samples`` (advanced if negative), zeros shifted in."""
-    moved = np.zeros_like(columns)
-    if samples > 0:
-        moved[samples:] = columns[:-samples]
-    elif samples < 0:
-        moved[:samples] = columns[-samples:]
-    else:
-        moved[:] = columns
-    return moved
-
-
 def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coefficients,
-                      others: np.ndarray, output: np.ndarray, sensitivities: np.ndarray
-                      ) -> Tuple[State, float]:
+                      others: np.ndarray, output: np.ndarray, sensitivities: np.ndarray,
+                      gram: np.ndarray, samples: int) -> Tuple[State, float]:
     """
     Screen ``theta`` by one Gauss-Newton update of its ``others`` parameters.
 
-    ``output`` and ``sensitivities`` approximate the model output at ``theta`` and its
-    derivatives by the ``others`` on the fitted samples (those of a dead time a sample away,
-    shifted: exact for a model at rest before the record, a screen otherwise). Returns the
-    updated point (clipped into the bounds), a candidate (:attr:`Problem.best`), and its
-    linearisation error: the difference between its cost and the cost ``0.5 |e - S d|^2`` the
-    linearised output promised. If the update leaves an inadmissible model, ``theta`` itself
-    with no error.
+    ``output`` and ``sensitivities`` (the model output of a dead time ``samples`` samples
+    shorter and its derivatives by the ``others`` on the fitted samples, ``gram`` the
+    sensitivities' normal matrix), delayed by ``samples`` (advanced if negative) with zeros
+    shifted in, approximate those at ``theta``: exact for a model at rest before the record, a
+    screen otherwise. The update solves the shifted least-squares problem by its normal
+    equations where the shifted sensitivities (columns of unit norm) are conditioned within
+    :data:`_NORMAL_CONDITION` (a ``cond^2 eps`` relative error), by ``lstsq`` otherwise.
+    Returns the updated point (clipped into the bounds), a candidate (:attr:`Problem.best`),
+    and its linearisation error: the difference between its cost and the cost
+    ``0.5 |e - S d|^2`` the linearised output promised. If the update leaves an inadmissible
+    model, ``theta`` itself with no error.
     """
-    error = problem.measured - output
-    step = np.linalg.lstsq(sensitivities, error, rcond=None)[0]
-    remaining = error - sensitivities @ step
+    count = output.size
+    # The rows the shift keeps (kept) and where they land (moved); the other rows of the
+    # shifted sensitivities are zeros.
+    kept = slice(0, count - samples) if samples >= 0 else slice(-samples, count)
+    moved = slice(samples, count) if samples >= 0 else slice(0, count + samples)
+    dropped = slice(count - samples, count) if samples >= 0 else slice(0, -samples)
+    error = problem.measured.copy()
+    error[moved] -= output[kept]
+    columns = sensitivities[kept]
+    step = _normal_solution(gram - sensitivities[dropped].T @ sensitivities[dropped],
+                            columns.T @ error[moved])
+    if step is None:
+        shifted = np.zeros_like(sensitivities)
+        shifted[moved] = columns
+        step = np.linalg.lstsq(shifted, error, rcond=None)[0]
+    remaining = error.copy()
+    remaining[moved] -= columns @ step
     updated = theta.copy()
     updated[others] += step
     updated = np.clip(updated, problem.lower, problem.upper)
-    moved = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
-    if moved is None:
+    admissible = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
+    if admissible is None:
         return problem.state(theta, coefficients), 0.0
-    refit = problem.state(updated, moved)
+    refit = problem.state(updated, admissible)
     return refit, abs(refit.cost - 0.5 * float(remaining @ remaining))
+
+
+def _normal_solution(gram: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return the solution of the normal equations ``gram x = rhs``, or None if ill conditioned.
+
+    None unless the columns behind ``gram``, scaled to unit norm, are conditioned within
+    :data:`_NORMAL_CONDITION`.
+    """
+    scales = np.sqrt(np.diag(gram))
+    if not np.all((scales > 0.0) & (scales < np.inf)):
+        return None
+    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales))
+    if not eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
+        return None
+    return np.linalg.solve(gram, rhs)

@@ -3,7 +3,8 @@
 from ctid_ros import Data, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.correlation import (CONFIDENCE, fft_size, independent_of_input,
+from ctid_ros.estimation.correlation import (autocorrelations, bartlett_span, chance_spread,
+                                             CONFIDENCE, fft_size, independent_of_input,
                                              input_correlation, prewhitened_delay)
 import numpy as np
 import pytest
@@ -105,6 +106,29 @@ def test_a_held_input_and_arma_noise_are_no_model_error_but_a_missed_lag_is():
     residual = missed + 0.3 * np.std(missed) * noise / np.std(noise)
     assert not independent_of_input(residual, u, 100)
     assert not independent_of_input(residual, u, 100, bound='bartlett')
+
+
+@pytest.mark.parametrize('left_out', [0, 300])
+def test_bartlett_verdict_is_its_bound_on_either_side_of_the_white_floor(left_out):
+    # Coloured noise against a held input: the largest correlation lies above the white floor
+    # confidence/sqrt(N), within Bartlett's spread at CONFIDENCE. At confidences a tenth
+    # either side of both thresholds the verdict is the bound computed from its parts (the
+    # test passes correlations within the floor without the autocorrelations).
+    u = prbs(9, 8)
+    rng = np.random.default_rng(0)
+    residual = signal.lfilter([1.0], [1.0, -0.9], rng.standard_normal(u.size))
+    residual[:left_out] = 0.0
+    count, lags = u.size - left_out, 60
+    largest = np.max(np.abs(input_correlation(residual, u, lags)))
+    span = bartlett_span(count, lags)
+    spread = chance_spread(autocorrelations(residual[left_out:], span)[:, 0],
+                           autocorrelations(u[left_out:], span)[:, 0], count)
+    floor = largest * np.sqrt(count)
+    assert largest / spread < CONFIDENCE < floor       # 2.3-2.5 and 5.6-6.1
+    for threshold in (floor, largest / spread):
+        for confidence in (0.9 * threshold, 1.1 * threshold):
+            assert independent_of_input(residual, u, lags, confidence, bound='bartlett') == \
+                (largest <= confidence * spread)
 
 
 def test_fft_size_is_the_least_five_smooth_length_reaching_the_count():

@@ -3,10 +3,10 @@
 from ctid_ros import Data, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.delay_search import delay_search
+from ctid_ros.estimation.delay_search import delay_search, neighbouring_delays
 from ctid_ros.estimation.problem import bound_vectors, Problem, State
 from ctid_ros.estimation.regressors import SignalBank
-from ctid_ros.estimation.starts import initial_estimate
+from ctid_ros.estimation.starts import initial_estimate, local_fit
 import numpy as np
 import pytest
 
@@ -99,3 +99,28 @@ def test_an_automatic_range_is_extended_while_the_profile_falls_at_its_end():
     bounded.anchor(start.coefficients)
     limited = delay_search(bounded, start, TAU, None)
     assert limited.profile and max(tau for tau, _ in limited.profile) <= 10.0
+
+
+@pytest.mark.parametrize('seed', [1, 2])
+def test_a_fit_a_sample_off_the_dead_time_is_screened_back_and_an_optimum_stays(seed):
+    # From the optimum's dead time one sample too long (the others refitted there) the screen
+    # of the neighbours passes the sample back, whose joint refit ends at the optimum; at the
+    # optimum itself neither neighbour screens lower.
+    system = systems.first_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=seed), system.bounds)
+    truth = system.model.vector(system.truth)
+    problem.anchor(problem.admissible(truth))
+    optimum = local_fit(problem, problem.state(truth, problem.admissible(truth)), 'iv',
+                        first_ls=False, iterations=20).state
+    assert neighbouring_delays(problem, optimum, TAU, None) is None
+    ts = problem.data.ts
+    theta = optimum.theta.copy()
+    theta[TAU] += ts
+    frozen = np.arange(theta.size) == TAU
+    off = local_fit(problem, problem.state(theta, problem.admissible(theta)), 'iv',
+                    first_ls=False, iterations=20, frozen=frozen).state
+    assert off.cost > optimum.cost
+    back = neighbouring_delays(problem, off, TAU, None)
+    assert back is not None and back.state.cost < off.cost
+    assert abs(back.state.theta[TAU] - optimum.theta[TAU]) < 0.5 * ts
+    assert back.state.cost == pytest.approx(optimum.cost, rel=1e-6)
