@@ -291,14 +291,23 @@ class SignalBank:
                 delay_jump = (gradient[:, None] * jump).T          # np.outer's product
         phi = None
         if regressors:
-            phi = np.zeros((params, count)) if u_regressors is None else u_regressors
-            if den_moves.any():
-                bank_y = _remembered(self._output_filtered, den.tobytes(),
-                                     lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-                if den_moves.all():
-                    phi = phi - bank_y.outputs(den_jacobian)
-                else:
-                    phi[den_moves] -= bank_y.outputs(den_jacobian[den_moves])
+            phi = u_regressors
+            bank_y = None if not den_moves.any() else _remembered(
+                self._output_filtered, den.tobytes(),
+                lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
+            if den_moves.all():
+                y_parts = bank_y.outputs(den_jacobian)          # a new array: negated in place
+                phi = np.subtract(0.0, y_parts, out=y_parts) if phi is None else \
+                    _less(phi, y_parts)
+            else:
+                if phi is None:
+                    phi = np.zeros((params, count))
+                if bank_y is not None:
+                    # Row by row in place: a masked subtraction would gather the rows into a
+                    # copy, subtract into another and scatter them back.
+                    y_parts = bank_y.outputs(den_jacobian[den_moves])
+                    for part, row in zip(y_parts, np.flatnonzero(den_moves).tolist()):
+                        phi[row] -= part
             for row, term in delay_terms:
                 phi[row] -= term
             phi = phi.T
@@ -318,6 +327,19 @@ def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
     spread = np.zeros((rows.size, values.shape[1]))
     spread[rows] = values
     return spread
+
+
+def _less(values: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """
+    Return ``values - part``: in place where ``values`` holds whole contiguous rows.
+
+    ``values`` is the caller's own array. Rows of a trimmed or strided one are subtracted into
+    a new contiguous array, the layout every product of an update reads.
+    """
+    if values.flags.c_contiguous:
+        values -= part
+        return values
+    return values - part
 
 
 def _summed(total: Optional[np.ndarray], part: np.ndarray) -> np.ndarray:
