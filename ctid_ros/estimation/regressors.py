@@ -84,10 +84,15 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
                 compute: Callable[[], Value], size: int = _REMEMBERED) -> Value:
     """Return ``cache[key]``, computing it if absent; only the latest ``size`` keys are kept."""
-    value = cache.pop(key) if key in cache else compute()
+    if key in cache:
+        value = cache.pop(key)
+    else:
+        # The oldest goes before the new one is computed: its arrays (a record's length each)
+        # are free for the new one's, which then need no more memory than they replace.
+        while len(cache) >= size:
+            del cache[next(iter(cache))]
+        value = compute()
     cache[key] = value
-    if len(cache) > size:
-        del cache[next(iter(cache))]
     return value
 
 
