@@ -40,10 +40,14 @@ _REMEMBERED = 4
 _OUTPUT_BYTES = 1 << 23
 _REMEMBERED_OUTPUTS = 16
 # State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
-# of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
-# of the others the latest linearisation's only (a point that needs its regressors after its
-# instruments takes the instruments over: SignalBank.linearize's ``instruments``).
+# of u through 1/D the latest candidate's (a linearisation follows its candidate's cost), on a
+# record of up to _SECOND_RESPONSE_BYTES per signal the one before too; of the others the latest
+# linearisation's only (a point that needs its regressors after its instruments takes the
+# instruments over: SignalBank.linearize's ``instruments``). The one before is rarely asked for
+# again (a few simulations in a hundred); on a longer record its memory, several rows of the
+# record's length that the heap gives back after every estimate, costs more than simulating it.
 _REMEMBERED_RESPONSES = 2
+_SECOND_RESPONSE_BYTES = 1 << 15
 Value = TypeVar('Value')
 # Realisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
@@ -143,6 +147,8 @@ class SignalBank:
         self._outputs: Dict[Hashable, np.ndarray] = {}
         self._outputs_kept = max(_REMEMBERED, min(_REMEMBERED_OUTPUTS,
                                                   _OUTPUT_BYTES // max(y.nbytes, 1)))
+        self._responses_kept = _REMEMBERED_RESPONSES if y.nbytes <= _SECOND_RESPONSE_BYTES \
+            else 1
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
         self._responses: Dict[Hashable, List[StateResponse]] = {}
@@ -179,7 +185,7 @@ class SignalBank:
         def simulate() -> np.ndarray:
             responses = self._channel_responses(self._responses, coefficients.den,
                                                 coefficients.delay + self.extra_delay,
-                                                _REMEMBERED_RESPONSES)
+                                                self._responses_kept)
             trim = self.trim
             # One input (the usual case) needs no sum: its output array is new already.
             output = responses[0].outputs(coefficients.num[:1])[0, trim:] \
@@ -215,7 +221,7 @@ class SignalBank:
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
-                                              _REMEMBERED_RESPONSES)
+                                              self._responses_kept)
         sensitivity_responses: Optional[List[StateResponse]] = None
         # An accepted candidate's output is remembered from its cost: not mapped again.
         key = self._output_key(coefficients)
