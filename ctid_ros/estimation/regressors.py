@@ -40,10 +40,14 @@ _REMEMBERED = 4
 _OUTPUT_BYTES = 1 << 23
 _REMEMBERED_OUTPUTS = 16
 # State trajectories hold (order x samples) values each (on a record of 1e6 samples tens of MB):
-# of u through 1/D the latest two candidates' (a linearisation follows its candidate's cost),
-# of the others the latest linearisation's only (a point that needs its regressors after its
-# instruments takes the instruments over: SignalBank.linearize's ``instruments``).
+# of u through 1/D the latest candidate's (a linearisation follows its candidate's cost), on a
+# record of up to _SECOND_RESPONSE_BYTES per signal the one before too; of the others the latest
+# linearisation's only (a point that needs its regressors after its instruments takes the
+# instruments over: SignalBank.linearize's ``instruments``). The one before is rarely asked for
+# again (a few simulations in a hundred); on a longer record its memory, several rows of the
+# record's length that the heap gives back after every estimate, costs more than simulating it.
 _REMEMBERED_RESPONSES = 2
+_SECOND_RESPONSE_BYTES = 1 << 15
 Value = TypeVar('Value')
 # Realisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
@@ -84,10 +88,15 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
                 compute: Callable[[], Value], size: int = _REMEMBERED) -> Value:
     """Return ``cache[key]``, computing it if absent; only the latest ``size`` keys are kept."""
-    value = cache.pop(key) if key in cache else compute()
+    if key in cache:
+        value = cache.pop(key)
+    else:
+        # The oldest goes before the new one is computed: its arrays (a record's length each)
+        # are free for the new one's, which then need no more memory than they replace.
+        while len(cache) >= size:
+            del cache[next(iter(cache))]
+        value = compute()
     cache[key] = value
-    if len(cache) > size:
-        del cache[next(iter(cache))]
     return value
 
 
@@ -138,6 +147,8 @@ class SignalBank:
         self._outputs: Dict[Hashable, np.ndarray] = {}
         self._outputs_kept = max(_REMEMBERED, min(_REMEMBERED_OUTPUTS,
                                                   _OUTPUT_BYTES // max(y.nbytes, 1)))
+        self._responses_kept = _REMEMBERED_RESPONSES if y.nbytes <= _SECOND_RESPONSE_BYTES \
+            else 1
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
         self._responses: Dict[Hashable, List[StateResponse]] = {}
@@ -174,7 +185,7 @@ class SignalBank:
         def simulate() -> np.ndarray:
             responses = self._channel_responses(self._responses, coefficients.den,
                                                 coefficients.delay + self.extra_delay,
-                                                _REMEMBERED_RESPONSES)
+                                                self._responses_kept)
             trim = self.trim
             # One input (the usual case) needs no sum: its output array is new already.
             output = responses[0].outputs(coefficients.num[:1])[0, trim:] \
@@ -210,7 +221,7 @@ class SignalBank:
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
-                                              _REMEMBERED_RESPONSES)
+                                              self._responses_kept)
         sensitivity_responses: Optional[List[StateResponse]] = None
         # An accepted candidate's output is remembered from its cost: not mapped again.
         key = self._output_key(coefficients)
@@ -291,14 +302,23 @@ class SignalBank:
                 delay_jump = (gradient[:, None] * jump).T          # np.outer's product
         phi = None
         if regressors:
-            phi = np.zeros((params, count)) if u_regressors is None else u_regressors
-            if den_moves.any():
-                bank_y = _remembered(self._output_filtered, den.tobytes(),
-                                     lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-                if den_moves.all():
-                    phi = phi - bank_y.outputs(den_jacobian)
-                else:
-                    phi[den_moves] -= bank_y.outputs(den_jacobian[den_moves])
+            phi = u_regressors
+            bank_y = None if not den_moves.any() else _remembered(
+                self._output_filtered, den.tobytes(),
+                lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
+            if den_moves.all():
+                y_parts = bank_y.outputs(den_jacobian)          # a new array: negated in place
+                phi = np.subtract(0.0, y_parts, out=y_parts) if phi is None else \
+                    _less(phi, y_parts)
+            else:
+                if phi is None:
+                    phi = np.zeros((params, count))
+                if bank_y is not None:
+                    # Row by row in place: a masked subtraction would gather the rows into a
+                    # copy, subtract into another and scatter them back.
+                    y_parts = bank_y.outputs(den_jacobian[den_moves])
+                    for part, row in zip(y_parts, np.flatnonzero(den_moves).tolist()):
+                        phi[row] -= part
             for row, term in delay_terms:
                 phi[row] -= term
             phi = phi.T
@@ -318,6 +338,19 @@ def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
     spread = np.zeros((rows.size, values.shape[1]))
     spread[rows] = values
     return spread
+
+
+def _less(values: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """
+    Return ``values - part``: in place where ``values`` holds whole contiguous rows.
+
+    ``values`` is the caller's own array. Rows of a trimmed or strided one are subtracted into
+    a new contiguous array, the layout every product of an update reads.
+    """
+    if values.flags.c_contiguous:
+        values -= part
+        return values
+    return values - part
 
 
 def _summed(total: Optional[np.ndarray], part: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@
 from ctid_ros import EstimationError, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
+from ctid_ros.core.simulation import responses
 from ctid_ros.estimation.regressors import is_stable, SignalBank
 import numpy as np
 import pytest
@@ -83,6 +84,30 @@ def test_error_decomposition_for_denominator_parameters_is_second_order_in_ts():
     assert errors[0] < 1e-3
     for coarse, fine in zip(errors, errors[1:]):
         assert coarse / fine == pytest.approx(4.0, rel=0.05)
+
+
+@pytest.mark.parametrize('text,theta', [
+    # k moves N and D, m and d only D: the filtered output is taken from the input's rows.
+    ('k/(m*s**2 + d*s + k)', {'m': 1.0, 'd': 3.0, 'k': 20.0}),
+    # Every parameter moves D alone: the input gives no rows.
+    ('1/(m*s**2 + d*s + k)', {'m': 1.0, 'd': 3.0, 'k': 20.0}),
+    # T moves D alone, K and b only N: the filtered output goes to some rows only.
+    ('K*(b*s + 1)/(T*s**2 + 2*s + 1)', {'K': 2.0, 'b': 0.5, 'T': 0.4}),
+])
+def test_regressors_are_their_definition(text, theta):
+    # phi_i = dN_i/D u - dD_i/D y (u held, y first-order hold), against core's own responses.
+    model = Model(text)
+    ts = 0.01
+    u = prbs(9, 4)[:2000]
+    y = np.sin(0.01 * np.arange(u.size)) + 0.1 * u
+    coefficients = model.coefficients(model.vector(theta))
+    phi = SignalBank(model, u, y, ts).linearize(coefficients).phi
+    den = coefficients.den
+    for index in range(len(theta)):
+        expected = responses([coefficients.num_jacobian[index, 0]], den, u, ts)[0] - \
+            responses([coefficients.den_jacobian[index]], den, y, ts, intersample='foh')[0]
+        np.testing.assert_allclose(phi[:, index], expected, rtol=0,
+                                   atol=1e-10 * np.max(np.abs(expected)))
 
 
 def test_output_is_the_model_simulation_and_regressors_are_optional():
