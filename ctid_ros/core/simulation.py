@@ -767,10 +767,13 @@ class StateResponse:
             else:
                 rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
                 rows, feeds = np.asarray(rows), np.asarray(feeds)
-        if feeds.any():
-            return self.mapped(rows) + feeds[:, None] * self._held      # np.outer's product
-        # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
-        return np.ascontiguousarray(self.mapped(rows))
+        # The real part of complex modes copied out; any other map is a new array already.
+        out = np.ascontiguousarray(self.mapped(rows))
+        # The feedthrough only on the rows that have one (often one row of many, the highest
+        # power of a state-variable filter): the others would add zeros.
+        for index in np.flatnonzero(feeds).tolist():
+            out[index] += feeds[index] * self._held
+        return out
 
 
 def _product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
