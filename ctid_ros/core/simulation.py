@@ -39,8 +39,8 @@ from scipy import linalg
 from scipy.linalg import blas, lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
-           'all_finite', 'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses',
-           'shifted', 'skew_delay', 'skew_extended']
+           'all_finite', 'all_pole', 'filter_responses', 'polynomial_roots', 'recursions',
+           'response', 'responses', 'shifted', 'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
 # Discretisations kept for every caller (:meth:`ContinuousFilter.discretize`), latest last.
@@ -650,16 +650,7 @@ class StateResponse:
     """
 
     def __init__(self, discrete: DiscreteFilter, values: np.ndarray):
-        self._continuous = discrete.continuous
-        self._count = values.shape[0]
-        self._discrete = discrete
-        self._values = values
-        self._held_values: Optional[np.ndarray] = None
-        self._modes = None
-        self._discrete_modes: Optional[_DiscreteModes] = None
-        self._signals: Optional[np.ndarray] = None
-        self._chains: Optional[np.ndarray] = None
-        self._padded: Optional[np.ndarray] = None
+        self._start(discrete, values)
         if self._continuous.order:
             if discrete.modes is not None:
                 # Padded to whole blocks: the recursions read them without another copy.
@@ -680,6 +671,29 @@ class StateResponse:
                 signals = _sampled_rows(values, drive)
                 self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
                                      self._continuous.repeated_roots)
+
+    def _start(self, discrete: DiscreteFilter, values: np.ndarray) -> None:
+        self._continuous = discrete.continuous
+        self._count = values.shape[0]
+        self._discrete = discrete
+        self._values = values
+        self._held_values: Optional[np.ndarray] = None
+        # A response of the same delayed input whose held values this one reads.
+        self._held_by: Optional[StateResponse] = None
+        self._modes = None
+        self._discrete_modes: Optional[_DiscreteModes] = None
+        self._signals: Optional[np.ndarray] = None
+        self._chains: Optional[np.ndarray] = None
+        self._padded: Optional[np.ndarray] = None
+
+    @classmethod
+    def _of_modes(cls, discrete: DiscreteFilter, values: np.ndarray, modes: '_Modes',
+                  held_by: Optional['StateResponse']) -> 'StateResponse':
+        """Return the response whose modes were run already (:func:`filter_responses`)."""
+        response = cls.__new__(cls)
+        response._start(discrete, values)
+        response._modes, response._held_by = modes, held_by
+        return response
 
     def squared_outputs(self, numerators: np.ndarray) -> Optional[np.ndarray]:
         """
@@ -741,7 +755,8 @@ class StateResponse:
     def _held(self) -> np.ndarray:
         # The delayed input itself, for feedthroughs only: a strictly proper model never asks.
         if self._held_values is None:
-            self._held_values = self._discrete.delayed_input(self._values)
+            self._held_values = self._discrete.delayed_input(self._values) \
+                if self._held_by is None else self._held_by._held
         return self._held_values
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
@@ -776,18 +791,19 @@ class StateResponse:
         return out
 
 
-def _product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+def _product(left: np.ndarray, right: np.ndarray, out: Optional[np.ndarray] = None
+             ) -> np.ndarray:
     """
     Return ``left @ right``; for one real row of ``right``, as the broadcast product.
 
     A sum of one term is that product, which numpy's matmul forms several times slower (one
     mode of a first-order model, one input sample driving the modes, on every simulation and
     sensitivity). A complex ``left`` times the real row is the same product too: the zero
-    imaginary part adds nothing.
+    imaginary part adds nothing. ``out``, if given, receives the product and is returned.
     """
     if right.shape[0] == 1 and right.dtype.kind == 'f':
-        return left * right
-    return left @ right
+        return np.multiply(left, right, out=out)
+    return np.matmul(left, right, out=out)
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
@@ -1147,8 +1163,14 @@ def recursions(poles: np.ndarray, values: np.ndarray,
 
 
 def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray],
-                blocks: Optional[np.ndarray]) -> np.ndarray:
-    """:func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known."""
+                blocks: Optional[np.ndarray], alone: bool = False) -> np.ndarray:
+    """
+    :func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known.
+
+    ``alone``: each row runs in blocks or as a substitution as it would if it were the only
+    row (its own size, pole and values decide), so that its values do not depend on the rows
+    run with it: rows of several filters run together give each filter's values alone.
+    """
     poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
@@ -1159,9 +1181,16 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
         values = values.astype(dtype, copy=False)
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are array methods, without numpy's dispatch.
-        if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
-                all_finite(values):
-            return _blocked_recursions(poles.astype(dtype, copy=False), values, out, blocks)
+        if _blocked_size(1 if alone else rows, length, complex_valued):
+            if abs(poles).max() <= 1.0 and all_finite(values):
+                return _blocked_recursions(poles.astype(dtype, copy=False), values, out,
+                                           blocks, alone)
+            if alone and rows > 1:
+                # Some row would not run in blocks alone: every row decides for itself.
+                parts = [_recursions(poles[index:index + 1], values[index:index + 1],
+                                     None if out is None else out[index:index + 1], None)
+                         for index in range(rows)]
+                return out if out is not None else np.concatenate(parts)
         result = _banded_recursions(poles, values, complex_valued)
     if out is None:
         return result
@@ -1219,7 +1248,8 @@ def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
                         out: Optional[np.ndarray] = None,
-                        out_blocks: Optional[np.ndarray] = None) -> np.ndarray:
+                        out_blocks: Optional[np.ndarray] = None,
+                        alone: bool = False) -> np.ndarray:
     """
     :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
@@ -1231,7 +1261,8 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
     type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
     Rows of whole blocks are read and written (``out``, or its blocks as one view
-    ``out_blocks``) in place, others through zero-padded copies.
+    ``out_blocks``) in place, others through zero-padded copies. ``alone``: the carried
+    recursion of each row is run as if that row were the only one (:func:`_recursions`).
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
@@ -1254,8 +1285,8 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
         np.matmul(row, matrix, out=into)
     # The state at each block's end, carried over blocks (blocked again if they are many).
     complex_valued = values.dtype.kind == 'c'
-    carried = recursions(powers[:, _BLOCK], ends) \
-        if _blocked_size(rows, blocks, complex_valued) else \
+    carried = _recursions(powers[:, _BLOCK], ends, None, None, alone) \
+        if _blocked_size(1 if alone else rows, blocks, complex_valued) else \
         _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
     if isinstance(response, list):
         for into, state, power in zip(response, carried, powers):
@@ -1597,16 +1628,42 @@ class _Chain:
         :meth:`_DiscreteModes.run` takes them: each state's recursion writes one sample on
         into its row of the trajectories in place.
         """
-        driving = _product(self.drives.T, signals)
-        rows, length = driving.shape
-        trajectories, blocks = _trajectories(rows, length)
-        pole = self.transition[:1, 0]
-        for m in range(rows):
-            if m:
-                driving[m] += self.transition[m, :m] @ trajectories[:m, :length]
-            _recursions(pole, driving[m:m + 1], trajectories[m:m + 1, 1:],
-                        None if blocks is None else blocks[m:m + 1])
-        return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count], rows)
+        return self.modes(_run_chains([self], signals), count)
+
+    def modes(self, trajectories: np.ndarray, count: int) -> '_Modes':
+        """Return the modes of the chain states ``trajectories`` (rows of :func:`_run_chains`)."""
+        return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count],
+                                trajectories.shape[0])
+
+
+def _run_chains(chains: Sequence[_Chain], signals: np.ndarray) -> np.ndarray:
+    """
+    Run chains of one order over the same signals of their (common) :attr:`_Chain.samples`.
+
+    Returns each chain's state trajectories, one sample longer than the signals, in rows
+    ``i n .. i n + n - 1`` for chain ``i``. State ``m`` of every chain runs in one call of the
+    recursions (rows ``m``, ``n + m``, ...), each row chosen as if run alone
+    (:func:`_recursions`): the values of one chain at a time.
+    """
+    order = chains[0].transition.shape[0]
+    length = signals.shape[1]
+    rows = len(chains) * order
+    if len(chains) == 1:
+        driving = _product(chains[0].drives.T, signals)
+    else:
+        driving = np.empty((rows, length))
+        for first, chain in zip(range(0, rows, order), chains):
+            _product(chain.drives.T, signals, driving[first:first + order])
+    trajectories, blocks = _trajectories(rows, length)
+    poles = np.array([chain.transition[0, 0] for chain in chains])
+    for m in range(order):
+        if m:
+            for first, chain in zip(range(0, rows, order), chains):
+                driving[first + m] += chain.transition[m, :m] @ \
+                    trajectories[first:first + m, :length]
+        _recursions(poles, driving[m::order], trajectories[m::order, 1:],
+                    None if blocks is None else blocks[m::order], True)
+    return trajectories
 
 
 def _condition(matrix: np.ndarray) -> float:
@@ -1759,3 +1816,49 @@ def responses(nums: List, den, values, ts: float, *, delay: float = 0.0,
         raise DataError(f'signal must be 1-D, got shape {values.shape}')
     discrete = ContinuousFilter(den).discretize(ts, delay, intersample)
     return discrete.outputs(values, nums)
+
+
+def filter_responses(filters: Sequence[DiscreteFilter], values: np.ndarray
+                     ) -> List[StateResponse]:
+    """
+    Return ``filter.response(values)`` of every filter, the chains among them run together.
+
+    Filters that are repeated-root chains of one order over the same input samples and
+    feedthrough (one dead time and hold), such as the state-variable filters ``1/(p + lam)^n``
+    of several ``lam``, run each chain state of all of them through one call of the recursions
+    (:func:`_run_chains`), on the signal sampled once, and share its delayed, held input: the
+    work around each recursion is paid once per state, not once per filter and state. The
+    values are those of one filter at a time (each row's recursion is chosen as alone).
+    Other filters are run one at a time.
+
+    Parameters
+    ----------
+    filters : sequence of DiscreteFilter
+        The filters, in the order of the responses returned.
+    values : numpy.ndarray
+        The sampled signal (N,).
+
+    Returns
+    -------
+    list of StateResponse
+        One response per filter.
+
+    """
+    filters = list(filters)
+    chains = [discrete.chain for discrete in filters]
+    first = chains[0] if chains else None
+    if len(filters) < 2 or not all(
+            chain is not None and chain.samples == first.samples and
+            chain.drives.shape == first.drives.shape and discrete.feed == filters[0].feed
+            for discrete, chain in zip(filters, chains)):
+        return [discrete.response(values) for discrete in filters]
+    count = values.shape[0]
+    signals = _sampled_rows(values, first.samples, -(-count // _BLOCK) * _BLOCK)
+    trajectories = _run_chains(chains, signals)
+    order = first.transition.shape[0]
+    responses: List[StateResponse] = []
+    for index, (discrete, chain) in enumerate(zip(filters, chains)):
+        modes = chain.modes(trajectories[index * order:(index + 1) * order], count)
+        responses.append(StateResponse._of_modes(discrete, values, modes,
+                                                 responses[0] if responses else None))
+    return responses
