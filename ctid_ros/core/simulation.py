@@ -1648,13 +1648,13 @@ def _run_chains(chains: Sequence[_Chain], signals: np.ndarray) -> np.ndarray:
     order = chains[0].transition.shape[0]
     length = signals.shape[1]
     rows = len(chains) * order
-    if len(chains) == 1:
-        driving = _product(chains[0].drives.T, signals)
-    else:
-        driving = np.empty((rows, length))
-        for first, chain in zip(range(0, rows, order), chains):
-            _product(chain.drives.T, signals, driving[first:first + order])
     trajectories, blocks = _trajectories(rows, length)
+    # Each state's driving is formed in its own row, sample k at k, and run one sample on in
+    # place (the recursions read it before they write): no second array of the trajectories'
+    # size (on a long record a fresh mapping of memory and its page faults).
+    driving = trajectories[:, :length]
+    for first, chain in zip(range(0, rows, order), chains):
+        _product(chain.drives.T, signals, driving[first:first + order])
     poles = np.array([chain.transition[0, 0] for chain in chains])
     for m in range(order):
         if m:
@@ -1663,6 +1663,7 @@ def _run_chains(chains: Sequence[_Chain], signals: np.ndarray) -> np.ndarray:
                     trajectories[first:first + m, :length]
         _recursions(poles, driving[m::order], trajectories[m::order, 1:],
                     None if blocks is None else blocks[m::order], True)
+        trajectories[m::order, 0] = 0.0                                 # from rest
     return trajectories
 
 
