@@ -631,10 +631,17 @@ class DiscreteFilter:
         i.e. for a held input whose dead time is a whole number of samples.
         """
         feed = self.feed_left if left and self.feed_left is not None else self.feed
-        result = np.zeros(values.shape[0])
+        result = None
+        # Each sample's signal is a new array, scaled in place; the first is the sum so far
+        # (0 + x is x): no zero-filled sum and product per term.
         for sample, weight in feed.items():
-            result += weight * _sampled(values, sample)
-        return result
+            term = _sampled(values, sample).astype(float, copy=False)
+            term *= weight
+            if result is None:
+                result = term
+            else:
+                result += term
+        return np.zeros(values.shape[0]) if result is None else result
 
     def outputs(self, values: np.ndarray, numerators: Iterable) -> np.ndarray:
         """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
