@@ -1052,7 +1052,9 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
         _blocked_pairs(pairs, inputs, coefficients, out[real:],
                        None if blocks is None else blocks[real:])
         return
-    runs = recursions(pairs, _product(coefficients, inputs))
+    # The complex drivings run in place: no second complex array of the record's length.
+    runs = _product(coefficients, inputs)
+    recursions(pairs, runs, runs)
     out[real::2] = runs.real
     out[real + 1::2] = runs.imag
 
