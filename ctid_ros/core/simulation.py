@@ -28,10 +28,10 @@ Python loop runs per sample.
 
 import cmath
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property, lru_cache, partial
 import math
 import threading
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
@@ -1547,10 +1547,11 @@ class _DiscreteModes:
         real = self.continuous.real
         drives = self.drives.T
         if real == drives.shape[0]:
-            return self._run_form(_product(drives.real, signals), signals, _NO_PAIRS)
+            return self._run_form(partial(_product, drives.real, signals), signals, _NO_PAIRS)
         if signals.shape[1] < _BLOCKED_MIN_PAIR_LENGTH:
             return self._run_complex(_product(drives, signals), count)
-        return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
+        return self._run_form(partial(_product, drives[:real].real, signals), signals,
+                              drives[real:])
 
     def _run_complex(self, driving: np.ndarray, count: int,
                      below: Optional[np.ndarray] = None) -> np.ndarray:
@@ -1575,20 +1576,32 @@ class _DiscreteModes:
             trajectories[kept:] = below
         return trajectories
 
-    def _run_form(self, driving: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
+    def _run_form(self, driving: Union[np.ndarray, Callable[[np.ndarray], object]],
+                  inputs: np.ndarray, coefficients: np.ndarray,
                   below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
 
         ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
         at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
+        ``driving``: the real modes' drives ``d``, or a function that writes them into the
+        rows it is given: the real modes' own rows, sample k at k, then run in place (the
+        recursions read a row before they write it), without an array of the drives' size.
         ``below``: rows of the result's length copied under the modes' rows.
         """
-        rows = 2 * self.poles.size - self.continuous.real
+        real = self.continuous.real
+        rows = 2 * self.poles.size - real
+        length = inputs.shape[1]
         trajectories, blocks = _trajectories(rows + (0 if below is None else below.shape[0]),
-                                             inputs.shape[1])
-        _form_recursions(self.poles, self.continuous.real, driving, inputs, coefficients,
+                                             length)
+        formed = callable(driving)
+        if formed:
+            driving(trajectories[:real, :length])
+            driving = trajectories[:real, :length]
+        _form_recursions(self.poles, real, driving, inputs, coefficients,
                          trajectories[:rows, 1:], None if blocks is None else blocks[:rows])
+        if formed:
+            trajectories[:real, 0] = 0.0                                # from rest
         if below is not None:
             trajectories[rows:] = below
         return trajectories
