@@ -22,8 +22,10 @@ balanced, discretised with one matrix exponential per sub-interval, and propagat
 ``scipy.signal.lfilter``, for all modes at once, or block products of pole powers on long
 records). On long records the uncoupled modes are held in real form, a complex mode as its real
 and imaginary parts (:func:`_form_recursions`), so that output maps are real products.
-No high-order difference equation is ever formed, so precision holds up to high orders, and no
-Python loop runs per sample.
+A repeated root (the state-variable filters ``1/(p + lam)^n``) runs as one real Jordan chain,
+and several such filters over one signal run each chain state in one call
+(:func:`filter_responses`). No high-order difference equation is ever formed, so precision
+holds up to high orders, and no Python loop runs per sample.
 """
 
 import cmath
