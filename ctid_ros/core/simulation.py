@@ -1231,6 +1231,9 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
+# The largest temporary (bytes) the blocked recursions form in one piece: glibc's default
+# threshold for mapping a block from the system (and faulting its pages in on each use).
+_TEMPORARY_SIZE = 128 * 1024
 # Real samples per banded solve of recursions (complex ones: half as many).
 _BAND_SIZE = 16384
 # Block length of the blocked recursions, the shortest row and the fewest samples they run.
@@ -1303,10 +1306,15 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
         for into, state, power in zip(response, carried, powers):
             into[1:] += state[:-1, None] * power[1:]
         return out
+    # The carried states' products, a temporary of the response's size, are formed a few
+    # rows at a time: a larger one is memory glibc maps from the system afresh on every run.
+    step = max(1, _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize))
+    into = response if in_place else whole
+    for first in range(0, rows, step):
+        last = first + step
+        into[first:last, 1:, :] += carried[first:last, :-1, None] * powers[first:last, None, 1:]
     if in_place:
-        response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
         return out
-    whole[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
     result = whole.reshape(rows, -1)[:, :length]
     if out is None:
         return result
