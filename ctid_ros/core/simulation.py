@@ -22,16 +22,18 @@ balanced, discretised with one matrix exponential per sub-interval, and propagat
 ``scipy.signal.lfilter``, for all modes at once, or block products of pole powers on long
 records). On long records the uncoupled modes are held in real form, a complex mode as its real
 and imaginary parts (:func:`_form_recursions`), so that output maps are real products.
-No high-order difference equation is ever formed, so precision holds up to high orders, and no
-Python loop runs per sample.
+A repeated root (the state-variable filters ``1/(p + lam)^n``) runs as one real Jordan chain,
+and several such filters over one signal run each chain state in one call
+(:func:`filter_responses`). No high-order difference equation is ever formed, so precision
+holds up to high orders, and no Python loop runs per sample.
 """
 
 import cmath
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property, lru_cache, partial
 import math
 import threading
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
@@ -39,8 +41,8 @@ from scipy import linalg
 from scipy.linalg import blas, lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
-           'all_finite', 'all_pole', 'polynomial_roots', 'recursions', 'response', 'responses',
-           'shifted', 'skew_delay', 'skew_extended']
+           'all_finite', 'all_pole', 'filter_responses', 'polynomial_roots', 'recursions',
+           'response', 'responses', 'shifted', 'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
 # Discretisations kept for every caller (:meth:`ContinuousFilter.discretize`), latest last.
@@ -631,10 +633,17 @@ class DiscreteFilter:
         i.e. for a held input whose dead time is a whole number of samples.
         """
         feed = self.feed_left if left and self.feed_left is not None else self.feed
-        result = np.zeros(values.shape[0])
+        result = None
+        # Each sample's signal is a new array, scaled in place; the first is the sum so far
+        # (0 + x is x): no zero-filled sum and product per term.
         for sample, weight in feed.items():
-            result += weight * _sampled(values, sample)
-        return result
+            term = _sampled(values, sample).astype(float, copy=False)
+            term *= weight
+            if result is None:
+                result = term
+            else:
+                result += term
+        return np.zeros(values.shape[0]) if result is None else result
 
     def outputs(self, values: np.ndarray, numerators: Iterable) -> np.ndarray:
         """``N_q(s)/D(s)`` applied to the signal for every numerator, shape (q, N)."""
@@ -650,16 +659,7 @@ class StateResponse:
     """
 
     def __init__(self, discrete: DiscreteFilter, values: np.ndarray):
-        self._continuous = discrete.continuous
-        self._count = values.shape[0]
-        self._discrete = discrete
-        self._values = values
-        self._held_values: Optional[np.ndarray] = None
-        self._modes = None
-        self._discrete_modes: Optional[_DiscreteModes] = None
-        self._signals: Optional[np.ndarray] = None
-        self._chains: Optional[np.ndarray] = None
-        self._padded: Optional[np.ndarray] = None
+        self._start(discrete, values)
         if self._continuous.order:
             if discrete.modes is not None:
                 # Padded to whole blocks: the recursions read them without another copy.
@@ -680,6 +680,29 @@ class StateResponse:
                 signals = _sampled_rows(values, drive)
                 self._modes = _Modes(discrete.transition, signals, np.array(list(drive.values())),
                                      self._continuous.repeated_roots)
+
+    def _start(self, discrete: DiscreteFilter, values: np.ndarray) -> None:
+        self._continuous = discrete.continuous
+        self._count = values.shape[0]
+        self._discrete = discrete
+        self._values = values
+        self._held_values: Optional[np.ndarray] = None
+        # A response of the same delayed input whose held values this one reads.
+        self._held_by: Optional[StateResponse] = None
+        self._modes = None
+        self._discrete_modes: Optional[_DiscreteModes] = None
+        self._signals: Optional[np.ndarray] = None
+        self._chains: Optional[np.ndarray] = None
+        self._padded: Optional[np.ndarray] = None
+
+    @classmethod
+    def _of_modes(cls, discrete: DiscreteFilter, values: np.ndarray, modes: '_Modes',
+                  held_by: Optional['StateResponse']) -> 'StateResponse':
+        """Return the response whose modes were run already (:func:`filter_responses`)."""
+        response = cls.__new__(cls)
+        response._start(discrete, values)
+        response._modes, response._held_by = modes, held_by
+        return response
 
     def squared_outputs(self, numerators: np.ndarray) -> Optional[np.ndarray]:
         """
@@ -741,7 +764,8 @@ class StateResponse:
     def _held(self) -> np.ndarray:
         # The delayed input itself, for feedthroughs only: a strictly proper model never asks.
         if self._held_values is None:
-            self._held_values = self._discrete.delayed_input(self._values)
+            self._held_values = self._discrete.delayed_input(self._values) \
+                if self._held_by is None else self._held_by._held
         return self._held_values
 
     def mapped(self, rows: np.ndarray) -> np.ndarray:
@@ -767,24 +791,28 @@ class StateResponse:
             else:
                 rows, feeds = zip(*(self._continuous.output_map(num) for num in numerators))
                 rows, feeds = np.asarray(rows), np.asarray(feeds)
-        if feeds.any():
-            return self.mapped(rows) + feeds[:, None] * self._held      # np.outer's product
-        # Strictly proper: no feedthrough to add (the real part of complex modes copied out).
-        return np.ascontiguousarray(self.mapped(rows))
+        # The real part of complex modes copied out; any other map is a new array already.
+        out = np.ascontiguousarray(self.mapped(rows))
+        # The feedthrough only on the rows that have one (often one row of many, the highest
+        # power of a state-variable filter): the others would add zeros.
+        for index in np.flatnonzero(feeds).tolist():
+            out[index] += feeds[index] * self._held
+        return out
 
 
-def _product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+def _product(left: np.ndarray, right: np.ndarray, out: Optional[np.ndarray] = None
+             ) -> np.ndarray:
     """
     Return ``left @ right``; for one real row of ``right``, as the broadcast product.
 
     A sum of one term is that product, which numpy's matmul forms several times slower (one
     mode of a first-order model, one input sample driving the modes, on every simulation and
     sensitivity). A complex ``left`` times the real row is the same product too: the zero
-    imaginary part adds nothing.
+    imaginary part adds nothing. ``out``, if given, receives the product and is returned.
     """
     if right.shape[0] == 1 and right.dtype.kind == 'f':
-        return left * right
-    return left @ right
+        return np.multiply(left, right, out=out)
+    return np.matmul(left, right, out=out)
 
 
 def _propagate(transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
@@ -1026,7 +1054,9 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
         _blocked_pairs(pairs, inputs, coefficients, out[real:],
                        None if blocks is None else blocks[real:])
         return
-    runs = recursions(pairs, _product(coefficients, inputs))
+    # The complex drivings run in place: no second complex array of the record's length.
+    runs = _product(coefficients, inputs)
+    recursions(pairs, runs, runs)
     out[real::2] = runs.real
     out[real + 1::2] = runs.imag
 
@@ -1144,8 +1174,14 @@ def recursions(poles: np.ndarray, values: np.ndarray,
 
 
 def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray],
-                blocks: Optional[np.ndarray]) -> np.ndarray:
-    """:func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known."""
+                blocks: Optional[np.ndarray], alone: bool = False) -> np.ndarray:
+    """
+    :func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known.
+
+    ``alone``: each row runs in blocks or as a substitution as it would if it were the only
+    row (its own size, pole and values decide), so that its values do not depend on the rows
+    run with it: rows of several filters run together give each filter's values alone.
+    """
     poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
@@ -1156,9 +1192,16 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
         values = values.astype(dtype, copy=False)
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are array methods, without numpy's dispatch.
-        if _blocked_size(rows, length, complex_valued) and abs(poles).max() <= 1.0 and \
-                all_finite(values):
-            return _blocked_recursions(poles.astype(dtype, copy=False), values, out, blocks)
+        if _blocked_size(1 if alone else rows, length, complex_valued):
+            if abs(poles).max() <= 1.0 and all_finite(values):
+                return _blocked_recursions(poles.astype(dtype, copy=False), values, out,
+                                           blocks, alone)
+            if alone and rows > 1:
+                # Some row would not run in blocks alone: every row decides for itself.
+                parts = [_recursions(poles[index:index + 1], values[index:index + 1],
+                                     None if out is None else out[index:index + 1], None)
+                         for index in range(rows)]
+                return out if out is not None else np.concatenate(parts)
         result = _banded_recursions(poles, values, complex_valued)
     if out is None:
         return result
@@ -1188,6 +1231,9 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
+# The largest temporary (bytes) the blocked recursions form in one piece: glibc's default
+# threshold for mapping a block from the system (and faulting its pages in on each use).
+_TEMPORARY_SIZE = 128 * 1024
 # Real samples per banded solve of recursions (complex ones: half as many).
 _BAND_SIZE = 16384
 # Block length of the blocked recursions, the shortest row and the fewest samples they run.
@@ -1216,7 +1262,8 @@ def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
                         out: Optional[np.ndarray] = None,
-                        out_blocks: Optional[np.ndarray] = None) -> np.ndarray:
+                        out_blocks: Optional[np.ndarray] = None,
+                        alone: bool = False) -> np.ndarray:
     """
     :func:`recursions` for poles of magnitude at most 1, in blocks of :data:`_BLOCK`.
 
@@ -1228,7 +1275,8 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     round no worse than the substitution's. Real or complex: ``poles`` and ``values`` of one
     type (a complex mode's substitution is a chain of complex multiply-adds, longer still).
     Rows of whole blocks are read and written (``out``, or its blocks as one view
-    ``out_blocks``) in place, others through zero-padded copies.
+    ``out_blocks``) in place, others through zero-padded copies. ``alone``: the carried
+    recursion of each row is run as if that row were the only one (:func:`_recursions`).
     """
     rows, length = values.shape
     blocks = -(-length // _BLOCK)
@@ -1251,17 +1299,22 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
         np.matmul(row, matrix, out=into)
     # The state at each block's end, carried over blocks (blocked again if they are many).
     complex_valued = values.dtype.kind == 'c'
-    carried = recursions(powers[:, _BLOCK], ends) \
-        if _blocked_size(rows, blocks, complex_valued) else \
+    carried = _recursions(powers[:, _BLOCK], ends, None, None, alone) \
+        if _blocked_size(1 if alone else rows, blocks, complex_valued) else \
         _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
     if isinstance(response, list):
         for into, state, power in zip(response, carried, powers):
             into[1:] += state[:-1, None] * power[1:]
         return out
+    # The carried states' products, a temporary of the response's size, are formed a few
+    # rows at a time: a larger one is memory glibc maps from the system afresh on every run.
+    step = max(1, _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize))
+    into = response if in_place else whole
+    for first in range(0, rows, step):
+        last = first + step
+        into[first:last, 1:, :] += carried[first:last, :-1, None] * powers[first:last, None, 1:]
     if in_place:
-        response[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
         return out
-    whole[:, 1:, :] += carried[:, :-1, None] * powers[:, None, 1:]
     result = whole.reshape(rows, -1)[:, :length]
     if out is None:
         return result
@@ -1504,10 +1557,11 @@ class _DiscreteModes:
         real = self.continuous.real
         drives = self.drives.T
         if real == drives.shape[0]:
-            return self._run_form(_product(drives.real, signals), signals, _NO_PAIRS)
+            return self._run_form(partial(_product, drives.real, signals), signals, _NO_PAIRS)
         if signals.shape[1] < _BLOCKED_MIN_PAIR_LENGTH:
             return self._run_complex(_product(drives, signals), count)
-        return self._run_form(_product(drives[:real].real, signals), signals, drives[real:])
+        return self._run_form(partial(_product, drives[:real].real, signals), signals,
+                              drives[real:])
 
     def _run_complex(self, driving: np.ndarray, count: int,
                      below: Optional[np.ndarray] = None) -> np.ndarray:
@@ -1532,20 +1586,32 @@ class _DiscreteModes:
             trajectories[kept:] = below
         return trajectories
 
-    def _run_form(self, driving: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
+    def _run_form(self, driving: Union[np.ndarray, Callable[[np.ndarray], object]],
+                  inputs: np.ndarray, coefficients: np.ndarray,
                   below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
 
         ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
         at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
+        ``driving``: the real modes' drives ``d``, or a function that writes them into the
+        rows it is given: the real modes' own rows, sample k at k, then run in place (the
+        recursions read a row before they write it), without an array of the drives' size.
         ``below``: rows of the result's length copied under the modes' rows.
         """
-        rows = 2 * self.poles.size - self.continuous.real
+        real = self.continuous.real
+        rows = 2 * self.poles.size - real
+        length = inputs.shape[1]
         trajectories, blocks = _trajectories(rows + (0 if below is None else below.shape[0]),
-                                             inputs.shape[1])
-        _form_recursions(self.poles, self.continuous.real, driving, inputs, coefficients,
+                                             length)
+        formed = callable(driving)
+        if formed:
+            driving(trajectories[:real, :length])
+            driving = trajectories[:real, :length]
+        _form_recursions(self.poles, real, driving, inputs, coefficients,
                          trajectories[:rows, 1:], None if blocks is None else blocks[:rows])
+        if formed:
+            trajectories[:real, 0] = 0.0                                # from rest
         if below is not None:
             trajectories[rows:] = below
         return trajectories
@@ -1594,16 +1660,43 @@ class _Chain:
         :meth:`_DiscreteModes.run` takes them: each state's recursion writes one sample on
         into its row of the trajectories in place.
         """
-        driving = _product(self.drives.T, signals)
-        rows, length = driving.shape
-        trajectories, blocks = _trajectories(rows, length)
-        pole = self.transition[:1, 0]
-        for m in range(rows):
-            if m:
-                driving[m] += self.transition[m, :m] @ trajectories[:m, :length]
-            _recursions(pole, driving[m:m + 1], trajectories[m:m + 1, 1:],
-                        None if blocks is None else blocks[m:m + 1])
-        return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count], rows)
+        return self.modes(_run_chains([self], signals), count)
+
+    def modes(self, trajectories: np.ndarray, count: int) -> '_Modes':
+        """Return the modes of the chain states ``trajectories`` (rows of :func:`_run_chains`)."""
+        return _Modes.uncoupled(self.basis, None, None, trajectories[:, :count],
+                                trajectories.shape[0])
+
+
+def _run_chains(chains: Sequence[_Chain], signals: np.ndarray) -> np.ndarray:
+    """
+    Run chains of one order over the same signals of their (common) :attr:`_Chain.samples`.
+
+    Returns each chain's state trajectories, one sample longer than the signals, in rows
+    ``i n .. i n + n - 1`` for chain ``i``. State ``m`` of every chain runs in one call of the
+    recursions (rows ``m``, ``n + m``, ...), each row chosen as if run alone
+    (:func:`_recursions`): the values of one chain at a time.
+    """
+    order = chains[0].transition.shape[0]
+    length = signals.shape[1]
+    rows = len(chains) * order
+    trajectories, blocks = _trajectories(rows, length)
+    # Each state's driving is formed in its own row, sample k at k, and run one sample on in
+    # place (the recursions read it before they write): no second array of the trajectories'
+    # size (on a long record a fresh mapping of memory and its page faults).
+    driving = trajectories[:, :length]
+    for first, chain in zip(range(0, rows, order), chains):
+        _product(chain.drives.T, signals, driving[first:first + order])
+    poles = np.array([chain.transition[0, 0] for chain in chains])
+    for m in range(order):
+        if m:
+            for first, chain in zip(range(0, rows, order), chains):
+                driving[first + m] += chain.transition[m, :m] @ \
+                    trajectories[first:first + m, :length]
+        _recursions(poles, driving[m::order], trajectories[m::order, 1:],
+                    None if blocks is None else blocks[m::order], True)
+        trajectories[m::order, 0] = 0.0                                 # from rest
+    return trajectories
 
 
 def _condition(matrix: np.ndarray) -> float:
@@ -1756,3 +1849,49 @@ def responses(nums: List, den, values, ts: float, *, delay: float = 0.0,
         raise DataError(f'signal must be 1-D, got shape {values.shape}')
     discrete = ContinuousFilter(den).discretize(ts, delay, intersample)
     return discrete.outputs(values, nums)
+
+
+def filter_responses(filters: Sequence[DiscreteFilter], values: np.ndarray
+                     ) -> List[StateResponse]:
+    """
+    Return ``filter.response(values)`` of every filter, the chains among them run together.
+
+    Filters that are repeated-root chains of one order over the same input samples and
+    feedthrough (one dead time and hold), such as the state-variable filters ``1/(p + lam)^n``
+    of several ``lam``, run each chain state of all of them through one call of the recursions
+    (:func:`_run_chains`), on the signal sampled once, and share its delayed, held input: the
+    work around each recursion is paid once per state, not once per filter and state. The
+    values are those of one filter at a time (each row's recursion is chosen as alone).
+    Other filters are run one at a time.
+
+    Parameters
+    ----------
+    filters : sequence of DiscreteFilter
+        The filters, in the order of the responses returned.
+    values : numpy.ndarray
+        The sampled signal (N,).
+
+    Returns
+    -------
+    list of StateResponse
+        One response per filter.
+
+    """
+    filters = list(filters)
+    chains = [discrete.chain for discrete in filters]
+    first = chains[0] if chains else None
+    if len(filters) < 2 or not all(
+            chain is not None and chain.samples == first.samples and
+            chain.drives.shape == first.drives.shape and discrete.feed == filters[0].feed
+            for discrete, chain in zip(filters, chains)):
+        return [discrete.response(values) for discrete in filters]
+    count = values.shape[0]
+    signals = _sampled_rows(values, first.samples, -(-count // _BLOCK) * _BLOCK)
+    trajectories = _run_chains(chains, signals)
+    order = first.transition.shape[0]
+    responses: List[StateResponse] = []
+    for index, (discrete, chain) in enumerate(zip(filters, chains)):
+        modes = chain.modes(trajectories[index * order:(index + 1) * order], count)
+        responses.append(StateResponse._of_modes(discrete, values, modes,
+                                                 responses[0] if responses else None))
+    return responses

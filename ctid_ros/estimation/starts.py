@@ -25,7 +25,7 @@ import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, shifted
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, filter_responses, shifted
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
@@ -283,6 +283,7 @@ def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.nd
 
     """
     best, chosen = None, None
+    filters.factors(tau)            # every filter's input parts in one pass, kept for select
     for index in range(filters.count):
         state = best_candidate(problem, distinct(equation_error_fits(
             problem, starts, free, tau, filters.select(index))), seen)
@@ -404,9 +405,12 @@ class StateVariableFilters:
         self._u_powers = powers[m::-1]
         self._bank, self._ts = problem.bank, data.ts
         self._filters = []
-        for lam in lams:
-            filter_of = (n, float(lam), data.ts)
-            y_parts = _filter_discretized(*filter_of, 0.0, 'foh').outputs(data.y, powers[::-1])
+        filters_of = [(n, float(lam), data.ts) for lam in lams]
+        # Every filter's y in one pass (filter_responses).
+        y_responses = filter_responses([_filter_discretized(*filter_of, 0.0, 'foh')
+                                        for filter_of in filters_of], data.y)
+        for filter_of, y_response in zip(filters_of, y_responses):
+            y_parts = y_response.outputs(powers[::-1])
             nuisance = []
             if problem.initial_state or problem.output_offset:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
@@ -430,15 +434,19 @@ class StateVariableFilters:
         delay = tau + bank.extra_delay
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
+        # The input parts of every filter that needs them, in one pass (filter_responses).
+        missing = [entry for entry in self._filters
+                   if (whole, fraction) not in entry[4] and fraction not in entry[3]]
+        parts = self._input_parts([entry[0] for entry in missing], fraction * ts)
+        for (_, _, _, by_fraction, _), part in zip(missing, parts):
+            if len(by_fraction) >= _REMEMBERED_FRACTIONS:
+                del by_fraction[next(iter(by_fraction))]
+            by_fraction[fraction] = part
         factors = []
         for filter_of, y_parts, nuisance, by_fraction, by_shift in self._filters:
             if (whole, fraction) in by_shift:
                 factors.append(by_shift[whole, fraction])
                 continue
-            if fraction not in by_fraction:
-                if len(by_fraction) >= _REMEMBERED_FRACTIONS:
-                    del by_fraction[next(iter(by_fraction))]
-                by_fraction[fraction] = self._input_parts(filter_of, fraction * ts)
             u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
             triangular = _triangular_factor(np.hstack(nuisance + [y_parts, -u_parts]))
             leading = sum(part.shape[1] for part in nuisance)
@@ -462,17 +470,22 @@ class StateVariableFilters:
         chosen._filters = self._filters[index:index + 1]
         return chosen
 
-    def _input_parts(self, filter_of: Tuple[int, float, float], delay: float) -> np.ndarray:
+    def _input_parts(self, filters_of: List[Tuple[int, float, float]], delay: float
+                     ) -> List[np.ndarray]:
         """
-        Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns.
+        Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns, for every filter.
 
-        ``filter_of`` is the filter's ``(order, lam, ts)``. The input is the one the simulations
-        run on (extended by a sample under an output skew, whose extra dead time ``delay``
-        includes): the caller drops the first row then.
+        ``filters_of`` are the filters' ``(order, lam, ts)``. The input is the one the
+        simulations run on (extended by a sample under an output skew, whose extra dead time
+        ``delay`` includes): the caller drops the first row then.
         """
-        discrete = _filter_discretized(*filter_of, delay, self._bank.intersample)
-        return np.vstack([discrete.outputs(channel, self._u_powers)
-                          for channel in self._bank.driving.T]).T
+        discretes = [_filter_discretized(*filter_of, delay, self._bank.intersample)
+                     for filter_of in filters_of]
+        channels = [[response.outputs(self._u_powers)
+                     for response in filter_responses(discretes, channel)]
+                    for channel in self._bank.driving.T]
+        return [np.vstack([outputs[index] for outputs in channels]).T
+                for index in range(len(discretes))]
 
 
 @lru_cache(maxsize=_SHARED_FILTERS)

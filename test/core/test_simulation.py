@@ -425,6 +425,39 @@ def test_repeated_root_runs_as_a_jordan_chain_equal_to_the_schur_form(monkeypatc
     np.testing.assert_allclose(chained, schur, rtol=0.0, atol=1e-11 * np.abs(schur).max())
 
 
+@pytest.mark.parametrize('count', [50, 600, 2000, 10220])
+@pytest.mark.parametrize('order', [2, 4])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'foh'), (0.0137, 'zoh')])
+def test_chains_run_together_give_each_filters_own_values(count, order, delay, intersample):
+    # Several state-variable filters over one signal in one pass: the values of each filter
+    # run alone, to the bit. The lengths put rows where several would run in blocks and one
+    # would not (600), and carried block states of one row below the blocked size (10220).
+    lams = np.geomspace(0.5, 300.0, 3)
+    filters = [ContinuousFilter(np.poly(np.full(order, -lam))).discretize(0.001, delay,
+                                                                          intersample)
+               for lam in lams]
+    values = np.random.default_rng(17).standard_normal(count)
+    numerators = [np.eye(order + 1)[order - j] for j in range(order + 1)]
+    together = simulation.filter_responses(filters, values)
+    assert len(together) == len(filters)
+    for discrete, joint in zip(filters, together):
+        np.testing.assert_array_equal(joint.outputs(numerators),
+                                      discrete.outputs(values, numerators))
+
+
+def test_filters_that_are_not_one_chain_kind_run_one_at_a_time():
+    values = np.random.default_rng(19).standard_normal(300)
+    filters = [ContinuousFilter(np.poly([-2.0, -2.0])).discretize(0.01),
+               ContinuousFilter(np.poly([-2.0, -2.0, -2.0])).discretize(0.01),
+               ContinuousFilter([1.0, 3.0]).discretize(0.01),
+               ContinuousFilter(np.poly([-2.0, -2.0])).discretize(0.01, 0.005)]
+    together = simulation.filter_responses(filters, values)
+    for discrete, joint in zip(filters, together):
+        np.testing.assert_array_equal(joint.outputs([np.ones(1)]),
+                                      discrete.outputs(values, [np.ones(1)]))
+    assert simulation.filter_responses([], values) == []
+
+
 def test_distinct_roots_are_not_taken_for_a_repeated_one():
     assert ContinuousFilter(np.poly([-1.0, -1.0 - 1e-6])).repeated_root is None
     assert ContinuousFilter(np.poly([-2.0, -2.0, -2.0])).repeated_root is not None
