@@ -61,6 +61,10 @@ _SQUARED_AMPLIFICATION_LIMIT = 1e6
 # Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
 # one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
 _CHAIN_MAX_ORDER = 8
+# The reductions behind ``ndarray.sum()`` and ``.max()`` (with axis None, the same values),
+# called directly: the methods reach them through a Python function of numpy's.
+_SUM = np.add.reduce
+_MAX = np.maximum.reduce
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -83,9 +87,10 @@ def all_finite(values: np.ndarray) -> bool:
     Return True if every value (real or complex) is finite.
 
     One sum instead of numpy's elementwise test and its reduction: a NaN or infinity makes
-    the sum so; only a sum that overflows is checked elementwise.
+    the sum so; only a sum that overflows is checked elementwise. The sum is the ufunc's
+    reduction itself, which ``values.sum()`` reaches through a Python wrapper.
     """
-    return cmath.isfinite(values.sum()) or bool(np.isfinite(values).all())
+    return cmath.isfinite(_SUM(values, None)) or bool(np.isfinite(values).all())
 
 
 def _check_intersample(intersample: str) -> None:
@@ -346,9 +351,12 @@ class ContinuousFilter:
         # denominators come back within a fit and from fit to fit on one record.
         key = (self.den.tobytes(), float(ts), float(delay), intersample)
         with _DISCRETIZATIONS_LOCK:
+            # A hit moves to the end (the latest used) under the one lock.
             discrete = _DISCRETIZATIONS.pop(key, None)
-        if discrete is None:
-            discrete = self._discretization(ts, delay, intersample)
+            if discrete is not None:
+                _DISCRETIZATIONS[key] = discrete
+                return discrete
+        discrete = self._discretization(ts, delay, intersample)
         with _DISCRETIZATIONS_LOCK:
             _DISCRETIZATIONS[key] = discrete
             while len(_DISCRETIZATIONS) > _SHARED_DISCRETIZATIONS:
@@ -418,18 +426,19 @@ def _state_discretization(a: np.ndarray, b: np.ndarray, segments
         e, integral, ramp = _hold_integrals(a, b, length)
         transition = e @ transition
         drive = {sample: e @ vector for sample, vector in drive.items()}
-        _accumulate(drive, start, integral - ramp)
-        _accumulate(drive, end, ramp)
+        _accumulate(drive, (start, integral - ramp), (end, ramp))
     return transition, drive
 
 
-def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
-                vector: np.ndarray) -> None:
-    for sample, weight in combination.items():
-        # A weight of 1 (every held input's) and a first term need no arithmetic: the same
-        # values. Terms are never written in place, so one array may serve several samples.
-        term = vector if weight == 1.0 else weight * vector
-        terms[sample] = terms[sample] + term if sample in terms else term
+def _accumulate(terms: Dict['Sample', np.ndarray],
+                *parts: Tuple[Dict['Sample', float], np.ndarray]) -> None:
+    # ``parts``: (combination of samples, vector) in turn, a sub-interval's two ends in one call.
+    for combination, vector in parts:
+        for sample, weight in combination.items():
+            # A weight of 1 (every held input's) and a first term need no arithmetic: the same
+            # values. Terms are never written in place, so one array may serve several samples.
+            term = vector if weight == 1.0 else weight * vector
+            terms[sample] = terms[sample] + term if sample in terms else term
 
 
 # A sample of the signal relative to the current step k: (offset, masked). ``masked`` marks the
@@ -794,8 +803,9 @@ class StateResponse:
         # The real part of complex modes copied out; any other map is a new array already.
         out = np.ascontiguousarray(self.mapped(rows))
         # The feedthrough only on the rows that have one (often one row of many, the highest
-        # power of a state-variable filter): the others would add zeros.
-        for index in np.flatnonzero(feeds).tolist():
+        # power of a state-variable filter): the others would add zeros. ``feeds`` is 1-D:
+        # its own nonzero() is np.flatnonzero's, without numpy's Python wrappers.
+        for index in feeds.nonzero()[0].tolist():
             out[index] += feeds[index] * self._held
         return out
 
@@ -1049,7 +1059,7 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     # product's. Several: one complex driving per mode and the complex recursions, whose
     # product has as many terms as the inputs' real ones and fewer calls.
     if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
-            length >= _BLOCKED_MIN_PAIR_LENGTH and abs(pairs).max() <= 1.0 and \
+            length >= _BLOCKED_MIN_PAIR_LENGTH and _MAX(abs(pairs), None) <= 1.0 and \
             all_finite(coefficients) and all_finite(inputs):
         _blocked_pairs(pairs, inputs, coefficients, out[real:],
                        None if blocks is None else blocks[real:])
@@ -1193,7 +1203,7 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are array methods, without numpy's dispatch.
         if _blocked_size(1 if alone else rows, length, complex_valued):
-            if abs(poles).max() <= 1.0 and all_finite(values):
+            if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
                 return _blocked_recursions(poles.astype(dtype, copy=False), values, out,
                                            blocks, alone)
             if alone and rows > 1:
@@ -1377,7 +1387,7 @@ def _series_factors(x: np.ndarray) -> Optional[np.ndarray]:
     Rows: :func:`_hold_factors` and :func:`_hold_factor_slopes` summed as power series, from
     one product of the powers of ``x``; None if some ``|x|`` reaches :data:`_SERIES_LIMIT`.
     """
-    if abs(x).max() < _SERIES_LIMIT:
+    if _MAX(abs(x), None) < _SERIES_LIMIT:
         return (_powers(x) @ _SERIES).T
     return None
 
@@ -1474,8 +1484,7 @@ class _ContinuousModes:
         """
         q = length * second * self.residues
         drive = {sample: e * vector for sample, vector in drive.items()}
-        _accumulate(drive, start, length * first * self.residues - q)
-        _accumulate(drive, end, q)
+        _accumulate(drive, (start, length * first * self.residues - q), (end, q))
         return drive
 
     def drive_slopes(self, factors, samples: List[Sample]) -> np.ndarray:
@@ -1495,8 +1504,8 @@ class _ContinuousModes:
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
                      for sample, vector in drive.items()}
             drive = self._advanced(drive, length, start, end, e, first, second)
-            _accumulate(slope, start, length * length * first_slope * self.residues - q_slope)
-            _accumulate(slope, end, q_slope)
+            _accumulate(slope, (start, length * length * first_slope * self.residues - q_slope),
+                        (end, q_slope))
         zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
         return np.array([slope.get(sample, zero) for sample in samples])
 
