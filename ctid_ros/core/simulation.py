@@ -61,10 +61,14 @@ _SQUARED_AMPLIFICATION_LIMIT = 1e6
 # Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
 # one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
 _CHAIN_MAX_ORDER = 8
-# The reductions behind ``ndarray.sum()`` and ``.max()`` (with axis None, the same values),
-# called directly: the methods reach them through a Python function of numpy's.
+# The reductions behind the array methods ``sum``, ``prod``, ``max``, ``min`` and ``any`` (axis
+# None for the whole array; the same values), called directly: the methods and np.any reach
+# them through Python functions of numpy's, several calls per small array.
 _SUM = np.add.reduce
+_PROD = np.multiply.reduce
 _MAX = np.maximum.reduce
+_MIN = np.minimum.reduce
+_ANY = np.logical_or.reduce
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -169,7 +173,7 @@ def _time_scale(roots: np.ndarray) -> float:
     if roots.size == 0:
         return 1.0
     magnitudes = abs(roots)
-    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
+    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, _MAX(magnitudes, None, initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
     logarithms = np.log(magnitudes)
@@ -765,7 +769,7 @@ class StateResponse:
                                   _form_map(on_modes, continuous.real)], axis=1) @ self._chains
         else:
             out = _product(on_chains, self._chains) + _product(on_modes, modal)
-        if size == 2 * order + 1 and ascending[:, -1].any():
+        if size == 2 * order + 1 and _ANY(ascending[:, -1], None):
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
 
@@ -1158,7 +1162,7 @@ def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> n
     """
     extra = numerators.shape[1] - (degree + 1)
     if extra > 0:
-        if np.any(numerators[:, :extra] != 0.0):
+        if _ANY(numerators[:, :extra] != 0.0, None):
             raise ModelError(f'improper transfer function: numerator degree exceeds {limit}')
         numerators = numerators[:, extra:]
     return numerators
@@ -1405,7 +1409,7 @@ def _hold_factors(x: np.ndarray, series: Optional[np.ndarray]) -> Tuple[np.ndarr
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
-        if small.any():
+        if _ANY(small, None):
             factors = (_powers(x) @ _SERIES[:, :2]).T
             first = np.where(small, factors[0], first)
             second = np.where(small, factors[1], second)
@@ -1425,7 +1429,7 @@ def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray,
     with np.errstate(all='ignore'):
         first_slope = (np.exp(x) - first) / x
         second_slope = (first - 2.0 * second) / x
-        if small.any():
+        if _ANY(small, None):
             slopes = (_powers(x) @ _SERIES[:, 2:]).T
             first_slope = np.where(small, slopes[0], first_slope)
             second_slope = np.where(small, slopes[1], second_slope)
@@ -1721,7 +1725,7 @@ def _condition(matrix: np.ndarray) -> float:
         if not singular[-1] > 0.0:
             return math.inf
         return float(singular[0] / singular[-1])
-    frobenius = float((abs(matrix) ** 2).sum())
+    frobenius = float(_SUM(abs(matrix) ** 2, None))
     determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
     if not determinant > 0.0:
         return math.inf
@@ -1750,15 +1754,15 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         return None
     magnitudes = abs(poles)
     # The largest magnitude is NaN or infinite if any is (none is negative).
-    largest = magnitudes.max()
+    largest = _MAX(magnitudes, None)
     if not math.isfinite(largest):
         return None
     nonzero = magnitudes[magnitudes > 0.0]
-    if nonzero.size and largest > _MODAL_RANGE_LIMIT * nonzero.min():
+    if nonzero.size and largest > _MODAL_RANGE_LIMIT * _MIN(nonzero, None):
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
     differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
-    if abs(differences).min() <= 1e-8 * max(largest, 1.0):
+    if _MIN(abs(differences), None) <= 1e-8 * max(largest, 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
@@ -1771,7 +1775,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         return None
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
-    if poles.imag.any():
+    if _ANY(poles.imag, None):
         # The real modes first, then one of each conjugate pair: their trajectories run in the
         # real form of :func:`_form_recursions` without selecting rows. Python lists: a
         # handful of poles, for every new denominator.
@@ -1779,16 +1783,16 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         real = [index for index, value in enumerate(imaginary) if value == 0.0]
         keep = np.array(real + [index for index, value in enumerate(imaginary) if value > 0.0])
         kept = poles[keep]
-        residues = 1.0 / differences.prod(axis=1)[keep]
-        spread = inverse.sum(axis=1)[keep]
+        residues = 1.0 / _PROD(differences, 1)[keep]
+        spread = _SUM(inverse, 1)[keep]
         weights = np.where(kept.imag > 0.0, 2.0, 1.0)
     else:
         # Real poles: every mode kept, real arithmetic throughout, as the eigen-decomposition
         # path has it.
         keep, kept, basis, weights = None, poles.real, basis.real, np.ones(n)
-        residues = (1.0 / differences.prod(axis=1)).real
-        spread = inverse.sum(axis=1).real
-    amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
+        residues = (1.0 / _PROD(differences, 1)).real
+        spread = _SUM(inverse, 1).real
+    amplification = _MAX(abs(residues) ** 2 * (1.0 + 2.0 * abs(spread)), None)
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
                             bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
                             n if keep is None else len(real))
