@@ -73,7 +73,9 @@ _ANY = np.logical_or.reduce
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
     """Return float coefficients (highest power first) without leading zeros."""
-    array = np.atleast_1d(np.asarray(coefficients, dtype=float))
+    array = np.asarray(coefficients, dtype=float)
+    if array.ndim == 0:
+        array = array.reshape(1)                    # np.atleast_1d's, without its wrapper
     if array.ndim != 1 or array.size == 0:
         raise ModelError(f'{what} must be a 1-D coefficient sequence')
     if not all_finite(array):
@@ -493,7 +495,8 @@ def _hold_integrals(a: np.ndarray, b: np.ndarray, h: float):
 def shifted(values: np.ndarray, offset: int) -> np.ndarray:
     """``values[k + offset]`` for every k, zero outside the record (signals start at rest)."""
     count = values.shape[0]
-    out = np.zeros_like(values)
+    # np.zeros_like's values, without its Python wrappers (empty_like, copyto).
+    out = np.zeros(values.shape, dtype=values.dtype)
     if offset >= 0:
         if offset < count:
             out[:count - offset] = values[offset:]
@@ -1203,7 +1206,8 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
     if rows == 0 or length == 0:
         result = np.zeros((rows, length), dtype=dtype)
     else:
-        values = values.astype(dtype, copy=False)
+        if values.dtype != dtype:               # else astype(copy=False) returns them as they are
+            values = values.astype(dtype)
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are array methods, without numpy's dispatch.
         if _blocked_size(1 if alone else rows, length, complex_valued):
@@ -1232,17 +1236,18 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     step = max(1, (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length)
     parts = []
     for first in range(0, rows, step):
-        count = min(step, rows - first)
+        chunk = values[first:first + step]          # the last one may be shorter
+        count = chunk.shape[0]
         band = np.empty((2, count * length), dtype=values.dtype)
         band[0] = 1.0
         below = band[1].reshape(count, length)
-        below[:] = -poles[first:first + count, None]
+        below[:] = -poles[first:first + step, None]
         below[:, -1] = 0.0                  # a row's last sample does not feed the next row
         # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
         # values), a third of its time.
-        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L', diag='U')
+        out, _ = solve(band, chunk.reshape(-1, 1), uplo='L', diag='U')
         parts.append(out.reshape(count, length))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return parts[0] if rows <= step else np.concatenate(parts)
 
 
 # The largest temporary (bytes) the blocked recursions form in one piece: glibc's default
