@@ -225,9 +225,10 @@ class ContinuousFilter:
             # per-call validation (a is finite).
             sc = lapack.dgebal(a, permute=0, scale=1)[3]
         else:
-            # A 1 x 1 matrix has nothing to balance (gebal leaves it at scale 1).
+            # A 1 x 1 matrix has nothing to balance (gebal leaves it at scale 1). Ones from a
+            # list: np.ones is a Python function (empty, then copyto) for a single value.
             a[:] = -self._monic_ascending[:-1]
-            sc = np.ones(n)
+            sc = np.array([1.0] * n)
         self._balance = sc
         self._companion = a
         self._modal: Optional[_ContinuousModes] = None
@@ -1212,8 +1213,8 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
         # before it. The checks are array methods, without numpy's dispatch.
         if _blocked_size(1 if alone else rows, length, complex_valued):
             if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
-                return _blocked_recursions(poles.astype(dtype, copy=False), values, out,
-                                           blocks, alone)
+                return _blocked_recursions(poles if poles.dtype == dtype else
+                                           poles.astype(dtype), values, out, blocks, alone)
             if alone and rows > 1:
                 # Some row would not run in blocks alone: every row decides for itself.
                 parts = [_recursions(poles[index:index + 1], values[index:index + 1],
@@ -1752,7 +1753,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
-                                None, np.ones(1), np.ones(1), np.zeros(1), True, 1)
+                                None, np.array([1.0]), np.array([1.0]), np.zeros(1), True, 1)
     # Asked for every new denominator: array methods and operators, not numpy's dispatch.
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
@@ -1794,7 +1795,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     else:
         # Real poles: every mode kept, real arithmetic throughout, as the eigen-decomposition
         # path has it.
-        keep, kept, basis, weights = None, poles.real, basis.real, np.ones(n)
+        keep, kept, basis, weights = None, poles.real, basis.real, np.array([1.0] * n)
         residues = (1.0 / _PROD(differences, 1)).real
         spread = _SUM(inverse, 1).real
     amplification = _MAX(abs(residues) ** 2 * (1.0 + 2.0 * abs(spread)), None)
