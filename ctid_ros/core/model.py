@@ -266,10 +266,11 @@ class Model:
     @functools.cached_property
     def _evaluation(self) -> Tuple[int, Optional[Callable[[Sequence[float]], np.ndarray]]]:
         # The number of parameters and the program's float evaluation (None for a compiled
-        # function outside the program's forms): looked up once, not per evaluation.
+        # function outside the program's forms): looked up once, not per evaluation; the
+        # evaluation unchecked, as coefficient_array passes exactly that many values.
         evaluate = self._evaluate
-        return len(self.parameters), \
-            evaluate.floats if isinstance(evaluate, model_cache.CoefficientProgram) else None
+        return len(self.parameters), evaluate.floats_unchecked \
+            if isinstance(evaluate, model_cache.CoefficientProgram) else None
 
     def channel(self, input_name: Optional[str] = None) -> int:
         """Row of :attr:`Coefficients.num` that belongs to ``input_name`` (default: the only)."""

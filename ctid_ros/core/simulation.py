@@ -1493,7 +1493,8 @@ class _ContinuousModes:
         ``start``, ``end``: the input values at its ends.
         """
         q = length * second * self.residues
-        drive = {sample: e * vector for sample, vector in drive.items()}
+        # Nothing to carry into the first sub-interval: no comprehension over an empty dict.
+        drive = {sample: e * vector for sample, vector in drive.items()} if drive else {}
         _accumulate(drive, (start, length * first * self.residues - q), (end, q))
         return drive
 
