@@ -337,7 +337,8 @@ class ContinuousFilter:
         if not all_finite(numerators):
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
-        numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
+        if numerators.shape[1] > n + 1:             # else there is nothing to cut
+            numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
         size = numerators.shape[1]
         ascending = np.zeros((numerators.shape[0], n + 1))
         # N(scale * z) scaled the same way as the monic denominator.
@@ -741,8 +742,9 @@ class StateResponse:
             return None
         numerators = np.asarray(numerators, dtype=float)
         order = self._continuous.order
-        numerators = _without_leading_zeros(numerators, 2 * order,
-                                            f'twice the denominator degree {order}')
+        if numerators.shape[1] > 2 * order + 1:     # else there is nothing to cut
+            numerators = _without_leading_zeros(numerators, 2 * order,
+                                                f'twice the denominator degree {order}')
         size = numerators.shape[1]
         with np.errstate(over='ignore', invalid='ignore'):
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
