@@ -200,8 +200,9 @@ class ContinuousFilter:
             raise ModelError('denominator is identically zero')
         self.den = den
         self.order = den.size - 1
-        # The roots scale the realisation and give its modes: found once.
-        self._roots = polynomial_roots(den) if den.size > 1 else np.zeros(0)
+        # The roots scale the realisation and give its modes: found once (den is a float
+        # array already: polynomial_roots' conversion is skipped).
+        self._roots = _roots(den.tobytes()) if den.size > 1 else np.zeros(0)
         self.scale = _time_scale(self._roots)
         n = self.order
         # D(scale * z) / (den[0] * scale**n) is monic in the scaled Laplace variable z.
