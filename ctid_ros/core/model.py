@@ -19,7 +19,7 @@ section 2).
 from dataclasses import dataclass
 import functools
 import math
-from typing import Dict, Mapping, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core import model_cache
 from ctid_ros.core.data import as_inputs
@@ -215,7 +215,7 @@ class Model:
         """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
         flat = self.coefficient_array(params)
         channels, n_num = self._channels, self.num_degree + 1
-        n_den, n_par = self.den_degree + 1, len(self.parameters)
+        n_den, n_par = self.den_degree + 1, self._evaluation[0]
         n_nums = channels * n_num
         values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
         jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
@@ -242,27 +242,35 @@ class Model:
         # The estimator's own vectors (thousands per fit): read, never kept, not copied. A sum
         # (of Python floats, without numpy's dispatch) is finite if every value is (a finite
         # sum overflowing takes the full check).
+        count, floats = self._evaluation
         theta = None
         if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
-                params.size == len(self.parameters):
+                params.size == count:
             values = params.tolist()
             if math.isfinite(sum(values)):
                 theta = params
         if theta is None:
             theta = self.vector(params)
             values = theta.tolist()
-        evaluate = self._evaluate
         # Python floats where the program can take them (the same values, without numpy's
         # dispatch per operation); numpy scalars where a value becomes infinite or NaN.
-        flat = evaluate.floats(values) \
-            if isinstance(evaluate, model_cache.CoefficientProgram) else None
+        flat = floats(values) if floats is not None else None
         if flat is None:
             with np.errstate(all='ignore'):
-                flat = np.asarray(evaluate(*theta), dtype=float)
+                flat = np.asarray(self._evaluate(*theta), dtype=float)
         if not all_finite(flat):
             raise ModelError(f'the model is undefined at {self.as_dict(theta)} '
                              '(division by zero in a coefficient)')
         return flat
+
+    @functools.cached_property
+    def _evaluation(self) -> Tuple[int, Optional[Callable[[Sequence[float]], np.ndarray]]]:
+        # The number of parameters and the program's float evaluation (None for a compiled
+        # function outside the program's forms): looked up once, not per evaluation; the
+        # evaluation unchecked, as coefficient_array passes exactly that many values.
+        evaluate = self._evaluate
+        return len(self.parameters), evaluate.floats_unchecked \
+            if isinstance(evaluate, model_cache.CoefficientProgram) else None
 
     def channel(self, input_name: Optional[str] = None) -> int:
         """Row of :attr:`Coefficients.num` that belongs to ``input_name`` (default: the only)."""

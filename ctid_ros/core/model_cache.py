@@ -91,6 +91,9 @@ class CoefficientProgram:
         self.operations = [tuple(operation) for operation in operations]
         self.outputs = list(outputs)
         self._template, self._steps = self._float_steps(self._check())
+        # The output slots read by one C call: a tuple of several, a single value of one (an
+        # empty list, through an empty slice, of none); :meth:`floats` makes each 1-D.
+        self._pick = operator.itemgetter(*(self.outputs or [slice(0, 0)]))
 
     def _check(self) -> List[Any]:
         """
@@ -174,6 +177,10 @@ class CoefficientProgram:
         """
         if len(theta) != self.parameters:
             raise TypeError(f'expected {self.parameters} parameter values, got {len(theta)}')
+        return self.floats_unchecked(theta)
+
+    def floats_unchecked(self, theta: Sequence[float]) -> Optional[np.ndarray]:
+        """:meth:`floats` for a caller that has counted the values (exactly :attr:`parameters`)."""
         slots = self._template.copy()
         slots[:self.parameters] = theta
         try:
@@ -181,7 +188,7 @@ class CoefficientProgram:
                 slots[slot] = function(slots[first], slots[second])
             # A negative number to a fractional power is complex in Python (NaN in numpy):
             # the conversion to floats refuses it.
-            return np.array([slots[slot] for slot in self.outputs], dtype=float)
+            return np.array(self._pick(slots), dtype=float, ndmin=1)
         except (ArithmeticError, ValueError, TypeError):
             return None
 

@@ -61,11 +61,21 @@ _SQUARED_AMPLIFICATION_LIMIT = 1e6
 # Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
 # one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
 _CHAIN_MAX_ORDER = 8
+# The reductions behind the array methods ``sum``, ``prod``, ``max``, ``min`` and ``any`` (axis
+# None for the whole array; the same values), called directly: the methods and np.any reach
+# them through Python functions of numpy's, several calls per small array.
+_SUM = np.add.reduce
+_PROD = np.multiply.reduce
+_MAX = np.maximum.reduce
+_MIN = np.minimum.reduce
+_ANY = np.logical_or.reduce
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
     """Return float coefficients (highest power first) without leading zeros."""
-    array = np.atleast_1d(np.asarray(coefficients, dtype=float))
+    array = np.asarray(coefficients, dtype=float)
+    if array.ndim == 0:
+        array = array.reshape(1)                    # np.atleast_1d's, without its wrapper
     if array.ndim != 1 or array.size == 0:
         raise ModelError(f'{what} must be a 1-D coefficient sequence')
     if not all_finite(array):
@@ -83,9 +93,10 @@ def all_finite(values: np.ndarray) -> bool:
     Return True if every value (real or complex) is finite.
 
     One sum instead of numpy's elementwise test and its reduction: a NaN or infinity makes
-    the sum so; only a sum that overflows is checked elementwise.
+    the sum so; only a sum that overflows is checked elementwise. The sum is the ufunc's
+    reduction itself, which ``values.sum()`` reaches through a Python wrapper.
     """
-    return cmath.isfinite(values.sum()) or bool(np.isfinite(values).all())
+    return cmath.isfinite(_SUM(values, None)) or bool(np.isfinite(values).all())
 
 
 def _check_intersample(intersample: str) -> None:
@@ -164,7 +175,7 @@ def _time_scale(roots: np.ndarray) -> float:
     if roots.size == 0:
         return 1.0
     magnitudes = abs(roots)
-    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, magnitudes.max(initial=0.0))]
+    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, _MAX(magnitudes, None, initial=0.0))]
     if magnitudes.size == 0:
         return 1.0
     logarithms = np.log(magnitudes)
@@ -189,8 +200,9 @@ class ContinuousFilter:
             raise ModelError('denominator is identically zero')
         self.den = den
         self.order = den.size - 1
-        # The roots scale the realisation and give its modes: found once.
-        self._roots = polynomial_roots(den) if den.size > 1 else np.zeros(0)
+        # The roots scale the realisation and give its modes: found once (den is a float
+        # array already: polynomial_roots' conversion is skipped).
+        self._roots = _roots(den.tobytes()) if den.size > 1 else np.zeros(0)
         self.scale = _time_scale(self._roots)
         n = self.order
         # D(scale * z) / (den[0] * scale**n) is monic in the scaled Laplace variable z.
@@ -214,9 +226,10 @@ class ContinuousFilter:
             # per-call validation (a is finite).
             sc = lapack.dgebal(a, permute=0, scale=1)[3]
         else:
-            # A 1 x 1 matrix has nothing to balance (gebal leaves it at scale 1).
+            # A 1 x 1 matrix has nothing to balance (gebal leaves it at scale 1). Ones from a
+            # list: np.ones is a Python function (empty, then copyto) for a single value.
             a[:] = -self._monic_ascending[:-1]
-            sc = np.ones(n)
+            sc = np.array([1.0] * n)
         self._balance = sc
         self._companion = a
         self._modal: Optional[_ContinuousModes] = None
@@ -325,7 +338,8 @@ class ContinuousFilter:
         if not all_finite(numerators):
             raise ModelError(f'numerator has non-finite coefficients: {numerators}')
         n = self.order
-        numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
+        if numerators.shape[1] > n + 1:             # else there is nothing to cut
+            numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
         size = numerators.shape[1]
         ascending = np.zeros((numerators.shape[0], n + 1))
         # N(scale * z) scaled the same way as the monic denominator.
@@ -346,9 +360,12 @@ class ContinuousFilter:
         # denominators come back within a fit and from fit to fit on one record.
         key = (self.den.tobytes(), float(ts), float(delay), intersample)
         with _DISCRETIZATIONS_LOCK:
+            # A hit moves to the end (the latest used) under the one lock.
             discrete = _DISCRETIZATIONS.pop(key, None)
-        if discrete is None:
-            discrete = self._discretization(ts, delay, intersample)
+            if discrete is not None:
+                _DISCRETIZATIONS[key] = discrete
+                return discrete
+        discrete = self._discretization(ts, delay, intersample)
         with _DISCRETIZATIONS_LOCK:
             _DISCRETIZATIONS[key] = discrete
             while len(_DISCRETIZATIONS) > _SHARED_DISCRETIZATIONS:
@@ -418,18 +435,19 @@ def _state_discretization(a: np.ndarray, b: np.ndarray, segments
         e, integral, ramp = _hold_integrals(a, b, length)
         transition = e @ transition
         drive = {sample: e @ vector for sample, vector in drive.items()}
-        _accumulate(drive, start, integral - ramp)
-        _accumulate(drive, end, ramp)
+        _accumulate(drive, (start, integral - ramp), (end, ramp))
     return transition, drive
 
 
-def _accumulate(terms: Dict['Sample', np.ndarray], combination: Dict['Sample', float],
-                vector: np.ndarray) -> None:
-    for sample, weight in combination.items():
-        # A weight of 1 (every held input's) and a first term need no arithmetic: the same
-        # values. Terms are never written in place, so one array may serve several samples.
-        term = vector if weight == 1.0 else weight * vector
-        terms[sample] = terms[sample] + term if sample in terms else term
+def _accumulate(terms: Dict['Sample', np.ndarray],
+                *parts: Tuple[Dict['Sample', float], np.ndarray]) -> None:
+    # ``parts``: (combination of samples, vector) in turn, a sub-interval's two ends in one call.
+    for combination, vector in parts:
+        for sample, weight in combination.items():
+            # A weight of 1 (every held input's) and a first term need no arithmetic: the same
+            # values. Terms are never written in place, so one array may serve several samples.
+            term = vector if weight == 1.0 else weight * vector
+            terms[sample] = terms[sample] + term if sample in terms else term
 
 
 # A sample of the signal relative to the current step k: (offset, masked). ``masked`` marks the
@@ -480,7 +498,8 @@ def _hold_integrals(a: np.ndarray, b: np.ndarray, h: float):
 def shifted(values: np.ndarray, offset: int) -> np.ndarray:
     """``values[k + offset]`` for every k, zero outside the record (signals start at rest)."""
     count = values.shape[0]
-    out = np.zeros_like(values)
+    # np.zeros_like's values, without its Python wrappers (empty_like, copyto).
+    out = np.zeros(values.shape, dtype=values.dtype)
     if offset >= 0:
         if offset < count:
             out[:count - offset] = values[offset:]
@@ -724,8 +743,9 @@ class StateResponse:
             return None
         numerators = np.asarray(numerators, dtype=float)
         order = self._continuous.order
-        numerators = _without_leading_zeros(numerators, 2 * order,
-                                            f'twice the denominator degree {order}')
+        if numerators.shape[1] > 2 * order + 1:     # else there is nothing to cut
+            numerators = _without_leading_zeros(numerators, 2 * order,
+                                                f'twice the denominator degree {order}')
         size = numerators.shape[1]
         with np.errstate(over='ignore', invalid='ignore'):
             # N(scale * z) over D(scale * z)^2, D scaled to the monic polynomial of the z_i.
@@ -756,7 +776,7 @@ class StateResponse:
                                   _form_map(on_modes, continuous.real)], axis=1) @ self._chains
         else:
             out = _product(on_chains, self._chains) + _product(on_modes, modal)
-        if size == 2 * order + 1 and ascending[:, -1].any():
+        if size == 2 * order + 1 and _ANY(ascending[:, -1], None):
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
 
@@ -794,8 +814,9 @@ class StateResponse:
         # The real part of complex modes copied out; any other map is a new array already.
         out = np.ascontiguousarray(self.mapped(rows))
         # The feedthrough only on the rows that have one (often one row of many, the highest
-        # power of a state-variable filter): the others would add zeros.
-        for index in np.flatnonzero(feeds).tolist():
+        # power of a state-variable filter): the others would add zeros. ``feeds`` is 1-D:
+        # its own nonzero() is np.flatnonzero's, without numpy's Python wrappers.
+        for index in feeds.nonzero()[0].tolist():
             out[index] += feeds[index] * self._held
         return out
 
@@ -1049,7 +1070,7 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     # product's. Several: one complex driving per mode and the complex recursions, whose
     # product has as many terms as the inputs' real ones and fewer calls.
     if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
-            length >= _BLOCKED_MIN_PAIR_LENGTH and abs(pairs).max() <= 1.0 and \
+            length >= _BLOCKED_MIN_PAIR_LENGTH and _MAX(abs(pairs), None) <= 1.0 and \
             all_finite(coefficients) and all_finite(inputs):
         _blocked_pairs(pairs, inputs, coefficients, out[real:],
                        None if blocks is None else blocks[real:])
@@ -1148,7 +1169,7 @@ def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> n
     """
     extra = numerators.shape[1] - (degree + 1)
     if extra > 0:
-        if np.any(numerators[:, :extra] != 0.0):
+        if _ANY(numerators[:, :extra] != 0.0, None):
             raise ModelError(f'improper transfer function: numerator degree exceeds {limit}')
         numerators = numerators[:, extra:]
     return numerators
@@ -1189,13 +1210,14 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
     if rows == 0 or length == 0:
         result = np.zeros((rows, length), dtype=dtype)
     else:
-        values = values.astype(dtype, copy=False)
+        if values.dtype != dtype:               # else astype(copy=False) returns them as they are
+            values = values.astype(dtype)
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are array methods, without numpy's dispatch.
         if _blocked_size(1 if alone else rows, length, complex_valued):
-            if abs(poles).max() <= 1.0 and all_finite(values):
-                return _blocked_recursions(poles.astype(dtype, copy=False), values, out,
-                                           blocks, alone)
+            if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
+                return _blocked_recursions(poles if poles.dtype == dtype else
+                                           poles.astype(dtype), values, out, blocks, alone)
             if alone and rows > 1:
                 # Some row would not run in blocks alone: every row decides for itself.
                 parts = [_recursions(poles[index:index + 1], values[index:index + 1],
@@ -1218,17 +1240,18 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     step = max(1, (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length)
     parts = []
     for first in range(0, rows, step):
-        count = min(step, rows - first)
+        chunk = values[first:first + step]          # the last one may be shorter
+        count = chunk.shape[0]
         band = np.empty((2, count * length), dtype=values.dtype)
         band[0] = 1.0
         below = band[1].reshape(count, length)
-        below[:] = -poles[first:first + count, None]
+        below[:] = -poles[first:first + step, None]
         below[:, -1] = 0.0                  # a row's last sample does not feed the next row
         # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
         # values), a third of its time.
-        out, _ = solve(band, values[first:first + count].reshape(-1, 1), uplo='L', diag='U')
+        out, _ = solve(band, chunk.reshape(-1, 1), uplo='L', diag='U')
         parts.append(out.reshape(count, length))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return parts[0] if rows <= step else np.concatenate(parts)
 
 
 # The largest temporary (bytes) the blocked recursions form in one piece: glibc's default
@@ -1377,7 +1400,7 @@ def _series_factors(x: np.ndarray) -> Optional[np.ndarray]:
     Rows: :func:`_hold_factors` and :func:`_hold_factor_slopes` summed as power series, from
     one product of the powers of ``x``; None if some ``|x|`` reaches :data:`_SERIES_LIMIT`.
     """
-    if abs(x).max() < _SERIES_LIMIT:
+    if _MAX(abs(x), None) < _SERIES_LIMIT:
         return (_powers(x) @ _SERIES).T
     return None
 
@@ -1395,7 +1418,7 @@ def _hold_factors(x: np.ndarray, series: Optional[np.ndarray]) -> Tuple[np.ndarr
     with np.errstate(all='ignore'):
         expm1 = np.expm1(x)
         first, second = expm1 / x, (expm1 - x) / (x * x)
-        if small.any():
+        if _ANY(small, None):
             factors = (_powers(x) @ _SERIES[:, :2]).T
             first = np.where(small, factors[0], first)
             second = np.where(small, factors[1], second)
@@ -1415,7 +1438,7 @@ def _hold_factor_slopes(x: np.ndarray, first: np.ndarray, second: np.ndarray,
     with np.errstate(all='ignore'):
         first_slope = (np.exp(x) - first) / x
         second_slope = (first - 2.0 * second) / x
-        if small.any():
+        if _ANY(small, None):
             slopes = (_powers(x) @ _SERIES[:, 2:]).T
             first_slope = np.where(small, slopes[0], first_slope)
             second_slope = np.where(small, slopes[1], second_slope)
@@ -1473,9 +1496,9 @@ class _ContinuousModes:
         ``start``, ``end``: the input values at its ends.
         """
         q = length * second * self.residues
-        drive = {sample: e * vector for sample, vector in drive.items()}
-        _accumulate(drive, start, length * first * self.residues - q)
-        _accumulate(drive, end, q)
+        # Nothing to carry into the first sub-interval: no comprehension over an empty dict.
+        drive = {sample: e * vector for sample, vector in drive.items()} if drive else {}
+        _accumulate(drive, (start, length * first * self.residues - q), (end, q))
         return drive
 
     def drive_slopes(self, factors, samples: List[Sample]) -> np.ndarray:
@@ -1495,8 +1518,8 @@ class _ContinuousModes:
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
                      for sample, vector in drive.items()}
             drive = self._advanced(drive, length, start, end, e, first, second)
-            _accumulate(slope, start, length * length * first_slope * self.residues - q_slope)
-            _accumulate(slope, end, q_slope)
+            _accumulate(slope, (start, length * length * first_slope * self.residues - q_slope),
+                        (end, q_slope))
         zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
         return np.array([slope.get(sample, zero) for sample in samples])
 
@@ -1712,7 +1735,7 @@ def _condition(matrix: np.ndarray) -> float:
         if not singular[-1] > 0.0:
             return math.inf
         return float(singular[0] / singular[-1])
-    frobenius = float((abs(matrix) ** 2).sum())
+    frobenius = float(_SUM(abs(matrix) ** 2, None))
     determinant = abs(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
     if not determinant > 0.0:
         return math.inf
@@ -1734,22 +1757,22 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         if not math.isfinite(pole):
             return None
         return _ContinuousModes(np.array([pole]), np.array([[1.0 / realisation._balance[0]]]),
-                                None, np.ones(1), np.ones(1), np.zeros(1), True, 1)
+                                None, np.array([1.0]), np.array([1.0]), np.zeros(1), True, 1)
     # Asked for every new denominator: array methods and operators, not numpy's dispatch.
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
         return None
     magnitudes = abs(poles)
     # The largest magnitude is NaN or infinite if any is (none is negative).
-    largest = magnitudes.max()
+    largest = _MAX(magnitudes, None)
     if not math.isfinite(largest):
         return None
     nonzero = magnitudes[magnitudes > 0.0]
-    if nonzero.size and largest > _MODAL_RANGE_LIMIT * nonzero.min():
+    if nonzero.size and largest > _MODAL_RANGE_LIMIT * _MIN(nonzero, None):
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
     differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
-    if abs(differences).min() <= 1e-8 * max(largest, 1.0):
+    if _MIN(abs(differences), None) <= 1e-8 * max(largest, 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
@@ -1762,7 +1785,7 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         return None
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
-    if poles.imag.any():
+    if _ANY(poles.imag, None):
         # The real modes first, then one of each conjugate pair: their trajectories run in the
         # real form of :func:`_form_recursions` without selecting rows. Python lists: a
         # handful of poles, for every new denominator.
@@ -1770,16 +1793,16 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         real = [index for index, value in enumerate(imaginary) if value == 0.0]
         keep = np.array(real + [index for index, value in enumerate(imaginary) if value > 0.0])
         kept = poles[keep]
-        residues = 1.0 / differences.prod(axis=1)[keep]
-        spread = inverse.sum(axis=1)[keep]
+        residues = 1.0 / _PROD(differences, 1)[keep]
+        spread = _SUM(inverse, 1)[keep]
         weights = np.where(kept.imag > 0.0, 2.0, 1.0)
     else:
         # Real poles: every mode kept, real arithmetic throughout, as the eigen-decomposition
         # path has it.
-        keep, kept, basis, weights = None, poles.real, basis.real, np.ones(n)
-        residues = (1.0 / differences.prod(axis=1)).real
-        spread = inverse.sum(axis=1).real
-    amplification = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).max()
+        keep, kept, basis, weights = None, poles.real, basis.real, np.array([1.0] * n)
+        residues = (1.0 / _PROD(differences, 1)).real
+        spread = _SUM(inverse, 1).real
+    amplification = _MAX(abs(residues) ** 2 * (1.0 + 2.0 * abs(spread)), None)
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
                             bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
                             n if keep is None else len(real))
