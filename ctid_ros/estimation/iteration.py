@@ -21,6 +21,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
 import numpy as np
+from scipy.linalg import lapack
 
 __all__ = [
     'Attempt', 'Iteration', 'IterationPolicy', 'IterationResult', 'NEGLIGIBLE_STEP',
@@ -142,6 +143,34 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     """Column norms of ``psi`` (1 for a zero column): the scaling of every solve."""
     scales = np.linalg.norm(psi, axis=0)
     return np.where(scales > 0.0, scales, 1.0)
+
+
+# The solves below are on p x p matrices a few times per update: LAPACK is called directly,
+# without the checks and conversions of numpy.linalg's wrappers, which call the same routines
+# (gesv, syevd, gesdd) and would cost more than the factorisations themselves.
+
+def _solve(matrix: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
+    """``np.linalg.solve(matrix, rhs)`` by LU (``gesv``); None for a singular matrix."""
+    solution, info = lapack.dgesv(matrix, rhs)[2:]
+    return solution if info == 0 else None
+
+
+def _eigh(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``np.linalg.eigh(matrix)`` of a symmetric matrix (``syevd``, the lower triangle)."""
+    values, vectors, info = lapack.dsyevd(matrix, compute_v=1, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError('Eigenvalues did not converge')
+    return values, vectors
+
+
+def _condition(matrix: np.ndarray) -> float:
+    """``np.linalg.cond(matrix)`` of a finite matrix: its singular values' ratio (``gesdd``)."""
+    values, info = lapack.dgesdd(matrix, compute_uv=0)[1::2]
+    if info != 0:
+        raise np.linalg.LinAlgError('SVD did not converge')
+    largest, smallest = values[0].item(), values[-1].item()
+    # numpy's quotient for a smallest value of 0 is inf, also where 0/0 gives nan.
+    return math.inf if smallest == 0.0 else largest / smallest
 
 
 def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
@@ -307,9 +336,12 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
         matrix = _block(side.cross, free) / outer
-        if not np.isfinite(matrix).all() or np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
+        if not np.isfinite(matrix).all() or _condition(matrix) > _IV_CONDITION_LIMIT:
             return None
-        step = np.linalg.solve(matrix, rhs) / scales
+        step = _solve(matrix, rhs)
+        if step is None:
+            return None
+        step /= scales
     else:
         gram = _block(side.gram, free) / outer
         if not np.isfinite(gram).all():
@@ -317,10 +349,10 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
         else:
-            try:
-                step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), rhs) / scales
-            except np.linalg.LinAlgError:
+            step = _solve(gram + damping * np.diag(np.diag(gram)), rhs)
+            if step is None:
                 return None
+            step /= scales
     if not np.isfinite(step).all():
         return None
     if free.all():
@@ -341,7 +373,7 @@ def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.nd
     else by ``lstsq`` on the scaled sensitivities themselves, which resolves singular values
     down to rounding.
     """
-    values, vectors = np.linalg.eigh(gram)
+    values, vectors = _eigh(gram)
     largest = max(values[-1], _TINY)
     if rcond is not None:
         kept = values > rcond ** 2 * largest
@@ -517,7 +549,7 @@ def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
         return np.inf
     side = linear.side()
     scales = side.scales(free)
-    values, vectors = np.linalg.eigh(_block(side.gram, free) / np.outer(scales, scales))
+    values, vectors = _eigh(_block(side.gram, free) / np.outer(scales, scales))
     kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], _TINY)
     projected = vectors[:, kept].T @ (side.gradient[free] / scales)
     return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / linear.variance))
