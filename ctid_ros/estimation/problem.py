@@ -11,6 +11,7 @@ sections 2-4 and 9; the admissible set and the bounds are sections 6 and 7.
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Dict, Mapping, Optional, Tuple, Union
+import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Coefficients, Model
@@ -157,8 +158,23 @@ def _same_coefficients(first: Coefficients, second: Coefficients) -> bool:
                                   (first.delay_gradient, second.delay_gradient)))
 
 
-def delay_parameter(model: Model) -> Optional[int]:
+# A model's dead-time parameter, found once per model: the stages and checks of every
+# estimate ask for it, and each probe evaluates the model's coefficients.
+_DELAY_PARAMETERS: 'weakref.WeakKeyDictionary[FittedModel, Optional[int]]' = \
+    weakref.WeakKeyDictionary()
+
+
+def delay_parameter(model: FittedModel) -> Optional[int]:
     """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
+    try:
+        return _DELAY_PARAMETERS[model]
+    except KeyError:
+        index = _DELAY_PARAMETERS[model] = _probed_delay_parameter(model)
+        return index
+
+
+def _probed_delay_parameter(model: FittedModel) -> Optional[int]:
+    """:func:`delay_parameter`, from the coefficients' dead-time gradient at all ones."""
     if not model.delay_is_estimated:
         return None
     probe = model.coefficients(np.ones(len(model.parameters)))
@@ -187,6 +203,13 @@ class Problem:
         Whether the response of an unknown initial state and a constant output offset are
         fitted along with the parameters (``docs/algorithm.md`` section 9).
 
+    Attributes
+    ----------
+    skip : int
+        Samples left out of every sum (:meth:`exclude_transient`).
+    measured : ndarray
+        Output samples that are fitted (after the excluded transient).
+
     """
 
     def __init__(self, model: FittedModel, data: Data, lower: np.ndarray, upper: np.ndarray,
@@ -200,6 +223,8 @@ class Problem:
         self.output_offset = output_offset
         self.evaluations = 0
         self.skip = 0
+        # Every cost and linearisation reads it: a view kept, set again with the skip.
+        self.measured = data.y
         self.best: Optional[State] = None
         self.reductions: Dict[int, float] = {}
         self._leading_sign = None
@@ -224,11 +249,6 @@ class Problem:
         """
         ts, offset = self.data.ts, self.data.output_skew
         return offset + ts * round((tau - offset) / ts)
-
-    @property
-    def measured(self) -> np.ndarray:
-        """Output samples that are fitted (after the excluded transient)."""
-        return self.data.y[self.skip:]
 
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
         if not (self.initial_state or self.output_offset):
@@ -356,10 +376,11 @@ class Problem:
             # Costs on other samples are not comparable.
             self.best = None
         self.skip = skip
+        self.measured = self.data.y[skip:]
 
     def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
         """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
-        if (theta < self.lower).any() or (theta > self.upper).any():
+        if ((theta < self.lower) | (theta > self.upper)).any():
             return None
         try:
             coefficients = self.model.coefficients(theta)
