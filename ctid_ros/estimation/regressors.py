@@ -267,9 +267,12 @@ class SignalBank:
             # Both products have degree 2 deg D: the coefficient arrays align. Every row is
             # mapped, the dead time's zero one too: the rounding of the others depends on how
             # many rows one product maps, and the covariance of a near-singular fit shows it.
+            # np.convolve of two equal-length factors is np.correlate with the second reversed:
+            # the same products summed in the same order, without convolve's wrapper per row.
+            den_reversed, num_reversed = den[::-1], num_full[::-1]
             sensitivity_numerators = [
-                np.convolve(num_jac[i], den) - np.convolve(den_jacobian[i], num_full)
-                for i in range(params)]
+                np.correlate(num_jac[i], den_reversed, 'full')
+                - np.correlate(den_jacobian[i], num_reversed, 'full') for i in range(params)]
             # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
             sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
             if sensitivities is None:
