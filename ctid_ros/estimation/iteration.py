@@ -173,9 +173,12 @@ def _condition(matrix: np.ndarray) -> float:
     return math.inf if smallest == 0.0 else largest / smallest
 
 
+# Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
+# Python bools costs a fraction of the array methods' reduction machinery.
+
 def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Return the rows and columns of the free parameters (the matrix if all are free)."""
-    return matrix if free.all() else matrix[np.ix_(free, free)]
+    return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
 
 
 class _Side:
@@ -281,10 +284,10 @@ def _bounded_direction(kind: str, linear: _Linear, free: np.ndarray, at_lower: n
         if step is None:
             return None
         outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
-        if not outward.any():
+        if not any(outward.tolist()):
             return step
         free &= ~outward
-        if not free.any():
+        if not any(free.tolist()):
             return None
 
 
@@ -320,7 +323,7 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
         change = 0.0 if step is None else linear.delay_change(step)
         if step is None or (change >= 0.0 if which == 'up' else change <= 0.0):
             return step
-    if not held.any():
+    if not any(held.tolist()):
         return None
     return _one_sided_direction(kind, linear.side(), held, damping, rcond)
 
@@ -353,9 +356,9 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
             if step is None:
                 return None
             step /= scales
-    if not np.isfinite(step).all():
+    if not all(map(math.isfinite, step.tolist())):
         return None
-    if free.all():
+    if all(free.tolist()):
         return step
     full = np.zeros(free.size)
     full[free] = step
@@ -457,7 +460,7 @@ def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: 
     lattice is held where the cost rises on both sides.
     """
     at_lower, at_upper = bounded
-    if not (linear.kinked or frozen.any() or at_lower.any() or at_upper.any()):
+    if not (linear.kinked or any((frozen | at_lower | at_upper).tolist())):
         return np.ones(frozen.size, dtype=bool)         # no bound, no kink: every one is free
     rising, falling = _one_sided_gradients(linear)
     kink = (rising < 0) & (falling < 0)
@@ -499,7 +502,7 @@ def _optimality(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen:
                 ) -> float:
     """:func:`optimality` of a point linearised as ``linear`` with ``bounded`` its bounds."""
     free = _free_mask(linear, bounded, frozen)
-    if not free.any():
+    if not any(free.tolist()):
         return 0.0
     # Combinations the data barely determine (their sensitivities nearly dependent, as where
     # two time constants coincide) have no first-order information: the measure leaves them
@@ -567,7 +570,7 @@ def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarr
     """
     rising, falling = _one_sided_gradients(linear)
     delays = free & (linear.lin.delay_gradient != 0.0)
-    if not (delays & (rising > 0.0) & (falling > 0.0)).any():
+    if not any((delays & (rising > 0.0) & (falling > 0.0)).tolist()):
         return None
     best = None
     for side in ('up', 'down'):
@@ -833,7 +836,7 @@ class _Run:
         linear = self._linearized(policy.method != 'gn' and not self.near)
         bounded = on_bounds(self.state.theta, self.problem)
         free = _free_mask(linear, bounded, self.frozen)
-        if not free.any():
+        if not any(free.tolist()):
             return StopReason.ALL_AT_BOUNDS
         primary = self._primary()
         point = _Point(linear, free, bounded)

@@ -380,7 +380,7 @@ class Problem:
 
     def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
         """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
-        if ((theta < self.lower) | (theta > self.upper)).any():
+        if any(((theta < self.lower) | (theta > self.upper)).tolist()):
             return None
         try:
             coefficients = self.model.coefficients(theta)

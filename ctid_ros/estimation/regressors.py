@@ -213,7 +213,9 @@ class SignalBank:
         den_jacobian = coefficients.den_jacobian
         params = den_jacobian.shape[0]
         count = self.y.shape[0]
-        delay_used = bool(coefficients.delay_gradient.any())
+        # Masks and gradients of a few parameters are tested as lists: the builtin any/all
+        # of a few Python values costs a fraction of the array methods' reductions.
+        delay_used = any(coefficients.delay_gradient.tolist())
         delay = coefficients.delay + self.extra_delay
         # A zero row of a Jacobian (a gain moves no D, a lag no N) maps to a zero regressor:
         # only the parameters that move a polynomial are mapped for phi.
@@ -294,7 +296,7 @@ class SignalBank:
         if delay_used:
             moved = derivative if jump is None else derivative + jump
             gradient = coefficients.delay_gradient
-            for row in np.flatnonzero(gradient).tolist():
+            for row in gradient.nonzero()[0].tolist():
                 term = gradient[row] * moved
                 if instruments is None:
                     psi[row] -= term
@@ -306,10 +308,11 @@ class SignalBank:
         phi = None
         if regressors:
             phi = u_regressors
-            bank_y = None if not den_moves.any() else _remembered(
+            moving = den_moves.tolist()
+            bank_y = None if not any(moving) else _remembered(
                 self._output_filtered, den.tobytes(),
                 lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-            if den_moves.all():
+            if all(moving):
                 y_parts = bank_y.outputs(den_jacobian)          # a new array: negated in place
                 phi = np.subtract(0.0, y_parts, out=y_parts) if phi is None else \
                     _less(phi, y_parts)
@@ -320,7 +323,7 @@ class SignalBank:
                     # Row by row in place: a masked subtraction would gather the rows into a
                     # copy, subtract into another and scatter them back.
                     y_parts = bank_y.outputs(den_jacobian[den_moves])
-                    for part, row in zip(y_parts, np.flatnonzero(den_moves).tolist()):
+                    for part, row in zip(y_parts, den_moves.nonzero()[0].tolist()):
                         phi[row] -= part
             for row, term in delay_terms:
                 phi[row] -= term
@@ -336,7 +339,7 @@ class SignalBank:
 
 def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Return ``values``, the signals of the ``rows`` marked, as every row (zeros elsewhere)."""
-    if rows.all():
+    if all(rows.tolist()):
         return values
     spread = np.zeros((rows.size, values.shape[1]))
     spread[rows] = values
