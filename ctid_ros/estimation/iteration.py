@@ -176,6 +176,11 @@ def _condition(matrix: np.ndarray) -> float:
 # Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
 # Python bools costs a fraction of the array methods' reduction machinery.
 
+def _finite(matrix: np.ndarray) -> bool:
+    """Return True if every element is finite (``np.isfinite(matrix).all()``, its reduction)."""
+    return bool(np.logical_and.reduce(np.isfinite(matrix), axis=None))
+
+
 def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Return the rows and columns of the free parameters (the matrix if all are free)."""
     return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
@@ -339,7 +344,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
         matrix = _block(side.cross, free) / outer
-        if not np.isfinite(matrix).all() or _condition(matrix) > _IV_CONDITION_LIMIT:
+        if not _finite(matrix) or _condition(matrix) > _IV_CONDITION_LIMIT:
             return None
         step = _solve(matrix, rhs)
         if step is None:
@@ -347,7 +352,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step /= scales
     else:
         gram = _block(side.gram, free) / outer
-        if not np.isfinite(gram).all():
+        if not _finite(gram):
             return None
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)

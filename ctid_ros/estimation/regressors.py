@@ -81,8 +81,10 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     if den[0] == 0.0 or not all_finite(den):
         return False
     roots = polynomial_roots(den)
-    scale = max(abs(roots).max(), _TINY)
-    return bool(roots.real.max() < -margin * scale)
+    # ndarray.max is np.maximum.reduce behind two Python wrappers: called directly, as for every
+    # candidate.
+    scale = max(np.maximum.reduce(abs(roots)), _TINY)
+    return bool(np.maximum.reduce(roots.real) < -margin * scale)
 
 
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
