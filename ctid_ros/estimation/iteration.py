@@ -465,8 +465,9 @@ def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: 
     lattice is held where the cost rises on both sides.
     """
     at_lower, at_upper = bounded
-    if not (linear.kinked or any((frozen | at_lower | at_upper).tolist())):
-        return np.ones(frozen.size, dtype=bool)         # no bound, no kink: every one is free
+    held = frozen | at_lower | at_upper
+    if not (linear.kinked or any(held.tolist())):
+        return ~held                            # no bound, no kink: every one is free (True)
     rising, falling = _one_sided_gradients(linear)
     kink = (rising < 0) & (falling < 0)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)

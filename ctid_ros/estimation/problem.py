@@ -82,6 +82,11 @@ def with_fitted_nuisance(measured: np.ndarray, output: np.ndarray,
     return output + basis @ (basis.T @ (measured - output))
 
 
+def _projected_out(columns: Optional[np.ndarray], basis: np.ndarray) -> Optional[np.ndarray]:
+    """Return ``columns`` less their part in the span of the orthonormal ``basis``."""
+    return None if columns is None else columns - basis @ (basis.T @ columns)
+
+
 def settling_time(coefficients: Coefficients) -> float:
     """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
     roots = polynomial_roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
@@ -320,12 +325,8 @@ class Problem:
             if phi is not None:
                 phi = phi + motion
         output = with_fitted_nuisance(self.measured, output, basis)
-
-        def projected(columns: Optional[np.ndarray]) -> Optional[np.ndarray]:
-            return None if columns is None else columns - basis @ (basis.T @ columns)
-
-        return Linearization(output, projected(phi), projected(psi), projected(jump),
-                             lin.delay_gradient)
+        return Linearization(output, _projected_out(phi, basis), _projected_out(psi, basis),
+                             _projected_out(jump, basis), lin.delay_gradient)
 
     def _nuisance_motion(self, coefficients: Coefficients, error: np.ndarray) -> np.ndarray:
         """

@@ -52,6 +52,9 @@ Value = TypeVar('Value')
 # Realisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
 _TINY = np.finfo(float).tiny
+# State trajectories of every input channel through one filter. Named once: a nested function's
+# annotation is evaluated at every definition, and typing's subscription is a call.
+_Responses = List[StateResponse]
 
 
 @dataclass
@@ -153,17 +156,17 @@ class SignalBank:
             else 1
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
-        self._responses: Dict[Hashable, List[StateResponse]] = {}
-        self._sensitivities: Dict[Hashable, List[StateResponse]] = {}
+        self._responses: Dict[Hashable, _Responses] = {}
+        self._sensitivities: Dict[Hashable, _Responses] = {}
         self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
         return _realization(den.tobytes()).discretize(self.ts, float(delay), intersample)
 
-    def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
-                           delay: float, size: int) -> List[StateResponse]:
+    def _channel_responses(self, cache: Dict[Hashable, _Responses], den: np.ndarray,
+                           delay: float, size: int) -> _Responses:
         """State trajectories of every input channel through ``1/den`` with ``delay`` (cached)."""
-        def simulate() -> List[StateResponse]:
+        def simulate() -> _Responses:
             discrete = self._discrete(den, delay, self.intersample)
             return [discrete.response(self.driving[:, j]) for j in range(self.driving.shape[1])]
 
@@ -226,7 +229,7 @@ class SignalBank:
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
                                               self._responses_kept)
-        sensitivity_responses: Optional[List[StateResponse]] = None
+        sensitivity_responses: Optional[_Responses] = None
         # An accepted candidate's output is remembered from its cost: not mapped again.
         key = self._output_key(coefficients)
         known = self._outputs.get(key) if instruments is None else instruments.output
