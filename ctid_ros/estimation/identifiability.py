@@ -67,7 +67,10 @@ def _thin_svd(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     The same routine with the same optimal workspace, without the wrapper's checks and
     conversions (about thirty calls); ``u`` in numpy's row order, as its products expect.
+    An empty matrix (nothing free) takes numpy's own empty factors: LAPACK refuses it.
     """
+    if not matrix.size:
+        return np.linalg.svd(matrix, full_matrices=False)
     rows, columns = matrix.shape
     workspace = int(lapack.dgesdd_lwork(rows, columns, compute_uv=1, full_matrices=0)[0])
     u, singular, vh, info = lapack.dgesdd(matrix, compute_uv=1, full_matrices=0,
