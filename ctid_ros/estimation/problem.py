@@ -155,12 +155,14 @@ def _same_coefficients(first: Coefficients, second: Coefficients) -> bool:
     if first is second:
         return True             # the iteration asks again with its state's own coefficients
     # The denominator first: a new candidate differs there, and the comparison stops.
-    return all(np.ascontiguousarray(one).tobytes() == np.ascontiguousarray(other).tobytes()
+    # tobytes reads an array's values in C order whatever its layout (the Jacobians are
+    # strided views); the dead time, a float, is compared as its eight bytes.
+    return all(one.tobytes() == other.tobytes()
                for one, other in ((first.den, second.den), (first.num, second.num),
-                                  (first.delay, second.delay),
                                   (first.den_jacobian, second.den_jacobian),
                                   (first.num_jacobian, second.num_jacobian),
-                                  (first.delay_gradient, second.delay_gradient)))
+                                  (first.delay_gradient, second.delay_gradient))) and \
+        np.float64(first.delay).tobytes() == np.float64(second.delay).tobytes()
 
 
 # A model's dead-time parameter, found once per model: the stages and checks of every
