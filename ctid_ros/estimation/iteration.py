@@ -237,12 +237,10 @@ class _Linear:
         self.error = error
         count, params = lin.psi.shape
         self.variance = float(error @ error) / max(count - params, 1)
+        # Whether the dead time's two sides differ (on the sample lattice): every direction
+        # and side asks.
+        self.kinked = lin.delay_jump is not None
         self._sides: Dict[str, _Side] = {}
-
-    @property
-    def kinked(self) -> bool:
-        """Return True where the dead time's two sides differ (on the sample lattice)."""
-        return self.lin.delay_jump is not None
 
     def side(self, which: str = 'up') -> _Side:
         """Return the products of the ``'up'`` or ``'down'`` sensitivities."""
