@@ -220,7 +220,8 @@ class _Side:
     def scales(self, free: np.ndarray) -> np.ndarray:
         """:func:`column_scales` of the free columns, from the diagonal of the gram matrix."""
         scales = np.sqrt(self.gram.diagonal()[free])
-        return np.where(scales > 0.0, scales, 1.0)
+        scales[~(scales > 0.0)] = 1.0                    # np.where's choice, in place
+        return scales
 
 
 class _Linear:
@@ -556,10 +557,11 @@ def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
         return np.inf
     side = linear.side()
     scales = side.scales(free)
-    values, vectors = _eigh(_block(side.gram, free) / np.outer(scales, scales))
+    values, vectors = _eigh(_block(side.gram, free) / (scales[:, None] * scales))  # np.outer
     kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], _TINY)
     projected = vectors[:, kept].T @ (side.gradient[free] / scales)
-    return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / linear.variance))
+    # np.sum of a vector is its add.reduce; the square root of a float, math's (both IEEE).
+    return math.sqrt(np.add.reduce(projected ** 2 / values[kept]) / linear.variance)
 
 
 def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarray,
