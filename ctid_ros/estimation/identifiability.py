@@ -109,7 +109,7 @@ class Sensitivities:
             psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
             psi = psi[:, free]
             norms = np.linalg.norm(psi, axis=0)
-            svd = None if np.any(norms == 0.0) else _thin_svd(psi / norms)
+            svd = None if any((norms == 0.0).tolist()) else _thin_svd(psi / norms)
             self._latest = (state, (free, psi, norms, svd))
         return self._latest[1]
 
@@ -123,7 +123,7 @@ def blind_combination(problem: Problem, state: State,
     Parameters held at a bound are left out.
     """
     free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
-    if not np.any(free):
+    if not any(free.tolist()):
         return None
     names = [name for name, keep in zip(problem.model.parameters, free) if keep]
     if svd is None:

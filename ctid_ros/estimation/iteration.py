@@ -318,7 +318,9 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
         # The side where the cost falls faster first, then the other.
         rising, falling = _one_sided_gradients(linear)
         delays = free & (gradient != 0.0)
-        down_first = np.max(falling[delays], initial=0.0) > np.max(rising[delays], initial=0.0)
+        # np.max is np.maximum.reduce behind Python wrappers: called directly.
+        down_first = np.maximum.reduce(falling[delays], initial=0.0) > \
+            np.maximum.reduce(rising[delays], initial=0.0)
         sides = ('down', 'up') if down_first else ('up', 'down')
     else:
         sides = (side,)

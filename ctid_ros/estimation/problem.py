@@ -90,7 +90,8 @@ def _projected_out(columns: Optional[np.ndarray], basis: np.ndarray) -> Optional
 def settling_time(coefficients: Coefficients) -> float:
     """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
     roots = polynomial_roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
-    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
+    # np.max is np.maximum.reduce behind Python wrappers: called directly.
+    slowest = float(np.maximum.reduce(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
     return 5.0 * slowest + max(coefficients.delay, 0.0)
 
 
