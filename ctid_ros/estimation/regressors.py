@@ -223,8 +223,9 @@ class SignalBank:
         delay_used = any(coefficients.delay_gradient.tolist())
         delay = coefficients.delay + self.extra_delay
         # A zero row of a Jacobian (a gain moves no D, a lag no N) maps to a zero regressor:
-        # only the parameters that move a polynomial are mapped for phi.
-        den_moves = den_jacobian.any(axis=1)
+        # only the parameters that move a polynomial are mapped for phi. (ndarray.any(axis=1) is
+        # np.logical_or.reduce behind two Python wrappers: called directly.)
+        den_moves = np.logical_or.reduce(den_jacobian, axis=1)
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
@@ -239,7 +240,7 @@ class SignalBank:
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
             num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
-            num_moves = num_jac.any(axis=1)
+            num_moves = np.logical_or.reduce(num_jac, axis=1)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
