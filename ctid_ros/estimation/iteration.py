@@ -21,6 +21,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
 import numpy as np
+from scipy.linalg import lapack
 
 __all__ = [
     'Attempt', 'Iteration', 'IterationPolicy', 'IterationResult', 'NEGLIGIBLE_STEP',
@@ -144,9 +145,45 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
+# The solves below are on p x p matrices a few times per update: LAPACK is called directly,
+# without the checks and conversions of numpy.linalg's wrappers, which call the same routines
+# (gesv, syevd, gesdd) and would cost more than the factorisations themselves.
+
+def _solve(matrix: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
+    """``np.linalg.solve(matrix, rhs)`` by LU (``gesv``); None for a singular matrix."""
+    solution, info = lapack.dgesv(matrix, rhs)[2:]
+    return solution if info == 0 else None
+
+
+def _eigh(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``np.linalg.eigh(matrix)`` of a symmetric matrix (``syevd``, the lower triangle)."""
+    values, vectors, info = lapack.dsyevd(matrix, compute_v=1, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError('Eigenvalues did not converge')
+    return values, vectors
+
+
+def _condition(matrix: np.ndarray) -> float:
+    """``np.linalg.cond(matrix)`` of a finite matrix: its singular values' ratio (``gesdd``)."""
+    values, info = lapack.dgesdd(matrix, compute_uv=0)[1::2]
+    if info != 0:
+        raise np.linalg.LinAlgError('SVD did not converge')
+    largest, smallest = values[0].item(), values[-1].item()
+    # numpy's quotient for a smallest value of 0 is inf, also where 0/0 gives nan.
+    return math.inf if smallest == 0.0 else largest / smallest
+
+
+# Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
+# Python bools costs a fraction of the array methods' reduction machinery.
+
+def _finite(matrix: np.ndarray) -> bool:
+    """Return True if every element is finite (``np.isfinite(matrix).all()``, its reduction)."""
+    return bool(np.logical_and.reduce(np.isfinite(matrix), axis=None))
+
+
 def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Return the rows and columns of the free parameters (the matrix if all are free)."""
-    return matrix if free.all() else matrix[np.ix_(free, free)]
+    return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
 
 
 class _Side:
@@ -183,7 +220,8 @@ class _Side:
     def scales(self, free: np.ndarray) -> np.ndarray:
         """:func:`column_scales` of the free columns, from the diagonal of the gram matrix."""
         scales = np.sqrt(self.gram.diagonal()[free])
-        return np.where(scales > 0.0, scales, 1.0)
+        scales[~(scales > 0.0)] = 1.0                    # np.where's choice, in place
+        return scales
 
 
 class _Linear:
@@ -200,12 +238,10 @@ class _Linear:
         self.error = error
         count, params = lin.psi.shape
         self.variance = float(error @ error) / max(count - params, 1)
+        # Whether the dead time's two sides differ (on the sample lattice): every direction
+        # and side asks.
+        self.kinked = lin.delay_jump is not None
         self._sides: Dict[str, _Side] = {}
-
-    @property
-    def kinked(self) -> bool:
-        """Return True where the dead time's two sides differ (on the sample lattice)."""
-        return self.lin.delay_jump is not None
 
     def side(self, which: str = 'up') -> _Side:
         """Return the products of the ``'up'`` or ``'down'`` sensitivities."""
@@ -252,10 +288,10 @@ def _bounded_direction(kind: str, linear: _Linear, free: np.ndarray, at_lower: n
         if step is None:
             return None
         outward = free & ((at_lower & (step < 0.0)) | (at_upper & (step > 0.0)))
-        if not outward.any():
+        if not any(outward.tolist()):
             return step
         free &= ~outward
-        if not free.any():
+        if not any(free.tolist()):
             return None
 
 
@@ -282,7 +318,9 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
         # The side where the cost falls faster first, then the other.
         rising, falling = _one_sided_gradients(linear)
         delays = free & (gradient != 0.0)
-        down_first = np.max(falling[delays], initial=0.0) > np.max(rising[delays], initial=0.0)
+        # np.max is np.maximum.reduce behind Python wrappers: called directly.
+        down_first = np.maximum.reduce(falling[delays], initial=0.0) > \
+            np.maximum.reduce(rising[delays], initial=0.0)
         sides = ('down', 'up') if down_first else ('up', 'down')
     else:
         sides = (side,)
@@ -291,7 +329,7 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
         change = 0.0 if step is None else linear.delay_change(step)
         if step is None or (change >= 0.0 if which == 'up' else change <= 0.0):
             return step
-    if not held.any():
+    if not any(held.tolist()):
         return None
     return _one_sided_direction(kind, linear.side(), held, damping, rcond)
 
@@ -307,23 +345,26 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
         matrix = _block(side.cross, free) / outer
-        if not np.isfinite(matrix).all() or np.linalg.cond(matrix) > _IV_CONDITION_LIMIT:
+        if not _finite(matrix) or _condition(matrix) > _IV_CONDITION_LIMIT:
             return None
-        step = np.linalg.solve(matrix, rhs) / scales
+        step = _solve(matrix, rhs)
+        if step is None:
+            return None
+        step /= scales
     else:
         gram = _block(side.gram, free) / outer
-        if not np.isfinite(gram).all():
+        if not _finite(gram):
             return None
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
         else:
-            try:
-                step = np.linalg.solve(gram + damping * np.diag(np.diag(gram)), rhs) / scales
-            except np.linalg.LinAlgError:
+            step = _solve(gram + damping * np.diag(np.diag(gram)), rhs)
+            if step is None:
                 return None
-    if not np.isfinite(step).all():
+            step /= scales
+    if not all(map(math.isfinite, step.tolist())):
         return None
-    if free.all():
+    if all(free.tolist()):
         return step
     full = np.zeros(free.size)
     full[free] = step
@@ -341,7 +382,7 @@ def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.nd
     else by ``lstsq`` on the scaled sensitivities themselves, which resolves singular values
     down to rounding.
     """
-    values, vectors = np.linalg.eigh(gram)
+    values, vectors = _eigh(gram)
     largest = max(values[-1], _TINY)
     if rcond is not None:
         kept = values > rcond ** 2 * largest
@@ -425,8 +466,9 @@ def _free_mask(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen: 
     lattice is held where the cost rises on both sides.
     """
     at_lower, at_upper = bounded
-    if not (linear.kinked or frozen.any() or at_lower.any() or at_upper.any()):
-        return np.ones(frozen.size, dtype=bool)         # no bound, no kink: every one is free
+    held = frozen | at_lower | at_upper
+    if not (linear.kinked or any(held.tolist())):
+        return ~held                            # no bound, no kink: every one is free (True)
     rising, falling = _one_sided_gradients(linear)
     kink = (rising < 0) & (falling < 0)
     return ~(frozen | (at_lower & (rising < 0)) | (at_upper & (falling < 0)) | kink)
@@ -467,7 +509,7 @@ def _optimality(linear: _Linear, bounded: Tuple[np.ndarray, np.ndarray], frozen:
                 ) -> float:
     """:func:`optimality` of a point linearised as ``linear`` with ``bounded`` its bounds."""
     free = _free_mask(linear, bounded, frozen)
-    if not free.any():
+    if not any(free.tolist()):
         return 0.0
     # Combinations the data barely determine (their sensitivities nearly dependent, as where
     # two time constants coincide) have no first-order information: the measure leaves them
@@ -517,10 +559,11 @@ def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
         return np.inf
     side = linear.side()
     scales = side.scales(free)
-    values, vectors = np.linalg.eigh(_block(side.gram, free) / np.outer(scales, scales))
+    values, vectors = _eigh(_block(side.gram, free) / (scales[:, None] * scales))  # np.outer
     kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], _TINY)
     projected = vectors[:, kept].T @ (side.gradient[free] / scales)
-    return float(np.sqrt(np.sum(projected ** 2 / values[kept]) / linear.variance))
+    # np.sum of a vector is its add.reduce; the square root of a float, math's (both IEEE).
+    return math.sqrt(np.add.reduce(projected ** 2 / values[kept]) / linear.variance)
 
 
 def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarray,
@@ -535,7 +578,7 @@ def _across_kink(problem: Problem, state: State, linear: _Linear, free: np.ndarr
     """
     rising, falling = _one_sided_gradients(linear)
     delays = free & (linear.lin.delay_gradient != 0.0)
-    if not (delays & (rising > 0.0) & (falling > 0.0)).any():
+    if not any((delays & (rising > 0.0) & (falling > 0.0)).tolist()):
         return None
     best = None
     for side in ('up', 'down'):
@@ -801,7 +844,7 @@ class _Run:
         linear = self._linearized(policy.method != 'gn' and not self.near)
         bounded = on_bounds(self.state.theta, self.problem)
         free = _free_mask(linear, bounded, self.frozen)
-        if not free.any():
+        if not any(free.tolist()):
             return StopReason.ALL_AT_BOUNDS
         primary = self._primary()
         point = _Point(linear, free, bounded)

@@ -11,6 +11,7 @@ sections 2-4 and 9; the admissible set and the bounds are sections 6 and 7.
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Dict, Mapping, Optional, Tuple, Union
+import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Coefficients, Model
@@ -81,10 +82,16 @@ def with_fitted_nuisance(measured: np.ndarray, output: np.ndarray,
     return output + basis @ (basis.T @ (measured - output))
 
 
+def _projected_out(columns: Optional[np.ndarray], basis: np.ndarray) -> Optional[np.ndarray]:
+    """Return ``columns`` less their part in the span of the orthonormal ``basis``."""
+    return None if columns is None else columns - basis @ (basis.T @ columns)
+
+
 def settling_time(coefficients: Coefficients) -> float:
     """Return five times the slowest time constant of ``D`` plus the dead time (seconds)."""
     roots = polynomial_roots(coefficients.den) if coefficients.den.size > 1 else np.zeros(0)
-    slowest = float(np.max(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
+    # np.max is np.maximum.reduce behind Python wrappers: called directly.
+    slowest = float(np.maximum.reduce(-1.0 / roots.real, initial=0.0)) if roots.size else 0.0
     return 5.0 * slowest + max(coefficients.delay, 0.0)
 
 
@@ -149,16 +156,33 @@ def _same_coefficients(first: Coefficients, second: Coefficients) -> bool:
     if first is second:
         return True             # the iteration asks again with its state's own coefficients
     # The denominator first: a new candidate differs there, and the comparison stops.
-    return all(np.ascontiguousarray(one).tobytes() == np.ascontiguousarray(other).tobytes()
+    # tobytes reads an array's values in C order whatever its layout (the Jacobians are
+    # strided views); the dead time, a float, is compared as its eight bytes.
+    return all(one.tobytes() == other.tobytes()
                for one, other in ((first.den, second.den), (first.num, second.num),
-                                  (first.delay, second.delay),
                                   (first.den_jacobian, second.den_jacobian),
                                   (first.num_jacobian, second.num_jacobian),
-                                  (first.delay_gradient, second.delay_gradient)))
+                                  (first.delay_gradient, second.delay_gradient))) and \
+        np.float64(first.delay).tobytes() == np.float64(second.delay).tobytes()
 
 
-def delay_parameter(model: Model) -> Optional[int]:
+# A model's dead-time parameter, found once per model: the stages and checks of every
+# estimate ask for it, and each probe evaluates the model's coefficients.
+_DELAY_PARAMETERS: 'weakref.WeakKeyDictionary[FittedModel, Optional[int]]' = \
+    weakref.WeakKeyDictionary()
+
+
+def delay_parameter(model: FittedModel) -> Optional[int]:
     """Index of the parameter that is the dead time itself (``exp(-tau*s)``), if any."""
+    try:
+        return _DELAY_PARAMETERS[model]
+    except KeyError:
+        index = _DELAY_PARAMETERS[model] = _probed_delay_parameter(model)
+        return index
+
+
+def _probed_delay_parameter(model: FittedModel) -> Optional[int]:
+    """:func:`delay_parameter`, from the coefficients' dead-time gradient at all ones."""
     if not model.delay_is_estimated:
         return None
     probe = model.coefficients(np.ones(len(model.parameters)))
@@ -187,6 +211,13 @@ class Problem:
         Whether the response of an unknown initial state and a constant output offset are
         fitted along with the parameters (``docs/algorithm.md`` section 9).
 
+    Attributes
+    ----------
+    skip : int
+        Samples left out of every sum (:meth:`exclude_transient`).
+    measured : ndarray
+        Output samples that are fitted (after the excluded transient).
+
     """
 
     def __init__(self, model: FittedModel, data: Data, lower: np.ndarray, upper: np.ndarray,
@@ -200,6 +231,8 @@ class Problem:
         self.output_offset = output_offset
         self.evaluations = 0
         self.skip = 0
+        # Every cost and linearisation reads it: a view kept, set again with the skip.
+        self.measured = data.y
         self.best: Optional[State] = None
         self.reductions: Dict[int, float] = {}
         self._leading_sign = None
@@ -224,11 +257,6 @@ class Problem:
         """
         ts, offset = self.data.ts, self.data.output_skew
         return offset + ts * round((tau - offset) / ts)
-
-    @property
-    def measured(self) -> np.ndarray:
-        """Output samples that are fitted (after the excluded transient)."""
-        return self.data.y[self.skip:]
 
     def _basis(self, coefficients: Coefficients) -> Optional[np.ndarray]:
         if not (self.initial_state or self.output_offset):
@@ -300,12 +328,8 @@ class Problem:
             if phi is not None:
                 phi = phi + motion
         output = with_fitted_nuisance(self.measured, output, basis)
-
-        def projected(columns: Optional[np.ndarray]) -> Optional[np.ndarray]:
-            return None if columns is None else columns - basis @ (basis.T @ columns)
-
-        return Linearization(output, projected(phi), projected(psi), projected(jump),
-                             lin.delay_gradient)
+        return Linearization(output, _projected_out(phi, basis), _projected_out(psi, basis),
+                             _projected_out(jump, basis), lin.delay_gradient)
 
     def _nuisance_motion(self, coefficients: Coefficients, error: np.ndarray) -> np.ndarray:
         """
@@ -356,10 +380,11 @@ class Problem:
             # Costs on other samples are not comparable.
             self.best = None
         self.skip = skip
+        self.measured = self.data.y[skip:]
 
     def admissible(self, theta: np.ndarray) -> Optional[Coefficients]:
         """Coefficients at theta if theta is inside the bounds and ``D`` is stable, else None."""
-        if (theta < self.lower).any() or (theta > self.upper).any():
+        if any(((theta < self.lower) | (theta > self.upper)).tolist()):
             return None
         try:
             coefficients = self.model.coefficients(theta)

@@ -52,6 +52,9 @@ Value = TypeVar('Value')
 # Realisations shared by every bank (a few tens of small objects).
 _SHARED_FILTERS = 32
 _TINY = np.finfo(float).tiny
+# State trajectories of every input channel through one filter. Named once: a nested function's
+# annotation is evaluated at every definition, and typing's subscription is a call.
+_Responses = List[StateResponse]
 
 
 @dataclass
@@ -81,8 +84,10 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     if den[0] == 0.0 or not all_finite(den):
         return False
     roots = polynomial_roots(den)
-    scale = max(abs(roots).max(), _TINY)
-    return bool(roots.real.max() < -margin * scale)
+    # ndarray.max is np.maximum.reduce behind two Python wrappers: called directly, as for every
+    # candidate.
+    scale = max(np.maximum.reduce(abs(roots)), _TINY)
+    return bool(np.maximum.reduce(roots.real) < -margin * scale)
 
 
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
@@ -151,17 +156,17 @@ class SignalBank:
             else 1
         # State trajectories of the input channels (output and its sensitivities at the same
         # parameters come from one simulation of each filter) and of the output.
-        self._responses: Dict[Hashable, List[StateResponse]] = {}
-        self._sensitivities: Dict[Hashable, List[StateResponse]] = {}
+        self._responses: Dict[Hashable, _Responses] = {}
+        self._sensitivities: Dict[Hashable, _Responses] = {}
         self._output_filtered: Dict[Hashable, StateResponse] = {}
 
     def _discrete(self, den: np.ndarray, delay: float, intersample: str) -> DiscreteFilter:
         return _realization(den.tobytes()).discretize(self.ts, float(delay), intersample)
 
-    def _channel_responses(self, cache: Dict[Hashable, List[StateResponse]], den: np.ndarray,
-                           delay: float, size: int) -> List[StateResponse]:
+    def _channel_responses(self, cache: Dict[Hashable, _Responses], den: np.ndarray,
+                           delay: float, size: int) -> _Responses:
         """State trajectories of every input channel through ``1/den`` with ``delay`` (cached)."""
-        def simulate() -> List[StateResponse]:
+        def simulate() -> _Responses:
             discrete = self._discrete(den, delay, self.intersample)
             return [discrete.response(self.driving[:, j]) for j in range(self.driving.shape[1])]
 
@@ -213,16 +218,19 @@ class SignalBank:
         den_jacobian = coefficients.den_jacobian
         params = den_jacobian.shape[0]
         count = self.y.shape[0]
-        delay_used = bool(coefficients.delay_gradient.any())
+        # Masks and gradients of a few parameters are tested as lists: the builtin any/all
+        # of a few Python values costs a fraction of the array methods' reductions.
+        delay_used = any(coefficients.delay_gradient.tolist())
         delay = coefficients.delay + self.extra_delay
         # A zero row of a Jacobian (a gain moves no D, a lag no N) maps to a zero regressor:
-        # only the parameters that move a polynomial are mapped for phi.
-        den_moves = den_jacobian.any(axis=1)
+        # only the parameters that move a polynomial are mapped for phi. (ndarray.any(axis=1) is
+        # np.logical_or.reduce behind two Python wrappers: called directly.)
+        den_moves = np.logical_or.reduce(den_jacobian, axis=1)
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
                                               self._responses_kept)
-        sensitivity_responses: Optional[List[StateResponse]] = None
+        sensitivity_responses: Optional[_Responses] = None
         # An accepted candidate's output is remembered from its cost: not mapped again.
         key = self._output_key(coefficients)
         known = self._outputs.get(key) if instruments is None else instruments.output
@@ -232,7 +240,7 @@ class SignalBank:
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
             num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
-            num_moves = num_jac.any(axis=1)
+            num_moves = np.logical_or.reduce(num_jac, axis=1)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -267,9 +275,12 @@ class SignalBank:
             # Both products have degree 2 deg D: the coefficient arrays align. Every row is
             # mapped, the dead time's zero one too: the rounding of the others depends on how
             # many rows one product maps, and the covariance of a near-singular fit shows it.
+            # np.convolve of two equal-length factors is np.correlate with the second reversed:
+            # the same products summed in the same order, without convolve's wrapper per row.
+            den_reversed, num_reversed = den[::-1], num_full[::-1]
             sensitivity_numerators = [
-                np.convolve(num_jac[i], den) - np.convolve(den_jacobian[i], num_full)
-                for i in range(params)]
+                np.correlate(num_jac[i], den_reversed, 'full')
+                - np.correlate(den_jacobian[i], num_reversed, 'full') for i in range(params)]
             # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
             sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
             if sensitivities is None:
@@ -291,7 +302,7 @@ class SignalBank:
         if delay_used:
             moved = derivative if jump is None else derivative + jump
             gradient = coefficients.delay_gradient
-            for row in np.flatnonzero(gradient).tolist():
+            for row in gradient.nonzero()[0].tolist():
                 term = gradient[row] * moved
                 if instruments is None:
                     psi[row] -= term
@@ -303,10 +314,11 @@ class SignalBank:
         phi = None
         if regressors:
             phi = u_regressors
-            bank_y = None if not den_moves.any() else _remembered(
+            moving = den_moves.tolist()
+            bank_y = None if not any(moving) else _remembered(
                 self._output_filtered, den.tobytes(),
                 lambda: self._discrete(den, 0.0, 'foh').response(self.y), 1)
-            if den_moves.all():
+            if all(moving):
                 y_parts = bank_y.outputs(den_jacobian)          # a new array: negated in place
                 phi = np.subtract(0.0, y_parts, out=y_parts) if phi is None else \
                     _less(phi, y_parts)
@@ -317,7 +329,7 @@ class SignalBank:
                     # Row by row in place: a masked subtraction would gather the rows into a
                     # copy, subtract into another and scatter them back.
                     y_parts = bank_y.outputs(den_jacobian[den_moves])
-                    for part, row in zip(y_parts, np.flatnonzero(den_moves).tolist()):
+                    for part, row in zip(y_parts, den_moves.nonzero()[0].tolist()):
                         phi[row] -= part
             for row, term in delay_terms:
                 phi[row] -= term
@@ -333,7 +345,7 @@ class SignalBank:
 
 def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Return ``values``, the signals of the ``rows`` marked, as every row (zeros elsewhere)."""
-    if rows.all():
+    if all(rows.tolist()):
         return values
     spread = np.zeros((rows.size, values.shape[1]))
     spread[rows] = values
