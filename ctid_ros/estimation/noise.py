@@ -18,6 +18,7 @@ sample grid from a slower measurement, so the estimate can say so.
 
 from dataclasses import dataclass
 import math
+import operator
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
@@ -121,11 +122,12 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     best = (count * math.log(variance), 0, variance)
     # The recursion in Python floats: its vectors hold at most 31 values, where numpy's work
     # per call would cost more than the arithmetic. ar is a_0 .. a_order of the current order.
+    # The products by map: the same sum as a generator's, without resuming one per term.
     lags = autocovariance.tolist()
     ar = kept = [1.0]
     error = lags[0]
     for order in range(1, top + 1):
-        reflection = -(lags[order] + sum(a * lag for a, lag in zip(ar[1:], lags[order - 1:0:-1]))
+        reflection = -(lags[order] + sum(map(operator.mul, ar[1:], lags[order - 1:0:-1]))
                        ) / error
         ar = [1.0] + [a + reflection * b for a, b in zip(ar[1:], ar[:0:-1])] + [reflection]
         error *= 1.0 - reflection ** 2

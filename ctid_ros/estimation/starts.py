@@ -19,7 +19,6 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
 from functools import lru_cache
-import math
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
@@ -558,19 +557,17 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
 
     """
     model = problem.model
-    if not np.any(free):
+    if not free.any():
         return []
     lower, upper = problem.lower[free], problem.upper[free]
     fits = []
+    equation = _EquationError(model, free)
+    solution = equation.linear_solution if model.is_affine else equation.local_solution
     for factor in filters.factors(tau):
-        equation = _EquationError(model, factor, free)
         for start in starts:
             theta = start.copy()
             try:
-                if model.is_affine:
-                    theta[free] = equation.linear_solution(start, lower, upper)
-                else:
-                    theta[free] = equation.local_solution(start, lower, upper)
+                theta[free] = solution(factor, start, lower, upper)
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
             fits.append(theta)
@@ -578,50 +575,40 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
 
 
 class _EquationError:
-    """Residual ``R [den; num]`` of one filter as a function of the free parameters."""
+    """Residual ``R [den; num]`` of a filter's factor ``R`` by the free parameters."""
 
-    def __init__(self, model: FittedModel, factor: np.ndarray, free: np.ndarray):
+    def __init__(self, model: FittedModel, free: np.ndarray):
         self._model = model
-        self._factor = factor
         self._free = free
         # Integer positions: a trial's values go into its parameter vector by one indexing.
         self._positions = np.flatnonzero(free)
-        # A Model's flat coefficient array is read directly (thousands of evaluations per fit);
-        # [den; num] are these of its entries. A StabilizedModel changes D: it goes through
-        # its coefficients.
-        self._order = None
+        # The coefficients as one flat array, [den; num] and their gradients read from it by
+        # one indexing each: a Model's own coefficient array (thousands of evaluations per
+        # fit); a StabilizedModel changes D, so its coefficients are laid out the same way.
         if isinstance(model, Model):
+            self.evaluated = model.coefficient_array
             nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
-            self._order = np.r_[nums:nums + model.den_degree + 1, 0:nums]
+            self._order = np.concatenate([np.arange(nums, nums + model.den_degree + 1),
+                                          np.arange(nums)])
             rows = nums + model.den_degree + 2          # ... and the dead time
-            # After the coefficients, one row per coefficient of its derivatives by the
-            # parameters: the free ones' gradients of [den; num], read by one indexing.
-            self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
-
-    def _evaluated(self, theta: np.ndarray):
-        """Return the model's coefficients at ``theta`` (its flat array for a Model)."""
-        model = self._model
-        return model.coefficients(theta) if self._order is None \
-            else model.coefficient_array(theta)
-
-    def _residual(self, evaluated) -> np.ndarray:
-        """Return the residual of coefficients from :meth:`_evaluated`."""
-        if self._order is not None:
-            return self._factor @ evaluated[self._order]
-        return self._factor @ np.concatenate([evaluated.den, evaluated.num.ravel()])
-
-    def _jacobian(self, evaluated) -> np.ndarray:
-        """Return the residual's derivatives by the free parameters (one column each)."""
-        if self._order is not None:
-            gradient = evaluated[self._gradient]
         else:
-            gradient = np.hstack([evaluated.den_jacobian,
-                                  evaluated.num_jacobian.reshape(self._free.size, -1)]
-                                 )[self._free]
-        return self._factor @ gradient.T
+            self.evaluated = self._stabilized_array
+            rows = model.den_degree + 1 + \
+                (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
+            self._order = np.arange(rows)
+        # After the coefficients, one row per coefficient of its derivatives by the
+        # parameters: the free ones' gradients of [den; num].
+        self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
 
-    def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
-                       ) -> np.ndarray:
+    def _stabilized_array(self, theta: np.ndarray) -> np.ndarray:
+        """Return ``[den; num]`` and then each one's derivatives by the parameters, flat."""
+        coefficients = self._model.coefficients(theta)
+        gradients = np.hstack([coefficients.den_jacobian,
+                               coefficients.num_jacobian.reshape(self._free.size, -1)])
+        return np.concatenate([coefficients.den, coefficients.num.ravel(), gradients.T.ravel()])
+
+    def local_solution(self, factor: np.ndarray, start: np.ndarray, lower: np.ndarray,
+                       upper: np.ndarray) -> np.ndarray:
         """
         Return a local minimiser from ``start``: Levenberg-Marquardt projected onto the box.
 
@@ -630,51 +617,64 @@ class _EquationError:
         projection iteration corrects (relative change of parameters or cost below
         ``_START_TOLERANCE``).
 
+        Its bookkeeping is a few elementwise operations on vectors of the free parameters per
+        step (numpy's ufuncs, whose results are those of the same arithmetic on floats): the
+        step held on the bounds the gradient pushes against, clipped into the box.
         """
+        evaluate, order, rows = self.evaluated, self._order, self._gradient
         positions = self._positions
-        values = np.clip(start[self._free], lower, upper)
-        # The whole parameter vector of the current point: each trial copies it and changes
-        # the free entries, and its coefficients serve the next Jacobian if it is accepted.
-        theta = start.copy()
+        # np.clip's arithmetic.
+        values = np.minimum(np.maximum(start[self._free], lower), upper)
+        # The whole parameter vector of the current point, and a second one each trial is
+        # written into (the two swap when a trial is accepted): its coefficients serve the
+        # next Jacobian.
+        theta, spare = start.copy(), start.copy()
         theta[positions] = values
-        evaluated = self._evaluated(theta)
-        residual = self._residual(evaluated)
+        evaluated = evaluate(theta)
+        residual = factor @ evaluated[order]
         cost = residual @ residual
         damping = 1e-3
-        low, high = lower.tolist(), upper.tolist()
-        # The free values as Python floats too: the step's bookkeeping (held parameters, box,
-        # finiteness, change) is on a handful of numbers, where numpy's per-call cost would be
-        # most of it.
-        current = values.tolist()
         for _ in range(_START_ITERATIONS):
-            jacobian = self._jacobian(evaluated)
+            jacobian = factor @ evaluated[rows].T
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            moving = _moving(current, gradient.tolist(), low, high)
-            if moving is not None:
-                if not moving:
+            # A parameter on a bound that the cost's gradient pushes outward is held there.
+            # Moving it would be clipped back, and the other parameters' part of that step,
+            # solved as if it moved, then creeps along the bound by damped steps (a lag
+            # collapsing to its lower bound took up to the iteration limit instead of a few
+            # steps).
+            held = ((values <= lower) & (gradient > 0.0)) | ((values >= upper) & (gradient < 0.0))
+            # One reduction (ndarray.any adds two calls of numpy's own).
+            holding = np.logical_or.reduce(held)
+            if holding:
+                moving = ~held
+                if not np.logical_or.reduce(moving):
                     return values           # no descent direction inside the box
-                gram = gram[np.ix_(moving, moving)]
+                gram = gram[moving][:, moving]
                 gradient = gradient[moving]
-            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal.
-            diagonal = slice(None, None, gram.shape[0] + 1)
-            # Each damping is tried on the same matrices: the diagonal is read once.
-            scaling = np.maximum(gram.diagonal(), _TINY)
+            size = gram.shape[0]
+            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal: its
+            # damped values are written over it for each damping, the rest stays.
+            diagonal = slice(None, None, size + 1)
+            original = gram.flat[diagonal]
+            scaling = np.maximum(original, _TINY)
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
-                damped = gram.copy()
-                damped.ravel()[diagonal] += damping * scaling
+                gram.flat[diagonal] = original + damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
-                # (the same solution to the bit; info > 0: singular).
-                solution, info = lapack.dgesv(damped, gradient)[2:]
-                trial = None if info else \
-                    _boxed_trial(current, solution.tolist(), moving, low, high)
-                if trial is not None:
-                    trial_theta = theta.copy()
-                    trial_theta[positions] = trial
+                # (the same solution to the bit; info > 0: singular). It leaves gram as it is.
+                solution, info = lapack.dgesv(gram, gradient)[2:]
+                if not info and np.logical_and.reduce(np.isfinite(solution)):
+                    if holding:
+                        step = np.zeros(values.size)
+                        step[moving] = -solution
+                    else:
+                        step = -solution
+                    trial = np.minimum(np.maximum(values + step, lower), upper)
+                    spare[positions] = trial
                     try:
-                        trial_evaluated = self._evaluated(trial_theta)
-                        trial_residual = self._residual(trial_evaluated)
+                        trial_evaluated = evaluate(spare)
+                        trial_residual = factor @ trial_evaluated[order]
                     except ModelError:
                         trial_residual = None
                     if trial_residual is not None:
@@ -684,74 +684,33 @@ class _EquationError:
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = max(abs(new - old) / max(abs(old), 1e-12)
-                         for new, old in zip(trial, current))
+            change = np.maximum.reduce(np.abs(trial - values) /
+                                       np.maximum(np.abs(values), 1e-12))
             decrease = 1.0 - trial_cost / cost
-            values, current, residual, theta, evaluated = trial_theta[positions], trial, \
-                trial_residual, trial_theta, trial_evaluated
+            values, residual, evaluated = trial, trial_residual, trial_evaluated
+            theta, spare = spare, theta
             cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
             if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
                 break
         return values
 
-    def linear_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
-                        ) -> np.ndarray:
+    def linear_solution(self, factor: np.ndarray, start: np.ndarray, lower: np.ndarray,
+                        upper: np.ndarray) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        evaluated = self._evaluated(start)
-        jacobian = self._jacobian(evaluated)
-        residual = self._residual(evaluated)
+        evaluated = self.evaluated(start)
+        jacobian = factor @ evaluated[self._gradient].T
+        residual = factor @ evaluated[self._order]
         step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
-        if np.all(values + step >= lower) and np.all(values + step <= upper):
-            return values + step
+        moved = values + step
+        if np.logical_and.reduce((moved >= lower) & (moved <= upper)):
+            return moved
         # Imported here: the bounded solve is rare, and scipy.optimize is slow to import.
         from scipy import optimize
         return values + optimize.lsq_linear(jacobian, -residual,
                                             bounds=(lower - values, upper - values),
                                             method='bvls').x
-
-
-def _moving(values: List[float], gradient: List[float], lower: List[float],
-            upper: List[float]) -> Optional[List[int]]:
-    """
-    Return the positions of the parameters a projected step may move; None for all of them.
-
-    A parameter on a bound that the cost's gradient pushes outward is held there. Moving it
-    would be clipped back, and the other parameters' part of that step, solved as if it moved,
-    then creeps along the bound by damped steps (a lag collapsing to its lower bound took up
-    to the iteration limit instead of a few steps).
-    """
-    held = [(value <= low and slope > 0.0) or (value >= high and slope < 0.0)
-            for value, slope, low, high in zip(values, gradient, lower, upper)]
-    if not any(held):
-        return None
-    return [index for index, stays in enumerate(held) if not stays]
-
-
-def _boxed_trial(values: List[float], solution: List[float], moving: Optional[List[int]],
-                 lower: List[float], upper: List[float]) -> Optional[List[float]]:
-    """
-    Return ``values - solution`` (on the ``moving`` positions) clipped into the box.
-
-    None if the step is not finite. The arithmetic of ``np.clip(values + step, lower, upper)``
-    with ``step = -solution`` (zero where a parameter is held), in Python floats; a tie with a
-    bound takes the bound, as numpy's maximum and minimum do.
-    """
-    if moving is None:
-        step = [-value for value in solution]
-    else:
-        step = [0.0] * len(values)
-        for index, value in zip(moving, solution):
-            step[index] = -value
-    if not (math.isfinite(sum(step)) or all(map(math.isfinite, step))):
-        return None
-    trial = []
-    for value, move, low, high in zip(values, step, lower, upper):
-        moved = value + move
-        moved = moved if moved > low else low
-        trial.append(moved if moved < high else high)
-    return trial
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
