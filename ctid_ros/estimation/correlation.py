@@ -14,6 +14,7 @@ from functools import lru_cache
 from typing import Optional
 
 from ctid_ros.core.data import Data
+from ctid_ros.estimation.linear_algebra import least_squares, solve, symmetric_eigenvalues
 import numpy as np
 
 __all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread', 'fft_size',
@@ -272,23 +273,27 @@ def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np
     sample its past does not predict. Order ``min(order, N/10)``; ``[1]`` for a constant series.
     """
     values = np.asarray(values, dtype=float)
-    values = values - np.mean(values)
+    values = values - values.mean()
     count = values.size
     order = min(order, count // 10)
-    if order < 1 or not np.any(values):
+    if order < 1 or not values.any():
         return np.ones(1)
     # Column 0 the predicted samples, column k their k-th past values.
-    lagged = np.column_stack([values[order - k:count - k] for k in range(order + 1)])
+    lagged = np.empty((count - order, order + 1))
+    for k in range(order + 1):
+        lagged[:, k] = values[order - k:count - k]
     # The normal equations where the past values are well conditioned (a cond^2 eps relative
     # error), least squares otherwise.
     products = lagged.T @ lagged
     gram = products[1:, 1:]
-    scales = np.sqrt(np.diag(gram))
-    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales)) if scales.all() else [0.0]
+    scales = np.sqrt(gram.diagonal())
+    # The scaled Gram matrix by np.outer's product.
+    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales)) if scales.all() \
+        else [0.0]
     if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
-        coefficients = np.linalg.solve(gram, products[1:, 0])
+        coefficients = solve(gram, products[1:, 0])
     else:
-        coefficients = np.linalg.lstsq(lagged[:, 1:], lagged[:, 0], rcond=None)[0]
+        coefficients = least_squares(lagged[:, 1:], lagged[:, 0])
     return np.concatenate([[1.0], -coefficients])
 
 

@@ -15,6 +15,7 @@ from typing import List, Optional, Tuple
 from ctid_ros.core.model import Coefficients
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
+from ctid_ros.estimation.linear_algebra import least_squares, solve, symmetric_eigenvalues
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
@@ -382,7 +383,7 @@ def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coeffic
     if step is None:
         shifted = np.zeros_like(sensitivities)
         shifted[moved] = columns
-        step = np.linalg.lstsq(shifted, error, rcond=None)[0]
+        step = least_squares(shifted, error)
     remaining = error.copy()
     remaining[moved] -= columns @ step
     updated = theta.copy()
@@ -402,10 +403,11 @@ def _normal_solution(gram: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
     None unless the columns behind ``gram``, scaled to unit norm, are conditioned within
     :data:`_NORMAL_CONDITION`.
     """
-    scales = np.sqrt(np.diag(gram))
-    if not np.all((scales > 0.0) & (scales < np.inf)):
+    scales = np.sqrt(gram.diagonal())
+    if not np.logical_and.reduce((scales > 0.0) & (scales < np.inf)):
         return None
-    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales))
+    # np.outer's product.
+    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales))
     if not eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
         return None
-    return np.linalg.solve(gram, rhs)
+    return solve(gram, rhs)

@@ -29,6 +29,7 @@ from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
+from ctid_ros.estimation.linear_algebra import least_squares
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -42,8 +43,6 @@ __all__ = [
 
 # The smallest positive normal float: a zero diagonal's stand-in in the damped step.
 _TINY = np.finfo(float).tiny
-# The spacing of floats at 1: numpy's least-squares cutoff is it times the longer side.
-_EPSILON = np.finfo(float).eps
 # Initial values by parameter name, or 'auto'/None for none.
 Initial = Union[str, None, Mapping[str, float]]
 
@@ -190,7 +189,7 @@ def stabilized(problem: Problem, theta: np.ndarray, free: np.ndarray) -> Optiona
     jacobian = coefficients.den_jacobian[free].T            # d den / d theta_free
     if not np.any(jacobian):
         return None
-    step = np.linalg.lstsq(jacobian, target - den, rcond=None)[0]
+    step = least_squares(jacobian, target - den)
     result = theta.copy()
     result[free] = theta[free] + step
     return np.clip(result, problem.lower, problem.upper)
@@ -704,7 +703,7 @@ class _EquationError:
         evaluated = self.evaluated(start)
         jacobian = factor @ evaluated[self._gradient].T
         residual = factor @ evaluated[self._order]
-        step = _least_squares(jacobian, -residual)
+        step = least_squares(jacobian, -residual)
         moved = values + step
         if np.logical_and.reduce((moved >= lower) & (moved <= upper)):
             return moved
@@ -713,26 +712,6 @@ class _EquationError:
         return values + optimize.lsq_linear(jacobian, -residual,
                                             bounds=(lower - values, upper - values),
                                             method='bvls').x
-
-
-def _least_squares(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """
-    Return ``np.linalg.lstsq(matrix, rhs, rcond=None)[0]`` for a matrix with no more columns.
-
-    LAPACK's gelsd with numpy's default cutoff, without numpy's per-call wrapping (the same
-    solution to the bit on every fit of the reference systems). A wide matrix, which numpy
-    pads the right-hand side for, goes through numpy.
-    """
-    rows, columns = matrix.shape
-    if rows < columns:
-        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
-    cutoff = _EPSILON * rows
-    work, integers, info = lapack.dgelsd_lwork(rows, columns, 1, cutoff)
-    if info == 0:
-        solution, _, _, info = lapack.dgelsd(matrix, rhs, work, integers, cutoff)
-    if info != 0:
-        raise np.linalg.LinAlgError(f'least-squares solution failed (LAPACK info {info})')
-    return solution[:columns]
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
