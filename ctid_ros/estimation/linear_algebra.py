@@ -36,7 +36,11 @@ def least_squares(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 def solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Return ``np.linalg.solve(matrix, rhs)`` (LAPACK's gesv; LinAlgError if singular)."""
+    """
+    Return ``x`` with ``matrix x = rhs`` as numpy's linalg does it (LAPACK's gesv).
+
+    Raises LinAlgError for a singular matrix, as numpy does.
+    """
     solution, info = lapack.dgesv(matrix, rhs)[2:]
     if info != 0:
         raise np.linalg.LinAlgError('Singular matrix')
