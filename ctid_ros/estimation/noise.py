@@ -23,6 +23,7 @@ from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
 from ctid_ros.estimation.correlation import fft_size
+from ctid_ros.estimation.linear_algebra import least_squares
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
@@ -189,25 +190,26 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
     is not that of a low-order filter, or too short to tell).
     """
     impulse = np.asarray(impulse, dtype=float)
-    peak = float(np.max(np.abs(impulse), initial=0.0))
-    if peak == 0.0 or not np.all(np.isfinite(impulse)):
+    # np.max and np.sum are these reductions behind numpy's dispatch.
+    peak = float(np.maximum.reduce(np.abs(impulse), axis=None, initial=0.0))
+    if peak == 0.0 or not np.isfinite(impulse).all():
         return None
     for order in range(1, max_order + 1):
         if impulse.size < 3 * order + 2:
             return None
         # rows[j] = h[j + order], h[j + order - 1], ..., h[j]; the recurrence holds from
         # k = order + 1 on, i.e. for the rows after the first.
-        rows = np.lib.stride_tricks.sliding_window_view(impulse, order + 1)[1:, ::-1]
-        tail, *_ = np.linalg.lstsq(rows[:, 1:], -rows[:, 0], rcond=None)
+        rows = impulse[np.arange(1, impulse.size - order)[:, None] + np.arange(order, -1, -1)]
+        tail = least_squares(rows[:, 1:], -rows[:, 0])
         den = np.concatenate([[1.0], tail])
         num = np.convolve(den, impulse[:order + 1])[:order + 1]
-        if not (np.all(np.isfinite(den)) and num[0] != 0.0):
+        if not (np.isfinite(den).all() and num[0] != 0.0):
             continue
         # den * (impulse - response) is den * impulse after the first order + 1 samples: where
         # that exceeds |den|_1 times the tolerance, so does the error itself (no filtering).
         recurrence = np.convolve(den, impulse)[order + 1:impulse.size]
-        if np.max(np.abs(recurrence), initial=0.0) > \
-                2.0 * np.sum(np.abs(den)) * _RATIONAL_TOLERANCE * peak:
+        if np.maximum.reduce(np.abs(recurrence), axis=None, initial=0.0) > \
+                2.0 * np.add.reduce(np.abs(den), axis=None) * _RATIONAL_TOLERANCE * peak:
             continue
         pulse = np.zeros(impulse.size)
         pulse[:order + 1] = num

@@ -545,7 +545,16 @@ def default_filters(problem: Problem) -> StateVariableFilters:
 
 def filter_bandwidths(data: Data, count: int) -> np.ndarray:
     """Return ``count`` filter corners from ten per record to 0.3 of the Nyquist frequency."""
-    return np.geomspace(10.0 / (data.ts * len(data)), 0.3 * np.pi / data.ts, count)
+    return _bandwidths(data.ts, len(data), count)
+
+
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _bandwidths(ts: float, samples: int, count: int) -> np.ndarray:
+    """Return :func:`filter_bandwidths` (read-only) for records of this sample time and length."""
+    # Kept like the filters they define: geomspace alone costs tens of Python-level calls.
+    corners = np.geomspace(10.0 / (ts * samples), 0.3 * np.pi / ts, count)
+    corners.setflags(write=False)
+    return corners
 
 
 def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
