@@ -401,8 +401,10 @@ class StateVariableFilters:
     def __init__(self, problem: Problem, lams: np.ndarray):
         model, data = problem.model, problem.data
         n, m = model.den_degree, model.num_degree
-        powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
-        self._u_powers = powers[m::-1]
+        # Row j of the identity is the numerator p^(n - j): the output parts p^n/E .. 1/E
+        # and the input parts p^m/E .. 1/E, as 2-D arrays (mapped in one pass).
+        powers = np.eye(n + 1)
+        self._u_powers = powers[n - m:]
         self._bank, self._ts = problem.bank, data.ts
         self._filters = []
         filters_of = [(n, float(lam), data.ts) for lam in lams]
@@ -410,7 +412,7 @@ class StateVariableFilters:
         y_responses = filter_responses([_filter_discretized(*filter_of, 0.0, 'foh')
                                         for filter_of in filters_of], data.y)
         for filter_of, y_response in zip(filters_of, y_responses):
-            y_parts = y_response.outputs(powers[::-1])
+            y_parts = y_response.outputs(powers)
             nuisance = []
             if problem.initial_state or problem.output_offset:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
