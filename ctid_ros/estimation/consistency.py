@@ -275,7 +275,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     firsts, inners = np.maximum(starts - memory, 0), stops - memory
     # Every block's sums of products are sums over the pieces between the blocks' edges: each
     # row enters one product (halves and quarters share their rows).
-    edges = np.unique(np.concatenate([[0, count], starts, stops]))
+    # np.unique's sorted distinct values, from the few edges as Python integers.
+    edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
     grams = _piece_sums(_piece_grams(scaled, edges))
     # The whole record's and every block's inverse Gram matrix, decomposed together: the
     # matrices are p x p, and one stacked call costs what one alone does.
@@ -299,7 +300,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         filtered = noise_root(scaled, noise, scale)
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
     # block and the memory before it: F G^-1. Through F's products over the pieces.
-    filtered_edges = np.unique(np.concatenate([edges, firsts, inners]))
+    filtered_edges = np.array(sorted({*edges.tolist(), *firsts.tolist(), *inners.tolist()}))
     filtered_grams = _piece_sums(_piece_grams(filtered, filtered_edges))
     difference = locals_ - inverse
     outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
@@ -345,8 +346,8 @@ def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.
 def _normal_inverses(grams: np.ndarray) -> Optional[np.ndarray]:
     """Return the inverses of ``S^T S`` (stacked) if all ``S`` are conditioned within bounds."""
     eigenvalues = np.linalg.eigvalsh(grams)
-    if np.all(eigenvalues[:, 0] > 0.0) and \
-            np.all(eigenvalues[:, 0] >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2):
+    if (eigenvalues[:, 0] > 0.0).all() and \
+            (eigenvalues[:, 0] >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2).all():
         return np.linalg.inv(grams)
     return None
 
@@ -421,7 +422,7 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     std_noise = {name: float(value) for name, value in zip(names, std)}
     given = np.asarray(free, dtype=bool)
     free = given & np.isfinite(std)
-    params = int(np.sum(free))
+    params = int(free.sum())
     if params == 0:
         return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
                            std_noise=std_noise)
@@ -571,7 +572,7 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
         shaping = -np.asarray(problem.model.simulate(state.theta, pulse, problem.data.ts),
                               dtype=float)
         shaping[0] += 1.0
-        significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.max(np.abs(shaping)))
+        significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.abs(shaping).max())
         if significant[-1] < length - length // 4 or length == count:
             break
     return shaping[:significant[-1] + 1]
@@ -593,7 +594,7 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     column-scaled sensitivities of ``free`` and the residual, if the caller has them.
     """
     shaping = loop_sensitivity(problem, state)
-    if shaping is None or not np.any(free):
+    if shaping is None or not free.any():
         return None
     if sensitivities is None or sensitivities[0] is None:
         psi, error = _sensitivities(problem, state, free)
@@ -610,7 +611,7 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     if scales is None:
         psi, _ = _sensitivities(problem, state, free)
         scales = column_scales(psi)
-    scaled, _ = coloured_covariance(columns, error, int(np.sum(free)), svd, model=shaped)
+    scaled, _ = coloured_covariance(columns, error, int(free.sum()), svd, model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
     covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     return covariance, shaped
@@ -635,7 +636,7 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     has them.
     """
     factors = np.ones(free.size)
-    if not np.any(free):
+    if not free.any():
         return factors
     if svd is None:
         root = None
@@ -645,7 +646,7 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
-                            int(np.sum(free)), removed_share, root)
+                            int(free.sum()), removed_share, root)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
     return factors
@@ -693,7 +694,7 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     if fed_back is not None:
         restored = np.ones(len(names))
         result.covariance, noise = fed_back
-        result.std = dict(zip(names, map(float, np.sqrt(np.abs(np.diag(result.covariance))))))
+        result.std = dict(zip(names, map(float, np.sqrt(np.abs(result.covariance.diagonal())))))
         if result.residuals is not None:
             result.residuals.noise_order = noise.order
             result.residuals.noise_power_ratio = noise.variance_ratio

@@ -10,6 +10,7 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 """
 
 from dataclasses import dataclass, field
+import math
 from typing import List, Optional, Tuple
 
 from ctid_ros.core.model import Coefficients
@@ -160,8 +161,9 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     # beyond: the bracket is doubled (at most to half the record) until neither holds.
     automatic = delay_range is None and not np.isfinite(problem.upper[delay_index])
     ceiling = 0.5 * data.ts * len(data)
-    spread = problem.measured - np.mean(problem.measured)
-    nothing = 0.5 * (_UNEXPLAINED * np.linalg.norm(spread)) ** 2
+    spread = problem.measured - problem.measured.mean()
+    # np.linalg.norm's arithmetic for a vector, without its dispatch.
+    nothing = 0.5 * (_UNEXPLAINED * math.sqrt(spread.dot(spread))) ** 2
 
     def beyond() -> bool:
         lowest = min(profile, key=lambda point: point[1])

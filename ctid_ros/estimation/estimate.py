@@ -29,6 +29,7 @@ identifiability check and the covariance (``docs/algorithm.md`` sections 1, 14 a
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+import math
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 import warnings
 
@@ -225,10 +226,12 @@ class Estimate:
 
 def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
     """Normalised root-mean-square fit in percent (100 is a perfect fit)."""
-    spread = np.linalg.norm(y - np.mean(y))
+    # np.linalg.norm's arithmetic for a vector, without its dispatch.
+    centred, error = y - y.mean(), y - yhat
+    spread = math.sqrt(centred.dot(centred))
     if spread == 0.0:
         return float('nan')
-    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / spread))
+    return float(100.0 * (1.0 - math.sqrt(error.dot(error)) / spread))
 
 
 @lru_cache(maxsize=1)
@@ -342,8 +345,8 @@ def covariance(problem: Problem, state: State,
         svd = np.linalg.svd(columns, full_matrices=False)
     model = noise_model(error, autocorrelation=autocorrelation)
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.
-    root = unit_root(svd[0], model) if model.order and np.any(free) else None
-    scaled, model = coloured_covariance(columns, error, int(np.sum(free)), svd,
+    root = unit_root(svd[0], model) if model.order and free.any() else None
+    scaled, model = coloured_covariance(columns, error, int(free.sum()), svd,
                                         model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(columns, error, svd, start=model)
@@ -353,7 +356,7 @@ def covariance(problem: Problem, state: State,
     if restored is not None:
         removed_share = max(1.0 - low_frequency_level(model) / low_frequency_level(restored[1]),
                             0.0)
-        ratio = np.sqrt(np.diag(restored[0]) / np.diag(scaled))
+        ratio = np.sqrt(restored[0].diagonal() / scaled.diagonal())
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
         scaled, model = restored
@@ -362,12 +365,12 @@ def covariance(problem: Problem, state: State,
     result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     weakest = np.zeros(params)
     condition = 1.0
-    if np.any(free):
+    if free.any():
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors, svd if np.any(free) else None, residual_noise, root,
+                       restored_factors, svd if free.any() else None, residual_noise, root,
                        columns, error)
 
 
@@ -488,7 +491,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     residuals.noise_power_ratio = uncertainty.noise.variance_ratio
     parameter_covariance = uncertainty.covariance
     variance, condition = uncertainty.variance, uncertainty.condition
-    std = np.sqrt(np.abs(np.diag(parameter_covariance)))
+    std = np.sqrt(np.abs(parameter_covariance.diagonal()))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
     result = Estimate(

@@ -86,8 +86,8 @@ class NoiseModel:
         """Return the low-frequency noise power over that of white noise of equal variance."""
         if self.variance <= 0.0:
             return 1.0          # a residual of exact zeros: no noise to colour
-        gain = 1.0 if self.shaping is None else float(np.sum(self.shaping)) ** 2
-        return float(gain * self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
+        gain = 1.0 if self.shaping is None else float(self.shaping.sum()) ** 2
+        return float(gain * self.innovation_variance / self.ar.sum() ** 2 / self.variance)
 
 
 def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
@@ -111,7 +111,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     penalty = _PENALTIES[criterion]
     residual = np.asarray(residual, dtype=float)
     count = residual.size
-    centred = residual - np.mean(residual)
+    centred = residual - residual.mean()
     variance = float(centred @ centred) / max(count, 1)
     top = int(min(max_order, _ORDER_FRACTION * count))
     if variance == 0.0 or top < 1:
@@ -255,7 +255,7 @@ def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
     """
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
-        prewhitened = inverse_filtered(shaping, residual - np.mean(residual))
+        prewhitened = inverse_filtered(shaping, residual - residual.mean())
     if not np.all(np.isfinite(prewhitened)):
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)
@@ -401,7 +401,7 @@ def measured_every(y: np.ndarray) -> int:
     ``m`` up to 64, and the output bends at half of those samples or more.
     """
     y = np.asarray(y, dtype=float)
-    scale = float(np.max(np.abs(y))) if y.size else 0.0
+    scale = float(np.abs(y).max()) if y.size else 0.0
     best = 1
     differences = y
     for order in (1, 2):

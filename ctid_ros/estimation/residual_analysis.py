@@ -54,7 +54,7 @@ class _Spectrum:
 
     def __init__(self, values: np.ndarray, lags: int):
         values = np.asarray(values, dtype=float)
-        self.centred = values - np.mean(values)
+        self.centred = values - values.mean()
         self.size = fft_size(values.size + lags + 1)
         self.spectrum = np.fft.rfft(self.centred, self.size)
         self.energy = float(self.centred @ self.centred)
@@ -163,7 +163,7 @@ class ResidualAnalysis:
             'max_autocorrelation': float(np.max(np.abs(self.autocorrelation[1:]), initial=0.0)),
             'auto_bound': float(self.auto_bound),
             'max_cross_correlation': {
-                name: float(np.max(np.abs(self.cross_correlation[self.lags:, j])))
+                name: float(np.abs(self.cross_correlation[self.lags:, j]).max())
                 for j, name in enumerate(self.inputs)},
             'cross_bounds': {name: float(bound)
                              for name, bound in zip(self.inputs, self.cross_bounds)},

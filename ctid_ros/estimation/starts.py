@@ -19,6 +19,7 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 """
 
 from functools import lru_cache
+import math
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
@@ -182,12 +183,12 @@ def stabilized(problem: Problem, theta: np.ndarray, free: np.ndarray) -> Optiona
     if den.size < 2 or den[0] == 0.0:
         return None
     roots = np.roots(den)
-    scale = max(float(np.max(np.abs(roots))), np.finfo(float).tiny)
+    scale = max(float(np.abs(roots).max()), np.finfo(float).tiny)
     mirrored = np.where(roots.real >= 0.0, -np.abs(roots.real) - 1e-3 * scale + 1j * roots.imag,
                         roots)
     target = np.real(den[0] * np.poly(mirrored))
     jacobian = coefficients.den_jacobian[free].T            # d den / d theta_free
-    if not np.any(jacobian):
+    if not jacobian.any():
         return None
     step = least_squares(jacobian, target - den)
     result = theta.copy()
@@ -760,8 +761,9 @@ def explains_data(problem: Problem, state: State, delay_index: Optional[int],
     data = problem.data
     residual = np.zeros(len(data))
     residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
-    spread = problem.measured - np.mean(problem.measured)
-    if np.linalg.norm(residual) > _UNEXPLAINED * np.linalg.norm(spread):
+    spread = problem.measured - problem.measured.mean()
+    # np.linalg.norm's arithmetic for a vector, without its dispatch.
+    if math.sqrt(residual.dot(residual)) > _UNEXPLAINED * math.sqrt(spread.dot(spread)):
         return False
     horizon = settling_time(state.coefficients)
     if delay_index is not None:
@@ -781,8 +783,8 @@ def resembles_output(problem: Problem, state: State) -> bool:
     variance the model output explains at its best scale; a start with a dead time far off
     explains almost none (below :data:`_RESEMBLANCE`), however close its other parameters.
     """
-    measured = problem.measured - np.mean(problem.measured)
+    measured = problem.measured - problem.measured.mean()
     output = problem.prediction(state.coefficients)
-    output = output - np.mean(output)
+    output = output - output.mean()
     power = float((measured @ measured) * (output @ output))
     return power > 0.0 and float(measured @ output) ** 2 >= _RESEMBLANCE * power
