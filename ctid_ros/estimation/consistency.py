@@ -340,7 +340,7 @@ def _piece_sums(pieces: np.ndarray) -> np.ndarray:
 def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.ndarray
              ) -> np.ndarray:
     """Return the sums over rows ``starts .. stops - 1`` (all among ``edges``) by block."""
-    return sums[np.searchsorted(edges, stops)] - sums[np.searchsorted(edges, starts)]
+    return sums[edges.searchsorted(stops)] - sums[edges.searchsorted(starts)]
 
 
 def _normal_inverses(grams: np.ndarray) -> Optional[np.ndarray]:
@@ -427,7 +427,7 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
                            std_noise=std_noise)
     if sensitivities is not None and sensitivities[0] is not None and \
-            np.array_equal(free, given):
+            (free == given).all():
         scaled, error = sensitivities
     else:
         psi, error = _sensitivities(problem, state, free)

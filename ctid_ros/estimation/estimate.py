@@ -362,7 +362,9 @@ def covariance(problem: Problem, state: State,
         scaled, model = restored
         root = None
     result = np.full((params, params), np.nan)
-    result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    # np.ix_'s indexing and np.outer's product.
+    rows = free.nonzero()[0]
+    result[rows[:, None], rows] = scaled / (scales[:, None] * scales)
     weakest = np.zeros(params)
     condition = 1.0
     if free.any():

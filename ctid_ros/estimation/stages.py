@@ -149,7 +149,7 @@ def prepared(problem: Problem, start: State, transient: Union[float, str]) -> St
     """
     problem.anchor(start.coefficients)
     theta = problem.limit_reductions(start.theta)
-    if np.array_equal(theta, start.theta) and not transient:
+    if (theta == start.theta).all() and not transient:
         return start
     coefficients = problem.admissible(theta)
     if coefficients is None:

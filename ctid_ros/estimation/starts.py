@@ -451,7 +451,7 @@ class StateVariableFilters:
                 factors.append(by_shift[whole, fraction])
                 continue
             u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
-            triangular = _triangular_factor(np.hstack(nuisance + [y_parts, -u_parts]))
+            triangular = _triangular_factor(np.concatenate(nuisance + [y_parts, -u_parts], axis=1))
             leading = sum(part.shape[1] for part in nuisance)
             factor = triangular[leading:, leading:]
             factor.setflags(write=False)
@@ -487,7 +487,7 @@ class StateVariableFilters:
         channels = [[response.outputs(self._u_powers)
                      for response in filter_responses(discretes, channel)]
                     for channel in self._bank.driving.T]
-        return [np.vstack([outputs[index] for outputs in channels]).T
+        return [np.concatenate([outputs[index] for outputs in channels]).T
                 for index in range(len(discretes))]
 
 
@@ -519,7 +519,7 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     gram = columns.T @ columns
     scales = np.sqrt(gram.diagonal())
     scales[scales == 0.0] = 1.0
-    cholesky, info = lapack.dpotrf(gram / np.outer(scales, scales))
+    cholesky, info = lapack.dpotrf(gram / (scales[:, None] * scales))      # np.outer's
     if info == 0 and lapack.dtrcon(cholesky)[0] > 1.0 / _GRAM_CONDITION:
         return cholesky * scales
     scales = np.linalg.norm(columns, axis=0)
@@ -594,7 +594,7 @@ class _EquationError:
         self._model = model
         self._free = free
         # Integer positions: a trial's values go into its parameter vector by one indexing.
-        self._positions = np.flatnonzero(free)
+        self._positions = free.nonzero()[0]
         # The coefficients as one flat array, [den; num] and their gradients read from it by
         # one indexing each: a Model's own coefficient array (thousands of evaluations per
         # fit); a StabilizedModel changes D, so its coefficients are laid out the same way.
