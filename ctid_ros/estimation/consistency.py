@@ -285,7 +285,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if inverses is None:
         return None
     inverse, locals_ = inverses[0], inverses[1:]
-    products = _piece_sums(np.stack([error[start:stop] @ scaled[start:stop]
+    # np.array stacks the pieces as np.stack does, without its checks.
+    products = _piece_sums(np.array([error[start:stop] @ scaled[start:stop]
                                      for start, stop in zip(edges[:-1], edges[1:])]))
     deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
         - products[-1] @ inverse
@@ -311,9 +312,10 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         # Each block's end: F less the response to the samples after the block; before each
         # block: the response to the block's state at its start. All from one filter pass,
         # then row by row.
-        ends, befores = np.split(_free_responses(
+        responses = _free_responses(
             filtered, noise.ar, np.concatenate([stops, starts]),
-            np.concatenate([stops - inners, starts - firsts]), memory), 2)
+            np.concatenate([stops - inners, starts - firsts]), memory)
+        ends, befores = responses[:stops.size], responses[stops.size:]
         span = np.arange(memory)
         at_end = filtered[inners[:, None] + span]
         rows_before = starts[:, None] - memory + span
@@ -328,13 +330,14 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
 
 def _piece_grams(columns: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Return ``X_k^T X_k`` for the rows ``edges[k] .. edges[k + 1] - 1`` of ``columns``."""
-    return np.stack([columns[start:stop].T @ columns[start:stop]
+    # np.array stacks them as np.stack does, without its checks.
+    return np.array([columns[start:stop].T @ columns[start:stop]
                      for start, stop in zip(edges[:-1], edges[1:])])
 
 
 def _piece_sums(pieces: np.ndarray) -> np.ndarray:
     """Return the running sums of ``pieces`` from 0: entry ``k`` sums pieces ``0 .. k - 1``."""
-    return np.concatenate([np.zeros((1,) + pieces.shape[1:]), np.cumsum(pieces, axis=0)])
+    return np.concatenate([np.zeros((1,) + pieces.shape[1:]), pieces.cumsum(axis=0)])
 
 
 def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.ndarray

@@ -188,14 +188,14 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
         if bound == 'white':
             return bool(np.abs(correlation).max() <= confidence / np.sqrt(count))
         largest = np.abs(correlation).max(axis=0)
-        if np.all(largest <= confidence * _white_spread(count)):
+        if (largest <= confidence * _white_spread(count)).all():
             return True
         span = bartlett_span(count, max_lag)
         rho_e = autocorrelations(residual[first:], span)[:, 0]
         rho_u = autocorrelations(inputs[first:], span)
         spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
                             for j in range(inputs.shape[1])])
-        return bool(np.all(largest <= confidence * spreads))
+        return bool((largest <= confidence * spreads).all())
     polynomial = whitening_filter(residual[first:], _RESIDUAL_WHITENING_ORDER)
     start = polynomial.size - 1
     filtered = np.convolve(residual[first:] - residual[first:].mean(), polynomial)[start:count]
@@ -216,7 +216,7 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     # Leading zeros, which input_correlation leaves out of the residual's mean.
     rho_e = None
     for column in whitened.T:
-        largest = np.max(np.abs(input_correlation(filtered, column, lags)[:, 0]))
+        largest = np.abs(input_correlation(filtered, column, lags)[:, 0]).max()
         if largest <= confidence * _white_spread(filtered.size):
             continue
         if rho_e is None:
@@ -252,7 +252,7 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
         / np.where(scale > 0.0, scale, 1.0)
     largest = np.abs(correlation).max(axis=0)
     # A model that explains the data passes here.
-    if np.all(largest <= confidence * _white_spread(count)):
+    if (largest <= confidence * _white_spread(count)).all():
         return True
     full = np.fft.irfft(spectrum * np.conj(spectrum), size)
     rho_e = np.concatenate([full[size - span:], full[:span + 1]]) / \
@@ -262,7 +262,7 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
         np.where(energies > 0.0, energies, 1.0)
     spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
                         for j in range(inputs.shape[1])])
-    return bool(np.all(largest <= confidence * spreads))
+    return bool((largest <= confidence * spreads).all())
 
 
 def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np.ndarray:

@@ -216,7 +216,7 @@ def across_the_sample(problem: Problem, best: State, delay_index: int,
     num = best.coefficients.num
     order = best.coefficients.den.size - 1
     # Relative degree one: some numerator reaches s^(n-1).
-    if order < 1 or num.shape[1] < order or not np.any(num[:, num.shape[1] - order]):
+    if order < 1 or num.shape[1] < order or not num[:, num.shape[1] - order].any():
         return None
     tau = best.theta[delay_index]
     knot = problem.on_delay_lattice(tau)
@@ -391,7 +391,7 @@ def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coeffic
     updated = theta.copy()
     updated[others] += step
     updated = np.clip(updated, problem.lower, problem.upper)
-    admissible = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
+    admissible = problem.admissible(updated) if np.isfinite(updated).all() else None
     if admissible is None:
         return problem.state(theta, coefficients), 0.0
     refit = problem.state(updated, admissible)

@@ -214,7 +214,7 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
         pulse = np.zeros(impulse.size)
         pulse[:order + 1] = num
         with np.errstate(all='ignore'):
-            error = np.max(np.abs(all_pole(den, pulse) - impulse))
+            error = np.abs(all_pole(den, pulse) - impulse).max()
         if error <= _RATIONAL_TOLERANCE * peak:
             return num, den
     return None
@@ -256,7 +256,7 @@ def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
         prewhitened = inverse_filtered(shaping, residual - residual.mean())
-    if not np.all(np.isfinite(prewhitened)):
+    if not np.isfinite(prewhitened).all():
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)
     return NoiseModel(inner.ar, inner.innovation_variance, float(np.var(residual)),
@@ -358,7 +358,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
     order = model.order
     if order == 0:
         return min(shaping, limit)
-    radius = float(np.max(np.abs(_roots(model.ar))))
+    radius = float(np.abs(_roots(model.ar)).max())
     if not radius < 1.0:
         return limit
     span = order + (1 if radius == 0.0 else
@@ -367,7 +367,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
         impulse = np.zeros(span + order)
         impulse[0] = 1.0
         response = np.abs(all_pole(model.ar, impulse))
-        if np.max(response[span - order:]) <= _FORGOTTEN * np.max(response):
+        if response[span - order:].max() <= _FORGOTTEN * response.max():
             return span + shaping
         span *= 2
     return limit

@@ -216,16 +216,16 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
         spreads[j] = chance_spread(rho_e, signal.correlation(signal, span), count)
     cross_bounds = _Z_LAG * spreads
     z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
-    white = bool(np.all(np.abs(auto[1:]) <= z_all / np.sqrt(count)))
+    white = bool((np.abs(auto[1:]) <= z_all / np.sqrt(count)).all())
     correlated, worst = [], []
     feedback = False
     for j, name in enumerate(names):
         positive = cross[lags:, j]
-        if np.any(np.abs(positive) > z_all * spreads[j]):
-            lag = int(np.argmax(np.abs(positive)))
+        if (np.abs(positive) > z_all * spreads[j]).any():
+            lag = int(np.abs(positive).argmax())
             correlated.append(name)
             worst.append((name, lag, float(positive[lag])))
-        if np.any(np.abs(cross[:lags, j]) > z_all * spreads[j]):
+        if (np.abs(cross[:lags, j]) > z_all * spreads[j]).any():
             feedback = True
     # A model error driven by a coloured input correlates with it at negative lags too: only a
     # residual the inputs explain nothing of shows feedback there.
