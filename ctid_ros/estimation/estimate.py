@@ -469,7 +469,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         # the input, there is nothing for the automatic start and search to find.
         start = warm_start(problem, initial, transient, method, delay_index, delay_range)
         if start is not None and method != 'ls':
-            start = against_the_data_guess(problem, start, delay_range)
+            start = against_the_data_guess(problem, start, delay_index, delay_range)
         if start is None:
             start = automatic_start(problem, initial, transient, delay_index, delay_range)
         fit = final_iteration(problem, start, policy)

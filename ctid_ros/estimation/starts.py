@@ -360,14 +360,11 @@ def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[
         in_box = box_lower + (box_upper - box_lower) * draws[:, 2]
         guesses.extend(np.where(boxed & ~positive_box, in_box,
                                 np.where(positive_box, in_log_box, 10.0 ** wide)))
-    starts = []
-    for guess in guesses:
-        guess = np.clip(guess, lower, upper)
-        guess = np.where(np.isnan(fixed), guess, fixed)
-        if delay_index is not None:
-            guess[delay_index] = tau
-        starts.append(guess)
-    return starts
+    # All starts at once: each row clipped and pinned as it would be alone.
+    starts = np.where(np.isnan(fixed), np.clip(np.array(guesses), lower, upper), fixed)
+    if delay_index is not None:
+        starts[:, delay_index] = tau
+    return list(starts)
 
 
 @lru_cache(maxsize=16)
