@@ -627,9 +627,10 @@ class _EquationError:
         projection iteration corrects (relative change of parameters or cost below
         ``_START_TOLERANCE``).
 
-        Its bookkeeping is a few elementwise operations on vectors of the free parameters per
-        step (numpy's ufuncs, whose results are those of the same arithmetic on floats): the
-        step held on the bounds the gradient pushes against, clipped into the box.
+        Its bookkeeping on the handful of free values mixes numpy's ufuncs (the step, held on
+        the bounds the gradient pushes against and clipped into the box) with Python floats
+        (whether a value is on a bound at all, the relative change): the same arithmetic
+        either way, at the fewest calls and operations.
         """
         evaluate, order, rows = self.evaluated, self._order, self._gradient
         positions = self._positions
@@ -644,6 +645,7 @@ class _EquationError:
         residual = factor @ evaluated[order]
         cost = residual @ residual
         damping = 1e-3
+        current, low, high = values.tolist(), lower.tolist(), upper.tolist()
         for _ in range(_START_ITERATIONS):
             jacobian = factor @ evaluated[rows].T
             gram = jacobian.T @ jacobian
@@ -652,25 +654,32 @@ class _EquationError:
             # Moving it would be clipped back, and the other parameters' part of that step,
             # solved as if it moved, then creeps along the bound by damped steps (a lag
             # collapsing to its lower bound took up to the iteration limit instead of a few
-            # steps).
-            held = ((values <= lower) & (gradient > 0.0)) | ((values >= upper) & (gradient < 0.0))
-            # One reduction (ndarray.any adds two calls of numpy's own).
-            holding = np.logical_or.reduce(held)
+            # steps). The values lie in the box: only one on a bound can be held.
+            holding = False
+            for value, bottom, top in zip(current, low, high):
+                if value <= bottom or value >= top:
+                    held = ((values <= lower) & (gradient > 0.0)) | \
+                        ((values >= upper) & (gradient < 0.0))
+                    holding = held.any()
+                    break
             if holding:
                 moving = ~held
-                if not np.logical_or.reduce(moving):
+                if not moving.any():
                     return values           # no descent direction inside the box
                 gram = gram[moving][:, moving]
                 gradient = gradient[moving]
-            size = gram.shape[0]
             # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal: its
             # damped values are written over it for each damping, the rest stays.
-            diagonal = slice(None, None, size + 1)
-            original = gram.flat[diagonal]
+            # Written through a flat view: the matrix C-ordered first (a column selection is
+            # not).
+            gram = np.ascontiguousarray(gram)
+            flat = gram.ravel()
+            diagonal = slice(None, None, gram.shape[0] + 1)
+            original = flat[diagonal].copy()
             scaling = np.maximum(original, _TINY)
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
-                gram.flat[diagonal] = original + damping * scaling
+                flat[diagonal] = original + damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular). It leaves gram as it is.
                 solution, info = lapack.dgesv(gram, gradient)[2:]
@@ -678,9 +687,10 @@ class _EquationError:
                     if holding:
                         step = np.zeros(values.size)
                         step[moving] = -solution
+                        trial = values + step
                     else:
-                        step = -solution
-                    trial = np.minimum(np.maximum(values + step, lower), upper)
+                        trial = values - solution           # values + (-solution)
+                    trial = np.minimum(np.maximum(trial, lower), upper)
                     spare[positions] = trial
                     try:
                         trial_evaluated = evaluate(spare)
@@ -694,14 +704,22 @@ class _EquationError:
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = np.maximum.reduce(np.abs(trial - values) /
-                                       np.maximum(np.abs(values), 1e-12))
+            # The largest relative change below the tolerance: every one below it (abs and
+            # max written out, the same values).
+            moved = trial.tolist()
+            settled = True
+            for new, old in zip(moved, current):
+                change = new - old if new >= old else old - new
+                size = old if old >= 0.0 else -old
+                if not change / (size if size >= 1e-12 else 1e-12) < _START_TOLERANCE:
+                    settled = False
+                    break
             decrease = 1.0 - trial_cost / cost
-            values, residual, evaluated = trial, trial_residual, trial_evaluated
+            values, current, residual, evaluated = trial, moved, trial_residual, trial_evaluated
             theta, spare = spare, theta
             cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
-            if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
+            if settled or decrease < _START_TOLERANCE:
                 break
         return values
 
