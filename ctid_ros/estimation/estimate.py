@@ -244,12 +244,14 @@ def _check_excitation(model: Model, data: Data) -> None:
     if data.input_count != len(model.inputs):
         raise DataError(f'the model has {len(model.inputs)} input(s) '
                         f'({", ".join(model.inputs)}), the data have {data.input_count}')
-    spans = np.ptp(data.u.reshape(len(data), -1), axis=0)
+    # np.ptp's reductions, without its dispatch.
+    inputs = data.u.reshape(len(data), -1)
+    spans = np.maximum.reduce(inputs, axis=0) - np.minimum.reduce(inputs, axis=0)
     for name, span in zip(model.inputs, spans):
         if span == 0.0:
             raise EstimationError(f'the input {name} is constant: it does not excite the '
                                   'system, so no dynamic parameter can be identified')
-    if np.ptp(data.y) == 0.0:
+    if np.maximum.reduce(data.y, axis=None) - np.minimum.reduce(data.y, axis=None) == 0.0:
         raise EstimationError('the output is constant: the data carry no information about '
                               'the dynamics (is the output topic/column the right one?)')
     if len(data) < 10:

@@ -405,8 +405,9 @@ def measured_every(y: np.ndarray) -> int:
     best = 1
     differences = y
     for order in (1, 2):
-        # np.diff(y, 2) is the difference of np.diff(y): the first order's, differenced again.
-        differences = np.diff(differences)
+        # np.diff(y, 2) is the difference of np.diff(y): the first order's, differenced again
+        # (by np.diff's own subtraction).
+        differences = differences[1:] - differences[:-1]
         changing = np.abs(differences) > 1e-9 * scale
         count = int(np.count_nonzero(changing))
         if count < 4 or -(-differences.size // 2) < _PHASE_SHARE * count:
