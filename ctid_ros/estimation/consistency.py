@@ -275,7 +275,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     firsts, inners = np.maximum(starts - memory, 0), stops - memory
     # Every block's sums of products are sums over the pieces between the blocks' edges: each
     # row enters one product (halves and quarters share their rows).
-    edges = np.unique(np.concatenate([[0, count], starts, stops]))
+    # np.unique's sorted distinct values, from the few edges as Python integers.
+    edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
     grams = _piece_sums(_piece_grams(scaled, edges))
     # The whole record's and every block's inverse Gram matrix, decomposed together: the
     # matrices are p x p, and one stacked call costs what one alone does.
@@ -284,7 +285,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if inverses is None:
         return None
     inverse, locals_ = inverses[0], inverses[1:]
-    products = _piece_sums(np.stack([error[start:stop] @ scaled[start:stop]
+    # np.array stacks the pieces as np.stack does, without its checks.
+    products = _piece_sums(np.array([error[start:stop] @ scaled[start:stop]
                                      for start, stop in zip(edges[:-1], edges[1:])]))
     deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
         - products[-1] @ inverse
@@ -299,7 +301,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         filtered = noise_root(scaled, noise, scale)
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
     # block and the memory before it: F G^-1. Through F's products over the pieces.
-    filtered_edges = np.unique(np.concatenate([edges, firsts, inners]))
+    filtered_edges = np.array(sorted({*edges.tolist(), *firsts.tolist(), *inners.tolist()}))
     filtered_grams = _piece_sums(_piece_grams(filtered, filtered_edges))
     difference = locals_ - inverse
     outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
@@ -310,9 +312,10 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         # Each block's end: F less the response to the samples after the block; before each
         # block: the response to the block's state at its start. All from one filter pass,
         # then row by row.
-        ends, befores = np.split(_free_responses(
+        responses = _free_responses(
             filtered, noise.ar, np.concatenate([stops, starts]),
-            np.concatenate([stops - inners, starts - firsts]), memory), 2)
+            np.concatenate([stops - inners, starts - firsts]), memory)
+        ends, befores = responses[:stops.size], responses[stops.size:]
         span = np.arange(memory)
         at_end = filtered[inners[:, None] + span]
         rows_before = starts[:, None] - memory + span
@@ -327,26 +330,27 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
 
 def _piece_grams(columns: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Return ``X_k^T X_k`` for the rows ``edges[k] .. edges[k + 1] - 1`` of ``columns``."""
-    return np.stack([columns[start:stop].T @ columns[start:stop]
+    # np.array stacks them as np.stack does, without its checks.
+    return np.array([columns[start:stop].T @ columns[start:stop]
                      for start, stop in zip(edges[:-1], edges[1:])])
 
 
 def _piece_sums(pieces: np.ndarray) -> np.ndarray:
     """Return the running sums of ``pieces`` from 0: entry ``k`` sums pieces ``0 .. k - 1``."""
-    return np.concatenate([np.zeros((1,) + pieces.shape[1:]), np.cumsum(pieces, axis=0)])
+    return np.concatenate([np.zeros((1,) + pieces.shape[1:]), pieces.cumsum(axis=0)])
 
 
 def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.ndarray
              ) -> np.ndarray:
     """Return the sums over rows ``starts .. stops - 1`` (all among ``edges``) by block."""
-    return sums[np.searchsorted(edges, stops)] - sums[np.searchsorted(edges, starts)]
+    return sums[edges.searchsorted(stops)] - sums[edges.searchsorted(starts)]
 
 
 def _normal_inverses(grams: np.ndarray) -> Optional[np.ndarray]:
     """Return the inverses of ``S^T S`` (stacked) if all ``S`` are conditioned within bounds."""
     eigenvalues = np.linalg.eigvalsh(grams)
-    if np.all(eigenvalues[:, 0] > 0.0) and \
-            np.all(eigenvalues[:, 0] >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2):
+    if (eigenvalues[:, 0] > 0.0).all() and \
+            (eigenvalues[:, 0] >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2).all():
         return np.linalg.inv(grams)
     return None
 
@@ -421,12 +425,12 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     std_noise = {name: float(value) for name, value in zip(names, std)}
     given = np.asarray(free, dtype=bool)
     free = given & np.isfinite(std)
-    params = int(np.sum(free))
+    params = int(free.sum())
     if params == 0:
         return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
                            std_noise=std_noise)
     if sensitivities is not None and sensitivities[0] is not None and \
-            np.array_equal(free, given):
+            (free == given).all():
         scaled, error = sensitivities
     else:
         psi, error = _sensitivities(problem, state, free)
@@ -571,7 +575,7 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
         shaping = -np.asarray(problem.model.simulate(state.theta, pulse, problem.data.ts),
                               dtype=float)
         shaping[0] += 1.0
-        significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.max(np.abs(shaping)))
+        significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.abs(shaping).max())
         if significant[-1] < length - length // 4 or length == count:
             break
     return shaping[:significant[-1] + 1]
@@ -593,7 +597,7 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     column-scaled sensitivities of ``free`` and the residual, if the caller has them.
     """
     shaping = loop_sensitivity(problem, state)
-    if shaping is None or not np.any(free):
+    if shaping is None or not free.any():
         return None
     if sensitivities is None or sensitivities[0] is None:
         psi, error = _sensitivities(problem, state, free)
@@ -610,7 +614,7 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     if scales is None:
         psi, _ = _sensitivities(problem, state, free)
         scales = column_scales(psi)
-    scaled, _ = coloured_covariance(columns, error, int(np.sum(free)), svd, model=shaped)
+    scaled, _ = coloured_covariance(columns, error, int(free.sum()), svd, model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
     covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
     return covariance, shaped
@@ -635,7 +639,7 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     has them.
     """
     factors = np.ones(free.size)
-    if not np.any(free):
+    if not free.any():
         return factors
     if svd is None:
         root = None
@@ -645,7 +649,7 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
-                            int(np.sum(free)), removed_share, root)
+                            int(free.sum()), removed_share, root)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
     return factors
@@ -693,7 +697,7 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     if fed_back is not None:
         restored = np.ones(len(names))
         result.covariance, noise = fed_back
-        result.std = dict(zip(names, map(float, np.sqrt(np.abs(np.diag(result.covariance))))))
+        result.std = dict(zip(names, map(float, np.sqrt(np.abs(result.covariance.diagonal())))))
         if result.residuals is not None:
             result.residuals.noise_order = noise.order
             result.residuals.noise_power_ratio = noise.variance_ratio

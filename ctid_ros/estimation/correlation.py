@@ -14,6 +14,7 @@ from functools import lru_cache
 from typing import Optional
 
 from ctid_ros.core.data import Data
+from ctid_ros.estimation.linear_algebra import least_squares, solve, symmetric_eigenvalues
 import numpy as np
 
 __all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread', 'fft_size',
@@ -83,13 +84,13 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
         return np.zeros((max_lag + 1, inputs.shape[1]))
     first = used[0]
     error = np.zeros_like(residual)
-    error[first:] = residual[first:] - np.mean(residual[first:])
-    centred = inputs - np.mean(inputs, axis=0)
+    error[first:] = residual[first:] - residual[first:].mean()
+    centred = inputs - inputs.mean(axis=0)
     # Zero padding to N + max_lag keeps the circular correlation free of wrap-around.
     size = fft_size(residual.size + max_lag + 1)
     spectrum = np.fft.rfft(error, size)[:, None] * np.conj(np.fft.rfft(centred, size, axis=0))
     correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
-    scale = np.sqrt(np.sum(error ** 2) * np.sum(centred ** 2, axis=0))
+    scale = np.sqrt((error ** 2).sum() * (centred ** 2).sum(axis=0))
     return correlation / np.where(scale > 0.0, scale, 1.0)
 
 
@@ -106,12 +107,12 @@ def autocorrelations(columns: np.ndarray, span: int) -> np.ndarray:
     """
     columns = np.asarray(columns, dtype=float)
     columns = columns.reshape(columns.shape[0], -1)
-    centred = columns - np.mean(columns, axis=0)
+    centred = columns - columns.mean(axis=0)
     size = fft_size(centred.shape[0] + span + 1)
     spectrum = np.fft.rfft(centred, size, axis=0)
     full = np.fft.irfft(spectrum * np.conj(spectrum), size, axis=0)
     values = np.concatenate([full[size - span:], full[:span + 1]]) if span else full[:1]
-    energy = np.sum(centred ** 2, axis=0)
+    energy = (centred ** 2).sum(axis=0)
     return values / np.where(energy > 0.0, energy, 1.0)
 
 
@@ -185,37 +186,37 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     if bound != 'prewhitened':
         correlation = input_correlation(residual, inputs, max_lag)
         if bound == 'white':
-            return bool(np.max(np.abs(correlation)) <= confidence / np.sqrt(count))
-        largest = np.max(np.abs(correlation), axis=0)
-        if np.all(largest <= confidence * _white_spread(count)):
+            return bool(np.abs(correlation).max() <= confidence / np.sqrt(count))
+        largest = np.abs(correlation).max(axis=0)
+        if (largest <= confidence * _white_spread(count)).all():
             return True
         span = bartlett_span(count, max_lag)
         rho_e = autocorrelations(residual[first:], span)[:, 0]
         rho_u = autocorrelations(inputs[first:], span)
         spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
                             for j in range(inputs.shape[1])])
-        return bool(np.all(largest <= confidence * spreads))
+        return bool((largest <= confidence * spreads).all())
     polynomial = whitening_filter(residual[first:], _RESIDUAL_WHITENING_ORDER)
     start = polynomial.size - 1
-    filtered = np.convolve(residual[first:] - np.mean(residual[first:]), polynomial)[start:count]
+    filtered = np.convolve(residual[first:] - residual[first:].mean(), polynomial)[start:count]
     if sensitivities is not None:
         columns = np.asarray(sensitivities, dtype=float).reshape(residual.size, -1)[first:]
-        columns = np.apply_along_axis(np.convolve, 0, columns - np.mean(columns, axis=0),
+        columns = np.apply_along_axis(np.convolve, 0, columns - columns.mean(axis=0),
                                       polynomial)[start:count]
         if columns.shape[0] > 2 * columns.shape[1]:
             filtered = filtered - columns @ np.linalg.lstsq(columns, filtered, rcond=None)[0]
     lags = min(max_lag, filtered.size // 4)
-    if lags < 1 or not np.any(filtered):
+    if lags < 1 or not filtered.any():
         return True
     span = bartlett_span(filtered.size, lags)
-    whitened = np.column_stack([np.convolve(column - np.mean(column), polynomial)[start:count]
+    whitened = np.column_stack([np.convolve(column - column.mean(), polynomial)[start:count]
                                 for column in inputs[first:].T])
     if filtered[0] != 0.0:
         return _within_spread(filtered, whitened, lags, span, confidence)
     # Leading zeros, which input_correlation leaves out of the residual's mean.
     rho_e = None
     for column in whitened.T:
-        largest = np.max(np.abs(input_correlation(filtered, column, lags)[:, 0]))
+        largest = np.abs(input_correlation(filtered, column, lags)[:, 0]).max()
         if largest <= confidence * _white_spread(filtered.size):
             continue
         if rho_e is None:
@@ -239,19 +240,19 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
     pass without the autocorrelations.
     """
     count = residual.size
-    error = residual - np.mean(residual)
-    centred = inputs - np.mean(inputs, axis=0)
+    error = residual - residual.mean()
+    centred = inputs - inputs.mean(axis=0)
     size = fft_size(count + span + 1)
     spectrum = np.fft.rfft(error, size)
     spectra = np.fft.rfft(centred, size, axis=0)
-    energy = np.sum(error ** 2)
-    energies = np.sum(centred ** 2, axis=0)
+    energy = (error ** 2).sum()
+    energies = (centred ** 2).sum(axis=0)
     scale = np.sqrt(energy * energies)
     correlation = np.fft.irfft(spectrum[:, None] * np.conj(spectra), size, axis=0)[:lags + 1] \
         / np.where(scale > 0.0, scale, 1.0)
-    largest = np.max(np.abs(correlation), axis=0)
+    largest = np.abs(correlation).max(axis=0)
     # A model that explains the data passes here.
-    if np.all(largest <= confidence * _white_spread(count)):
+    if (largest <= confidence * _white_spread(count)).all():
         return True
     full = np.fft.irfft(spectrum * np.conj(spectrum), size)
     rho_e = np.concatenate([full[size - span:], full[:span + 1]]) / \
@@ -261,7 +262,7 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
         np.where(energies > 0.0, energies, 1.0)
     spreads = np.array([chance_spread(rho_e, rho_u[:, j], count)
                         for j in range(inputs.shape[1])])
-    return bool(np.all(largest <= confidence * spreads))
+    return bool((largest <= confidence * spreads).all())
 
 
 def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np.ndarray:
@@ -272,23 +273,27 @@ def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np
     sample its past does not predict. Order ``min(order, N/10)``; ``[1]`` for a constant series.
     """
     values = np.asarray(values, dtype=float)
-    values = values - np.mean(values)
+    values = values - values.mean()
     count = values.size
     order = min(order, count // 10)
-    if order < 1 or not np.any(values):
+    if order < 1 or not values.any():
         return np.ones(1)
     # Column 0 the predicted samples, column k their k-th past values.
-    lagged = np.column_stack([values[order - k:count - k] for k in range(order + 1)])
+    lagged = np.empty((count - order, order + 1))
+    for k in range(order + 1):
+        lagged[:, k] = values[order - k:count - k]
     # The normal equations where the past values are well conditioned (a cond^2 eps relative
     # error), least squares otherwise.
     products = lagged.T @ lagged
     gram = products[1:, 1:]
-    scales = np.sqrt(np.diag(gram))
-    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales)) if scales.all() else [0.0]
+    scales = np.sqrt(gram.diagonal())
+    # The scaled Gram matrix by np.outer's product.
+    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales)) if scales.all() \
+        else [0.0]
     if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
-        coefficients = np.linalg.solve(gram, products[1:, 0])
+        coefficients = solve(gram, products[1:, 0])
     else:
-        coefficients = np.linalg.lstsq(lagged[:, 1:], lagged[:, 0], rcond=None)[0]
+        coefficients = least_squares(lagged[:, 1:], lagged[:, 0])
     return np.concatenate([[1.0], -coefficients])
 
 
@@ -309,7 +314,7 @@ def prewhitened_delay(data: Data) -> float:
     order = min(_PREWHITENING_ORDER, count // 10)
     if order < 1 or not np.ptp(u):
         return 0.0
-    u, y = u - np.mean(u), y - np.mean(y)
+    u, y = u - u.mean(), y - y.mean()
     polynomial = whitening_filter(u, order)
     start = polynomial.size - 1
     whitened_u = np.convolve(u, polynomial)[start:count]

@@ -10,11 +10,13 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 """
 
 from dataclasses import dataclass, field
+import math
 from typing import List, Optional, Tuple
 
 from ctid_ros.core.model import Coefficients
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
+from ctid_ros.estimation.linear_algebra import least_squares, solve, symmetric_eigenvalues
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
@@ -159,8 +161,9 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
     # beyond: the bracket is doubled (at most to half the record) until neither holds.
     automatic = delay_range is None and not np.isfinite(problem.upper[delay_index])
     ceiling = 0.5 * data.ts * len(data)
-    spread = problem.measured - np.mean(problem.measured)
-    nothing = 0.5 * (_UNEXPLAINED * np.linalg.norm(spread)) ** 2
+    spread = problem.measured - problem.measured.mean()
+    # np.linalg.norm's arithmetic for a vector, without its dispatch.
+    nothing = 0.5 * (_UNEXPLAINED * math.sqrt(spread.dot(spread))) ** 2
 
     def beyond() -> bool:
         lowest = min(profile, key=lambda point: point[1])
@@ -213,7 +216,7 @@ def across_the_sample(problem: Problem, best: State, delay_index: int,
     num = best.coefficients.num
     order = best.coefficients.den.size - 1
     # Relative degree one: some numerator reaches s^(n-1).
-    if order < 1 or num.shape[1] < order or not np.any(num[:, num.shape[1] - order]):
+    if order < 1 or num.shape[1] < order or not num[:, num.shape[1] - order].any():
         return None
     tau = best.theta[delay_index]
     knot = problem.on_delay_lattice(tau)
@@ -382,13 +385,13 @@ def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coeffic
     if step is None:
         shifted = np.zeros_like(sensitivities)
         shifted[moved] = columns
-        step = np.linalg.lstsq(shifted, error, rcond=None)[0]
+        step = least_squares(shifted, error)
     remaining = error.copy()
     remaining[moved] -= columns @ step
     updated = theta.copy()
     updated[others] += step
     updated = np.clip(updated, problem.lower, problem.upper)
-    admissible = problem.admissible(updated) if np.all(np.isfinite(updated)) else None
+    admissible = problem.admissible(updated) if np.isfinite(updated).all() else None
     if admissible is None:
         return problem.state(theta, coefficients), 0.0
     refit = problem.state(updated, admissible)
@@ -402,10 +405,11 @@ def _normal_solution(gram: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
     None unless the columns behind ``gram``, scaled to unit norm, are conditioned within
     :data:`_NORMAL_CONDITION`.
     """
-    scales = np.sqrt(np.diag(gram))
-    if not np.all((scales > 0.0) & (scales < np.inf)):
+    scales = np.sqrt(gram.diagonal())
+    if not np.logical_and.reduce((scales > 0.0) & (scales < np.inf)):
         return None
-    eigenvalues = np.linalg.eigvalsh(gram / np.outer(scales, scales))
+    # np.outer's product.
+    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales))
     if not eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
         return None
-    return np.linalg.solve(gram, rhs)
+    return solve(gram, rhs)

@@ -29,6 +29,7 @@ identifiability check and the covariance (``docs/algorithm.md`` sections 1, 14 a
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+import math
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 import warnings
 
@@ -225,10 +226,12 @@ class Estimate:
 
 def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
     """Normalised root-mean-square fit in percent (100 is a perfect fit)."""
-    spread = np.linalg.norm(y - np.mean(y))
+    # np.linalg.norm's arithmetic for a vector, without its dispatch.
+    centred, error = y - y.mean(), y - yhat
+    spread = math.sqrt(centred.dot(centred))
     if spread == 0.0:
         return float('nan')
-    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / spread))
+    return float(100.0 * (1.0 - math.sqrt(error.dot(error)) / spread))
 
 
 @lru_cache(maxsize=1)
@@ -241,12 +244,14 @@ def _check_excitation(model: Model, data: Data) -> None:
     if data.input_count != len(model.inputs):
         raise DataError(f'the model has {len(model.inputs)} input(s) '
                         f'({", ".join(model.inputs)}), the data have {data.input_count}')
-    spans = np.ptp(data.u.reshape(len(data), -1), axis=0)
+    # np.ptp's reductions, without its dispatch.
+    inputs = data.u.reshape(len(data), -1)
+    spans = np.maximum.reduce(inputs, axis=0) - np.minimum.reduce(inputs, axis=0)
     for name, span in zip(model.inputs, spans):
         if span == 0.0:
             raise EstimationError(f'the input {name} is constant: it does not excite the '
                                   'system, so no dynamic parameter can be identified')
-    if np.ptp(data.y) == 0.0:
+    if np.maximum.reduce(data.y, axis=None) - np.minimum.reduce(data.y, axis=None) == 0.0:
         raise EstimationError('the output is constant: the data carry no information about '
                               'the dynamics (is the output topic/column the right one?)')
     if len(data) < 10:
@@ -342,8 +347,8 @@ def covariance(problem: Problem, state: State,
         svd = np.linalg.svd(columns, full_matrices=False)
     model = noise_model(error, autocorrelation=autocorrelation)
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.
-    root = unit_root(svd[0], model) if model.order and np.any(free) else None
-    scaled, model = coloured_covariance(columns, error, int(np.sum(free)), svd,
+    root = unit_root(svd[0], model) if model.order and free.any() else None
+    scaled, model = coloured_covariance(columns, error, int(free.sum()), svd,
                                         model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(columns, error, svd, start=model)
@@ -353,21 +358,23 @@ def covariance(problem: Problem, state: State,
     if restored is not None:
         removed_share = max(1.0 - low_frequency_level(model) / low_frequency_level(restored[1]),
                             0.0)
-        ratio = np.sqrt(np.diag(restored[0]) / np.diag(scaled))
+        ratio = np.sqrt(restored[0].diagonal() / scaled.diagonal())
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
         scaled, model = restored
         root = None
     result = np.full((params, params), np.nan)
-    result[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    # np.ix_'s indexing and np.outer's product.
+    rows = free.nonzero()[0]
+    result[rows[:, None], rows] = scaled / (scales[:, None] * scales)
     weakest = np.zeros(params)
     condition = 1.0
-    if np.any(free):
+    if free.any():
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors, svd if np.any(free) else None, residual_noise, root,
+                       restored_factors, svd if free.any() else None, residual_noise, root,
                        columns, error)
 
 
@@ -464,7 +471,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         # the input, there is nothing for the automatic start and search to find.
         start = warm_start(problem, initial, transient, method, delay_index, delay_range)
         if start is not None and method != 'ls':
-            start = against_the_data_guess(problem, start, delay_range)
+            start = against_the_data_guess(problem, start, delay_index, delay_range)
         if start is None:
             start = automatic_start(problem, initial, transient, delay_index, delay_range)
         fit = final_iteration(problem, start, policy)
@@ -488,7 +495,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     residuals.noise_power_ratio = uncertainty.noise.variance_ratio
     parameter_covariance = uncertainty.covariance
     variance, condition = uncertainty.variance, uncertainty.condition
-    std = np.sqrt(np.abs(np.diag(parameter_covariance)))
+    std = np.sqrt(np.abs(parameter_covariance.diagonal()))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
     result = Estimate(

@@ -18,10 +18,12 @@ sample grid from a slower measurement, so the estimate can say so.
 
 from dataclasses import dataclass
 import math
+import operator
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
 from ctid_ros.estimation.correlation import fft_size
+from ctid_ros.estimation.linear_algebra import least_squares
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
@@ -84,8 +86,8 @@ class NoiseModel:
         """Return the low-frequency noise power over that of white noise of equal variance."""
         if self.variance <= 0.0:
             return 1.0          # a residual of exact zeros: no noise to colour
-        gain = 1.0 if self.shaping is None else float(np.sum(self.shaping)) ** 2
-        return float(gain * self.innovation_variance / np.sum(self.ar) ** 2 / self.variance)
+        gain = 1.0 if self.shaping is None else float(self.shaping.sum()) ** 2
+        return float(gain * self.innovation_variance / self.ar.sum() ** 2 / self.variance)
 
 
 def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
@@ -109,7 +111,7 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     penalty = _PENALTIES[criterion]
     residual = np.asarray(residual, dtype=float)
     count = residual.size
-    centred = residual - np.mean(residual)
+    centred = residual - residual.mean()
     variance = float(centred @ centred) / max(count, 1)
     top = int(min(max_order, _ORDER_FRACTION * count))
     if variance == 0.0 or top < 1:
@@ -121,11 +123,12 @@ def noise_model(residual: np.ndarray, max_order: int = _MAX_ORDER,
     best = (count * math.log(variance), 0, variance)
     # The recursion in Python floats: its vectors hold at most 31 values, where numpy's work
     # per call would cost more than the arithmetic. ar is a_0 .. a_order of the current order.
+    # The products by map: the same sum as a generator's, without resuming one per term.
     lags = autocovariance.tolist()
     ar = kept = [1.0]
     error = lags[0]
     for order in range(1, top + 1):
-        reflection = -(lags[order] + sum(a * lag for a, lag in zip(ar[1:], lags[order - 1:0:-1]))
+        reflection = -(lags[order] + sum(map(operator.mul, ar[1:], lags[order - 1:0:-1]))
                        ) / error
         ar = [1.0] + [a + reflection * b for a, b in zip(ar[1:], ar[:0:-1])] + [reflection]
         error *= 1.0 - reflection ** 2
@@ -187,30 +190,31 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
     is not that of a low-order filter, or too short to tell).
     """
     impulse = np.asarray(impulse, dtype=float)
-    peak = float(np.max(np.abs(impulse), initial=0.0))
-    if peak == 0.0 or not np.all(np.isfinite(impulse)):
+    # np.max and np.sum are these reductions behind numpy's dispatch.
+    peak = float(np.maximum.reduce(np.abs(impulse), axis=None, initial=0.0))
+    if peak == 0.0 or not np.isfinite(impulse).all():
         return None
     for order in range(1, max_order + 1):
         if impulse.size < 3 * order + 2:
             return None
         # rows[j] = h[j + order], h[j + order - 1], ..., h[j]; the recurrence holds from
         # k = order + 1 on, i.e. for the rows after the first.
-        rows = np.lib.stride_tricks.sliding_window_view(impulse, order + 1)[1:, ::-1]
-        tail, *_ = np.linalg.lstsq(rows[:, 1:], -rows[:, 0], rcond=None)
+        rows = impulse[np.arange(1, impulse.size - order)[:, None] + np.arange(order, -1, -1)]
+        tail = least_squares(rows[:, 1:], -rows[:, 0])
         den = np.concatenate([[1.0], tail])
         num = np.convolve(den, impulse[:order + 1])[:order + 1]
-        if not (np.all(np.isfinite(den)) and num[0] != 0.0):
+        if not (np.isfinite(den).all() and num[0] != 0.0):
             continue
         # den * (impulse - response) is den * impulse after the first order + 1 samples: where
         # that exceeds |den|_1 times the tolerance, so does the error itself (no filtering).
         recurrence = np.convolve(den, impulse)[order + 1:impulse.size]
-        if np.max(np.abs(recurrence), initial=0.0) > \
-                2.0 * np.sum(np.abs(den)) * _RATIONAL_TOLERANCE * peak:
+        if np.maximum.reduce(np.abs(recurrence), axis=None, initial=0.0) > \
+                2.0 * np.add.reduce(np.abs(den), axis=None) * _RATIONAL_TOLERANCE * peak:
             continue
         pulse = np.zeros(impulse.size)
         pulse[:order + 1] = num
         with np.errstate(all='ignore'):
-            error = np.max(np.abs(all_pole(den, pulse) - impulse))
+            error = np.abs(all_pole(den, pulse) - impulse).max()
         if error <= _RATIONAL_TOLERANCE * peak:
             return num, den
     return None
@@ -251,8 +255,8 @@ def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
     """
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
-        prewhitened = inverse_filtered(shaping, residual - np.mean(residual))
-    if not np.all(np.isfinite(prewhitened)):
+        prewhitened = inverse_filtered(shaping, residual - residual.mean())
+    if not np.isfinite(prewhitened).all():
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)
     return NoiseModel(inner.ar, inner.innovation_variance, float(np.var(residual)),
@@ -354,7 +358,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
     order = model.order
     if order == 0:
         return min(shaping, limit)
-    radius = float(np.max(np.abs(_roots(model.ar))))
+    radius = float(np.abs(_roots(model.ar)).max())
     if not radius < 1.0:
         return limit
     span = order + (1 if radius == 0.0 else
@@ -363,7 +367,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
         impulse = np.zeros(span + order)
         impulse[0] = 1.0
         response = np.abs(all_pole(model.ar, impulse))
-        if np.max(response[span - order:]) <= _FORGOTTEN * np.max(response):
+        if response[span - order:].max() <= _FORGOTTEN * response.max():
             return span + shaping
         span *= 2
     return limit
@@ -397,12 +401,13 @@ def measured_every(y: np.ndarray) -> int:
     ``m`` up to 64, and the output bends at half of those samples or more.
     """
     y = np.asarray(y, dtype=float)
-    scale = float(np.max(np.abs(y))) if y.size else 0.0
+    scale = float(np.abs(y).max()) if y.size else 0.0
     best = 1
     differences = y
     for order in (1, 2):
-        # np.diff(y, 2) is the difference of np.diff(y): the first order's, differenced again.
-        differences = np.diff(differences)
+        # np.diff(y, 2) is the difference of np.diff(y): the first order's, differenced again
+        # (by np.diff's own subtraction).
+        differences = differences[1:] - differences[:-1]
         changing = np.abs(differences) > 1e-9 * scale
         count = int(np.count_nonzero(changing))
         if count < 4 or -(-differences.size // 2) < _PHASE_SHARE * count:

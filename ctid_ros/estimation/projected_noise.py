@@ -109,7 +109,7 @@ def restored_noise_model(left: np.ndarray, residual: np.ndarray,
     basis, _ = np.linalg.qr(np.column_stack([left, np.ones(count)]))
     lags = int(min(_MAX_LAG, count - 1))
     size = 1 << int(np.ceil(np.log2(count + lags + 1)))
-    centred = residual - np.mean(residual)
+    centred = residual - residual.mean()
     sums = _lag_sums(centred[:, None], centred[:, None], lags, size)
     level = low_frequency_level(model)
     for _ in range(RESTORE_PASSES):
@@ -130,7 +130,7 @@ def restored_noise_model(left: np.ndarray, residual: np.ndarray,
 
 def low_frequency_level(model: NoiseModel) -> float:
     """Return the model's spectrum at frequency 0, ``sigma_w^2 / A(1)^2`` (unshaped)."""
-    return model.innovation_variance / float(np.sum(model.ar)) ** 2
+    return model.innovation_variance / float(model.ar.sum()) ** 2
 
 
 def restored_covariance(psi: np.ndarray, residual: np.ndarray,

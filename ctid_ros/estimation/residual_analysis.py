@@ -54,7 +54,7 @@ class _Spectrum:
 
     def __init__(self, values: np.ndarray, lags: int):
         values = np.asarray(values, dtype=float)
-        self.centred = values - np.mean(values)
+        self.centred = values - values.mean()
         self.size = fft_size(values.size + lags + 1)
         self.spectrum = np.fft.rfft(self.centred, self.size)
         self.energy = float(self.centred @ self.centred)
@@ -163,7 +163,7 @@ class ResidualAnalysis:
             'max_autocorrelation': float(np.max(np.abs(self.autocorrelation[1:]), initial=0.0)),
             'auto_bound': float(self.auto_bound),
             'max_cross_correlation': {
-                name: float(np.max(np.abs(self.cross_correlation[self.lags:, j])))
+                name: float(np.abs(self.cross_correlation[self.lags:, j]).max())
                 for j, name in enumerate(self.inputs)},
             'cross_bounds': {name: float(bound)
                              for name, bound in zip(self.inputs, self.cross_bounds)},
@@ -216,16 +216,16 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
         spreads[j] = chance_spread(rho_e, signal.correlation(signal, span), count)
     cross_bounds = _Z_LAG * spreads
     z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
-    white = bool(np.all(np.abs(auto[1:]) <= z_all / np.sqrt(count)))
+    white = bool((np.abs(auto[1:]) <= z_all / np.sqrt(count)).all())
     correlated, worst = [], []
     feedback = False
     for j, name in enumerate(names):
         positive = cross[lags:, j]
-        if np.any(np.abs(positive) > z_all * spreads[j]):
-            lag = int(np.argmax(np.abs(positive)))
+        if (np.abs(positive) > z_all * spreads[j]).any():
+            lag = int(np.abs(positive).argmax())
             correlated.append(name)
             worst.append((name, lag, float(positive[lag])))
-        if np.any(np.abs(cross[:lags, j]) > z_all * spreads[j]):
+        if (np.abs(cross[:lags, j]) > z_all * spreads[j]).any():
             feedback = True
     # A model error driven by a coloured input correlates with it at negative lags too: only a
     # residual the inputs explain nothing of shows feedback there.

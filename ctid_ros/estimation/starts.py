@@ -30,6 +30,7 @@ from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
+from ctid_ros.estimation.linear_algebra import least_squares
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -182,14 +183,14 @@ def stabilized(problem: Problem, theta: np.ndarray, free: np.ndarray) -> Optiona
     if den.size < 2 or den[0] == 0.0:
         return None
     roots = np.roots(den)
-    scale = max(float(np.max(np.abs(roots))), np.finfo(float).tiny)
+    scale = max(float(np.abs(roots).max()), np.finfo(float).tiny)
     mirrored = np.where(roots.real >= 0.0, -np.abs(roots.real) - 1e-3 * scale + 1j * roots.imag,
                         roots)
     target = np.real(den[0] * np.poly(mirrored))
     jacobian = coefficients.den_jacobian[free].T            # d den / d theta_free
-    if not np.any(jacobian):
+    if not jacobian.any():
         return None
-    step = np.linalg.lstsq(jacobian, target - den, rcond=None)[0]
+    step = least_squares(jacobian, target - den)
     result = theta.copy()
     result[free] = theta[free] + step
     return np.clip(result, problem.lower, problem.upper)
@@ -359,14 +360,11 @@ def _start_points(problem: Problem, hints: Mapping[str, float], pinned: Mapping[
         in_box = box_lower + (box_upper - box_lower) * draws[:, 2]
         guesses.extend(np.where(boxed & ~positive_box, in_box,
                                 np.where(positive_box, in_log_box, 10.0 ** wide)))
-    starts = []
-    for guess in guesses:
-        guess = np.clip(guess, lower, upper)
-        guess = np.where(np.isnan(fixed), guess, fixed)
-        if delay_index is not None:
-            guess[delay_index] = tau
-        starts.append(guess)
-    return starts
+    # All starts at once: each row clipped and pinned as it would be alone.
+    starts = np.where(np.isnan(fixed), np.clip(np.array(guesses), lower, upper), fixed)
+    if delay_index is not None:
+        starts[:, delay_index] = tau
+    return list(starts)
 
 
 @lru_cache(maxsize=16)
@@ -401,8 +399,10 @@ class StateVariableFilters:
     def __init__(self, problem: Problem, lams: np.ndarray):
         model, data = problem.model, problem.data
         n, m = model.den_degree, model.num_degree
-        powers = [np.eye(n + 1)[n - j] for j in range(n + 1)]             # p^j, degree <= n
-        self._u_powers = powers[m::-1]
+        # Row j of the identity is the numerator p^(n - j): the output parts p^n/E .. 1/E
+        # and the input parts p^m/E .. 1/E, as 2-D arrays (mapped in one pass).
+        powers = np.eye(n + 1)
+        self._u_powers = powers[n - m:]
         self._bank, self._ts = problem.bank, data.ts
         self._filters = []
         filters_of = [(n, float(lam), data.ts) for lam in lams]
@@ -410,7 +410,7 @@ class StateVariableFilters:
         y_responses = filter_responses([_filter_discretized(*filter_of, 0.0, 'foh')
                                         for filter_of in filters_of], data.y)
         for filter_of, y_response in zip(filters_of, y_responses):
-            y_parts = y_response.outputs(powers[::-1])
+            y_parts = y_response.outputs(powers)
             nuisance = []
             if problem.initial_state or problem.output_offset:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
@@ -448,7 +448,7 @@ class StateVariableFilters:
                 factors.append(by_shift[whole, fraction])
                 continue
             u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
-            triangular = _triangular_factor(np.hstack(nuisance + [y_parts, -u_parts]))
+            triangular = _triangular_factor(np.concatenate(nuisance + [y_parts, -u_parts], axis=1))
             leading = sum(part.shape[1] for part in nuisance)
             factor = triangular[leading:, leading:]
             factor.setflags(write=False)
@@ -484,7 +484,7 @@ class StateVariableFilters:
         channels = [[response.outputs(self._u_powers)
                      for response in filter_responses(discretes, channel)]
                     for channel in self._bank.driving.T]
-        return [np.vstack([outputs[index] for outputs in channels]).T
+        return [np.concatenate([outputs[index] for outputs in channels]).T
                 for index in range(len(discretes))]
 
 
@@ -516,7 +516,7 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     gram = columns.T @ columns
     scales = np.sqrt(gram.diagonal())
     scales[scales == 0.0] = 1.0
-    cholesky, info = lapack.dpotrf(gram / np.outer(scales, scales))
+    cholesky, info = lapack.dpotrf(gram / (scales[:, None] * scales))      # np.outer's
     if info == 0 and lapack.dtrcon(cholesky)[0] > 1.0 / _GRAM_CONDITION:
         return cholesky * scales
     scales = np.linalg.norm(columns, axis=0)
@@ -545,7 +545,16 @@ def default_filters(problem: Problem) -> StateVariableFilters:
 
 def filter_bandwidths(data: Data, count: int) -> np.ndarray:
     """Return ``count`` filter corners from ten per record to 0.3 of the Nyquist frequency."""
-    return np.geomspace(10.0 / (data.ts * len(data)), 0.3 * np.pi / data.ts, count)
+    return _bandwidths(data.ts, len(data), count)
+
+
+@lru_cache(maxsize=_SHARED_FILTERS)
+def _bandwidths(ts: float, samples: int, count: int) -> np.ndarray:
+    """Return :func:`filter_bandwidths` (read-only) for records of this sample time and length."""
+    # Kept like the filters they define: geomspace alone costs tens of Python-level calls.
+    corners = np.geomspace(10.0 / (ts * samples), 0.3 * np.pi / ts, count)
+    corners.setflags(write=False)
+    return corners
 
 
 def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
@@ -558,19 +567,17 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
 
     """
     model = problem.model
-    if not np.any(free):
+    if not free.any():
         return []
     lower, upper = problem.lower[free], problem.upper[free]
     fits = []
+    equation = _EquationError(model, free)
+    solution = equation.linear_solution if model.is_affine else equation.local_solution
     for factor in filters.factors(tau):
-        equation = _EquationError(model, factor, free)
         for start in starts:
             theta = start.copy()
             try:
-                if model.is_affine:
-                    theta[free] = equation.linear_solution(start, lower, upper)
-                else:
-                    theta[free] = equation.local_solution(start, lower, upper)
+                theta[free] = solution(factor, start, lower, upper)
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
             fits.append(theta)
@@ -578,50 +585,40 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
 
 
 class _EquationError:
-    """Residual ``R [den; num]`` of one filter as a function of the free parameters."""
+    """Residual ``R [den; num]`` of a filter's factor ``R`` by the free parameters."""
 
-    def __init__(self, model: FittedModel, factor: np.ndarray, free: np.ndarray):
+    def __init__(self, model: FittedModel, free: np.ndarray):
         self._model = model
-        self._factor = factor
         self._free = free
         # Integer positions: a trial's values go into its parameter vector by one indexing.
-        self._positions = np.flatnonzero(free)
-        # A Model's flat coefficient array is read directly (thousands of evaluations per fit);
-        # [den; num] are these of its entries. A StabilizedModel changes D: it goes through
-        # its coefficients.
-        self._order = None
+        self._positions = free.nonzero()[0]
+        # The coefficients as one flat array, [den; num] and their gradients read from it by
+        # one indexing each: a Model's own coefficient array (thousands of evaluations per
+        # fit); a StabilizedModel changes D, so its coefficients are laid out the same way.
         if isinstance(model, Model):
+            self.evaluated = model.coefficient_array
             nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
-            self._order = np.r_[nums:nums + model.den_degree + 1, 0:nums]
+            self._order = np.concatenate([np.arange(nums, nums + model.den_degree + 1),
+                                          np.arange(nums)])
             rows = nums + model.den_degree + 2          # ... and the dead time
-            # After the coefficients, one row per coefficient of its derivatives by the
-            # parameters: the free ones' gradients of [den; num], read by one indexing.
-            self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
-
-    def _evaluated(self, theta: np.ndarray):
-        """Return the model's coefficients at ``theta`` (its flat array for a Model)."""
-        model = self._model
-        return model.coefficients(theta) if self._order is None \
-            else model.coefficient_array(theta)
-
-    def _residual(self, evaluated) -> np.ndarray:
-        """Return the residual of coefficients from :meth:`_evaluated`."""
-        if self._order is not None:
-            return self._factor @ evaluated[self._order]
-        return self._factor @ np.concatenate([evaluated.den, evaluated.num.ravel()])
-
-    def _jacobian(self, evaluated) -> np.ndarray:
-        """Return the residual's derivatives by the free parameters (one column each)."""
-        if self._order is not None:
-            gradient = evaluated[self._gradient]
         else:
-            gradient = np.hstack([evaluated.den_jacobian,
-                                  evaluated.num_jacobian.reshape(self._free.size, -1)]
-                                 )[self._free]
-        return self._factor @ gradient.T
+            self.evaluated = self._stabilized_array
+            rows = model.den_degree + 1 + \
+                (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
+            self._order = np.arange(rows)
+        # After the coefficients, one row per coefficient of its derivatives by the
+        # parameters: the free ones' gradients of [den; num].
+        self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
 
-    def local_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
-                       ) -> np.ndarray:
+    def _stabilized_array(self, theta: np.ndarray) -> np.ndarray:
+        """Return ``[den; num]`` and then each one's derivatives by the parameters, flat."""
+        coefficients = self._model.coefficients(theta)
+        gradients = np.hstack([coefficients.den_jacobian,
+                               coefficients.num_jacobian.reshape(self._free.size, -1)])
+        return np.concatenate([coefficients.den, coefficients.num.ravel(), gradients.T.ravel()])
+
+    def local_solution(self, factor: np.ndarray, start: np.ndarray, lower: np.ndarray,
+                       upper: np.ndarray) -> np.ndarray:
         """
         Return a local minimiser from ``start``: Levenberg-Marquardt projected onto the box.
 
@@ -630,51 +627,74 @@ class _EquationError:
         projection iteration corrects (relative change of parameters or cost below
         ``_START_TOLERANCE``).
 
+        Its bookkeeping on the handful of free values mixes numpy's ufuncs (the step, held on
+        the bounds the gradient pushes against and clipped into the box) with Python floats
+        (whether a value is on a bound at all, the relative change): the same arithmetic
+        either way, at the fewest calls and operations.
         """
+        evaluate, order, rows = self.evaluated, self._order, self._gradient
         positions = self._positions
-        values = np.clip(start[self._free], lower, upper)
-        # The whole parameter vector of the current point: each trial copies it and changes
-        # the free entries, and its coefficients serve the next Jacobian if it is accepted.
-        theta = start.copy()
+        # np.clip's arithmetic.
+        values = np.minimum(np.maximum(start[self._free], lower), upper)
+        # The whole parameter vector of the current point, and a second one each trial is
+        # written into (the two swap when a trial is accepted): its coefficients serve the
+        # next Jacobian.
+        theta, spare = start.copy(), start.copy()
         theta[positions] = values
-        evaluated = self._evaluated(theta)
-        residual = self._residual(evaluated)
+        evaluated = evaluate(theta)
+        residual = factor @ evaluated[order]
         cost = residual @ residual
         damping = 1e-3
-        low, high = lower.tolist(), upper.tolist()
-        # The free values as Python floats too: the step's bookkeeping (held parameters, box,
-        # finiteness, change) is on a handful of numbers, where numpy's per-call cost would be
-        # most of it.
-        current = values.tolist()
+        current, low, high = values.tolist(), lower.tolist(), upper.tolist()
         for _ in range(_START_ITERATIONS):
-            jacobian = self._jacobian(evaluated)
+            jacobian = factor @ evaluated[rows].T
             gram = jacobian.T @ jacobian
             gradient = jacobian.T @ residual
-            moving = _moving(current, gradient.tolist(), low, high)
-            if moving is not None:
-                if not moving:
+            # A parameter on a bound that the cost's gradient pushes outward is held there.
+            # Moving it would be clipped back, and the other parameters' part of that step,
+            # solved as if it moved, then creeps along the bound by damped steps (a lag
+            # collapsing to its lower bound took up to the iteration limit instead of a few
+            # steps). The values lie in the box: only one on a bound can be held.
+            holding = False
+            for value, bottom, top in zip(current, low, high):
+                if value <= bottom or value >= top:
+                    held = ((values <= lower) & (gradient > 0.0)) | \
+                        ((values >= upper) & (gradient < 0.0))
+                    holding = held.any()
+                    break
+            if holding:
+                moving = ~held
+                if not moving.any():
                     return values           # no descent direction inside the box
-                gram = gram[np.ix_(moving, moving)]
+                gram = gram[moving][:, moving]
                 gradient = gradient[moving]
-            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal.
+            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal: its
+            # damped values are written over it for each damping, the rest stays.
+            # Written through a flat view: the matrix C-ordered first (a column selection is
+            # not).
+            gram = np.ascontiguousarray(gram)
+            flat = gram.ravel()
             diagonal = slice(None, None, gram.shape[0] + 1)
-            # Each damping is tried on the same matrices: the diagonal is read once.
-            scaling = np.maximum(gram.diagonal(), _TINY)
+            original = flat[diagonal].copy()
+            scaling = np.maximum(original, _TINY)
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
-                damped = gram.copy()
-                damped.ravel()[diagonal] += damping * scaling
+                flat[diagonal] = original + damping * scaling
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
-                # (the same solution to the bit; info > 0: singular).
-                solution, info = lapack.dgesv(damped, gradient)[2:]
-                trial = None if info else \
-                    _boxed_trial(current, solution.tolist(), moving, low, high)
-                if trial is not None:
-                    trial_theta = theta.copy()
-                    trial_theta[positions] = trial
+                # (the same solution to the bit; info > 0: singular). It leaves gram as it is.
+                solution, info = lapack.dgesv(gram, gradient)[2:]
+                if not info and np.logical_and.reduce(np.isfinite(solution)):
+                    if holding:
+                        step = np.zeros(values.size)
+                        step[moving] = -solution
+                        trial = values + step
+                    else:
+                        trial = values - solution           # values + (-solution)
+                    trial = np.minimum(np.maximum(trial, lower), upper)
+                    spare[positions] = trial
                     try:
-                        trial_evaluated = self._evaluated(trial_theta)
-                        trial_residual = self._residual(trial_evaluated)
+                        trial_evaluated = evaluate(spare)
+                        trial_residual = factor @ trial_evaluated[order]
                     except ModelError:
                         trial_residual = None
                     if trial_residual is not None:
@@ -684,74 +704,41 @@ class _EquationError:
                 damping *= 4.0
                 if damping > 1e12:
                     return values
-            change = max(abs(new - old) / max(abs(old), 1e-12)
-                         for new, old in zip(trial, current))
+            # The largest relative change below the tolerance: every one below it (abs and
+            # max written out, the same values).
+            moved = trial.tolist()
+            settled = True
+            for new, old in zip(moved, current):
+                change = new - old if new >= old else old - new
+                size = old if old >= 0.0 else -old
+                if not change / (size if size >= 1e-12 else 1e-12) < _START_TOLERANCE:
+                    settled = False
+                    break
             decrease = 1.0 - trial_cost / cost
-            values, current, residual, theta, evaluated = trial_theta[positions], trial, \
-                trial_residual, trial_theta, trial_evaluated
+            values, current, residual, evaluated = trial, moved, trial_residual, trial_evaluated
+            theta, spare = spare, theta
             cost = trial_cost
             damping = max(damping / 3.0, 1e-9)
-            if change < _START_TOLERANCE or decrease < _START_TOLERANCE:
+            if settled or decrease < _START_TOLERANCE:
                 break
         return values
 
-    def linear_solution(self, start: np.ndarray, lower: np.ndarray, upper: np.ndarray
-                        ) -> np.ndarray:
+    def linear_solution(self, factor: np.ndarray, start: np.ndarray, lower: np.ndarray,
+                        upper: np.ndarray) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        evaluated = self._evaluated(start)
-        jacobian = self._jacobian(evaluated)
-        residual = self._residual(evaluated)
-        step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
-        if np.all(values + step >= lower) and np.all(values + step <= upper):
-            return values + step
+        evaluated = self.evaluated(start)
+        jacobian = factor @ evaluated[self._gradient].T
+        residual = factor @ evaluated[self._order]
+        step = least_squares(jacobian, -residual)
+        moved = values + step
+        if np.logical_and.reduce((moved >= lower) & (moved <= upper)):
+            return moved
         # Imported here: the bounded solve is rare, and scipy.optimize is slow to import.
         from scipy import optimize
         return values + optimize.lsq_linear(jacobian, -residual,
                                             bounds=(lower - values, upper - values),
                                             method='bvls').x
-
-
-def _moving(values: List[float], gradient: List[float], lower: List[float],
-            upper: List[float]) -> Optional[List[int]]:
-    """
-    Return the positions of the parameters a projected step may move; None for all of them.
-
-    A parameter on a bound that the cost's gradient pushes outward is held there. Moving it
-    would be clipped back, and the other parameters' part of that step, solved as if it moved,
-    then creeps along the bound by damped steps (a lag collapsing to its lower bound took up
-    to the iteration limit instead of a few steps).
-    """
-    held = [(value <= low and slope > 0.0) or (value >= high and slope < 0.0)
-            for value, slope, low, high in zip(values, gradient, lower, upper)]
-    if not any(held):
-        return None
-    return [index for index, stays in enumerate(held) if not stays]
-
-
-def _boxed_trial(values: List[float], solution: List[float], moving: Optional[List[int]],
-                 lower: List[float], upper: List[float]) -> Optional[List[float]]:
-    """
-    Return ``values - solution`` (on the ``moving`` positions) clipped into the box.
-
-    None if the step is not finite. The arithmetic of ``np.clip(values + step, lower, upper)``
-    with ``step = -solution`` (zero where a parameter is held), in Python floats; a tie with a
-    bound takes the bound, as numpy's maximum and minimum do.
-    """
-    if moving is None:
-        step = [-value for value in solution]
-    else:
-        step = [0.0] * len(values)
-        for index, value in zip(moving, solution):
-            step[index] = -value
-    if not (math.isfinite(sum(step)) or all(map(math.isfinite, step))):
-        return None
-    trial = []
-    for value, move, low, high in zip(values, step, lower, upper):
-        moved = value + move
-        moved = moved if moved > low else low
-        trial.append(moved if moved < high else high)
-    return trial
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
@@ -789,8 +776,9 @@ def explains_data(problem: Problem, state: State, delay_index: Optional[int],
     data = problem.data
     residual = np.zeros(len(data))
     residual[problem.skip:] = problem.measured - problem.prediction(state.coefficients)
-    spread = problem.measured - np.mean(problem.measured)
-    if np.linalg.norm(residual) > _UNEXPLAINED * np.linalg.norm(spread):
+    spread = problem.measured - problem.measured.mean()
+    # np.linalg.norm's arithmetic for a vector, without its dispatch.
+    if math.sqrt(residual.dot(residual)) > _UNEXPLAINED * math.sqrt(spread.dot(spread)):
         return False
     horizon = settling_time(state.coefficients)
     if delay_index is not None:
@@ -810,8 +798,8 @@ def resembles_output(problem: Problem, state: State) -> bool:
     variance the model output explains at its best scale; a start with a dead time far off
     explains almost none (below :data:`_RESEMBLANCE`), however close its other parameters.
     """
-    measured = problem.measured - np.mean(problem.measured)
+    measured = problem.measured - problem.measured.mean()
     output = problem.prediction(state.coefficients)
-    output = output - np.mean(output)
+    output = output - output.mean()
     power = float((measured @ measured) * (output @ output))
     return power > 0.0 and float(measured @ output) ** 2 >= _RESEMBLANCE * power
