@@ -15,9 +15,9 @@ from typing import Optional, Tuple
 
 from ctid_ros.errors import ModelError
 from ctid_ros.estimation.iteration import free_parameters
+from ctid_ros.estimation.linear_algebra import thin_svd
 from ctid_ros.estimation.problem import delay_parameter, Problem, State
 import numpy as np
-from scipy.linalg import lapack
 
 __all__ = ['BlindCombination', 'Blindness', 'IDENTIFIABILITY_LIMIT', 'Sensitivities',
            'blind_combination', 'structurally_blind']
@@ -61,25 +61,6 @@ class BlindCombination:
     message: str
 
 
-def _thin_svd(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    ``np.linalg.svd(matrix, full_matrices=False)`` by LAPACK's ``gesdd`` called directly.
-
-    The same routine with the same optimal workspace, without the wrapper's checks and
-    conversions (about thirty calls); ``u`` in numpy's row order, as its products expect.
-    An empty matrix (nothing free) takes numpy's own empty factors: LAPACK refuses it.
-    """
-    if not matrix.size:
-        return np.linalg.svd(matrix, full_matrices=False)
-    rows, columns = matrix.shape
-    workspace = int(lapack.dgesdd_lwork(rows, columns, compute_uv=1, full_matrices=0)[0])
-    u, singular, vh, info = lapack.dgesdd(matrix, compute_uv=1, full_matrices=0,
-                                          lwork=workspace)
-    if info != 0:
-        raise np.linalg.LinAlgError('SVD did not converge')
-    return np.ascontiguousarray(u), singular, np.ascontiguousarray(vh)
-
-
 class Sensitivities:
     """
     The sensitivities of the free parameters at the latest state asked for, and their SVD.
@@ -109,7 +90,7 @@ class Sensitivities:
             psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
             psi = psi[:, free]
             norms = np.linalg.norm(psi, axis=0)
-            svd = None if any((norms == 0.0).tolist()) else _thin_svd(psi / norms)
+            svd = None if any((norms == 0.0).tolist()) else thin_svd(psi / norms)
             self._latest = (state, (free, psi, norms, svd))
         return self._latest[1]
 

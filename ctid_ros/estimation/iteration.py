@@ -18,10 +18,10 @@ from functools import lru_cache
 import math
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
+from ctid_ros.estimation.linear_algebra import condition, solve, symmetric_eigen
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
 import numpy as np
-from scipy.linalg import lapack
 
 __all__ = [
     'Attempt', 'Iteration', 'IterationPolicy', 'IterationResult', 'NEGLIGIBLE_STEP',
@@ -145,34 +145,6 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
-# The solves below are on p x p matrices a few times per update: LAPACK is called directly,
-# without the checks and conversions of numpy.linalg's wrappers, which call the same routines
-# (gesv, syevd, gesdd) and would cost more than the factorisations themselves.
-
-def _solve(matrix: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
-    """``np.linalg.solve(matrix, rhs)`` by LU (``gesv``); None for a singular matrix."""
-    solution, info = lapack.dgesv(matrix, rhs)[2:]
-    return solution if info == 0 else None
-
-
-def _eigh(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """``np.linalg.eigh(matrix)`` of a symmetric matrix (``syevd``, the lower triangle)."""
-    values, vectors, info = lapack.dsyevd(matrix, compute_v=1, lower=1)
-    if info != 0:
-        raise np.linalg.LinAlgError('Eigenvalues did not converge')
-    return values, vectors
-
-
-def _condition(matrix: np.ndarray) -> float:
-    """``np.linalg.cond(matrix)`` of a finite matrix: its singular values' ratio (``gesdd``)."""
-    values, info = lapack.dgesdd(matrix, compute_uv=0)[1::2]
-    if info != 0:
-        raise np.linalg.LinAlgError('SVD did not converge')
-    largest, smallest = values[0].item(), values[-1].item()
-    # numpy's quotient for a smallest value of 0 is inf, also where 0/0 gives nan.
-    return math.inf if smallest == 0.0 else largest / smallest
-
-
 # Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
 # Python bools costs a fraction of the array methods' reduction machinery.
 
@@ -184,6 +156,14 @@ def _finite(matrix: np.ndarray) -> bool:
 def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Return the rows and columns of the free parameters (the matrix if all are free)."""
     return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
+
+
+def _solved(matrix: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
+    """Return the solution of ``matrix x = rhs``, or None for a singular matrix (no step)."""
+    try:
+        return solve(matrix, rhs)
+    except np.linalg.LinAlgError:
+        return None
 
 
 class _Side:
@@ -345,9 +325,9 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
         matrix = _block(side.cross, free) / outer
-        if not _finite(matrix) or _condition(matrix) > _IV_CONDITION_LIMIT:
+        if not _finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
             return None
-        step = _solve(matrix, rhs)
+        step = _solved(matrix, rhs)
         if step is None:
             return None
         step /= scales
@@ -358,7 +338,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
         else:
-            step = _solve(gram + damping * np.diag(np.diag(gram)), rhs)
+            step = _solved(gram + damping * np.diag(np.diag(gram)), rhs)
             if step is None:
                 return None
             step /= scales
@@ -382,7 +362,7 @@ def _gauss_newton(side: _Side, free: np.ndarray, scales: np.ndarray, gram: np.nd
     else by ``lstsq`` on the scaled sensitivities themselves, which resolves singular values
     down to rounding.
     """
-    values, vectors = _eigh(gram)
+    values, vectors = symmetric_eigen(gram)
     largest = max(values[-1], _TINY)
     if rcond is not None:
         kept = values > rcond ** 2 * largest
@@ -559,7 +539,8 @@ def _truncated_step_size(linear: _Linear, free: np.ndarray) -> float:
         return np.inf
     side = linear.side()
     scales = side.scales(free)
-    values, vectors = _eigh(_block(side.gram, free) / (scales[:, None] * scales))  # np.outer
+    outer = scales[:, None] * scales                          # np.outer's own product
+    values, vectors = symmetric_eigen(_block(side.gram, free) / outer)
     kept = values > _OPTIMALITY_RCOND ** 2 * max(values[-1], _TINY)
     projected = vectors[:, kept].T @ (side.gradient[free] / scales)
     # np.sum of a vector is its add.reduce; the square root of a float, math's (both IEEE).

@@ -3,14 +3,19 @@ numpy.linalg's solvers for the estimator's small matrices, by LAPACK directly.
 
 numpy's wrappers (type checks, error state, the result's wrapping) cost tens of Python-level
 calls each, more than the LAPACK routine itself on the few-by-few matrices of the estimator's
-checks and starts. These call the routine numpy calls, with numpy's settings: the same results
-to the bit (checked on every call of 10 estimates per reference system).
+updates, checks and starts (several per update). These call the routine numpy calls, with
+numpy's settings: the same results to the bit (checked on every call of 10 estimates per
+reference system). Float64 arrays only.
 """
+
+import math
+from typing import Tuple
 
 import numpy as np
 from scipy.linalg import lapack
 
-__all__ = ['least_squares', 'solve', 'symmetric_eigenvalues']
+__all__ = ['condition', 'least_squares', 'solve', 'symmetric_eigen',
+           'symmetric_eigenvalues', 'thin_svd']
 
 # The spacing of floats at 1: numpy's least-squares cutoff is it times the longer side.
 _EPSILON = np.finfo(float).eps
@@ -53,3 +58,39 @@ def symmetric_eigenvalues(matrix: np.ndarray) -> np.ndarray:
     if info != 0:
         raise np.linalg.LinAlgError('Eigenvalues did not converge')
     return eigenvalues
+
+
+def symmetric_eigen(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Return ``np.linalg.eigh(matrix)`` of one symmetric matrix (syevd, the lower triangle)."""
+    values, vectors, info = lapack.dsyevd(matrix, compute_v=1, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError('Eigenvalues did not converge')
+    return values, vectors
+
+
+def condition(matrix: np.ndarray) -> float:
+    """Return ``np.linalg.cond(matrix)`` of a finite matrix: its singular values' ratio (gesdd)."""
+    values, info = lapack.dgesdd(matrix, compute_uv=0)[1::2]
+    if info != 0:
+        raise np.linalg.LinAlgError('SVD did not converge')
+    largest, smallest = values[0].item(), values[-1].item()
+    # numpy's quotient for a smallest value of 0 is inf, also where 0/0 gives nan.
+    return math.inf if smallest == 0.0 else largest / smallest
+
+
+def thin_svd(matrix: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return ``np.linalg.svd(matrix, full_matrices=False)`` (gesdd, numpy's optimal workspace).
+
+    ``u`` and ``vh`` in numpy's row order, as its products expect. An empty matrix (nothing
+    free) takes numpy's own empty factors: LAPACK refuses it.
+    """
+    if not matrix.size:
+        return np.linalg.svd(matrix, full_matrices=False)
+    rows, columns = matrix.shape
+    workspace = int(lapack.dgesdd_lwork(rows, columns, compute_uv=1, full_matrices=0)[0])
+    u, singular, vh, info = lapack.dgesdd(matrix, compute_uv=1, full_matrices=0,
+                                          lwork=workspace)
+    if info != 0:
+        raise np.linalg.LinAlgError('SVD did not converge')
+    return np.ascontiguousarray(u), singular, np.ascontiguousarray(vh)
