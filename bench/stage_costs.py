@@ -10,7 +10,9 @@ are that share of the plain median, so the profiler's own overhead (which weighs
 calls) does not inflate them. A stage that calls another includes it (the final check of a
 warm start from afar, stage 3b, iterates again). The user's hand-written fit
 (:func:`bench.user_baseline.user_fit`) is timed on the same records for the ratio issue #26
-bounds at 0.4.
+bounds at 0.4. The profiled calls per estimate (Python functions and the C functions they call,
+as cProfile counts them) are printed too: unlike times they do not depend on the machine's
+load, and an estimate's time follows them closely (issue #26's fourth pass).
 
 Run with ``python -m bench stage_costs --runs N`` or ``python -m bench.stage_costs``.
 """
@@ -43,10 +45,14 @@ STAGES = [
 ]
 
 
-def _cumulative(profile: cProfile.Profile) -> Dict[tuple, float]:
+def _cumulative(stats: pstats.Stats) -> Dict[tuple, float]:
     """Return the cumulative time of every profiled function by (file, name)."""
-    return {(filename, name): entry[3]
-            for (filename, _, name), entry in pstats.Stats(profile).stats.items()}
+    return {(filename, name): entry[3] for (filename, _, name), entry in stats.stats.items()}
+
+
+def _calls(stats: pstats.Stats) -> int:
+    """Return the number of calls profiled (recursive ones included)."""
+    return sum(entry[1] for entry in stats.stats.values())
 
 
 def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
@@ -67,23 +73,26 @@ def run_system(system: ReferenceSystem, runs: int, seed: int) -> dict:
         times[name].append(seconds)
     median = float(np.median(times['ctid_ros']))
     user = float(np.median(times['user']))
-    cumulative = _cumulative(profile)
+    stats = pstats.Stats(profile)
+    cumulative = _cumulative(stats)
     whole = cumulative[(estimate.__file__, 'estimate')]
     shares = {label: cumulative.get((module.__file__, name), 0.0) / whole
               for label, module, name in STAGES}
     return {'system': system.name, 'runs': runs, 'median_time': median,
             'user_median_time': user, 'ratio': median / user, 'shares': shares,
+            'calls_per_estimate': _calls(stats) / runs,
             'stage_ms': {label: 1e3 * share * median for label, share in shares.items()}}
 
 
 def print_table(results: List[dict]) -> None:
     """Print one line per system: estimate and user times, ratio, then ms per stage."""
     labels = [label for label, _, _ in STAGES]
-    print(f'{"system":<34} {"ctid ms":>7} {"user ms":>7} {"ratio":>5} ' +
+    print(f'{"system":<34} {"ctid ms":>7} {"user ms":>7} {"ratio":>5} {"calls":>6} ' +
           ' '.join(f'{label:>{len(label)}}' for label in labels))
     for result in results:
         print(f'{result["system"][:34]:<34} {1e3 * result["median_time"]:>7.2f} '
-              f'{1e3 * result["user_median_time"]:>7.2f} {result["ratio"]:>5.2f} ' +
+              f'{1e3 * result["user_median_time"]:>7.2f} {result["ratio"]:>5.2f} '
+              f'{result["calls_per_estimate"]:>6.0f} ' +
               ' '.join(f'{result["stage_ms"][label]:>{len(label)}.2f}' for label in labels))
 
 
