@@ -341,9 +341,14 @@ class ContinuousFilter:
         if numerators.shape[1] > n + 1:             # else there is nothing to cut
             numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
         size = numerators.shape[1]
-        ascending = np.zeros((numerators.shape[0], n + 1))
-        # N(scale * z) scaled the same way as the monic denominator.
-        ascending[:, :size] = numerators[:, ::-1] * self._powers[:size] * self._gain
+        # N(scale * z) scaled the same way as the monic denominator; numerators of every
+        # power (the most common rows) need no zeros for the powers they lack.
+        scaled = numerators[:, ::-1] * self._powers[:size] * self._gain
+        if size == n + 1:
+            ascending = scaled
+        else:
+            ascending = np.zeros((numerators.shape[0], n + 1))
+            ascending[:, :size] = scaled
         feedthroughs = ascending[:, n]
         rows = ascending[:, :n] - feedthroughs[:, None] * self._monic_ascending[:n]
         return rows * self._balance, feedthroughs
