@@ -341,9 +341,14 @@ class ContinuousFilter:
         if numerators.shape[1] > n + 1:             # else there is nothing to cut
             numerators = _without_leading_zeros(numerators, n, f'denominator degree {n}')
         size = numerators.shape[1]
-        ascending = np.zeros((numerators.shape[0], n + 1))
-        # N(scale * z) scaled the same way as the monic denominator.
-        ascending[:, :size] = numerators[:, ::-1] * self._powers[:size] * self._gain
+        # N(scale * z) scaled the same way as the monic denominator; numerators of every
+        # power (the most common rows) need no zeros for the powers they lack.
+        scaled = numerators[:, ::-1] * self._powers[:size] * self._gain
+        if size == n + 1:
+            ascending = scaled
+        else:
+            ascending = np.zeros((numerators.shape[0], n + 1))
+            ascending[:, :size] = scaled
         feedthroughs = ascending[:, n]
         rows = ascending[:, :n] - feedthroughs[:, None] * self._monic_ascending[:n]
         return rows * self._balance, feedthroughs
@@ -1087,11 +1092,23 @@ def _block_matrices(poles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     Return the pole powers ``p^0 .. p^B`` and the transposed block matrices of the poles.
 
     ``matrices[i, j, k] = p_i^(k - j)`` for ``k >= j``, else 0: ``block @ matrices[i]`` runs a
-    block of :data:`_BLOCK` samples from rest.
+    block of :data:`_BLOCK` samples from rest. Both are read-only and remembered by the poles'
+    bytes (:func:`_pole_blocks`): a denominator's poles come back for its cost, its
+    linearisation and its sensitivities' chains.
     """
+    return _pole_blocks(poles.tobytes(), poles.dtype.char)
+
+
+@lru_cache(maxsize=16)
+def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`_block_matrices` of the poles of type ``kind`` whose bytes are ``key``."""
+    poles = np.frombuffer(key, dtype=kind)
     powers = np.zeros((poles.size, _BLOCK + 2), dtype=poles.dtype)
     powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
-    return powers[:, :_BLOCK + 1], powers[:, _BLOCK_INDEX]
+    matrices = powers[:, _BLOCK_INDEX]
+    powers.flags.writeable = False      # shared by every later call with these poles
+    matrices.flags.writeable = False
+    return powers[:, :_BLOCK + 1], matrices
 
 
 def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:

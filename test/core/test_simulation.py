@@ -529,3 +529,23 @@ def test_recursions_write_into_out():
     assert out is not None and np.shares_memory(out, buffer)
     np.testing.assert_array_equal(buffer[:, 3:4099], recursions(poles, values))
     assert not buffer[:, :3].any() and not buffer[:, 4099:].any()
+
+
+def test_blocked_recursions_of_remembered_poles_give_the_same_values():
+    # The block matrices of a pole set are remembered and shared: a second run with the same
+    # poles (a fresh array of them) gives the first run's values bit for bit, the values of a
+    # run with the remembered matrices cleared, and nobody can write into the shared ones.
+    rng = np.random.default_rng(16)
+    values = rng.standard_normal((2, 2560))
+    poles = np.array([0.993, -0.41])
+    first = recursions(poles, values)
+    again = recursions(poles.copy(), values)
+    simulation._pole_blocks.cache_clear()
+    fresh = recursions(poles, values)
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(fresh, first)
+    np.testing.assert_allclose(first, np.stack([signal.lfilter([1.0], [1.0, -pole], row)
+                                                for pole, row in zip(poles, values)]),
+                               rtol=0.0, atol=1e-12 * np.abs(first).max())
+    powers, matrices = simulation._block_matrices(poles)
+    assert not powers.flags.writeable and not matrices.flags.writeable
