@@ -629,8 +629,8 @@ class _EquationError:
 
         Its bookkeeping on the handful of free values mixes numpy's ufuncs (the step, held on
         the bounds the gradient pushes against and clipped into the box) with Python floats
-        (whether a value is on a bound at all, the relative change): the same arithmetic
-        either way, at the fewest calls and operations.
+        (whether a value is on a bound at all, whether a step is finite, the relative change):
+        the same arithmetic either way, at the fewest calls and operations.
         """
         evaluate, order, rows = self.evaluated, self._order, self._gradient
         positions = self._positions
@@ -666,13 +666,11 @@ class _EquationError:
                 moving = ~held
                 if not moving.any():
                     return values           # no descent direction inside the box
-                gram = gram[moving][:, moving]
+                # C-ordered for the flat view below (a column selection is not; a product is).
+                gram = np.ascontiguousarray(gram[moving][:, moving])
                 gradient = gradient[moving]
             # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal: its
             # damped values are written over it for each damping, the rest stays.
-            # Written through a flat view: the matrix C-ordered first (a column selection is
-            # not).
-            gram = np.ascontiguousarray(gram)
             flat = gram.ravel()
             diagonal = slice(None, None, gram.shape[0] + 1)
             original = flat[diagonal].copy()
@@ -683,7 +681,9 @@ class _EquationError:
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular). It leaves gram as it is.
                 solution, info = lapack.dgesv(gram, gradient)[2:]
-                if not info and np.logical_and.reduce(np.isfinite(solution)):
+                # Finite solution: tested on its few Python floats, without numpy's per-call
+                # work on a ufunc and its reduction.
+                if not info and all(map(math.isfinite, solution.tolist())):
                     if holding:
                         step = np.zeros(values.size)
                         step[moving] = -solution
