@@ -646,10 +646,14 @@ class _EquationError:
         cost = residual @ residual
         damping = 1e-3
         current, low, high = values.tolist(), lower.tolist(), upper.tolist()
+        # Every (size + 1)-th entry of a flattened Gram matrix is on its diagonal: its damped
+        # values are written over it for each damping, the rest stays.
+        every_diagonal = slice(None, None, values.size + 1)
         for _ in range(_START_ITERATIONS):
             jacobian = factor @ evaluated[rows].T
-            gram = jacobian.T @ jacobian
-            gradient = jacobian.T @ residual
+            transposed = jacobian.T
+            gram = transposed @ jacobian
+            gradient = transposed @ residual
             # A parameter on a bound that the cost's gradient pushes outward is held there.
             # Moving it would be clipped back, and the other parameters' part of that step,
             # solved as if it moved, then creeps along the bound by damped steps (a lag
@@ -669,10 +673,10 @@ class _EquationError:
                 # C-ordered for the flat view below (a column selection is not; a product is).
                 gram = np.ascontiguousarray(gram[moving][:, moving])
                 gradient = gradient[moving]
-            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal: its
-            # damped values are written over it for each damping, the rest stays.
+                diagonal = slice(None, None, gradient.size + 1)
+            else:
+                diagonal = every_diagonal
             flat = gram.ravel()
-            diagonal = slice(None, None, gram.shape[0] + 1)
             original = flat[diagonal].copy()
             scaling = np.maximum(original, _TINY)
             while True:
@@ -718,7 +722,9 @@ class _EquationError:
             values, current, residual, evaluated = trial, moved, trial_residual, trial_evaluated
             theta, spare = spare, theta
             cost = trial_cost
-            damping = max(damping / 3.0, 1e-9)
+            damping /= 3.0
+            if damping < 1e-9:          # max(damping, 1e-9) without the call
+                damping = 1e-9
             if settled or decrease < _START_TOLERANCE:
                 break
         return values
