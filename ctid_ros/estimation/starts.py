@@ -643,7 +643,11 @@ class _EquationError:
         theta[positions] = values
         evaluated = evaluate(theta)
         residual = factor @ evaluated[order]
-        cost = residual @ residual
+        # The products of the fit's own arrays (the Gram matrix, gradient and cost) by
+        # ndarray.dot: the same numbers as the matmul operator's, without its ufunc machinery's
+        # per-call work. The filter's factor keeps the operator: it may come in any memory
+        # layout, for which the two can round differently.
+        cost = residual.dot(residual)
         damping = 1e-3
         current, low, high = values.tolist(), lower.tolist(), upper.tolist()
         # Every (size + 1)-th entry of a flattened Gram matrix is on its diagonal: its damped
@@ -652,8 +656,8 @@ class _EquationError:
         for _ in range(_START_ITERATIONS):
             jacobian = factor @ evaluated[rows].T
             transposed = jacobian.T
-            gram = transposed @ jacobian
-            gradient = transposed @ residual
+            gram = transposed.dot(jacobian)
+            gradient = transposed.dot(residual)
             # A parameter on a bound that the cost's gradient pushes outward is held there.
             # Moving it would be clipped back, and the other parameters' part of that step,
             # solved as if it moved, then creeps along the bound by damped steps (a lag
@@ -702,7 +706,7 @@ class _EquationError:
                     except ModelError:
                         trial_residual = None
                     if trial_residual is not None:
-                        trial_cost = trial_residual @ trial_residual
+                        trial_cost = trial_residual.dot(trial_residual)
                         if trial_cost < cost:
                             break
                 damping *= 4.0
