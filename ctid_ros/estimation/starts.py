@@ -629,8 +629,8 @@ class _EquationError:
 
         Its bookkeeping on the handful of free values mixes numpy's ufuncs (the step, held on
         the bounds the gradient pushes against and clipped into the box) with Python floats
-        (whether a value is on a bound at all, the relative change): the same arithmetic
-        either way, at the fewest calls and operations.
+        (whether a value is on a bound at all, whether a step is finite, the relative change):
+        the same arithmetic either way, at the fewest calls and operations.
         """
         evaluate, order, rows = self.evaluated, self._order, self._gradient
         positions = self._positions
@@ -643,13 +643,21 @@ class _EquationError:
         theta[positions] = values
         evaluated = evaluate(theta)
         residual = factor @ evaluated[order]
-        cost = residual @ residual
+        # The products of the fit's own arrays (the Gram matrix, gradient and cost) by
+        # ndarray.dot: the same numbers as the matmul operator's, without its ufunc machinery's
+        # per-call work. The filter's factor keeps the operator: it may come in any memory
+        # layout, for which the two can round differently.
+        cost = residual.dot(residual)
         damping = 1e-3
         current, low, high = values.tolist(), lower.tolist(), upper.tolist()
+        # Every (size + 1)-th entry of a flattened Gram matrix is on its diagonal: its damped
+        # values are written over it for each damping, the rest stays.
+        every_diagonal = slice(None, None, values.size + 1)
         for _ in range(_START_ITERATIONS):
             jacobian = factor @ evaluated[rows].T
-            gram = jacobian.T @ jacobian
-            gradient = jacobian.T @ residual
+            transposed = jacobian.T
+            gram = transposed.dot(jacobian)
+            gradient = transposed.dot(residual)
             # A parameter on a bound that the cost's gradient pushes outward is held there.
             # Moving it would be clipped back, and the other parameters' part of that step,
             # solved as if it moved, then creeps along the bound by damped steps (a lag
@@ -666,15 +674,13 @@ class _EquationError:
                 moving = ~held
                 if not moving.any():
                     return values           # no descent direction inside the box
-                gram = gram[moving][:, moving]
+                # C-ordered for the flat view below (a column selection is not; a product is).
+                gram = np.ascontiguousarray(gram[moving][:, moving])
                 gradient = gradient[moving]
-            # Every (size + 1)-th entry of the flattened Gram matrix is on its diagonal: its
-            # damped values are written over it for each damping, the rest stays.
-            # Written through a flat view: the matrix C-ordered first (a column selection is
-            # not).
-            gram = np.ascontiguousarray(gram)
+                diagonal = slice(None, None, gradient.size + 1)
+            else:
+                diagonal = every_diagonal
             flat = gram.ravel()
-            diagonal = slice(None, None, gram.shape[0] + 1)
             original = flat[diagonal].copy()
             scaling = np.maximum(original, _TINY)
             while True:
@@ -683,7 +689,9 @@ class _EquationError:
                 # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
                 # (the same solution to the bit; info > 0: singular). It leaves gram as it is.
                 solution, info = lapack.dgesv(gram, gradient)[2:]
-                if not info and np.logical_and.reduce(np.isfinite(solution)):
+                # Finite solution: tested on its few Python floats, without numpy's per-call
+                # work on a ufunc and its reduction.
+                if not info and all(map(math.isfinite, solution.tolist())):
                     if holding:
                         step = np.zeros(values.size)
                         step[moving] = -solution
@@ -698,7 +706,7 @@ class _EquationError:
                     except ModelError:
                         trial_residual = None
                     if trial_residual is not None:
-                        trial_cost = trial_residual @ trial_residual
+                        trial_cost = trial_residual.dot(trial_residual)
                         if trial_cost < cost:
                             break
                 damping *= 4.0
@@ -718,7 +726,9 @@ class _EquationError:
             values, current, residual, evaluated = trial, moved, trial_residual, trial_evaluated
             theta, spare = spare, theta
             cost = trial_cost
-            damping = max(damping / 3.0, 1e-9)
+            damping /= 3.0
+            if damping < 1e-9:          # max(damping, 1e-9) without the call
+                damping = 1e-9
             if settled or decrease < _START_TOLERANCE:
                 break
         return values
