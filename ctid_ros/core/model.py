@@ -215,7 +215,7 @@ class Model:
         """Numeric ``N`` (per channel), ``D``, dead time and their Jacobians at ``params``."""
         flat = self.coefficient_array(params)
         channels, n_num = self._channels, self.num_degree + 1
-        n_den, n_par = self.den_degree + 1, self._evaluation[0]
+        n_den, n_par = self.den_degree + 1, len(self.parameters)
         n_nums = channels * n_num
         values, jacobian = flat[:n_nums + n_den + 1], flat[n_nums + n_den + 1:]
         jacobian = jacobian.reshape(n_nums + n_den + 1, n_par).T
@@ -242,10 +242,10 @@ class Model:
         # The estimator's own vectors (thousands per fit): read, never kept, not copied. A sum
         # (of Python floats, without numpy's dispatch) is finite if every value is (a finite
         # sum overflowing takes the full check).
-        count, floats = self._evaluation
+        floats = self._floats
         theta = None
         if type(params) is np.ndarray and params.ndim == 1 and params.dtype == float and \
-                params.size == count:
+                params.size == len(self.parameters):
             values = params.tolist()
             if math.isfinite(sum(values)):
                 theta = params
@@ -264,13 +264,11 @@ class Model:
         return flat
 
     @functools.cached_property
-    def _evaluation(self) -> Tuple[int, Optional[Callable[[Sequence[float]], np.ndarray]]]:
-        # The number of parameters and the program's float evaluation (None for a compiled
-        # function outside the program's forms): looked up once, not per evaluation; the
-        # evaluation unchecked, as coefficient_array passes exactly that many values.
+    def _floats(self) -> Optional[Callable[[Sequence[float]], Optional[np.ndarray]]]:
+        # The program's float evaluation (None for a compiled function outside the program's
+        # forms): looked up once, not per evaluation.
         evaluate = self._evaluate
-        return len(self.parameters), evaluate.floats_unchecked \
-            if isinstance(evaluate, model_cache.CoefficientProgram) else None
+        return evaluate.floats if isinstance(evaluate, model_cache.CoefficientProgram) else None
 
     def channel(self, input_name: Optional[str] = None) -> int:
         """Row of :attr:`Coefficients.num` that belongs to ``input_name`` (default: the only)."""

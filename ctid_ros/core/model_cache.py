@@ -177,10 +177,6 @@ class CoefficientProgram:
         """
         if len(theta) != self.parameters:
             raise TypeError(f'expected {self.parameters} parameter values, got {len(theta)}')
-        return self.floats_unchecked(theta)
-
-    def floats_unchecked(self, theta: Sequence[float]) -> Optional[np.ndarray]:
-        """:meth:`floats` for a caller that has counted the values (exactly :attr:`parameters`)."""
         slots = self._template.copy()
         slots[:self.parameters] = theta
         try:

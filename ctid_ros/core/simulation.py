@@ -41,8 +41,8 @@ from scipy import linalg
 from scipy.linalg import blas, lapack
 
 __all__ = ['ContinuousFilter', 'DiscreteFilter', 'INTERSAMPLE', 'Sample', 'StateResponse',
-           'all_finite', 'all_pole', 'filter_responses', 'polynomial_roots', 'recursions',
-           'response', 'responses', 'shifted', 'skew_delay', 'skew_extended']
+           'all_finite', 'all_pole', 'companion_roots', 'filter_responses', 'polynomial_roots',
+           'recursions', 'response', 'responses', 'shifted', 'skew_delay', 'skew_extended']
 
 INTERSAMPLE = ('zoh', 'foh')
 # Discretisations kept for every caller (:meth:`ContinuousFilter.discretize`), latest last.
@@ -119,7 +119,7 @@ def _roots(key: bytes) -> np.ndarray:
     coefficients = np.frombuffer(key)
     roots = _low_order_roots(coefficients)
     if roots is None:
-        roots = _companion_roots(coefficients)
+        roots = companion_roots(coefficients)
     roots.setflags(write=False)
     return roots
 
@@ -153,7 +153,7 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     return np.array([half / a, c / half])
 
 
-def _companion_roots(coefficients: np.ndarray) -> np.ndarray:
+def companion_roots(coefficients: np.ndarray) -> np.ndarray:
     """
     Return ``np.roots(coefficients)``: the eigenvalues of its own companion matrix.
 
@@ -859,12 +859,11 @@ class _Modes:
 
     """
 
-    def __init__(self, transition: Optional[np.ndarray], signals: np.ndarray,
-                 drives: np.ndarray, repeated: bool = False):
+    def __init__(self, transition: np.ndarray, signals: np.ndarray, drives: np.ndarray,
+                 repeated: bool = False):
         self._real: Optional[int] = None
-        if transition is not None:
-            self._basis, self._keep, self._weights, self._modal = _modes(transition, signals,
-                                                                         drives, repeated)
+        self._basis, self._keep, self._weights, self._modal = _modes(transition, signals,
+                                                                     drives, repeated)
 
     @classmethod
     def uncoupled(cls, basis: np.ndarray, keep: Optional[np.ndarray], weights: np.ndarray,
@@ -885,8 +884,8 @@ class _Modes:
         """
         Return the modal trajectories, one row per mode run (kept modes if uncoupled).
 
-        Uncoupled modes (:meth:`uncoupled`) in real form, the others complex where their poles
-        are.
+        Uncoupled modes (:meth:`uncoupled`) of a long record in real form (``real`` given),
+        the others one row each, complex where their poles are.
         """
         return self._modal
 
@@ -1077,8 +1076,8 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
             length >= _BLOCKED_MIN_PAIR_LENGTH and _MAX(abs(pairs), None) <= 1.0 and \
             all_finite(coefficients) and all_finite(inputs):
-        _blocked_pairs(pairs, inputs, coefficients, out[real:],
-                       None if blocks is None else blocks[real:])
+        # Rows of whole blocks: their blocks are given (_trajectories).
+        _blocked_pairs(pairs, inputs, coefficients, out[real:], blocks[real:])
         return
     # The complex drivings run in place: no second complex array of the record's length.
     runs = _product(coefficients, inputs)
@@ -1127,39 +1126,30 @@ def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:
 
 
 def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
-                   out: np.ndarray, out_blocks: Optional[np.ndarray] = None) -> None:
+                   out: np.ndarray, out_blocks: np.ndarray) -> None:
     """
-    Run the complex modes of :func:`_form_recursions` in blocks of :data:`_BLOCK`.
+    Run the complex modes of :func:`_form_recursions`, driven by one real row, in blocks.
 
-    As :func:`_blocked_recursions`, with a complex mode's blocks the sum over its inputs of
-    the input's block times ``c T``, its block matrix scaled by the input's coefficient: the
-    real products with the real and imaginary parts of ``c T``, none of a complex product's
-    terms spent on the inputs' zero imaginary parts. The products and the carried states'
-    corrections accumulate in ``out`` (the modes' real and imaginary parts, a row each) in
-    place: BLAS ``dgemm`` on the transposed, Fortran-ordered views of the blocks
-    (``out_blocks``, if given: ``out``'s as one view).
+    As :func:`_blocked_recursions` with blocks of :data:`_BLOCK`: a complex mode's blocks are
+    the input's blocks times ``c T``, its block matrix scaled by the input's coefficient ``c``,
+    formed as the real products with the real and imaginary parts of ``c T`` (none of a
+    complex product's terms spent on the input's zero imaginary part). The products and the
+    carried states' corrections are written into ``out`` (the modes' real and imaginary
+    parts, a row each) in place, through ``out_blocks``, its blocks as one view.
     """
     blocks = out.shape[1] // _BLOCK
     powers, matrices = _block_matrices(poles)
-    views = _blocks(out) if out_blocks is None else out_blocks
-    sources = _blocks(inputs)
-    # c T for every complex mode and input, its real and imaginary parts contiguous.
-    scaled = coefficients[:, :, None, None] * matrices[:, None]
+    source = _blocks(inputs)[0]
+    # c T for every complex mode, its real and imaginary parts contiguous.
+    scaled = coefficients[:, 0, None, None] * matrices
     parts = np.ascontiguousarray(scaled.real), np.ascontiguousarray(scaled.imag)
-    for index, weights in enumerate(coefficients):
-        targets = views[2 * index:2 * index + 2]
-        started = False
-        for source in np.flatnonzero(weights):
-            for target, part in zip(targets, parts):
-                if started:
-                    blas.dgemm(1.0, part[index, source].T, sources[source].T, 1.0, target.T,
-                               overwrite_c=True)
-                else:
-                    np.matmul(sources[source], part[index, source], out=target)
-            started = True
-        if not started:
-            for target in targets:
-                target[:] = 0.0
+    for index, weight in enumerate(coefficients[:, 0].tolist()):
+        targets = out_blocks[2 * index:2 * index + 2]
+        if weight == 0:
+            targets[:] = 0.0
+            continue
+        for target, part in zip(targets, parts):
+            np.matmul(source, part[index], out=target)
     # The state at each block's end, carried over blocks: block b + 1 gains p^(k+1) times
     # the state carried out of block b at its sample k, [Re p^(k+1), -Im p^(k+1)] times its
     # parts in the real part, [Im p^(k+1), Re p^(k+1)] in the imaginary one.
@@ -1175,7 +1165,7 @@ def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarr
         parts_of_state = state.view(float).reshape(blocks, 2).T
         for part in range(2):
             blas.dgemm(1.0, updates[index, :, part], parts_of_state, 1.0,
-                       views[2 * index + part].T, overwrite_c=True)
+                       out_blocks[2 * index + part].T, overwrite_c=True)
 
 
 def _without_leading_zeros(numerators: np.ndarray, degree: int, limit: str) -> np.ndarray:
@@ -1230,7 +1220,7 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
         if values.dtype != dtype:               # else astype(copy=False) returns them as they are
             values = values.astype(dtype)
         # Finite values only: a block's product would spread a NaN or inf to the samples
-        # before it. The checks are array methods, without numpy's dispatch.
+        # before it. The checks are the ufuncs' reductions, without numpy's Python wrappers.
         if _blocked_size(1 if alone else rows, length, complex_valued):
             if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
                 return _blocked_recursions(poles if poles.dtype == dtype else
@@ -1325,8 +1315,11 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
         padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
         padded.reshape(rows, -1)[:, :length] = values
     powers, transposed = _block_matrices(poles)
+    # In place where the rows are of whole blocks and one array (a caller's other rows are
+    # written from the whole response below).
     response = out_blocks if out_blocks is not None else \
-        _blocks(out) if out is not None and out.dtype == values.dtype else None
+        _blocks(out) if out is not None and out.dtype == values.dtype and \
+        out.flags.c_contiguous else None
     in_place = response is not None
     if in_place:
         ends = out[:, _BLOCK - 1::_BLOCK]
@@ -1338,21 +1331,14 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     for row, matrix, into in zip(padded, transposed, response):
         np.matmul(row, matrix, out=into)
     # The state at each block's end, carried over blocks (blocked again if they are many).
-    complex_valued = values.dtype.kind == 'c'
-    carried = _recursions(powers[:, _BLOCK], ends, None, None, alone) \
-        if _blocked_size(1 if alone else rows, blocks, complex_valued) else \
-        _banded_recursions(powers[:, _BLOCK], ends, complex_valued)
-    if isinstance(response, list):
-        for into, state, power in zip(response, carried, powers):
-            into[1:] += state[:-1, None] * power[1:]
-        return out
+    carried = _recursions(powers[:, _BLOCK], ends, None, None, alone)
     # The carried states' products, a temporary of the response's size, are formed a few
     # rows at a time: a larger one is memory glibc maps from the system afresh on every run.
     step = max(1, _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize))
-    into = response if in_place else whole
     for first in range(0, rows, step):
         last = first + step
-        into[first:last, 1:, :] += carried[first:last, :-1, None] * powers[first:last, None, 1:]
+        response[first:last, 1:, :] += \
+            carried[first:last, :-1, None] * powers[first:last, None, 1:]
     if in_place:
         return out
     result = whole.reshape(rows, -1)[:, :length]

@@ -14,7 +14,7 @@ from functools import lru_cache
 from typing import Optional
 
 from ctid_ros.core.data import Data
-from ctid_ros.estimation.linear_algebra import least_squares, solve, symmetric_eigenvalues
+from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
 import numpy as np
 
 __all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread', 'fft_size',
@@ -285,14 +285,8 @@ def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np
     # The normal equations where the past values are well conditioned (a cond^2 eps relative
     # error), least squares otherwise.
     products = lagged.T @ lagged
-    gram = products[1:, 1:]
-    scales = np.sqrt(gram.diagonal())
-    # The scaled Gram matrix by np.outer's product.
-    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales)) if scales.all() \
-        else [0.0]
-    if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
-        coefficients = solve(gram, products[1:, 0])
-    else:
+    coefficients = normal_solution(products[1:, 1:], products[1:, 0], _NORMAL_CONDITION)
+    if coefficients is None:
         coefficients = least_squares(lagged[:, 1:], lagged[:, 0])
     return np.concatenate([[1.0], -coefficients])
 

@@ -14,9 +14,10 @@ import math
 from typing import List, Optional, Tuple
 
 from ctid_ros.core.model import Coefficients
+from ctid_ros.core.simulation import shifted
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
-from ctid_ros.estimation.linear_algebra import least_squares, solve, symmetric_eigenvalues
+from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
@@ -380,12 +381,10 @@ def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coeffic
     error = problem.measured.copy()
     error[moved] -= output[kept]
     columns = sensitivities[kept]
-    step = _normal_solution(gram - sensitivities[dropped].T @ sensitivities[dropped],
-                            columns.T @ error[moved])
+    step = normal_solution(gram - sensitivities[dropped].T @ sensitivities[dropped],
+                           columns.T @ error[moved], _NORMAL_CONDITION)
     if step is None:
-        shifted = np.zeros_like(sensitivities)
-        shifted[moved] = columns
-        step = least_squares(shifted, error)
+        step = least_squares(shifted(sensitivities, -samples), error)
     remaining = error.copy()
     remaining[moved] -= columns @ step
     updated = theta.copy()
@@ -396,20 +395,3 @@ def _linearised_refit(problem: Problem, theta: np.ndarray, coefficients: Coeffic
         return problem.state(theta, coefficients), 0.0
     refit = problem.state(updated, admissible)
     return refit, abs(refit.cost - 0.5 * float(remaining @ remaining))
-
-
-def _normal_solution(gram: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
-    """
-    Return the solution of the normal equations ``gram x = rhs``, or None if ill conditioned.
-
-    None unless the columns behind ``gram``, scaled to unit norm, are conditioned within
-    :data:`_NORMAL_CONDITION`.
-    """
-    scales = np.sqrt(gram.diagonal())
-    if not np.logical_and.reduce((scales > 0.0) & (scales < np.inf)):
-        return None
-    # np.outer's product.
-    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales))
-    if not eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
-        return None
-    return solve(gram, rhs)

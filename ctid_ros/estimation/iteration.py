@@ -18,7 +18,7 @@ from functools import lru_cache
 import math
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
-from ctid_ros.estimation.linear_algebra import condition, solve, symmetric_eigen
+from ctid_ros.estimation.linear_algebra import condition, solve_or_none, symmetric_eigen
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
 import numpy as np
@@ -145,25 +145,17 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
-# Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
-# Python bools costs a fraction of the array methods' reduction machinery.
-
 def _finite(matrix: np.ndarray) -> bool:
     """Return True if every element is finite (``np.isfinite(matrix).all()``, its reduction)."""
     return bool(np.logical_and.reduce(np.isfinite(matrix), axis=None))
 
 
+# Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
+# Python bools costs a fraction of the array methods' reduction machinery.
+
 def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Return the rows and columns of the free parameters (the matrix if all are free)."""
     return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
-
-
-def _solved(matrix: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
-    """Return the solution of ``matrix x = rhs``, or None for a singular matrix (no step)."""
-    try:
-        return solve(matrix, rhs)
-    except np.linalg.LinAlgError:
-        return None
 
 
 class _Side:
@@ -327,7 +319,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         matrix = _block(side.cross, free) / outer
         if not _finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
             return None
-        step = _solved(matrix, rhs)
+        step = solve_or_none(matrix, rhs)
         if step is None:
             return None
         step /= scales
@@ -338,7 +330,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
         else:
-            step = _solved(gram + damping * np.diag(np.diag(gram)), rhs)
+            step = solve_or_none(gram + damping * np.diag(np.diag(gram)), rhs)
             if step is None:
                 return None
             step /= scales

@@ -9,13 +9,13 @@ reference system). Float64 arrays only.
 """
 
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 from scipy.linalg import lapack
 
-__all__ = ['condition', 'least_squares', 'solve', 'symmetric_eigen',
-           'symmetric_eigenvalues', 'thin_svd']
+__all__ = ['condition', 'least_squares', 'normal_solution', 'solve', 'solve_or_none',
+           'symmetric_eigen', 'symmetric_eigenvalues', 'thin_svd']
 
 # The spacing of floats at 1: numpy's least-squares cutoff is it times the longer side.
 _EPSILON = np.finfo(float).eps
@@ -50,6 +50,34 @@ def solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     if info != 0:
         raise np.linalg.LinAlgError('Singular matrix')
     return solution
+
+
+def solve_or_none(matrix: np.ndarray, rhs: np.ndarray) -> Optional[np.ndarray]:
+    """Return :func:`solve`'s solution, or None for a singular matrix (a caller's no-step)."""
+    try:
+        return solve(matrix, rhs)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def normal_solution(gram: np.ndarray, rhs: np.ndarray, condition_limit: float
+                    ) -> Optional[np.ndarray]:
+    """
+    Return the solution of the normal equations ``gram x = rhs``, or None if ill conditioned.
+
+    None unless the columns behind ``gram`` (``gram = A^T A``), scaled to unit norm, are
+    conditioned within ``condition_limit``: the normal equations' ``cond^2 eps`` relative error
+    is then small, and a caller falls back to least squares on ``A`` otherwise. A zero or
+    non-finite column is ill conditioned too.
+    """
+    scales = np.sqrt(gram.diagonal())
+    if not np.logical_and.reduce((scales > 0.0) & (scales < np.inf)):
+        return None
+    # The scaled Gram matrix, by np.outer's product: its largest eigenvalue is at least 1.
+    eigenvalues = symmetric_eigenvalues(gram / (scales[:, None] * scales))
+    if not eigenvalues[0] >= eigenvalues[-1] / condition_limit ** 2:
+        return None
+    return solve(gram, rhs)
 
 
 def symmetric_eigenvalues(matrix: np.ndarray) -> np.ndarray:

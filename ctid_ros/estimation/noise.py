@@ -21,7 +21,7 @@ import math
 import operator
 from typing import Optional, Tuple
 
-from ctid_ros.core.simulation import all_pole
+from ctid_ros.core.simulation import all_pole, companion_roots
 from ctid_ros.estimation.correlation import fft_size
 from ctid_ros.estimation.linear_algebra import least_squares
 import numpy as np
@@ -267,7 +267,6 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                         autocorrelation: Optional[np.ndarray] = None,
                         criterion: str = DEFAULT_CRITERION,
-                        shaping: Optional[np.ndarray] = None,
                         model: Optional[NoiseModel] = None,
                         root: Optional[np.ndarray] = None) -> Tuple[np.ndarray, NoiseModel]:
     """
@@ -281,19 +280,14 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     ``1/A`` backwards in time. Scale ``Psi``'s columns first: the SVD keeps the precision the
     normal equations would square away. ``svd``: ``np.linalg.svd(psi, full_matrices=False)``,
     ``autocorrelation``: that of the residual, if the caller has them; ``criterion``: how the
-    noise model's order is chosen (:func:`noise_model`); ``shaping``: the impulse response of a
-    known filter the noise may pass through (:func:`shaped_noise_model`), used if its model
-    scores better than the plain one (:func:`model_score`); ``model``: the noise model to use,
-    if the caller has chosen it (then ``autocorrelation``, ``criterion`` and ``shaping`` are
-    not used), and ``root``: ``unit_root(U, model)``, if the caller has it.
+    noise model's order is chosen (:func:`noise_model`); ``model``: the noise model to use, if
+    the caller has chosen it (a plain or a loop-shaped one, :func:`shaped_noise_model`; then
+    ``autocorrelation`` and ``criterion`` are not used), and ``root``: ``unit_root(U, model)``,
+    if the caller has it.
     """
     count = residual.size
     if model is None:
         model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
-        if shaping is not None:
-            shaped = shaped_noise_model(residual, shaping, criterion)
-            if model_score(shaped, count, criterion) < model_score(model, count, criterion):
-                model = shaped
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
@@ -358,7 +352,7 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
     order = model.order
     if order == 0:
         return min(shaping, limit)
-    radius = float(np.abs(_roots(model.ar)).max())
+    radius = float(np.abs(companion_roots(model.ar)).max())
     if not radius < 1.0:
         return limit
     span = order + (1 if radius == 0.0 else
@@ -371,20 +365,6 @@ def noise_memory(model: NoiseModel, limit: int) -> int:
             return span + shaping
         span *= 2
     return limit
-
-
-def _roots(polynomial: np.ndarray) -> np.ndarray:
-    """
-    Return ``np.roots(polynomial)`` for a polynomial without a zero first or last coefficient.
-
-    The same companion matrix and eigenvalue call, without ``np.roots``'s own checks: the same
-    roots to the bit. Others go through ``np.roots``.
-    """
-    if polynomial[0] == 0.0 or polynomial[-1] == 0.0 or polynomial.size < 2:
-        return np.roots(polynomial)
-    companion = np.diag(np.ones(polynomial.size - 2), -1)
-    companion[0, :] = -polynomial[1:] / polynomial[0]
-    return np.linalg.eigvals(companion)
 
 
 # What a filtered state may keep of its size once noise_memory's samples have passed.

@@ -30,7 +30,7 @@ from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
-from ctid_ros.estimation.linear_algebra import least_squares
+from ctid_ros.estimation.linear_algebra import least_squares, solve_or_none
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -437,11 +437,12 @@ class StateVariableFilters:
         # The input parts of every filter that needs them, in one pass (filter_responses).
         missing = [entry for entry in self._filters
                    if (whole, fraction) not in entry[4] and fraction not in entry[3]]
-        parts = self._input_parts([entry[0] for entry in missing], fraction * ts)
-        for (_, _, _, by_fraction, _), part in zip(missing, parts):
-            if len(by_fraction) >= _REMEMBERED_FRACTIONS:
-                del by_fraction[next(iter(by_fraction))]
-            by_fraction[fraction] = part
+        if missing:
+            parts = self._input_parts([entry[0] for entry in missing], fraction * ts)
+            for (_, _, _, by_fraction, _), part in zip(missing, parts):
+                if len(by_fraction) >= _REMEMBERED_FRACTIONS:
+                    del by_fraction[next(iter(by_fraction))]
+                by_fraction[fraction] = part
         factors = []
         for filter_of, y_parts, nuisance, by_fraction, by_shift in self._filters:
             if (whole, fraction) in by_shift:
@@ -595,16 +596,15 @@ class _EquationError:
         # The coefficients as one flat array, [den; num] and their gradients read from it by
         # one indexing each: a Model's own coefficient array (thousands of evaluations per
         # fit); a StabilizedModel changes D, so its coefficients are laid out the same way.
+        nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
         if isinstance(model, Model):
-            self.evaluated = model.coefficient_array
-            nums = (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
+            self._evaluate = model.coefficient_array
             self._order = np.concatenate([np.arange(nums, nums + model.den_degree + 1),
                                           np.arange(nums)])
             rows = nums + model.den_degree + 2          # ... and the dead time
         else:
-            self.evaluated = self._stabilized_array
-            rows = model.den_degree + 1 + \
-                (len(model.inputs) + int(model.constant_input)) * (model.num_degree + 1)
+            self._evaluate = self._stabilized_array
+            rows = model.den_degree + 1 + nums
             self._order = np.arange(rows)
         # After the coefficients, one row per coefficient of its derivatives by the
         # parameters: the free ones' gradients of [den; num].
@@ -632,16 +632,15 @@ class _EquationError:
         (whether a value is on a bound at all, whether a step is finite, the relative change):
         the same arithmetic either way, at the fewest calls and operations.
         """
-        evaluate, order, rows = self.evaluated, self._order, self._gradient
+        evaluate, order, rows = self._evaluate, self._order, self._gradient
         positions = self._positions
         # np.clip's arithmetic.
         values = np.minimum(np.maximum(start[self._free], lower), upper)
-        # The whole parameter vector of the current point, and a second one each trial is
-        # written into (the two swap when a trial is accepted): its coefficients serve the
-        # next Jacobian.
-        theta, spare = start.copy(), start.copy()
-        theta[positions] = values
-        evaluated = evaluate(theta)
+        # The whole parameter vector, its free values written in for each point evaluated
+        # (the evaluation returns a new array and keeps nothing of it).
+        point = start.copy()
+        point[positions] = values
+        evaluated = evaluate(point)
         residual = factor @ evaluated[order]
         # The products of the fit's own arrays (the Gram matrix, gradient and cost) by
         # ndarray.dot: the same numbers as the matmul operator's, without its ufunc machinery's
@@ -686,12 +685,11 @@ class _EquationError:
             while True:
                 # gram + damping * diag(scaling), without forming the diagonal matrix.
                 flat[diagonal] = original + damping * scaling
-                # LAPACK's gesv as np.linalg.solve calls it, without numpy's per-call wrapping
-                # (the same solution to the bit; info > 0: singular). It leaves gram as it is.
-                solution, info = lapack.dgesv(gram, gradient)[2:]
+                # gesv leaves gram as it is; a singular one damps more.
+                solution = solve_or_none(gram, gradient)
                 # Finite solution: tested on its few Python floats, without numpy's per-call
                 # work on a ufunc and its reduction.
-                if not info and all(map(math.isfinite, solution.tolist())):
+                if solution is not None and all(map(math.isfinite, solution.tolist())):
                     if holding:
                         step = np.zeros(values.size)
                         step[moving] = -solution
@@ -699,9 +697,9 @@ class _EquationError:
                     else:
                         trial = values - solution           # values + (-solution)
                     trial = np.minimum(np.maximum(trial, lower), upper)
-                    spare[positions] = trial
+                    point[positions] = trial
                     try:
-                        trial_evaluated = evaluate(spare)
+                        trial_evaluated = evaluate(point)
                         trial_residual = factor @ trial_evaluated[order]
                     except ModelError:
                         trial_residual = None
@@ -724,7 +722,6 @@ class _EquationError:
                     break
             decrease = 1.0 - trial_cost / cost
             values, current, residual, evaluated = trial, moved, trial_residual, trial_evaluated
-            theta, spare = spare, theta
             cost = trial_cost
             damping /= 3.0
             if damping < 1e-9:          # max(damping, 1e-9) without the call
@@ -737,7 +734,7 @@ class _EquationError:
                         upper: np.ndarray) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        evaluated = self.evaluated(start)
+        evaluated = self._evaluate(start)
         jacobian = factor @ evaluated[self._gradient].T
         residual = factor @ evaluated[self._order]
         step = least_squares(jacobian, -residual)

@@ -458,6 +458,14 @@ def test_filters_that_are_not_one_chain_kind_run_one_at_a_time():
     assert simulation.filter_responses([], values) == []
 
 
+@pytest.mark.parametrize('coefficients', [[2.0, -1.0], [1.0, 3.0, 2.0], [1.0, -0.5, 0.3, 0.1],
+                                          [1.0, 0.0, 2.0, 0.0], [0.0, 1.0, 2.0]])
+def test_companion_roots_are_numpys_roots_bit_for_bit(coefficients):
+    coefficients = np.array(coefficients)
+    np.testing.assert_array_equal(simulation.companion_roots(coefficients),
+                                  np.roots(coefficients))
+
+
 def test_distinct_roots_are_not_taken_for_a_repeated_one():
     assert ContinuousFilter(np.poly([-1.0, -1.0 - 1e-6])).repeated_root is None
     assert ContinuousFilter(np.poly([-2.0, -2.0, -2.0])).repeated_root is not None

@@ -47,3 +47,26 @@ def test_singular_and_empty_matrices_behave_as_in_numpy():
     wide = np.random.default_rng(0).standard_normal((2, 4))
     np.testing.assert_array_equal(linear_algebra.least_squares(wide, np.ones(2)),
                                   np.linalg.lstsq(wide, np.ones(2), rcond=None)[0])
+
+
+def test_normal_solution_only_where_the_scaled_columns_are_well_conditioned():
+    rng = np.random.default_rng(7)
+    columns = rng.standard_normal((40, 3)) * [1.0, 1e4, 1e-3]     # scales alone: conditioned
+    rhs = rng.standard_normal(3)
+    gram = columns.T @ columns
+    np.testing.assert_array_equal(linear_algebra.normal_solution(gram, rhs, 1e3),
+                                  np.linalg.solve(gram, rhs))
+    nearly_dependent = columns.copy()
+    nearly_dependent[:, 2] = nearly_dependent[:, 0] + 1e-6 * rng.standard_normal(40)
+    assert linear_algebra.normal_solution(nearly_dependent.T @ nearly_dependent, rhs,
+                                          1e3) is None
+    zero_column = columns.copy()
+    zero_column[:, 1] = 0.0
+    assert linear_algebra.normal_solution(zero_column.T @ zero_column, rhs, 1e3) is None
+
+
+def test_solve_or_none_gives_none_for_a_singular_matrix():
+    matrix = np.array([[2.0, 1.0], [1.0, 3.0]])
+    np.testing.assert_array_equal(linear_algebra.solve_or_none(matrix, np.ones(2)),
+                                  np.linalg.solve(matrix, np.ones(2)))
+    assert linear_algebra.solve_or_none(np.array([[1.0, 2.0], [2.0, 4.0]]), np.ones(2)) is None
