@@ -3,8 +3,9 @@ Running a node as a process: ``main()`` of ``ctid_node`` and ``ctid_plant``.
 
 :func:`run_node` reads the command line (``--help``, anything outside ``--ros-args`` is an
 error), initialises rclpy, spins the node until SIGINT (Ctrl-C) or SIGTERM and shuts
-everything down in order: the node before the context, so no callback or publication meets an
-invalid context; the exit status is 0.
+everything down in order: the node (its estimator thread with it) before the context, so no
+callback or publication meets an invalid context, and the context's handle before the
+interpreter's exit, so no DDS thread outlives it; the exit status is 0.
 
 Why not rclpy's own signal handling: it shuts the context down from the signal, under the
 node's feet (a publication in progress fails). Why not a Python handler that raises
@@ -71,9 +72,12 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
 def _spin(factory: Callable[[], Node], name: str, arguments: List[str],
           stop: threading.Event) -> int:
     rclpy.init(args=arguments, signal_handler_options=SignalHandlerOptions.NO)
+    context = rclpy.get_default_context()
     executor = SingleThreadedExecutor()
+    node: Optional[Node] = None
     try:
-        executor.add_node(factory())
+        node = factory()
+        executor.add_node(node)
         while not stop.is_set() and executor.context.ok():
             executor.spin_once(timeout_sec=SIGNAL_LATENCY)
     except (ConfigError, ParameterException) as error:
@@ -82,8 +86,14 @@ def _spin(factory: Callable[[], Node], name: str, arguments: List[str],
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        executor.shutdown()
-        for node in executor.get_nodes():
+        # The node is held here, not taken back from the executor: shutdown() forgets its
+        # nodes, and a node left undestroyed kept its threads (the estimator's too) running
+        # into the interpreter's exit, which now and then ended in a segmentation fault.
+        if node is not None:
             node.destroy_node()
+        executor.shutdown()
         rclpy.try_shutdown()
+        # The DDS participant and its threads end with the context's handle, here rather
+        # than at exit, when the libraries they use are being unloaded.
+        context.destroy()
     return 0

@@ -1,8 +1,10 @@
 """Exact sampled simulation against independent references (solve_ivp, lsim)."""
 
+import warnings
+
 from ctid_ros import DataError, Model, ModelError
 from ctid_ros.core import simulation
-from ctid_ros.core.simulation import ContinuousFilter, recursions, response, responses
+from ctid_ros.core.simulation import all_finite, ContinuousFilter, recursions, response, responses
 import numpy as np
 import pytest
 from scipy import signal
@@ -557,3 +559,11 @@ def test_blocked_recursions_of_remembered_poles_give_the_same_values():
                                rtol=0.0, atol=1e-12 * np.abs(first).max())
     powers, matrices = simulation._block_matrices(poles)
     assert not powers.flags.writeable and not matrices.flags.writeable
+
+
+@pytest.mark.parametrize('values, finite', [([np.inf, -np.inf], False), ([1e308, 1e308], True),
+                                            ([1.0, np.nan], False), ([1e308j, 1e308j], True)])
+def test_all_finite_answers_without_a_warning(values, finite):
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        assert all_finite(np.array(values)) is finite
