@@ -39,18 +39,16 @@ from functools import lru_cache
 from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
-from ctid_ros.estimation.iteration import column_scales
 from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
-                                       noise_model, noise_root, NoiseModel,
-                                       shaped_noise_model, unit_root)
+                                       noise_root, NoiseModel, shaped_noise_model, unit_root)
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.projected_noise import noise_freedom
 import numpy as np
 from scipy import special
 
-__all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'block_deviations',
-           'check_consistency', 'consistency_bound', 'loop_sensitivity', 'small_sample_factors',
-           'with_consistency']
+__all__ = ['BLOCKS', 'Consistency', 'CovarianceParts', 'FAMILY', 'REFINE_ITERATIONS',
+           'block_deviations', 'check_consistency', 'consistency_bound', 'loop_sensitivity',
+           'small_sample_factors', 'with_consistency']
 
 # Halves and quarters.
 BLOCKS = (2, 4)
@@ -124,6 +122,41 @@ class Consistency:
 
 def _finite(value: float) -> Optional[float]:
     return float(value) if np.isfinite(value) else None
+
+
+@dataclass
+class CovarianceParts:
+    """
+    What an estimate's covariance computed that the checks after it use again.
+
+    Built once by :func:`~ctid_ros.estimation.estimate.covariance` and handed on whole, so no
+    check linearises, decomposes or fits the residual's noise model a second time.
+
+    Attributes
+    ----------
+    scaled : ndarray, shape (N, p)
+        The sensitivities of the free parameters (mean one-sided at a kink of the cost in the
+        dead time) over their column norms.
+    scales : ndarray, shape (p,)
+        Those column norms (1 for a zero column).
+    residual : ndarray, shape (N,)
+        The residual at the estimate, on the fitted samples.
+    svd : tuple of ndarray or None
+        The thin SVD ``U S V^T`` of ``scaled`` (None if no parameter is free).
+    residual_noise : NoiseModel
+        The autoregressive model of the residual itself, before any restoring.
+    root : ndarray or None
+        ``U`` filtered through the covariance's noise model's ``1/A`` backwards for unit
+        innovations (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
+
+    """
+
+    scaled: np.ndarray
+    scales: np.ndarray
+    residual: np.ndarray
+    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]
+    residual_noise: NoiseModel
+    root: Optional[np.ndarray] = None
 
 
 def consistency_bound(tests: int) -> float:
@@ -389,11 +422,8 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
-                      std: np.ndarray,
-                      svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                      root: Optional[np.ndarray] = None,
-                      sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None
-                      ) -> Consistency:
+                      std: np.ndarray, parts: CovarianceParts,
+                      root: Optional[np.ndarray] = None) -> Consistency:
     """
     Test whether one parameter vector holds over the record (module docstring).
 
@@ -409,16 +439,12 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         Parameters not held at a bound (only these are tested).
     std : ndarray
         The noise-only standard deviations, ``model.parameters`` order.
-    svd : tuple of ndarray, optional
-        The thin SVD ``U S V^T`` of the column-scaled sensitivities of ``free``, if the
-        caller has it.
+    parts : CovarianceParts
+        The covariance's sensitivities, residual and decomposition at ``state``, for ``free``.
     root : ndarray, optional
-        ``U`` filtered through the noise model's ``1/A`` backwards in time for unit
+        ``U`` of ``parts.svd`` filtered through ``noise``'s ``1/A`` backwards in time for unit
         innovations, if the caller has it: the sensitivities' filtered form is then
         ``root S V^T`` scaled, without another filter pass.
-    sensitivities : (ndarray, ndarray), optional
-        The column-scaled sensitivities of ``free`` (each column over its norm, 1 for a zero
-        column) and the residual at ``state``, if the caller has them (the covariance's).
 
     """
     names = problem.model.parameters
@@ -429,19 +455,19 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     if params == 0:
         return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
                            std_noise=std_noise)
-    if sensitivities is not None and sensitivities[0] is not None and \
-            (free == given).all():
-        scaled, error = sensitivities
-    else:
-        psi, error = _sensitivities(problem, state, free)
-        scaled = psi / column_scales(psi)
+    error = parts.residual
+    # Each column scaled on its own: a parameter left out (a std that is not finite) leaves
+    # the others' columns as they are.
+    scaled = parts.scaled if params == parts.scaled.shape[1] else \
+        parts.scaled[:, free[given]]
     count = error.size
     scale = count / max(count - params, 1)
     filtered = None
-    if svd is not None and root is not None and root.shape[1] == params:
+    if root is not None and root.shape[1] == params:
         # The scale folded into the p x p factor: one N x p product, no scaled copy of it.
-        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * svd[1][:, None] *
-                           svd[2])
+        _, singular, right_t = parts.svd
+        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * singular[:, None] *
+                           right_t)
     blocks = block_deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
@@ -581,10 +607,7 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
     return shaping[:significant[-1] + 1]
 
 
-def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
-                    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                    residual_noise: Optional[NoiseModel] = None,
-                    sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None
+def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: CovarianceParts
                     ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
     """
     Return the covariance and noise model with the noise shaped by the loop, if that fits better.
@@ -592,37 +615,26 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     For a closed-loop model the residual's noise model may be the plain autoregressive one or
     one passed through the loop's sensitivity (:func:`loop_sensitivity`), whichever scores
     better (:func:`~ctid_ros.estimation.noise.model_score`). None if the model is open loop or
-    the plain one wins (the estimate's covariance stands). ``svd``: that of the column-scaled
-    sensitivities, ``residual_noise``: the plain model, and ``sensitivities``: the
-    column-scaled sensitivities of ``free`` and the residual, if the caller has them.
+    the plain one wins (the estimate's covariance stands). ``parts``: the covariance's.
     """
     shaping = loop_sensitivity(problem, state)
     if shaping is None or not free.any():
         return None
-    if sensitivities is None or sensitivities[0] is None:
-        psi, error = _sensitivities(problem, state, free)
-        scales = column_scales(psi)
-        columns = psi / scales
-    else:
-        columns, error = sensitivities
-        scales = None
-    plain = noise_model(error) if residual_noise is None else residual_noise
+    error = parts.residual
     shaped = shaped_noise_model(error, shaping)
     count = error.size
-    if not model_score(shaped, count) < model_score(plain, count):
+    if not model_score(shaped, count) < model_score(parts.residual_noise, count):
         return None
-    if scales is None:
-        psi, _ = _sensitivities(problem, state, free)
-        scales = column_scales(psi)
-    scaled, _ = coloured_covariance(columns, error, int(free.sum()), svd, model=shaped)
+    scaled, _ = coloured_covariance(parts.scaled, error, int(free.sum()), parts.svd,
+                                    model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
-    covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    covariance[np.ix_(free, free)] = scaled / np.outer(parts.scales, parts.scales)
     return covariance, shaped
 
 
-def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
-                         noise: NoiseModel, removed_share: float = 0.0,
-                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+def small_sample_factors(free: np.ndarray, noise: NoiseModel,
+                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]],
+                         removed_share: float = 0.0,
                          root: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
@@ -632,19 +644,15 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     (:func:`~ctid_ros.estimation.projected_noise.noise_freedom`). The standard deviations
     scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or white
     noise it is 1 to within a per cent (``docs/algorithm.md`` section 15). 1 for parameters
-    held at a bound. ``removed_share``: the share of the noise's low-frequency level the fit
-    took out of the residual, which the noise model then had to restore. ``svd``: the thin
-    SVD of the column-scaled sensitivities of the free parameters, and ``root``, its ``U``
-    filtered through the noise model's ``1/A`` backwards for unit innovations, if the caller
-    has them.
+    held at a bound. ``svd``: the thin SVD of the column-scaled sensitivities of the free
+    parameters (None if none is free); ``removed_share``: the share of the noise's
+    low-frequency level the fit took out of the residual, which the noise model then had to
+    restore; ``root``: ``U`` filtered through the noise model's ``1/A`` backwards for unit
+    innovations, if the caller has it.
     """
     factors = np.ones(free.size)
-    if not free.any():
+    if svd is None or not free.any():
         return factors
-    if svd is None:
-        root = None
-        psi, _ = _sensitivities(problem, state, free)
-        svd = np.linalg.svd(psi / column_scales(psi), full_matrices=False)
     left, singular, right_t = svd
     if singular[-1] <= 0.0:
         return factors
@@ -656,12 +664,8 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
-                     free: np.ndarray, removed_share: float = 0.0,
-                     restored_factors: Optional[np.ndarray] = None,
-                     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                     residual_noise: Optional[NoiseModel] = None,
-                     root: Optional[np.ndarray] = None,
-                     sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Any:
+                     free: np.ndarray, parts: CovarianceParts, removed_share: float = 0.0,
+                     restored_factors: Optional[np.ndarray] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -673,13 +677,9 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     (:func:`small_sample_factors`; ``removed_share``: the share of the noise's low-frequency
     level the fit took out of the residual, from
     :func:`~ctid_ros.estimation.estimate.covariance`; ``restored_factors``: its standard
-    deviations with the restored noise over those without, None if not restored). ``svd``
-    (the thin SVD of the column-scaled sensitivities of the free parameters) and
-    ``residual_noise`` (the residual's own noise model, before any restoring): the
-    covariance's, so they are not computed again; ``root``: the SVD's ``U`` filtered for
-    ``noise`` (:func:`~ctid_ros.estimation.noise.unit_root`), and ``sensitivities``: the
-    column-scaled sensitivities of ``free`` (each column over its norm, 1 for a zero column)
-    and the residual, if the caller has them.
+    deviations with the restored noise over those without, None if not restored). ``parts``:
+    what the covariance computed at ``state`` (:class:`CovarianceParts`), so it is not
+    computed again.
 
     Sets ``result.consistency``, ``result.std_noise`` (the noise-only standard deviations) and
     ``result.std_change`` (those before the t factors and the restored noise: a change test's,
@@ -690,8 +690,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     that the standard deviations account for what is left.
     """
     names = problem.model.parameters
-    fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool), svd,
-                               residual_noise, sensitivities)
+    free = np.asarray(free, dtype=bool)
+    fed_back = _fed_back_noise(problem, state, free, parts)
     restored = np.ones(len(names)) if restored_factors is None else \
         np.asarray(restored_factors, dtype=float)
     if fed_back is not None:
@@ -704,20 +704,20 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_shaped = True
     # The sensitivities' basis filtered once through the noise model, for the small-sample
     # factors and the consistency check alike.
+    svd, root = parts.svd, parts.root
     if fed_back is not None or svd is None or noise.shaping is not None or not noise.order:
         root = None
     elif root is None:
         root = unit_root(svd[0], noise)
-    factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
-                                   0.0 if fed_back is not None else removed_share, svd, root)
+    factors = small_sample_factors(free, noise, svd,
+                                   0.0 if fed_back is not None else removed_share, root)
     result.covariance = result.covariance * np.outer(factors, factors)
     result.std_change = {name: value / factor for (name, value), factor in
                          zip(result.std.items(), restored)}
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
-    consistency = check_consistency(problem, state, noise, free, std, svd, root,
-                                    sensitivities)
+    consistency = check_consistency(problem, state, noise, free, std, parts, root)
     result.consistency = consistency
     result.std_noise = dict(consistency.std_noise)
     if consistency.consistent:
