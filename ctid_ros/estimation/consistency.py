@@ -39,6 +39,7 @@ from functools import lru_cache
 from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
+from ctid_ros.estimation.correlation import bonferroni_quantile
 from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
                                        noise_root, NoiseModel, shaped_noise_model, unit_root)
 from ctid_ros.estimation.problem import Problem, State
@@ -161,7 +162,7 @@ class CovarianceParts:
 
 def consistency_bound(tests: int) -> float:
     """Return the normal quantile for :data:`FAMILY` over ``tests`` two-sided tests."""
-    return float(special.ndtri(1.0 - (1.0 - FAMILY) / (2.0 * max(tests, 1))))
+    return bonferroni_quantile(FAMILY, tests)
 
 
 # One record length per estimate, and the same lengths again and again in a stream of windows:

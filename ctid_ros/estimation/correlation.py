@@ -16,10 +16,11 @@ from typing import Optional
 from ctid_ros.core.data import Data
 from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
 import numpy as np
+from scipy import special
 
-__all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread', 'fft_size',
-           'independent_of_input', 'input_correlation', 'prewhitened_delay',
-           'whitening_filter']
+__all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'bonferroni_quantile',
+           'chance_spread', 'fft_size', 'independent_of_input', 'input_correlation',
+           'prewhitened_delay', 'whitening_filter']
 
 # Standard deviations of a correlation under independence: about 1 % false alarms over a
 # hundred lags (two-sided normal tail 6e-5 per lag).
@@ -54,6 +55,19 @@ def fft_size(count: int) -> int:
             odd *= 3
         fives *= 5
     return best
+
+
+# A few test counts recur (the lags of each estimate, the blocks of each record): remembered.
+@lru_cache(maxsize=64)
+def bonferroni_quantile(family: float, tests: int) -> float:
+    """
+    Return the two-sided normal quantile for ``tests`` tests together at ``family``.
+
+    ``family`` is the probability of no alarm over all the tests (Bonferroni: each test's
+    two-sided tail is ``(1 - family) / tests``), for the residual analysis's lags and the
+    consistency check's blocks alike.
+    """
+    return float(special.ndtri(1.0 - (1.0 - family) / (2.0 * max(tests, 1))))
 
 
 def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) -> np.ndarray:

@@ -18,10 +18,10 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 """
 
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Any, List, Optional, Sequence, Tuple
 
-from ctid_ros.estimation.correlation import bartlett_span, chance_spread, fft_size
+from ctid_ros.estimation.correlation import (bartlett_span, bonferroni_quantile, chance_spread,
+                                             fft_size)
 import numpy as np
 from scipy import special
 
@@ -174,13 +174,6 @@ class ResidualAnalysis:
         }
 
 
-# A few test counts recur (the lags of each estimate): remembered.
-@lru_cache(maxsize=64)
-def _family_bound(tests: int) -> float:
-    """Return the normal quantile for about 1 % false alarms over ``tests`` values."""
-    return float(special.ndtri(1.0 - (1.0 - _FAMILY) / (2.0 * max(tests, 1))))
-
-
 def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[str],
                      lags: int = DEFAULT_LAGS) -> ResidualAnalysis:
     """
@@ -215,7 +208,7 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
         cross[:, j] = error.correlation(signal, lags)
         spreads[j] = chance_spread(rho_e, signal.correlation(signal, span), count)
     cross_bounds = _Z_LAG * spreads
-    z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
+    z_all = bonferroni_quantile(_FAMILY, lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
     white = bool((np.abs(auto[1:]) <= z_all / np.sqrt(count)).all())
     correlated, worst = [], []
     feedback = False
