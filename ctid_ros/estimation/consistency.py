@@ -179,6 +179,25 @@ def _block_rows(count: int) -> Tuple[Tuple[str, slice], ...]:
     return tuple(rows)
 
 
+@lru_cache(maxsize=64)
+def _long_blocks(count: int, params: int
+                 ) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return the names, first and end rows of the blocks long enough for ``params`` parameters.
+
+    And the edges of the pieces between them (0, every block's first and end row, ``count``,
+    sorted). Remembered, read-only.
+    """
+    kept = [(block, rows) for block, rows in _block_rows(count)
+            if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
+    starts = np.array([rows.start for _, rows in kept], dtype=int)
+    stops = np.array([rows.stop for _, rows in kept], dtype=int)
+    edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
+    for array in (starts, stops, edges):
+        array.flags.writeable = False
+    return tuple(block for block, _ in kept), starts, stops, edges
+
+
 def _sensitivities(problem: Problem, state: State, free: np.ndarray
                    ) -> Tuple[np.ndarray, np.ndarray]:
     """Return the free columns of ``Psi`` (mean one-sided at a kink) and the residual."""
@@ -235,15 +254,25 @@ def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: Noi
         parameters.
 
     """
-    blocks = _filtered_once(sensitivities, residual, noise, scale, filtered)
-    return _filtered_by_block(sensitivities, residual, noise, scale) if blocks is None \
-        else blocks
+    blocks = _deviations(sensitivities, residual, noise, scale, filtered)
+    return None if blocks is None else list(zip(*blocks))
+
+
+# A block's name, and its d_b and var(d_b) by row.
+_Blocks = Tuple[Tuple[str, ...], np.ndarray, np.ndarray]
+
+
+def _deviations(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
+                filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
+    """Return :func:`block_deviations` as the blocks' names, ``d_b`` and ``var(d_b)`` by row."""
+    blocks = _filtered_once(scaled, error, noise, scale, filtered)
+    return _filtered_by_block(scaled, error, noise, scale) if blocks is None else blocks
 
 
 def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float
-                       ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+                       ) -> Optional[_Blocks]:
     """
-    Return each block's ``(name, d_b, var(d_b))``, each block's map filtered on its own.
+    Return the blocks' names, ``d_b`` and ``var(d_b)``, each block's map filtered on its own.
 
     None if the whole record does not determine the parameters. The noise root is linear and
     runs backwards in time: the whole record's map is filtered once, and a block's own map from
@@ -276,12 +305,12 @@ def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel,
         for outside in (whole_root[:first], whole_root[rows.stop:]):
             variance += np.einsum('ij,ij->j', outside, outside)
         blocks.append((block, deviation, variance))
-    return blocks
+    names, deviations, variances = zip(*blocks) if blocks else ((), (), ())
+    return names, np.reshape(deviations, (-1, params)), np.reshape(variances, (-1, params))
 
 
 def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
-                   filtered: Optional[np.ndarray] = None
-                   ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+                   filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
     """
     :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
 
@@ -300,17 +329,12 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if noise.shaping is not None:
         return None
     memory = noise_memory(noise, count)
-    rows_of = [(block, rows) for block, rows in _block_rows(count)
-               if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
-    if any(rows.stop - rows.start <= 2 * memory for _, rows in rows_of):
+    names, starts, stops, edges = _long_blocks(count, params)
+    if names and int((stops - starts).min()) <= 2 * memory:
         return None
-    starts = np.array([rows.start for _, rows in rows_of], dtype=int)
-    stops = np.array([rows.stop for _, rows in rows_of], dtype=int)
     firsts, inners = np.maximum(starts - memory, 0), stops - memory
-    # Every block's sums of products are sums over the pieces between the blocks' edges: each
-    # row enters one product (halves and quarters share their rows).
-    # np.unique's sorted distinct values, from the few edges as Python integers.
-    edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
+    # Every block's sums of products are sums over the pieces between the blocks' edges
+    # (``edges``): each row enters one product (halves and quarters share their rows).
     grams = _piece_sums(_piece_grams(scaled, edges))
     # The whole record's and every block's inverse Gram matrix, decomposed together: the
     # matrices are p x p, and one stacked call costs what one alone does.
@@ -329,8 +353,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         # (A_b - A) Sigma (A_b - A)^T = c^2 (G_b^-1 - G^-1), from the p x p inverses alone.
         variances = scale * noise.innovation_variance * np.diagonal(
             locals_ - inverse, axis1=1, axis2=2)
-        return [(block, deviation, variance) for (block, _), deviation, variance
-                in zip(rows_of, deviations, variances)]
+        return names, deviations, variances
     if filtered is None:
         filtered = noise_root(scaled, noise, scale)
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
@@ -358,8 +381,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         for response, rows in ((at_end - ends, at_end), (befores, before)):
             root = np.einsum('bij,bjk->bik', response, locals_) - rows @ inverse
             variances += np.einsum('bij,bij->bj', root, root)
-    return [(block, deviation, variance) for (block, _), deviation, variance
-            in zip(rows_of, deviations, variances)]
+    return names, deviations, variances
 
 
 def _piece_grams(columns: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -469,14 +491,13 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         _, singular, right_t = parts.svd
         filtered = root @ (np.sqrt(scale * noise.innovation_variance) * singular[:, None] *
                            right_t)
-    blocks = block_deviations(scaled, error, noise, scale, filtered)
+    blocks = _deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
     free_names = [name for name, keep in zip(names, free) if keep]
     z_table, max_z, worst = _z_table(blocks, free_names)
-    tests = sum(len(values) for values in z_table.values())
-    bound = consistency_bound(tests)
+    bound = consistency_bound(len(z_table) * params)
     consistent = max_z <= bound
     result = Consistency(consistent, max_z, len(z_table), '', bound, worst, z_table,
                          std_noise=std_noise)
@@ -490,32 +511,31 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     return result
 
 
-def _z_table(blocks: List[Tuple[str, np.ndarray, np.ndarray]], names: List[str]
+def _z_table(blocks: _Blocks, names: List[str]
              ) -> Tuple[Dict[str, Dict[str, float]], float, Optional[Tuple[str, str]]]:
     """
     Return ``{block: {parameter: z}}``, the largest ``|z|`` and its parameter and block.
 
     ``z = d_b / std(d_b)`` (0 where the variance is not positive); the first largest in block
-    then parameter order is the worst, None if every ``z`` is 0. All blocks in one array.
+    then parameter order is the worst, None if every ``z`` is 0.
     """
-    if not blocks:
+    blocks_named, deviations, variances = blocks
+    if not blocks_named:
         return {}, 0.0, None
-    deviations = np.array([deviation for _, deviation, _ in blocks])
-    variances = np.array([variance for _, _, variance in blocks])
     z = np.where(variances > 0.0, deviations / np.sqrt(np.maximum(variances, 1e-300)), 0.0)
-    table = {block: dict(zip(names, row)) for (block, _, _), row in zip(blocks, z.tolist())}
+    table = {block: dict(zip(names, row)) for block, row in zip(blocks_named, z.tolist())}
     magnitudes = np.abs(z)
     if not np.isfinite(magnitudes.sum()):
         # A NaN ends its own block's search for the largest, as it always has.
         max_z, worst = 0.0, None
-        for (block, _, _), row in zip(blocks, magnitudes):
+        for block, row in zip(blocks_named, magnitudes):
             top = int(np.argmax(row))
             if row[top] > max_z:
                 max_z, worst = float(row[top]), (names[top], block)
         return table, max_z, worst
     block, top = divmod(int(np.argmax(magnitudes)), len(names))
     max_z = float(magnitudes[block, top])
-    return table, max_z, ((names[top], blocks[block][0]) if max_z > 0.0 else None)
+    return table, max_z, ((names[top], blocks_named[block]) if max_z > 0.0 else None)
 
 
 def _quarter_estimates(problem: Problem, state: State, free: np.ndarray
