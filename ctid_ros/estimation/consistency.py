@@ -181,21 +181,24 @@ def _block_rows(count: int) -> Tuple[Tuple[str, slice], ...]:
 
 @lru_cache(maxsize=64)
 def _long_blocks(count: int, params: int
-                 ) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
-    Return the names, first and end rows of the blocks long enough for ``params`` parameters.
+    Return the blocks long enough for ``params`` parameters, and the pieces between them.
 
-    And the edges of the pieces between them (0, every block's first and end row, ``count``,
-    sorted). Remembered, read-only.
+    The blocks' names, first and end rows; the edges of the pieces between the blocks (0,
+    every block's first and end row, ``count``, sorted); and the first and end edge of the
+    whole record and then of each block, as indices into those edges. Remembered, read-only.
     """
     kept = [(block, rows) for block, rows in _block_rows(count)
             if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
     starts = np.array([rows.start for _, rows in kept], dtype=int)
     stops = np.array([rows.stop for _, rows in kept], dtype=int)
     edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
-    for array in (starts, stops, edges):
+    spans = np.stack([edges.searchsorted(np.concatenate([[0], starts])),
+                      edges.searchsorted(np.concatenate([[count], stops]))])
+    for array in (starts, stops, edges, spans):
         array.flags.writeable = False
-    return tuple(block for block, _ in kept), starts, stops, edges
+    return tuple(block for block, _ in kept), starts, stops, edges, spans
 
 
 def _sensitivities(problem: Problem, state: State, free: np.ndarray
@@ -329,25 +332,24 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if noise.shaping is not None:
         return None
     memory = noise_memory(noise, count)
-    names, starts, stops, edges = _long_blocks(count, params)
+    names, starts, stops, edges, (opening, closing) = _long_blocks(count, params)
     if names and int((stops - starts).min()) <= 2 * memory:
         return None
     firsts, inners = np.maximum(starts - memory, 0), stops - memory
     # Every block's sums of products are sums over the pieces between the blocks' edges
-    # (``edges``): each row enters one product (halves and quarters share their rows).
-    grams = _piece_sums(_piece_grams(scaled, edges))
+    # (``edges``): each row enters one product (halves and quarters share their rows). The
+    # residual rides along as a last column: its products with the sensitivities come with
+    # their Gram matrix. Entry 0 is the whole record's.
+    sums = _piece_sums(_piece_grams(np.concatenate([scaled, error[:, None]], axis=1), edges))
+    sums = sums[closing] - sums[opening]
     # The whole record's and every block's inverse Gram matrix, decomposed together: the
     # matrices are p x p, and one stacked call costs what one alone does.
-    inverses = _normal_inverses(np.concatenate([
-        grams[-1:], _between(grams, edges, starts, stops)]))
+    inverses = _normal_inverses(sums[:, :params, :params])
     if inverses is None:
         return None
     inverse, locals_ = inverses[0], inverses[1:]
-    # np.array stacks the pieces as np.stack does, without its checks.
-    products = _piece_sums(np.array([error[start:stop] @ scaled[start:stop]
-                                     for start, stop in zip(edges[:-1], edges[1:])]))
-    deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
-        - products[-1] @ inverse
+    estimates = (sums[:, params:, :params] @ inverses)[:, 0]
+    deviations = estimates[1:] - estimates[0]
     if not noise.order:
         # White noise, Sigma = c^2 I: A_b A^T = G_b^-1 S_b^T S G^-1 = G^-1, so
         # (A_b - A) Sigma (A_b - A)^T = c^2 (G_b^-1 - G^-1), from the p x p inverses alone.
@@ -362,9 +364,11 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     filtered_grams = _piece_sums(_piece_grams(filtered, filtered_edges))
     difference = locals_ - inverse
     outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
-    variances = np.einsum('bij,bik,bkj->bj', difference,
-                          _between(filtered_grams, filtered_edges, starts, inners), difference) \
-        + np.einsum('ij,bik,kj->bj', inverse, outside, inverse)
+    inside = _between(filtered_grams, filtered_edges, starts, inners)
+    # The diagonals of D^T X D by column sums of D * (X D): matmul, where einsum's three
+    # operands cost several calls more.
+    variances = np.add.reduce(difference * (inside @ difference) +
+                              inverse * (outside @ inverse), axis=1)
     if memory:
         # Each block's end: F less the response to the samples after the block; before each
         # block: the response to the block's state at its start. All from one filter pass,
@@ -378,9 +382,9 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         rows_before = starts[:, None] - memory + span
         before = np.where((rows_before >= 0)[:, :, None],
                           filtered[np.maximum(rows_before, 0)], 0.0)
-        for response, rows in ((at_end - ends, at_end), (befores, before)):
-            root = np.einsum('bij,bjk->bik', response, locals_) - rows @ inverse
-            variances += np.einsum('bij,bij->bj', root, root)
+        root = np.concatenate([at_end - ends, befores], axis=1) @ locals_ - \
+            np.concatenate([at_end, before], axis=1) @ inverse
+        variances += np.add.reduce(root * root, axis=1)
     return names, deviations, variances
 
 
