@@ -66,6 +66,8 @@ _BLOCK_CONDITION = 1e8
 _NORMAL_CONDITION = 1e3
 # Fewest fitted samples per parameter in a block.
 _SAMPLES_PER_PARAMETER = 10
+# The normal distribution's 97.5 % quantile, which the t quantiles are compared with.
+_Z_975 = float(special.ndtri(0.975))
 
 
 @dataclass
@@ -684,7 +686,7 @@ def small_sample_factors(free: np.ndarray, noise: NoiseModel,
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
                             int(free.sum()), removed_share, root)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
-    factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
+    factors[free] = special.stdtrit(freedom, 0.975) / _Z_975
     return factors
 
 
