@@ -10,8 +10,9 @@ The same correlation of the data themselves, after prewhitening the input, gives
 dead-time guess (:func:`prewhitened_delay`, section 12).
 """
 
+from bisect import bisect_left
 from functools import lru_cache
-from typing import Optional
+from typing import List, Optional
 
 from ctid_ros.core.data import Data
 from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
@@ -34,8 +35,7 @@ _RESIDUAL_WHITENING_ORDER = 4
 _NORMAL_CONDITION = 1e3
 
 
-# The sizes asked for are few (a record's length plus a few lag ranges) and the search is a
-# Python loop of dozens of steps: remembered.
+# The sizes asked for are few (a record's length plus a few lag ranges): remembered.
 @lru_cache(maxsize=256)
 def fft_size(count: int) -> int:
     """
@@ -43,18 +43,34 @@ def fft_size(count: int) -> int:
 
     Zero padding to it rather than to the next power of two gives the same correlations to
     rounding; numpy's FFT runs these lengths at about the same speed per sample, and the power
-    of two can be almost twice as long.
+    of two can be almost twice as long. Looked up among all such lengths up to ``2^32``; a
+    longer ``count`` (32 GB a series) gets the next power of two.
     """
-    best = 1 << max(count - 1, 0).bit_length()
+    sizes = _smooth_sizes()
+    if count > sizes[-1]:
+        return 1 << (count - 1).bit_length()
+    return sizes[bisect_left(sizes, count)]
+
+
+# Every length up to this is looked up (about 1 800 of them).
+_LARGEST_SMOOTH = 1 << 32
+
+
+@lru_cache(maxsize=1)
+def _smooth_sizes() -> List[int]:
+    """Return every ``2^a 3^b 5^c`` up to :data:`_LARGEST_SMOOTH`, ascending (built once)."""
+    sizes = []
     fives = 1
-    while fives < best:
+    while fives <= _LARGEST_SMOOTH:
         odd = fives
-        while odd < best:
-            # odd times the least power of two that reaches count
-            best = min(best, odd << max(-(-count // odd) - 1, 0).bit_length())
+        while odd <= _LARGEST_SMOOTH:
+            size = odd
+            while size <= _LARGEST_SMOOTH:
+                sizes.append(size)
+                size <<= 1
             odd *= 3
         fives *= 5
-    return best
+    return sorted(sizes)
 
 
 # A few test counts recur (the lags of each estimate, the blocks of each record): remembered.
