@@ -331,10 +331,10 @@ def covariance(problem: Problem, state: State,
         # the two one-sided sensitivities (:class:`Sensitivities`).
         svd = np.linalg.svd(columns, full_matrices=False)
     model = noise_model(error, autocorrelation=autocorrelation)
+    rows = free.nonzero()[0]
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.
-    root = unit_root(svd[0], model) if model.order and free.any() else None
-    scaled, model = coloured_covariance(columns, error, int(free.sum()), svd,
-                                        model=model, root=root)
+    root = unit_root(svd[0], model) if model.order and rows.size else None
+    scaled, model = coloured_covariance(columns, error, rows.size, svd, model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(columns, error, svd, start=model)
     residual_noise = model
@@ -350,15 +350,14 @@ def covariance(problem: Problem, state: State,
         root = None
     result = np.full((params, params), np.nan)
     # np.ix_'s indexing and np.outer's product.
-    rows = free.nonzero()[0]
     result[rows[:, None], rows] = scaled / (scales[:, None] * scales)
     weakest = np.zeros(params)
     condition = 1.0
-    if free.any():
+    if rows.size:
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
-        weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
-    parts = CovarianceParts(columns, scales, error, svd if free.any() else None, residual_noise,
+        weakest[free] = vt[-1] * np.sign(vt[-1][np.abs(vt[-1]).argmax()])
+    parts = CovarianceParts(columns, scales, error, svd if rows.size else None, residual_noise,
                             root)
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
                        restored_factors, parts)
