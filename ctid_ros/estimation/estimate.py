@@ -346,8 +346,7 @@ def covariance(problem: Problem, state: State,
         ratio = np.sqrt(restored[0].diagonal() / scaled.diagonal())
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
-        scaled, model = restored
-        root = None
+        scaled, model, root = restored
     result = np.full((params, params), np.nan)
     # np.ix_'s indexing and np.outer's product.
     result[rows[:, None], rows] = scaled / (scales[:, None] * scales)

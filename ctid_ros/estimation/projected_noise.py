@@ -38,7 +38,8 @@ from functools import lru_cache
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
-from ctid_ros.estimation.noise import DEFAULT_CRITERION, noise_model, noise_root, NoiseModel
+from ctid_ros.estimation.noise import (DEFAULT_CRITERION, noise_model, noise_root, NoiseModel,
+                                       unit_root)
 import numpy as np
 
 __all__ = ['RESTORE_PASSES', 'low_frequency_level', 'noise_freedom', 'restored_covariance',
@@ -138,14 +139,16 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                         criterion: str = DEFAULT_CRITERION,
                         start: Optional[NoiseModel] = None
-                        ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
+                        ) -> Optional[Tuple[np.ndarray, NoiseModel, np.ndarray]]:
     """
-    Return the sandwich covariance with the restored noise model, and that model.
+    Return the sandwich covariance with the restored noise model, that model and its root.
 
     ``psi``: the (column-scaled) sensitivities, ``svd`` their thin SVD if the caller has it;
     ``start``: the residual's own noise model. None if that model is white or shaped by a
     loop (the caller's covariance stands: ``N / (N - n)`` restores a white residual exactly).
     The restored variance already counts the removed degrees of freedom: no ``N / (N - n)``.
+    The root is ``U`` filtered through the restored model for unit innovations
+    (:func:`~ctid_ros.estimation.noise.unit_root`), for the checks after the covariance.
     """
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
@@ -154,8 +157,10 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
     if model is start or model.order == 0:
         return None
     mapping = right_t.T / singular
-    filtered = noise_root(left, model)
-    return mapping @ (filtered.T @ filtered) @ mapping.T, model
+    root = unit_root(left, model)
+    # noise_root(left, model) to the last bit (unit_root): one filter pass for both.
+    filtered = np.sqrt(model.innovation_variance) * root
+    return mapping @ (filtered.T @ filtered) @ mapping.T, model, root
 
 
 def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
