@@ -340,9 +340,9 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     firsts, inners = np.maximum(starts - memory, 0), stops - memory
     # Every block's sums of products are sums over the pieces between the blocks' edges
     # (``edges``): each row enters one product (halves and quarters share their rows). The
-    # residual rides along as a last column: its products with the sensitivities come with
-    # their Gram matrix. Entry 0 is the whole record's.
-    sums = _running_grams(np.concatenate([scaled, error[:, None]], axis=1), edges)
+    # residual's products with the sensitivities ride along as a last row of each Gram
+    # matrix. Entry 0 is the whole record's.
+    sums = _running_grams(scaled, edges, error)
     sums = sums[closing] - sums[opening]
     # The whole record's and every block's inverse Gram matrix, decomposed together: the
     # matrices are p x p, and one stacked call costs what one alone does.
@@ -390,16 +390,26 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     return names, deviations, variances
 
 
-def _running_grams(columns: np.ndarray, edges: np.ndarray) -> np.ndarray:
+def _running_grams(columns: np.ndarray, edges: np.ndarray,
+                   residual: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return the running sums of ``X_k^T X_k`` over the pieces between ``edges`` of ``columns``.
 
     Entry ``k`` sums the pieces before edge ``k`` (rows ``0 .. edges[k] - 1``): entry 0 is 0.
+    With ``residual``, each sum has the residual's products with the columns as a last row.
     """
+    pieces = list(zip(edges[:-1], edges[1:]))
+    width = columns.shape[1]
     # np.array stacks the pieces as np.stack does, without its checks.
-    return np.array([np.zeros((columns.shape[1],) * 2)] +
-                    [columns[start:stop].T @ columns[start:stop]
-                     for start, stop in zip(edges[:-1], edges[1:])]).cumsum(axis=0)
+    grams = [np.zeros((width, width))] + [columns[start:stop].T @ columns[start:stop]
+                                          for start, stop in pieces]
+    if residual is not None:
+        # Apart, not as a column of an augmented copy: copying N x (p + 1) costs more than
+        # the products.
+        grams = np.concatenate([grams, np.array(
+            [np.zeros(width)] + [residual[start:stop] @ columns[start:stop]
+                                 for start, stop in pieces])[:, None]], axis=1)
+    return np.array(grams).cumsum(axis=0)
 
 
 def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.ndarray
