@@ -671,7 +671,9 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: Cov
     scaled, _ = coloured_covariance(parts.scaled, error, int(free.sum()), parts.svd,
                                     model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
-    covariance[np.ix_(free, free)] = scaled / np.outer(parts.scales, parts.scales)
+    # np.ix_'s indexing and np.outer's product.
+    rows = free.nonzero()[0]
+    covariance[rows[:, None], rows] = scaled / (parts.scales[:, None] * parts.scales)
     return covariance, shaped
 
 
@@ -754,7 +756,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
         root = unit_root(svd[0], noise)
     factors = small_sample_factors(free, noise, svd,
                                    0.0 if fed_back is not None else removed_share, root)
-    result.covariance = result.covariance * np.outer(factors, factors)
+    # np.outer's product.
+    result.covariance = result.covariance * (factors[:, None] * factors)
     result.std_change = {name: value / factor for (name, value), factor in
                          zip(result.std.items(), restored)}
     result.std = {name: value * factor for (name, value), factor in
@@ -769,7 +772,7 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     widened = np.where(np.isfinite(spread) & (spread > std), spread, std)
     ratio = np.where(std > 0.0, widened / np.where(std > 0.0, std, 1.0), 1.0)
     ratio = np.where(np.isfinite(ratio), ratio, 1.0)
-    result.covariance = result.covariance * np.outer(ratio, ratio)
+    result.covariance = result.covariance * (ratio[:, None] * ratio)
     result.std = dict(zip(names, map(float, widened)))
     result.warnings = list(result.warnings) + [consistency.verdict]
     if result.residuals is not None:
