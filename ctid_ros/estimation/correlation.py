@@ -109,12 +109,14 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     """
     residual = np.asarray(residual, dtype=float)
     inputs = np.asarray(inputs, dtype=float).reshape(residual.size, -1)
-    used = np.flatnonzero(residual)
-    if used.size == 0:
+    first = _first_nonzero(residual)
+    if first is None:
         return np.zeros((max_lag + 1, inputs.shape[1]))
-    first = used[0]
-    error = np.zeros_like(residual)
-    error[first:] = residual[first:] - residual[first:].mean()
+    if first:
+        error = np.zeros_like(residual)
+        error[first:] = residual[first:] - residual[first:].mean()
+    else:
+        error = residual - residual.mean()
     centred = inputs - inputs.mean(axis=0)
     # Zero padding to N + max_lag keeps the circular correlation free of wrap-around.
     size = fft_size(residual.size + max_lag + 1)
@@ -122,6 +124,16 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
     scale = np.sqrt((error ** 2).sum() * (centred ** 2).sum(axis=0))
     return correlation / np.where(scale > 0.0, scale, 1.0)
+
+
+def _first_nonzero(values: np.ndarray) -> Optional[int]:
+    """Return the index of the first nonzero (or NaN, or True) of ``values``, None if none."""
+    if not values.size:
+        return None
+    nonzero = values != 0
+    # argmax of booleans stops at the first True: no index array of every nonzero.
+    first = int(nonzero.argmax())
+    return first if nonzero[first] else None
 
 
 def bartlett_span(count: int, max_lag: int) -> int:
@@ -202,10 +214,9 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
 
     """
     residual = np.asarray(residual, dtype=float)
-    used = np.flatnonzero(residual)
-    if used.size == 0:
+    first = _first_nonzero(residual)
+    if first is None:
         return True
-    first = used[0]
     count = residual.size - first
     inputs = np.asarray(inputs, dtype=float).reshape(residual.size, -1)
     if bound not in ('prewhitened', 'bartlett', 'white'):
@@ -344,9 +355,9 @@ def prewhitened_delay(data: Data) -> float:
     whitened_u = np.convolve(u, polynomial)[start:count]
     whitened_y = np.convolve(y, polynomial)[start:count]
     correlation = np.abs(input_correlation(whitened_y, whitened_u, count // 2)[:, 0])
-    significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
-    if significant.size == 0:
+    first = _first_nonzero(correlation > CONFIDENCE / np.sqrt(count))
+    if first is None:
         return 0.0
     # An output measured output_skew after its input instant shows the response that much
     # earlier in lags.
-    return max((significant[0] - 0.5) * data.ts - data.output_skew, 0.0)
+    return max((first - 0.5) * data.ts - data.output_skew, 0.0)
