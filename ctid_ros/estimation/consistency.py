@@ -39,18 +39,17 @@ from functools import lru_cache
 from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
-from ctid_ros.estimation.iteration import column_scales
+from ctid_ros.estimation.correlation import bonferroni_quantile
 from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
-                                       noise_model, noise_root, NoiseModel,
-                                       shaped_noise_model, unit_root)
+                                       noise_root, NoiseModel, shaped_noise_model, unit_root)
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.projected_noise import noise_freedom
 import numpy as np
 from scipy import special
 
-__all__ = ['BLOCKS', 'Consistency', 'FAMILY', 'REFINE_ITERATIONS', 'block_deviations',
-           'check_consistency', 'consistency_bound', 'loop_sensitivity', 'small_sample_factors',
-           'with_consistency']
+__all__ = ['BLOCKS', 'Consistency', 'CovarianceParts', 'FAMILY', 'REFINE_ITERATIONS',
+           'block_deviations', 'check_consistency', 'consistency_bound', 'loop_sensitivity',
+           'small_sample_factors', 'with_consistency']
 
 # Halves and quarters.
 BLOCKS = (2, 4)
@@ -67,6 +66,8 @@ _BLOCK_CONDITION = 1e8
 _NORMAL_CONDITION = 1e3
 # Fewest fitted samples per parameter in a block.
 _SAMPLES_PER_PARAMETER = 10
+# The normal distribution's 97.5 % quantile, which the t quantiles are compared with.
+_Z_975 = float(special.ndtri(0.975))
 
 
 @dataclass
@@ -126,9 +127,44 @@ def _finite(value: float) -> Optional[float]:
     return float(value) if np.isfinite(value) else None
 
 
+@dataclass
+class CovarianceParts:
+    """
+    What an estimate's covariance computed that the checks after it use again.
+
+    Built once by :func:`~ctid_ros.estimation.estimate.covariance` and handed on whole, so no
+    check linearises, decomposes or fits the residual's noise model a second time.
+
+    Attributes
+    ----------
+    scaled : ndarray, shape (N, p)
+        The sensitivities of the free parameters (mean one-sided at a kink of the cost in the
+        dead time) over their column norms.
+    scales : ndarray, shape (p,)
+        Those column norms (1 for a zero column).
+    residual : ndarray, shape (N,)
+        The residual at the estimate, on the fitted samples.
+    svd : tuple of ndarray or None
+        The thin SVD ``U S V^T`` of ``scaled`` (None if no parameter is free).
+    residual_noise : NoiseModel
+        The autoregressive model of the residual itself, before any restoring.
+    root : ndarray or None
+        ``U`` filtered through the covariance's noise model's ``1/A`` backwards for unit
+        innovations (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
+
+    """
+
+    scaled: np.ndarray
+    scales: np.ndarray
+    residual: np.ndarray
+    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]
+    residual_noise: NoiseModel
+    root: Optional[np.ndarray] = None
+
+
 def consistency_bound(tests: int) -> float:
     """Return the normal quantile for :data:`FAMILY` over ``tests`` two-sided tests."""
-    return float(special.ndtri(1.0 - (1.0 - FAMILY) / (2.0 * max(tests, 1))))
+    return bonferroni_quantile(FAMILY, tests)
 
 
 # One record length per estimate, and the same lengths again and again in a stream of windows:
@@ -143,6 +179,28 @@ def _block_rows(count: int) -> Tuple[Tuple[str, slice], ...]:
         rows += [(names[parts][i], slice(int(edges[i]), int(edges[i + 1])))
                  for i in range(parts)]
     return tuple(rows)
+
+
+@lru_cache(maxsize=64)
+def _long_blocks(count: int, params: int
+                 ) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return the blocks long enough for ``params`` parameters, and the pieces between them.
+
+    The blocks' names, first and end rows; the edges of the pieces between the blocks (0,
+    every block's first and end row, ``count``, sorted); and the first and end edge of the
+    whole record and then of each block, as indices into those edges. Remembered, read-only.
+    """
+    kept = [(block, rows) for block, rows in _block_rows(count)
+            if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
+    starts = np.array([rows.start for _, rows in kept], dtype=int)
+    stops = np.array([rows.stop for _, rows in kept], dtype=int)
+    edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
+    spans = np.stack([edges.searchsorted(np.concatenate([[0], starts])),
+                      edges.searchsorted(np.concatenate([[count], stops]))])
+    for array in (starts, stops, edges, spans):
+        array.flags.writeable = False
+    return tuple(block for block, _ in kept), starts, stops, edges, spans
 
 
 def _sensitivities(problem: Problem, state: State, free: np.ndarray
@@ -201,15 +259,25 @@ def block_deviations(sensitivities: np.ndarray, residual: np.ndarray, noise: Noi
         parameters.
 
     """
-    blocks = _filtered_once(sensitivities, residual, noise, scale, filtered)
-    return _filtered_by_block(sensitivities, residual, noise, scale) if blocks is None \
-        else blocks
+    blocks = _deviations(sensitivities, residual, noise, scale, filtered)
+    return None if blocks is None else list(zip(*blocks))
+
+
+# A block's name, and its d_b and var(d_b) by row.
+_Blocks = Tuple[Tuple[str, ...], np.ndarray, np.ndarray]
+
+
+def _deviations(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
+                filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
+    """Return :func:`block_deviations` as the blocks' names, ``d_b`` and ``var(d_b)`` by row."""
+    blocks = _filtered_once(scaled, error, noise, scale, filtered)
+    return _filtered_by_block(scaled, error, noise, scale) if blocks is None else blocks
 
 
 def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float
-                       ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+                       ) -> Optional[_Blocks]:
     """
-    Return each block's ``(name, d_b, var(d_b))``, each block's map filtered on its own.
+    Return the blocks' names, ``d_b`` and ``var(d_b)``, each block's map filtered on its own.
 
     None if the whole record does not determine the parameters. The noise root is linear and
     runs backwards in time: the whole record's map is filtered once, and a block's own map from
@@ -242,12 +310,12 @@ def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel,
         for outside in (whole_root[:first], whole_root[rows.stop:]):
             variance += np.einsum('ij,ij->j', outside, outside)
         blocks.append((block, deviation, variance))
-    return blocks
+    names, deviations, variances = zip(*blocks) if blocks else ((), (), ())
+    return names, np.reshape(deviations, (-1, params)), np.reshape(variances, (-1, params))
 
 
 def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
-                   filtered: Optional[np.ndarray] = None
-                   ) -> Optional[List[Tuple[str, np.ndarray, np.ndarray]]]:
+                   filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
     """
     :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
 
@@ -266,48 +334,43 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     if noise.shaping is not None:
         return None
     memory = noise_memory(noise, count)
-    rows_of = [(block, rows) for block, rows in _block_rows(count)
-               if rows.stop - rows.start >= _SAMPLES_PER_PARAMETER * params]
-    if any(rows.stop - rows.start <= 2 * memory for _, rows in rows_of):
+    names, starts, stops, edges, (opening, closing) = _long_blocks(count, params)
+    if names and int((stops - starts).min()) <= 2 * memory:
         return None
-    starts = np.array([rows.start for _, rows in rows_of], dtype=int)
-    stops = np.array([rows.stop for _, rows in rows_of], dtype=int)
     firsts, inners = np.maximum(starts - memory, 0), stops - memory
-    # Every block's sums of products are sums over the pieces between the blocks' edges: each
-    # row enters one product (halves and quarters share their rows).
-    # np.unique's sorted distinct values, from the few edges as Python integers.
-    edges = np.array(sorted({0, count, *starts.tolist(), *stops.tolist()}))
-    grams = _piece_sums(_piece_grams(scaled, edges))
+    # Every block's sums of products are sums over the pieces between the blocks' edges
+    # (``edges``): each row enters one product (halves and quarters share their rows). The
+    # residual's products with the sensitivities ride along as a last row of each Gram
+    # matrix. Entry 0 is the whole record's.
+    sums = _running_grams(scaled, edges, error)
+    sums = sums[closing] - sums[opening]
     # The whole record's and every block's inverse Gram matrix, decomposed together: the
     # matrices are p x p, and one stacked call costs what one alone does.
-    inverses = _normal_inverses(np.concatenate([
-        grams[-1:], _between(grams, edges, starts, stops)]))
+    inverses = _normal_inverses(sums[:, :params, :params])
     if inverses is None:
         return None
     inverse, locals_ = inverses[0], inverses[1:]
-    # np.array stacks the pieces as np.stack does, without its checks.
-    products = _piece_sums(np.array([error[start:stop] @ scaled[start:stop]
-                                     for start, stop in zip(edges[:-1], edges[1:])]))
-    deviations = np.einsum('bj,bjk->bk', _between(products, edges, starts, stops), locals_) \
-        - products[-1] @ inverse
+    estimates = (sums[:, params:, :params] @ inverses)[:, 0]
+    deviations = estimates[1:] - estimates[0]
     if not noise.order:
         # White noise, Sigma = c^2 I: A_b A^T = G_b^-1 S_b^T S G^-1 = G^-1, so
         # (A_b - A) Sigma (A_b - A)^T = c^2 (G_b^-1 - G^-1), from the p x p inverses alone.
         variances = scale * noise.innovation_variance * np.diagonal(
             locals_ - inverse, axis1=1, axis2=2)
-        return [(block, deviation, variance) for (block, _), deviation, variance
-                in zip(rows_of, deviations, variances)]
+        return names, deviations, variances
     if filtered is None:
         filtered = noise_root(scaled, noise, scale)
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
     # block and the memory before it: F G^-1. Through F's products over the pieces.
     filtered_edges = np.array(sorted({*edges.tolist(), *firsts.tolist(), *inners.tolist()}))
-    filtered_grams = _piece_sums(_piece_grams(filtered, filtered_edges))
+    filtered_grams = _running_grams(filtered, filtered_edges)
     difference = locals_ - inverse
     outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
-    variances = np.einsum('bij,bik,bkj->bj', difference,
-                          _between(filtered_grams, filtered_edges, starts, inners), difference) \
-        + np.einsum('ij,bik,kj->bj', inverse, outside, inverse)
+    inside = _between(filtered_grams, filtered_edges, starts, inners)
+    # The diagonals of D^T X D by column sums of D * (X D): matmul, where einsum's three
+    # operands cost several calls more.
+    variances = np.add.reduce(difference * (inside @ difference) +
+                              inverse * (outside @ inverse), axis=1)
     if memory:
         # Each block's end: F less the response to the samples after the block; before each
         # block: the response to the block's state at its start. All from one filter pass,
@@ -321,23 +384,32 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         rows_before = starts[:, None] - memory + span
         before = np.where((rows_before >= 0)[:, :, None],
                           filtered[np.maximum(rows_before, 0)], 0.0)
-        for response, rows in ((at_end - ends, at_end), (befores, before)):
-            root = np.einsum('bij,bjk->bik', response, locals_) - rows @ inverse
-            variances += np.einsum('bij,bij->bj', root, root)
-    return [(block, deviation, variance) for (block, _), deviation, variance
-            in zip(rows_of, deviations, variances)]
+        root = np.concatenate([at_end - ends, befores], axis=1) @ locals_ - \
+            np.concatenate([at_end, before], axis=1) @ inverse
+        variances += np.add.reduce(root * root, axis=1)
+    return names, deviations, variances
 
 
-def _piece_grams(columns: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Return ``X_k^T X_k`` for the rows ``edges[k] .. edges[k + 1] - 1`` of ``columns``."""
-    # np.array stacks them as np.stack does, without its checks.
-    return np.array([columns[start:stop].T @ columns[start:stop]
-                     for start, stop in zip(edges[:-1], edges[1:])])
+def _running_grams(columns: np.ndarray, edges: np.ndarray,
+                   residual: Optional[np.ndarray] = None) -> np.ndarray:
+    """
+    Return the running sums of ``X_k^T X_k`` over the pieces between ``edges`` of ``columns``.
 
-
-def _piece_sums(pieces: np.ndarray) -> np.ndarray:
-    """Return the running sums of ``pieces`` from 0: entry ``k`` sums pieces ``0 .. k - 1``."""
-    return np.concatenate([np.zeros((1,) + pieces.shape[1:]), pieces.cumsum(axis=0)])
+    Entry ``k`` sums the pieces before edge ``k`` (rows ``0 .. edges[k] - 1``): entry 0 is 0.
+    With ``residual``, each sum has the residual's products with the columns as a last row.
+    """
+    pieces = list(zip(edges[:-1], edges[1:]))
+    width = columns.shape[1]
+    # np.array stacks the pieces as np.stack does, without its checks.
+    grams = [np.zeros((width, width))] + [columns[start:stop].T @ columns[start:stop]
+                                          for start, stop in pieces]
+    if residual is not None:
+        # Apart, not as a column of an augmented copy: copying N x (p + 1) costs more than
+        # the products.
+        grams = np.concatenate([grams, np.array(
+            [np.zeros(width)] + [residual[start:stop] @ columns[start:stop]
+                                 for start, stop in pieces])[:, None]], axis=1)
+    return np.array(grams).cumsum(axis=0)
 
 
 def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.ndarray
@@ -347,11 +419,17 @@ def _between(sums: np.ndarray, edges: np.ndarray, starts: np.ndarray, stops: np.
 
 
 def _normal_inverses(grams: np.ndarray) -> Optional[np.ndarray]:
-    """Return the inverses of ``S^T S`` (stacked) if all ``S`` are conditioned within bounds."""
-    eigenvalues = np.linalg.eigvalsh(grams)
-    if (eigenvalues[:, 0] > 0.0).all() and \
-            (eigenvalues[:, 0] >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2).all():
-        return np.linalg.inv(grams)
+    """
+    Return the inverses of ``S^T S`` (stacked) if all ``S`` are conditioned within bounds.
+
+    From the eigen decompositions that test the conditioning, ``V diag(1/lambda) V^T``: an
+    inverse within ``cond eps`` of LU's (``cond`` at most :data:`_NORMAL_CONDITION` squared),
+    without a second stacked LAPACK call.
+    """
+    eigenvalues, vectors = np.linalg.eigh(grams)
+    smallest = eigenvalues[:, 0]
+    if ((smallest > 0.0) & (smallest >= eigenvalues[:, -1] / _NORMAL_CONDITION ** 2)).all():
+        return (vectors / eigenvalues[:, None, :]) @ vectors.transpose(0, 2, 1)
     return None
 
 
@@ -389,11 +467,8 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
-                      std: np.ndarray,
-                      svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                      root: Optional[np.ndarray] = None,
-                      sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None
-                      ) -> Consistency:
+                      std: np.ndarray, parts: CovarianceParts,
+                      root: Optional[np.ndarray] = None) -> Consistency:
     """
     Test whether one parameter vector holds over the record (module docstring).
 
@@ -409,16 +484,12 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         Parameters not held at a bound (only these are tested).
     std : ndarray
         The noise-only standard deviations, ``model.parameters`` order.
-    svd : tuple of ndarray, optional
-        The thin SVD ``U S V^T`` of the column-scaled sensitivities of ``free``, if the
-        caller has it.
+    parts : CovarianceParts
+        The covariance's sensitivities, residual and decomposition at ``state``, for ``free``.
     root : ndarray, optional
-        ``U`` filtered through the noise model's ``1/A`` backwards in time for unit
+        ``U`` of ``parts.svd`` filtered through ``noise``'s ``1/A`` backwards in time for unit
         innovations, if the caller has it: the sensitivities' filtered form is then
         ``root S V^T`` scaled, without another filter pass.
-    sensitivities : (ndarray, ndarray), optional
-        The column-scaled sensitivities of ``free`` (each column over its norm, 1 for a zero
-        column) and the residual at ``state``, if the caller has them (the covariance's).
 
     """
     names = problem.model.parameters
@@ -429,27 +500,26 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     if params == 0:
         return Consistency(True, 0.0, 0, 'no free parameter to compare across the record',
                            std_noise=std_noise)
-    if sensitivities is not None and sensitivities[0] is not None and \
-            (free == given).all():
-        scaled, error = sensitivities
-    else:
-        psi, error = _sensitivities(problem, state, free)
-        scaled = psi / column_scales(psi)
+    error = parts.residual
+    # Each column scaled on its own: a parameter left out (a std that is not finite) leaves
+    # the others' columns as they are.
+    scaled = parts.scaled if params == parts.scaled.shape[1] else \
+        parts.scaled[:, free[given]]
     count = error.size
     scale = count / max(count - params, 1)
     filtered = None
-    if svd is not None and root is not None and root.shape[1] == params:
+    if root is not None and root.shape[1] == params:
         # The scale folded into the p x p factor: one N x p product, no scaled copy of it.
-        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * svd[1][:, None] *
-                           svd[2])
-    blocks = block_deviations(scaled, error, noise, scale, filtered)
+        _, singular, right_t = parts.svd
+        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * singular[:, None] *
+                           right_t)
+    blocks = _deviations(scaled, error, noise, scale, filtered)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
     free_names = [name for name, keep in zip(names, free) if keep]
     z_table, max_z, worst = _z_table(blocks, free_names)
-    tests = sum(len(values) for values in z_table.values())
-    bound = consistency_bound(tests)
+    bound = consistency_bound(len(z_table) * params)
     consistent = max_z <= bound
     result = Consistency(consistent, max_z, len(z_table), '', bound, worst, z_table,
                          std_noise=std_noise)
@@ -463,32 +533,31 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
     return result
 
 
-def _z_table(blocks: List[Tuple[str, np.ndarray, np.ndarray]], names: List[str]
+def _z_table(blocks: _Blocks, names: List[str]
              ) -> Tuple[Dict[str, Dict[str, float]], float, Optional[Tuple[str, str]]]:
     """
     Return ``{block: {parameter: z}}``, the largest ``|z|`` and its parameter and block.
 
     ``z = d_b / std(d_b)`` (0 where the variance is not positive); the first largest in block
-    then parameter order is the worst, None if every ``z`` is 0. All blocks in one array.
+    then parameter order is the worst, None if every ``z`` is 0.
     """
-    if not blocks:
+    blocks_named, deviations, variances = blocks
+    if not blocks_named:
         return {}, 0.0, None
-    deviations = np.array([deviation for _, deviation, _ in blocks])
-    variances = np.array([variance for _, _, variance in blocks])
     z = np.where(variances > 0.0, deviations / np.sqrt(np.maximum(variances, 1e-300)), 0.0)
-    table = {block: dict(zip(names, row)) for (block, _, _), row in zip(blocks, z.tolist())}
+    table = {block: dict(zip(names, row)) for block, row in zip(blocks_named, z.tolist())}
     magnitudes = np.abs(z)
     if not np.isfinite(magnitudes.sum()):
         # A NaN ends its own block's search for the largest, as it always has.
         max_z, worst = 0.0, None
-        for (block, _, _), row in zip(blocks, magnitudes):
+        for block, row in zip(blocks_named, magnitudes):
             top = int(np.argmax(row))
             if row[top] > max_z:
                 max_z, worst = float(row[top]), (names[top], block)
         return table, max_z, worst
     block, top = divmod(int(np.argmax(magnitudes)), len(names))
     max_z = float(magnitudes[block, top])
-    return table, max_z, ((names[top], blocks[block][0]) if max_z > 0.0 else None)
+    return table, max_z, ((names[top], blocks_named[block]) if max_z > 0.0 else None)
 
 
 def _quarter_estimates(problem: Problem, state: State, free: np.ndarray
@@ -581,10 +650,7 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
     return shaping[:significant[-1] + 1]
 
 
-def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
-                    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                    residual_noise: Optional[NoiseModel] = None,
-                    sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None
+def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: CovarianceParts
                     ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
     """
     Return the covariance and noise model with the noise shaped by the loop, if that fits better.
@@ -592,37 +658,28 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray,
     For a closed-loop model the residual's noise model may be the plain autoregressive one or
     one passed through the loop's sensitivity (:func:`loop_sensitivity`), whichever scores
     better (:func:`~ctid_ros.estimation.noise.model_score`). None if the model is open loop or
-    the plain one wins (the estimate's covariance stands). ``svd``: that of the column-scaled
-    sensitivities, ``residual_noise``: the plain model, and ``sensitivities``: the
-    column-scaled sensitivities of ``free`` and the residual, if the caller has them.
+    the plain one wins (the estimate's covariance stands). ``parts``: the covariance's.
     """
     shaping = loop_sensitivity(problem, state)
     if shaping is None or not free.any():
         return None
-    if sensitivities is None or sensitivities[0] is None:
-        psi, error = _sensitivities(problem, state, free)
-        scales = column_scales(psi)
-        columns = psi / scales
-    else:
-        columns, error = sensitivities
-        scales = None
-    plain = noise_model(error) if residual_noise is None else residual_noise
+    error = parts.residual
     shaped = shaped_noise_model(error, shaping)
     count = error.size
-    if not model_score(shaped, count) < model_score(plain, count):
+    if not model_score(shaped, count) < model_score(parts.residual_noise, count):
         return None
-    if scales is None:
-        psi, _ = _sensitivities(problem, state, free)
-        scales = column_scales(psi)
-    scaled, _ = coloured_covariance(columns, error, int(free.sum()), svd, model=shaped)
+    scaled, _ = coloured_covariance(parts.scaled, error, int(free.sum()), parts.svd,
+                                    model=shaped)
     covariance = np.full((free.size, free.size), np.nan)
-    covariance[np.ix_(free, free)] = scaled / np.outer(scales, scales)
+    # np.ix_'s indexing and np.outer's product.
+    rows = free.nonzero()[0]
+    covariance[rows[:, None], rows] = scaled / (parts.scales[:, None] * parts.scales)
     return covariance, shaped
 
 
-def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
-                         noise: NoiseModel, removed_share: float = 0.0,
-                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+def small_sample_factors(free: np.ndarray, noise: NoiseModel,
+                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]],
+                         removed_share: float = 0.0,
                          root: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
@@ -632,36 +689,28 @@ def small_sample_factors(problem: Problem, state: State, free: np.ndarray,
     (:func:`~ctid_ros.estimation.projected_noise.noise_freedom`). The standard deviations
     scaled by it make ``estimate +- 1.96 std`` the t interval; on long records or white
     noise it is 1 to within a per cent (``docs/algorithm.md`` section 15). 1 for parameters
-    held at a bound. ``removed_share``: the share of the noise's low-frequency level the fit
-    took out of the residual, which the noise model then had to restore. ``svd``: the thin
-    SVD of the column-scaled sensitivities of the free parameters, and ``root``, its ``U``
-    filtered through the noise model's ``1/A`` backwards for unit innovations, if the caller
-    has them.
+    held at a bound. ``svd``: the thin SVD of the column-scaled sensitivities of the free
+    parameters (None if none is free); ``removed_share``: the share of the noise's
+    low-frequency level the fit took out of the residual, which the noise model then had to
+    restore; ``root``: ``U`` filtered through the noise model's ``1/A`` backwards for unit
+    innovations, if the caller has it.
     """
     factors = np.ones(free.size)
-    if not free.any():
+    if svd is None or not free.any():
         return factors
-    if svd is None:
-        root = None
-        psi, _ = _sensitivities(problem, state, free)
-        svd = np.linalg.svd(psi / column_scales(psi), full_matrices=False)
     left, singular, right_t = svd
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
                             int(free.sum()), removed_share, root)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
-    factors[free] = special.stdtrit(freedom, 0.975) / special.ndtri(0.975)
+    factors[free] = special.stdtrit(freedom, 0.975) / _Z_975
     return factors
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
-                     free: np.ndarray, removed_share: float = 0.0,
-                     restored_factors: Optional[np.ndarray] = None,
-                     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
-                     residual_noise: Optional[NoiseModel] = None,
-                     root: Optional[np.ndarray] = None,
-                     sensitivities: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Any:
+                     free: np.ndarray, parts: CovarianceParts, removed_share: float = 0.0,
+                     restored_factors: Optional[np.ndarray] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
 
@@ -673,13 +722,9 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     (:func:`small_sample_factors`; ``removed_share``: the share of the noise's low-frequency
     level the fit took out of the residual, from
     :func:`~ctid_ros.estimation.estimate.covariance`; ``restored_factors``: its standard
-    deviations with the restored noise over those without, None if not restored). ``svd``
-    (the thin SVD of the column-scaled sensitivities of the free parameters) and
-    ``residual_noise`` (the residual's own noise model, before any restoring): the
-    covariance's, so they are not computed again; ``root``: the SVD's ``U`` filtered for
-    ``noise`` (:func:`~ctid_ros.estimation.noise.unit_root`), and ``sensitivities``: the
-    column-scaled sensitivities of ``free`` (each column over its norm, 1 for a zero column)
-    and the residual, if the caller has them.
+    deviations with the restored noise over those without, None if not restored). ``parts``:
+    what the covariance computed at ``state`` (:class:`CovarianceParts`), so it is not
+    computed again.
 
     Sets ``result.consistency``, ``result.std_noise`` (the noise-only standard deviations) and
     ``result.std_change`` (those before the t factors and the restored noise: a change test's,
@@ -690,8 +735,8 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     that the standard deviations account for what is left.
     """
     names = problem.model.parameters
-    fed_back = _fed_back_noise(problem, state, np.asarray(free, dtype=bool), svd,
-                               residual_noise, sensitivities)
+    free = np.asarray(free, dtype=bool)
+    fed_back = _fed_back_noise(problem, state, free, parts)
     restored = np.ones(len(names)) if restored_factors is None else \
         np.asarray(restored_factors, dtype=float)
     if fed_back is not None:
@@ -704,20 +749,21 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_shaped = True
     # The sensitivities' basis filtered once through the noise model, for the small-sample
     # factors and the consistency check alike.
+    svd, root = parts.svd, parts.root
     if fed_back is not None or svd is None or noise.shaping is not None or not noise.order:
         root = None
     elif root is None:
         root = unit_root(svd[0], noise)
-    factors = small_sample_factors(problem, state, np.asarray(free, dtype=bool), noise,
-                                   0.0 if fed_back is not None else removed_share, svd, root)
-    result.covariance = result.covariance * np.outer(factors, factors)
+    factors = small_sample_factors(free, noise, svd,
+                                   0.0 if fed_back is not None else removed_share, root)
+    # np.outer's product.
+    result.covariance = result.covariance * (factors[:, None] * factors)
     result.std_change = {name: value / factor for (name, value), factor in
                          zip(result.std.items(), restored)}
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
-    consistency = check_consistency(problem, state, noise, free, std, svd, root,
-                                    sensitivities)
+    consistency = check_consistency(problem, state, noise, free, std, parts, root)
     result.consistency = consistency
     result.std_noise = dict(consistency.std_noise)
     if consistency.consistent:
@@ -726,7 +772,7 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     widened = np.where(np.isfinite(spread) & (spread > std), spread, std)
     ratio = np.where(std > 0.0, widened / np.where(std > 0.0, std, 1.0), 1.0)
     ratio = np.where(np.isfinite(ratio), ratio, 1.0)
-    result.covariance = result.covariance * np.outer(ratio, ratio)
+    result.covariance = result.covariance * (ratio[:, None] * ratio)
     result.std = dict(zip(names, map(float, widened)))
     result.warnings = list(result.warnings) + [consistency.verdict]
     if result.residuals is not None:

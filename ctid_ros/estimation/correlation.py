@@ -10,16 +10,18 @@ The same correlation of the data themselves, after prewhitening the input, gives
 dead-time guess (:func:`prewhitened_delay`, section 12).
 """
 
+from bisect import bisect_left
 from functools import lru_cache
-from typing import Optional
+from typing import List, Optional
 
 from ctid_ros.core.data import Data
 from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
 import numpy as np
+from scipy import special
 
-__all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'chance_spread', 'fft_size',
-           'independent_of_input', 'input_correlation', 'prewhitened_delay',
-           'whitening_filter']
+__all__ = ['CONFIDENCE', 'autocorrelations', 'bartlett_span', 'bonferroni_quantile',
+           'chance_spread', 'fft_size', 'independent_of_input', 'input_correlation',
+           'prewhitened_delay', 'whitening_filter']
 
 # Standard deviations of a correlation under independence: about 1 % false alarms over a
 # hundred lags (two-sided normal tail 6e-5 per lag).
@@ -33,8 +35,7 @@ _RESIDUAL_WHITENING_ORDER = 4
 _NORMAL_CONDITION = 1e3
 
 
-# The sizes asked for are few (a record's length plus a few lag ranges) and the search is a
-# Python loop of dozens of steps: remembered.
+# The sizes asked for are few (a record's length plus a few lag ranges): remembered.
 @lru_cache(maxsize=256)
 def fft_size(count: int) -> int:
     """
@@ -42,18 +43,47 @@ def fft_size(count: int) -> int:
 
     Zero padding to it rather than to the next power of two gives the same correlations to
     rounding; numpy's FFT runs these lengths at about the same speed per sample, and the power
-    of two can be almost twice as long.
+    of two can be almost twice as long. Looked up among all such lengths up to ``2^32``; a
+    longer ``count`` (32 GB a series) gets the next power of two.
     """
-    best = 1 << max(count - 1, 0).bit_length()
+    sizes = _smooth_sizes()
+    if count > sizes[-1]:
+        return 1 << (count - 1).bit_length()
+    return sizes[bisect_left(sizes, count)]
+
+
+# Every length up to this is looked up (about 1 800 of them).
+_LARGEST_SMOOTH = 1 << 32
+
+
+@lru_cache(maxsize=1)
+def _smooth_sizes() -> List[int]:
+    """Return every ``2^a 3^b 5^c`` up to :data:`_LARGEST_SMOOTH`, ascending (built once)."""
+    sizes = []
     fives = 1
-    while fives < best:
+    while fives <= _LARGEST_SMOOTH:
         odd = fives
-        while odd < best:
-            # odd times the least power of two that reaches count
-            best = min(best, odd << max(-(-count // odd) - 1, 0).bit_length())
+        while odd <= _LARGEST_SMOOTH:
+            size = odd
+            while size <= _LARGEST_SMOOTH:
+                sizes.append(size)
+                size <<= 1
             odd *= 3
         fives *= 5
-    return best
+    return sorted(sizes)
+
+
+# A few test counts recur (the lags of each estimate, the blocks of each record): remembered.
+@lru_cache(maxsize=64)
+def bonferroni_quantile(family: float, tests: int) -> float:
+    """
+    Return the two-sided normal quantile for ``tests`` tests together at ``family``.
+
+    ``family`` is the probability of no alarm over all the tests (Bonferroni: each test's
+    two-sided tail is ``(1 - family) / tests``), for the residual analysis's lags and the
+    consistency check's blocks alike.
+    """
+    return float(special.ndtri(1.0 - (1.0 - family) / (2.0 * max(tests, 1))))
 
 
 def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) -> np.ndarray:
@@ -79,12 +109,14 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     """
     residual = np.asarray(residual, dtype=float)
     inputs = np.asarray(inputs, dtype=float).reshape(residual.size, -1)
-    used = np.flatnonzero(residual)
-    if used.size == 0:
+    first = _first_nonzero(residual)
+    if first is None:
         return np.zeros((max_lag + 1, inputs.shape[1]))
-    first = used[0]
-    error = np.zeros_like(residual)
-    error[first:] = residual[first:] - residual[first:].mean()
+    if first:
+        error = np.zeros_like(residual)
+        error[first:] = residual[first:] - residual[first:].mean()
+    else:
+        error = residual - residual.mean()
     centred = inputs - inputs.mean(axis=0)
     # Zero padding to N + max_lag keeps the circular correlation free of wrap-around.
     size = fft_size(residual.size + max_lag + 1)
@@ -92,6 +124,16 @@ def input_correlation(residual: np.ndarray, inputs: np.ndarray, max_lag: int) ->
     correlation = np.fft.irfft(spectrum, size, axis=0)[:max_lag + 1]
     scale = np.sqrt((error ** 2).sum() * (centred ** 2).sum(axis=0))
     return correlation / np.where(scale > 0.0, scale, 1.0)
+
+
+def _first_nonzero(values: np.ndarray) -> Optional[int]:
+    """Return the index of the first nonzero (or NaN, or True) of ``values``, None if none."""
+    if not values.size:
+        return None
+    nonzero = values != 0
+    # argmax of booleans stops at the first True: no index array of every nonzero.
+    first = int(nonzero.argmax())
+    return first if nonzero[first] else None
 
 
 def bartlett_span(count: int, max_lag: int) -> int:
@@ -172,10 +214,9 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
 
     """
     residual = np.asarray(residual, dtype=float)
-    used = np.flatnonzero(residual)
-    if used.size == 0:
+    first = _first_nonzero(residual)
+    if first is None:
         return True
-    first = used[0]
     count = residual.size - first
     inputs = np.asarray(inputs, dtype=float).reshape(residual.size, -1)
     if bound not in ('prewhitened', 'bartlett', 'white'):
@@ -314,9 +355,9 @@ def prewhitened_delay(data: Data) -> float:
     whitened_u = np.convolve(u, polynomial)[start:count]
     whitened_y = np.convolve(y, polynomial)[start:count]
     correlation = np.abs(input_correlation(whitened_y, whitened_u, count // 2)[:, 0])
-    significant = np.flatnonzero(correlation > CONFIDENCE / np.sqrt(count))
-    if significant.size == 0:
+    first = _first_nonzero(correlation > CONFIDENCE / np.sqrt(count))
+    if first is None:
         return 0.0
     # An output measured output_skew after its input instant shows the response that much
     # earlier in lags.
-    return max((significant[0] - 0.5) * data.ts - data.output_skew, 0.0)
+    return max((first - 0.5) * data.ts - data.output_skew, 0.0)

@@ -36,7 +36,7 @@ import warnings
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
 from ctid_ros.errors import DataError, EstimationError
-from ctid_ros.estimation.consistency import Consistency, with_consistency
+from ctid_ros.estimation.consistency import Consistency, CovarianceParts, with_consistency
 from ctid_ros.estimation.identifiability import (blind_combination, BlindCombination,
                                                  Sensitivities, structurally_blind)
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
@@ -285,20 +285,9 @@ class Uncertainty:
     restored_factors : ndarray or None
         Per parameter, the standard deviation with the restored noise model over that with the
         residual's own (1 for held parameters); None where the noise model was not restored.
-    svd : tuple of ndarray or None
-        The thin SVD of the column-scaled sensitivities of the free parameters, which the
-        checks after the covariance reuse (None if no parameter is free).
-    residual_noise : NoiseModel or None
-        The autoregressive model of the residual itself, before it was restored (``noise``
-        where it was not).
-    root : ndarray or None
-        ``U`` of ``svd`` filtered through ``noise``'s ``1/A`` backwards for unit innovations
-        (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
-    scaled : ndarray or None
-        The sensitivities of the free parameters over their column norms (1 for a zero
-        column): the matrix ``svd`` decomposes, for the checks after the covariance.
-    residual : ndarray or None
-        The residual at the estimate, on the fitted samples.
+    parts : CovarianceParts
+        The sensitivities, residual, decomposition and noise models behind the covariance,
+        which the checks after it use again.
 
     """
 
@@ -310,11 +299,7 @@ class Uncertainty:
     free: np.ndarray
     removed_share: float = 0.0
     restored_factors: Optional[np.ndarray] = None
-    svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
-    residual_noise: Optional[NoiseModel] = None
-    root: Optional[np.ndarray] = None
-    scaled: Optional[np.ndarray] = None
-    residual: Optional[np.ndarray] = None
+    parts: Optional[CovarianceParts] = None
 
 
 def covariance(problem: Problem, state: State,
@@ -346,10 +331,10 @@ def covariance(problem: Problem, state: State,
         # the two one-sided sensitivities (:class:`Sensitivities`).
         svd = np.linalg.svd(columns, full_matrices=False)
     model = noise_model(error, autocorrelation=autocorrelation)
+    rows = free.nonzero()[0]
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.
-    root = unit_root(svd[0], model) if model.order and free.any() else None
-    scaled, model = coloured_covariance(columns, error, int(free.sum()), svd,
-                                        model=model, root=root)
+    root = unit_root(svd[0], model) if model.order and rows.size else None
+    scaled, model = coloured_covariance(columns, error, rows.size, svd, model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(columns, error, svd, start=model)
     residual_noise = model
@@ -361,21 +346,20 @@ def covariance(problem: Problem, state: State,
         ratio = np.sqrt(restored[0].diagonal() / scaled.diagonal())
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
-        scaled, model = restored
-        root = None
+        scaled, model, root = restored
     result = np.full((params, params), np.nan)
     # np.ix_'s indexing and np.outer's product.
-    rows = free.nonzero()[0]
     result[rows[:, None], rows] = scaled / (scales[:, None] * scales)
     weakest = np.zeros(params)
     condition = 1.0
-    if free.any():
+    if rows.size:
         singular, vt = svd[1:]
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
-        weakest[free] = vt[-1] * np.sign(vt[-1][np.argmax(np.abs(vt[-1]))])
+        weakest[free] = vt[-1] * np.sign(vt[-1][np.abs(vt[-1]).argmax()])
+    parts = CovarianceParts(columns, scales, error, svd if rows.size else None, residual_noise,
+                            root)
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
-                       restored_factors, svd if free.any() else None, residual_noise, root,
-                       columns, error)
+                       restored_factors, parts)
 
 
 def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
@@ -507,10 +491,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
-                            uncertainty.removed_share, uncertainty.restored_factors,
-                            svd=uncertainty.svd, residual_noise=uncertainty.residual_noise,
-                            root=uncertainty.root,
-                            sensitivities=(uncertainty.scaled, uncertainty.residual))
+                            uncertainty.parts, uncertainty.removed_share,
+                            uncertainty.restored_factors)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

@@ -34,10 +34,12 @@ estimate distributed ``chi^2_nu / nu``. For white noise ``nu = N - n``; for a sl
 under noise of low-frequency power ``r`` times white, ``nu`` is about ``N / (2 r)``.
 """
 
+from functools import lru_cache
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
-from ctid_ros.estimation.noise import DEFAULT_CRITERION, noise_model, noise_root, NoiseModel
+from ctid_ros.estimation.noise import (DEFAULT_CRITERION, noise_model, noise_root, NoiseModel,
+                                       unit_root)
 import numpy as np
 
 __all__ = ['RESTORE_PASSES', 'low_frequency_level', 'noise_freedom', 'restored_covariance',
@@ -137,14 +139,16 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
                         svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
                         criterion: str = DEFAULT_CRITERION,
                         start: Optional[NoiseModel] = None
-                        ) -> Optional[Tuple[np.ndarray, NoiseModel]]:
+                        ) -> Optional[Tuple[np.ndarray, NoiseModel, np.ndarray]]:
     """
-    Return the sandwich covariance with the restored noise model, and that model.
+    Return the sandwich covariance with the restored noise model, that model and its root.
 
     ``psi``: the (column-scaled) sensitivities, ``svd`` their thin SVD if the caller has it;
     ``start``: the residual's own noise model. None if that model is white or shaped by a
     loop (the caller's covariance stands: ``N / (N - n)`` restores a white residual exactly).
     The restored variance already counts the removed degrees of freedom: no ``N / (N - n)``.
+    The root is ``U`` filtered through the restored model for unit innovations
+    (:func:`~ctid_ros.estimation.noise.unit_root`), for the checks after the covariance.
     """
     left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
@@ -153,8 +157,10 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
     if model is start or model.order == 0:
         return None
     mapping = right_t.T / singular
-    filtered = noise_root(left, model)
-    return mapping @ (filtered.T @ filtered) @ mapping.T, model
+    root = unit_root(left, model)
+    # noise_root(left, model) to the last bit (unit_root): one filter pass for both.
+    filtered = np.sqrt(model.innovation_variance) * root
+    return mapping @ (filtered.T @ filtered) @ mapping.T, model, root
 
 
 def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
@@ -174,13 +180,24 @@ def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
     # Through p x p Gram matrices: numpy's product of the long, reversed root with the
     # mapping does not reach BLAS speed.
     diagonal = np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
-    crosses = np.zeros((model.order,) + (root.shape[1],) * 2)
-    for lag in range(1, min(model.order, root.shape[0] - 1) + 1):
+    order = model.order
+    crosses = np.zeros((order,) + (root.shape[1],) * 2)
+    for lag in range(1, min(order, root.shape[0] - 1) + 1):
         crosses[lag - 1] = root[:-lag].T @ again[lag:]
     # Every lag's quadratic forms in one call.
     gradient = -np.einsum('ij,ljk,ik->il', mapping, crosses + crosses.transpose(0, 2, 1),
                           mapping) / diagonal[:, None]
     return np.log(diagonal), gradient
+
+
+# One noise order per estimate, and a few orders overall: remembered.
+@lru_cache(maxsize=64)
+def _toeplitz_steps(order: int) -> np.ndarray:
+    """Return ``i - j`` below the diagonal of an ``order`` square matrix, ``order`` above it."""
+    steps = np.subtract.outer(np.arange(order), np.arange(order))
+    steps[steps < 0] = order
+    steps.flags.writeable = False
+    return steps
 
 
 def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, count: int,
@@ -223,11 +240,11 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
     order = model.order
     if order:
         _, gradient = _log_diagonal(mapping, left, model, root)
-        # Lower triangular Toeplitz matrices of a_0 .. a_p-1 and a_p .. a_1, by indexing.
-        steps = np.subtract.outer(np.arange(order), np.arange(order))
-        below = steps >= 0
-        first = np.where(below, model.ar[np.where(below, steps, 0)], 0.0)
-        second = np.where(below, model.ar[:0:-1][np.where(below, steps, 0)], 0.0)
+        # Lower triangular Toeplitz matrices of a_0 .. a_p-1 and a_p .. a_1, by indexing
+        # (past the last coefficient: the zero appended above the diagonal).
+        steps = _toeplitz_steps(order)
+        first = np.concatenate([model.ar[:order], [0.0]])[steps]
+        second = np.concatenate([model.ar[:0:-1], [0.0]])[steps]
         inverse = first @ first.T - second @ second.T
         informative = count * (1.0 - min(max(removed_share, 0.0), 0.9))
         variance += np.einsum('ij,jk,ik->i', gradient, inverse, gradient) / informative

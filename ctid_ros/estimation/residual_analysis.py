@@ -18,10 +18,10 @@ chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 """
 
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Any, List, Optional, Sequence, Tuple
 
-from ctid_ros.estimation.correlation import bartlett_span, chance_spread, fft_size
+from ctid_ros.estimation.correlation import (bartlett_span, bonferroni_quantile, chance_spread,
+                                             fft_size)
 import numpy as np
 from scipy import special
 
@@ -40,32 +40,34 @@ def cross_correlation(first: np.ndarray, second: np.ndarray, lags: int) -> np.nd
 
     Means are removed first; computed by FFT. ``r(0)`` of a signal with itself is 1.
     """
-    first, second = _Spectrum(first, lags), _Spectrum(second, lags)
-    return first.correlation(second, lags)
+    spectra, energies, size = _centred_spectra(np.array([first, second], dtype=float), lags)
+    return _normalised(np.fft.irfft(spectra[0] * np.conj(spectra[1]), size), size, lags,
+                       np.sqrt(energies[0] * energies[1]))
 
 
-class _Spectrum:
+def _centred_spectra(rows: np.ndarray, lags: int) -> Tuple[np.ndarray, List[float], int]:
     """
-    A centred signal with its zero-padded FFT, for several correlations without refiltering.
+    Return the centred rows' zero-padded FFTs, their energies and the FFT length.
 
     Padded to at least the length plus ``lags`` samples: enough for correlations up to that lag
-    without wrapping around.
+    without wrapping around. Row by row as for each series alone (means and energies summed
+    along the row, one transform per row), in one call each.
     """
+    # np.mean's sum and division, without its wrappers.
+    centred = rows - np.add.reduce(rows, axis=1, keepdims=True) / rows.shape[1]
+    size = fft_size(rows.shape[1] + lags + 1)
+    return np.fft.rfft(centred, size), [float(row @ row) for row in centred], size
 
-    def __init__(self, values: np.ndarray, lags: int):
-        values = np.asarray(values, dtype=float)
-        self.centred = values - values.mean()
-        self.size = fft_size(values.size + lags + 1)
-        self.spectrum = np.fft.rfft(self.centred, self.size)
-        self.energy = float(self.centred @ self.centred)
 
-    def correlation(self, other: '_Spectrum', lags: int) -> np.ndarray:
-        """Return the normalised correlation with ``other`` at lags ``-lags..lags``."""
-        full = np.fft.irfft(self.spectrum * np.conj(other.spectrum), self.size)
-        values = np.concatenate([full[self.size - lags:], full[:lags + 1]]) if lags \
-            else full[:1]
-        scale = np.sqrt(self.energy * other.energy)
-        return values / scale if scale > 0.0 else np.zeros(2 * lags + 1)
+def _normalised(full: np.ndarray, size: int, lags: int, scale: np.ndarray) -> np.ndarray:
+    """
+    Return the correlations at lags ``-lags..lags`` of the circular ones ``full`` over ``scale``.
+
+    Along the last axis (one row per pair); 0 where ``scale`` is not positive.
+    """
+    values = np.concatenate([full[..., size - lags:], full[..., :lags + 1]], axis=-1)
+    positive = scale > 0.0
+    return np.where(positive, values / np.where(positive, scale, 1.0), 0.0)
 
 
 @dataclass
@@ -174,13 +176,6 @@ class ResidualAnalysis:
         }
 
 
-# A few test counts recur (the lags of each estimate): remembered.
-@lru_cache(maxsize=64)
-def _family_bound(tests: int) -> float:
-    """Return the normal quantile for about 1 % false alarms over ``tests`` values."""
-    return float(special.ndtri(1.0 - (1.0 - _FAMILY) / (2.0 * max(tests, 1))))
-
-
 def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[str],
                      lags: int = DEFAULT_LAGS) -> ResidualAnalysis:
     """
@@ -203,20 +198,28 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     inputs = np.asarray(inputs, dtype=float).reshape(count, -1)
     lags = int(max(1, min(lags, count // 4)))
     span = bartlett_span(count, lags)
-    error = _Spectrum(residual, span)
-    rho_e = error.correlation(error, span)
+    # The residual and every input transformed together; the residual's autocorrelation, its
+    # cross-correlation with each input and each input's autocorrelation (rows 0, 1..m and
+    # m + 1..2m) back in one inverse transform.
+    spectra, energies, size = _centred_spectra(np.concatenate([residual[None], inputs.T]),
+                                               span)
+    error, signals = spectra[:1], spectra[1:]
+    scales = np.sqrt([energies[0] * energy for energy in energies] +
+                     [energy * energy for energy in energies[1:]])[:, None]
+    correlations = _normalised(np.fft.irfft(np.concatenate([
+        error * np.conj(spectra), signals * np.conj(signals)]), size), size, span, scales)
+    rho_e = correlations[0]
     auto = rho_e[span:span + lags + 1]
     auto_bound = _Z_LAG / np.sqrt(count)
     # Bartlett: var r_eu(k) = sum_j rho_e(j) rho_u(j) / N, summed where both are correlated.
-    cross = np.zeros((2 * lags + 1, inputs.shape[1]))
-    spreads = np.zeros(inputs.shape[1])
-    for j in range(inputs.shape[1]):
-        signal = _Spectrum(inputs[:, j], span)
-        cross[:, j] = error.correlation(signal, lags)
-        spreads[j] = chance_spread(rho_e, signal.correlation(signal, span), count)
+    inputs_count = inputs.shape[1]
+    cross = correlations[1:inputs_count + 1, span - lags:span + lags + 1].T
+    spreads = np.array([chance_spread(rho_e, rho_u, count)
+                        for rho_u in correlations[inputs_count + 1:]])
     cross_bounds = _Z_LAG * spreads
-    z_all = _family_bound(lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
-    white = bool((np.abs(auto[1:]) <= z_all / np.sqrt(count)).all())
+    z_all = bonferroni_quantile(_FAMILY, lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
+    # No lag above the bound (a NaN is not white): the largest against it, in one reduction.
+    white = bool(np.maximum.reduce(np.abs(auto[1:]), initial=0.0) <= z_all / np.sqrt(count))
     correlated, worst = [], []
     feedback = False
     for j, name in enumerate(names):
