@@ -419,7 +419,7 @@ class StateVariableFilters:
                     nuisance.append(undelayed.free_responses(len(data)))
                 if problem.output_offset:
                     nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append((filter_of, y_parts.T, nuisance, {}, {}))
+            self._filters.append(_FilterSignals(filter_of, nuisance, y_parts.T))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
@@ -435,27 +435,25 @@ class StateVariableFilters:
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
         # The input parts of every filter that needs them, in one pass (filter_responses).
-        missing = [entry for entry in self._filters
-                   if (whole, fraction) not in entry[4] and fraction not in entry[3]]
+        key = (whole, fraction)
+        missing = [signals for signals in self._filters
+                   if key not in signals.by_shift and fraction not in signals.by_fraction]
         if missing:
-            parts = self._input_parts([entry[0] for entry in missing], fraction * ts)
-            for (_, _, _, by_fraction, _), part in zip(missing, parts):
+            parts = self._input_parts([signals.filter_of for signals in missing], fraction * ts)
+            for signals, part in zip(missing, parts):
+                by_fraction = signals.by_fraction
                 if len(by_fraction) >= _REMEMBERED_FRACTIONS:
                     del by_fraction[next(iter(by_fraction))]
                 by_fraction[fraction] = part
         factors = []
-        for filter_of, y_parts, nuisance, by_fraction, by_shift in self._filters:
-            if (whole, fraction) in by_shift:
-                factors.append(by_shift[whole, fraction])
-                continue
-            u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
-            triangular = _triangular_factor(np.concatenate(nuisance + [y_parts, -u_parts], axis=1))
-            leading = sum(part.shape[1] for part in nuisance)
-            factor = triangular[leading:, leading:]
-            factor.setflags(write=False)
-            if len(by_shift) >= _REMEMBERED_FACTORS:
-                del by_shift[next(iter(by_shift))]
-            by_shift[whole, fraction] = factor
+        for signals in self._filters:
+            by_shift = signals.by_shift
+            factor = by_shift.get(key)
+            if factor is None:
+                factor = signals.factor(whole - bank.trim, fraction)
+                if len(by_shift) >= _REMEMBERED_FACTORS:
+                    del by_shift[next(iter(by_shift))]
+                by_shift[key] = factor
             factors.append(factor)
         return factors
 
@@ -485,8 +483,61 @@ class StateVariableFilters:
         channels = [[response.outputs(self._u_powers)
                      for response in filter_responses(discretes, channel)]
                     for channel in self._bank.driving.T]
+        if len(channels) == 1:
+            # One channel's parts as they are: concatenating one array would copy it.
+            return [outputs.T for outputs in channels[0]]
         return [np.concatenate([outputs[index] for outputs in channels]).T
                 for index in range(len(discretes))]
+
+
+class _FilterSignals:
+    """
+    One state-variable filter's signals of the data, and the factors formed from them.
+
+    ``by_fraction``: the input parts (unshifted, the rows of the simulations' input) by the
+    dead time's fraction of a sample; ``by_shift``: the factors by the dead time's whole
+    samples and fraction. The columns a factor is formed from, ``[fixed, -u_parts]`` (the
+    initial-state and offset parts, the output parts, then the delayed input parts), live in
+    one array whose input columns each dead time writes over: no shifted copy, negated copy
+    and joined columns per dead time, and no fresh memory to map on a long record. So one
+    filter's factors are formed one at a time (a problem is fitted by one thread).
+    """
+
+    __slots__ = ('filter_of', 'leading', 'by_fraction', 'by_shift', '_fixed', '_columns')
+
+    def __init__(self, filter_of: Tuple[int, float, float], nuisance: List[np.ndarray],
+                 y_parts: np.ndarray):
+        self.filter_of = filter_of
+        self.leading = sum(part.shape[1] for part in nuisance)
+        self.by_fraction: Dict[float, np.ndarray] = {}
+        self.by_shift: Dict[Tuple[int, float], np.ndarray] = {}
+        self._fixed: List[np.ndarray] = nuisance + [y_parts]
+        self._columns: Optional[np.ndarray] = None
+
+    def factor(self, offset: int, fraction: float) -> np.ndarray:
+        """Return the factor of the columns with ``u_parts[k]`` the input parts' row ``k - offset``."""
+        parts = self.by_fraction[fraction]
+        columns = self._columns
+        if columns is None:
+            # Formed at the first factor, when the input parts' width is known.
+            fixed = np.concatenate(self._fixed, axis=1) if len(self._fixed) > 1 \
+                else self._fixed[0]
+            columns = np.empty((fixed.shape[0], fixed.shape[1] + parts.shape[1]))
+            columns[:, :fixed.shape[1]] = fixed
+            self._columns, self._fixed = columns, []
+        count = columns.shape[0]
+        inputs = columns[:, columns.shape[1] - parts.shape[1]:]
+        # -shifted(parts, -offset)[:count], written in place (its zeros negated too).
+        if offset >= 0:
+            rows = count - offset if offset < count else 0
+            inputs[:count - rows] = -0.0
+            np.negative(parts[:rows], out=inputs[count - rows:])
+        else:
+            np.negative(parts[-offset:count - offset], out=inputs)
+        leading = self.leading
+        factor = _triangular_factor(columns)[leading:, leading:]
+        factor.setflags(write=False)
+        return factor
 
 
 @lru_cache(maxsize=_SHARED_FILTERS)
@@ -512,7 +563,7 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     ``cond(R_s)^2`` rounding errors, so it serves only where the scaled columns are well
     conditioned (:data:`_GRAM_CONDITION`; the state-variable filters of the reference systems
     give 1-170); otherwise LAPACK's QR factorisation (geqrf, as ``np.linalg.qr(mode='r')``
-    calls it) of the scaled columns.
+    calls it) of the scaled columns. ``columns`` is left as it is.
     """
     gram = columns.T @ columns
     scales = np.sqrt(gram.diagonal())
