@@ -25,7 +25,7 @@ import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, filter_responses, shifted
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, filter_responses
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
@@ -515,7 +515,7 @@ class _FilterSignals:
         self._columns: Optional[np.ndarray] = None
 
     def factor(self, offset: int, fraction: float) -> np.ndarray:
-        """Return the factor of the columns with ``u_parts[k]`` the input parts' row ``k - offset``."""
+        """Return the factor of the columns, ``u_parts[k]`` the input parts' ``k - offset``."""
         parts = self.by_fraction[fraction]
         columns = self._columns
         if columns is None:
