@@ -30,7 +30,8 @@ from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
-from ctid_ros.estimation.linear_algebra import least_squares, solve_or_none
+from ctid_ros.estimation.linear_algebra import (bounded_least_squares, least_squares,
+                                                solve_or_none)
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -792,11 +793,8 @@ class _EquationError:
         moved = values + step
         if np.logical_and.reduce((moved >= lower) & (moved <= upper)):
             return moved
-        # Imported here: the bounded solve is rare, and scipy.optimize is slow to import.
-        from scipy import optimize
-        return values + optimize.lsq_linear(jacobian, -residual,
-                                            bounds=(lower - values, upper - values),
-                                            method='bvls').x
+        return values + bounded_least_squares(jacobian, -residual, lower - values,
+                                              upper - values)
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,
