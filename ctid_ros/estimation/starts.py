@@ -285,10 +285,9 @@ def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.nd
 
     """
     best, chosen = None, None
-    filters.factors(tau)            # every filter's input parts in one pass, kept for select
-    for index in range(filters.count):
-        state = best_candidate(problem, distinct(equation_error_fits(
-            problem, starts, free, tau, filters.select(index))), seen)
+    # Every filter's fits first: their input parts in one pass, the fit's set-up done once.
+    for index, fits in enumerate(_fits_by_filter(problem, starts, free, tau, filters)):
+        state = best_candidate(problem, distinct(fits), seen)
         if state is not None and (best is None or state.cost < best.cost):
             best, chosen = state, index
     return best, chosen
@@ -619,14 +618,22 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
     their start values.
 
     """
+    return [theta for fits in _fits_by_filter(problem, starts, free, tau, filters)
+            for theta in fits]
+
+
+def _fits_by_filter(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
+                    tau: float, filters: StateVariableFilters) -> List[List[np.ndarray]]:
+    """Return :func:`equation_error_fits`, filter by filter (none for nothing free)."""
     model = problem.model
     if not free.any():
-        return []
+        return [[] for _ in range(filters.count)]
     lower, upper = problem.lower[free], problem.upper[free]
-    fits = []
+    by_filter = []
     equation = _EquationError(model, free)
     solution = equation.linear_solution if model.is_affine else equation.local_solution
     for factor in filters.factors(tau):
+        fits = []
         for start in starts:
             theta = start.copy()
             try:
@@ -634,7 +641,8 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
             fits.append(theta)
-    return fits
+        by_filter.append(fits)
+    return by_filter
 
 
 class _EquationError:
