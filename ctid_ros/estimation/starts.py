@@ -550,8 +550,8 @@ def _filter_discretized(order: int, lam: float, ts: float, delay: float, hold: s
     and length (:func:`filter_bandwidths`) shares it. Kept here although
     :meth:`ContinuousFilter.discretize` keeps its discretisations too: a hit here is one call,
     where reaching that cache builds the realisation first (``np.poly``, its roots and
-    balancing) and then forms the cache's key under its lock, some forty calls for each of the
-    six filters of a problem.
+    balancing) and then forms the cache's key under its lock: 67 to 96 profiled calls (orders
+    1 to 4) for each of the six filters of a problem.
     """
     realization = ContinuousFilter(np.poly(np.full(order, -lam)) if order else np.ones(1))
     return realization.discretize(ts, delay, hold)
