@@ -20,6 +20,7 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 
 from functools import lru_cache
 import math
+import threading
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
@@ -494,39 +495,34 @@ class _FilterSignals:
     """
     One state-variable filter's signals of the data, and the factors formed from them.
 
-    ``by_fraction``: the input parts (unshifted, the rows of the simulations' input) by the
-    dead time's fraction of a sample; ``by_shift``: the factors by the dead time's whole
-    samples and fraction. The columns a factor is formed from, ``[fixed, -u_parts]`` (the
-    initial-state and offset parts, the output parts, then the delayed input parts), live in
-    one array whose input columns each dead time writes over: no shifted copy, negated copy
-    and joined columns per dead time, and no fresh memory to map on a long record. So one
-    filter's factors are formed one at a time (a problem is fitted by one thread).
+    ``fixed``: the columns that do not depend on the dead time (the initial-state and offset
+    parts, then the output parts); ``by_fraction``: the input parts (unshifted, the rows of
+    the simulations' input) by the dead time's fraction of a sample; ``by_shift``: the factors
+    by the dead time's whole samples and fraction. A factor's columns ``[fixed, -u_parts]``
+    are written into a buffer of the thread's (:func:`_columns_buffer`): the fixed ones when
+    the buffer last held another filter's, the delayed input parts every time (no shifted
+    copy, negated copy and joined columns per dead time).
     """
 
-    __slots__ = ('filter_of', 'leading', 'by_fraction', 'by_shift', '_fixed', '_columns')
+    __slots__ = ('filter_of', 'fixed', 'leading', 'by_fraction', 'by_shift', 'own_columns',
+                 '__weakref__')
 
     def __init__(self, filter_of: Tuple[int, float, float], nuisance: List[np.ndarray],
                  y_parts: np.ndarray):
         self.filter_of = filter_of
+        self.fixed = np.concatenate(nuisance + [y_parts], axis=1) if nuisance else y_parts
         self.leading = sum(part.shape[1] for part in nuisance)
         self.by_fraction: Dict[float, np.ndarray] = {}
         self.by_shift: Dict[Tuple[int, float], np.ndarray] = {}
-        self._fixed: List[np.ndarray] = nuisance + [y_parts]
-        self._columns: Optional[np.ndarray] = None
+        # Columns too long for the thread's buffers (:data:`_KEPT_COLUMNS_SIZE`), kept here.
+        self.own_columns: Optional[np.ndarray] = None
 
     def factor(self, offset: int, fraction: float) -> np.ndarray:
         """Return the factor of the columns, ``u_parts[k]`` the input parts' ``k - offset``."""
-        parts = self.by_fraction[fraction]
-        columns = self._columns
-        if columns is None:
-            # Formed at the first factor, when the input parts' width is known.
-            fixed = np.concatenate(self._fixed, axis=1) if len(self._fixed) > 1 \
-                else self._fixed[0]
-            columns = np.empty((fixed.shape[0], fixed.shape[1] + parts.shape[1]))
-            columns[:, :fixed.shape[1]] = fixed
-            self._columns, self._fixed = columns, []
-        count = columns.shape[0]
-        inputs = columns[:, columns.shape[1] - parts.shape[1]:]
+        parts, fixed = self.by_fraction[fraction], self.fixed
+        count, size = fixed.shape
+        columns = _columns_buffer(self, (count, size + parts.shape[1]))
+        inputs = columns[:, size:]
         # -shifted(parts, -offset)[:count], written in place (its zeros negated too).
         if offset >= 0:
             rows = count - offset if offset < count else 0
@@ -538,6 +534,39 @@ class _FilterSignals:
         factor = _triangular_factor(columns)[leading:, leading:]
         factor.setflags(write=False)
         return factor
+
+
+# Per thread, the columns buffers of the latest filters: a factor's columns go into memory the
+# thread has written before, where a new array of a record's length would map fresh pages
+# (each first write a page fault: on a 10 000-sample record more time than the filling).
+# At most _KEPT_COLUMNS buffers of at most _KEPT_COLUMNS_SIZE numbers (2 MiB) each stay with a
+# thread; longer columns stay with their filter's signals, as long as the problem.
+_COLUMNS = threading.local()
+_KEPT_COLUMNS = 6
+_KEPT_COLUMNS_SIZE = 1 << 18
+
+
+def _columns_buffer(signals: _FilterSignals, shape: Tuple[int, int]) -> np.ndarray:
+    """Return a buffer for the columns of ``signals``, its fixed columns filled."""
+    if shape[0] * shape[1] > _KEPT_COLUMNS_SIZE:
+        buffer = signals.own_columns
+        if buffer is None or buffer.shape != shape:
+            buffer = signals.own_columns = np.empty(shape)
+            buffer[:, :signals.fixed.shape[1]] = signals.fixed
+        return buffer
+    kept = getattr(_COLUMNS, 'buffers', None)
+    if kept is None:
+        kept = _COLUMNS.buffers = {}
+    key = signals.filter_of, shape
+    buffer, filler = kept.pop(key, (None, None))
+    if buffer is None:
+        buffer = np.empty(shape)
+    if filler is None or filler() is not signals:
+        buffer[:, :signals.fixed.shape[1]] = signals.fixed
+    kept[key] = buffer, weakref.ref(signals)
+    if len(kept) > _KEPT_COLUMNS:
+        del kept[next(iter(kept))]
+    return buffer
 
 
 @lru_cache(maxsize=_SHARED_FILTERS)
