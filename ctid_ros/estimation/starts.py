@@ -417,10 +417,10 @@ class StateVariableFilters:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
                 undelayed = _filter_discretized(*filter_of, 0.0, 'zoh')
                 if problem.initial_state:
-                    nuisance.append(undelayed.free_responses(len(data)))
+                    nuisance.append(undelayed.free_responses(len(data)).T)
                 if problem.output_offset:
-                    nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append(_FilterSignals(filter_of, nuisance, y_parts.T))
+                    nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]))
+            self._filters.append(_FilterSignals(filter_of, nuisance, y_parts))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
@@ -473,11 +473,11 @@ class StateVariableFilters:
     def _input_parts(self, filters_of: List[Tuple[int, float, float]], delay: float
                      ) -> List[np.ndarray]:
         """
-        Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns, for every filter.
+        Return ``p^j/E e^{-delay p} u_c`` for every channel, as rows, for every filter.
 
         ``filters_of`` are the filters' ``(order, lam, ts)``. The input is the one the
         simulations run on (extended by a sample under an output skew, whose extra dead time
-        ``delay`` includes): the caller drops the first row then.
+        ``delay`` includes): the caller drops the first sample then.
         """
         discretes = [_filter_discretized(*filter_of, delay, self._bank.intersample)
                      for filter_of in filters_of]
@@ -486,8 +486,8 @@ class StateVariableFilters:
                     for channel in self._bank.driving.T]
         if len(channels) == 1:
             # One channel's parts as they are: concatenating one array would copy it.
-            return [outputs.T for outputs in channels[0]]
-        return [np.concatenate([outputs[index] for outputs in channels]).T
+            return channels[0]
+        return [np.concatenate([outputs[index] for outputs in channels])
                 for index in range(len(discretes))]
 
 
@@ -495,76 +495,79 @@ class _FilterSignals:
     """
     One state-variable filter's signals of the data, and the factors formed from them.
 
-    ``fixed``: the columns that do not depend on the dead time (the initial-state and offset
-    parts, then the output parts); ``by_fraction``: the input parts (unshifted, the rows of
-    the simulations' input) by the dead time's fraction of a sample; ``by_shift``: the factors
-    by the dead time's whole samples and fraction. A factor's columns ``[fixed, -u_parts]``
-    are written into a buffer of the thread's (:func:`_columns_buffer`): the fixed ones when
-    the buffer last held another filter's, the delayed input parts every time (no shifted
-    copy, negated copy and joined columns per dead time).
+    The signals are rows (one per column of the equation error's regressors): ``fixed``, the
+    ones that do not depend on the dead time (the initial-state and offset parts, then the
+    output parts); ``by_fraction``, the input parts (unshifted, as long as the simulations'
+    input) by the dead time's fraction of a sample; ``by_shift``, the factors by the dead
+    time's whole samples and fraction. A factor's signals ``[fixed; -u_parts]`` are written
+    into a buffer of the thread's (:func:`_signals_buffer`): the fixed ones when the buffer
+    last held another filter's, the delayed input parts every time (no shifted copy, negated
+    copy and joined columns per dead time), each a contiguous copy of whole rows.
     """
 
-    __slots__ = ('filter_of', 'fixed', 'leading', 'by_fraction', 'by_shift', 'own_columns',
+    __slots__ = ('filter_of', 'fixed', 'leading', 'by_fraction', 'by_shift', 'own_signals',
                  '__weakref__')
 
     def __init__(self, filter_of: Tuple[int, float, float], nuisance: List[np.ndarray],
                  y_parts: np.ndarray):
         self.filter_of = filter_of
-        self.fixed = np.concatenate(nuisance + [y_parts], axis=1) if nuisance else y_parts
-        self.leading = sum(part.shape[1] for part in nuisance)
+        self.fixed = np.concatenate(nuisance + [y_parts]) if nuisance else y_parts
+        self.leading = sum(part.shape[0] for part in nuisance)
         self.by_fraction: Dict[float, np.ndarray] = {}
         self.by_shift: Dict[Tuple[int, float], np.ndarray] = {}
-        # Columns too long for the thread's buffers (:data:`_KEPT_COLUMNS_SIZE`), kept here.
-        self.own_columns: Optional[np.ndarray] = None
+        # Signals too long for the thread's buffers (:data:`_KEPT_SIGNALS_SIZE`), kept here.
+        self.own_signals: Optional[np.ndarray] = None
 
     def factor(self, offset: int, fraction: float) -> np.ndarray:
         """Return the factor of the columns, ``u_parts[k]`` the input parts' ``k - offset``."""
         parts, fixed = self.by_fraction[fraction], self.fixed
-        count, size = fixed.shape
-        columns = _columns_buffer(self, (count, size + parts.shape[1]))
-        inputs = columns[:, size:]
-        # -shifted(parts, -offset)[:count], written in place (its zeros negated too).
+        size, count = fixed.shape
+        signals = _signals_buffer(self, (size + parts.shape[0], count))
+        inputs = signals[size:]
+        # -shifted(parts.T, -offset)[:count].T, written in place (its zeros negated too).
         if offset >= 0:
-            rows = count - offset if offset < count else 0
-            inputs[:count - rows] = -0.0
-            np.negative(parts[:rows], out=inputs[count - rows:])
+            samples = count - offset if offset < count else 0
+            inputs[:, :count - samples] = -0.0
+            np.negative(parts[:, :samples], out=inputs[:, count - samples:])
         else:
-            np.negative(parts[-offset:count - offset], out=inputs)
+            np.negative(parts[:, -offset:count - offset], out=inputs)
         leading = self.leading
-        factor = _triangular_factor(columns)[leading:, leading:]
+        # The columns are the signals' transpose (a view): the Gram matrix signals @ signals.T
+        # is the product numpy forms for columns.T @ columns of the columns in rows, to the bit.
+        factor = _triangular_factor(signals.T)[leading:, leading:]
         factor.setflags(write=False)
         return factor
 
 
-# Per thread, the columns buffers of the latest filters: a factor's columns go into memory the
+# Per thread, the signals buffers of the latest filters: a factor's signals go into memory the
 # thread has written before, where a new array of a record's length would map fresh pages
 # (each first write a page fault: on a 10 000-sample record more time than the filling).
-# At most _KEPT_COLUMNS buffers of at most _KEPT_COLUMNS_SIZE numbers (2 MiB) each stay with a
-# thread; longer columns stay with their filter's signals, as long as the problem.
-_COLUMNS = threading.local()
-_KEPT_COLUMNS = 6
-_KEPT_COLUMNS_SIZE = 1 << 18
+# At most _KEPT_SIGNALS buffers of at most _KEPT_SIGNALS_SIZE numbers (2 MiB) each stay with a
+# thread; longer signals stay with their filter, as long as the problem.
+_SIGNALS = threading.local()
+_KEPT_SIGNALS = 6
+_KEPT_SIGNALS_SIZE = 1 << 18
 
 
-def _columns_buffer(signals: _FilterSignals, shape: Tuple[int, int]) -> np.ndarray:
-    """Return a buffer for the columns of ``signals``, its fixed columns filled."""
-    if shape[0] * shape[1] > _KEPT_COLUMNS_SIZE:
-        buffer = signals.own_columns
+def _signals_buffer(signals: _FilterSignals, shape: Tuple[int, int]) -> np.ndarray:
+    """Return a buffer for the rows of ``signals``' factors, its fixed rows filled."""
+    if shape[0] * shape[1] > _KEPT_SIGNALS_SIZE:
+        buffer = signals.own_signals
         if buffer is None or buffer.shape != shape:
-            buffer = signals.own_columns = np.empty(shape)
-            buffer[:, :signals.fixed.shape[1]] = signals.fixed
+            buffer = signals.own_signals = np.empty(shape)
+            buffer[:signals.fixed.shape[0]] = signals.fixed
         return buffer
-    kept = getattr(_COLUMNS, 'buffers', None)
+    kept = getattr(_SIGNALS, 'buffers', None)
     if kept is None:
-        kept = _COLUMNS.buffers = {}
+        kept = _SIGNALS.buffers = {}
     key = signals.filter_of, shape
     buffer, filler = kept.pop(key, (None, None))
     if buffer is None:
         buffer = np.empty(shape)
     if filler is None or filler() is not signals:
-        buffer[:, :signals.fixed.shape[1]] = signals.fixed
+        buffer[:signals.fixed.shape[0]] = signals.fixed
     kept[key] = buffer, weakref.ref(signals)
-    if len(kept) > _KEPT_COLUMNS:
+    if len(kept) > _KEPT_SIGNALS:
         del kept[next(iter(kept))]
     return buffer
 
@@ -604,6 +607,8 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     cholesky, info = lapack.dpotrf(gram / (scales[:, None] * scales))      # np.outer's
     if info == 0 and lapack.dtrcon(cholesky)[0] > 1.0 / _GRAM_CONDITION:
         return cholesky * scales
+    # Columns in rows, as numpy reduces and divides them (a transposed view rounds otherwise).
+    columns = np.ascontiguousarray(columns)
     scales = np.linalg.norm(columns, axis=0)
     scales[scales == 0.0] = 1.0
     factored, _, _, info = lapack.dgeqrf(np.asfortranarray(columns / scales), overwrite_a=True)
