@@ -532,8 +532,8 @@ class _FilterSignals:
         else:
             np.negative(parts[:, -offset:count - offset], out=inputs)
         leading = self.leading
-        # The columns are the signals' transpose (a view): the Gram matrix signals @ signals.T
-        # is the product numpy forms for columns.T @ columns of the columns in rows, to the bit.
+        # The columns are the buffer's transpose, a view: numpy's Gram matrix of them
+        # (signals @ signals.T) is the one of the same columns laid out row by row, to the bit.
         factor = _triangular_factor(signals.T)[leading:, leading:]
         factor.setflags(write=False)
         return factor
@@ -607,7 +607,7 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     cholesky, info = lapack.dpotrf(gram / (scales[:, None] * scales))      # np.outer's
     if info == 0 and lapack.dtrcon(cholesky)[0] > 1.0 / _GRAM_CONDITION:
         return cholesky * scales
-    # Columns in rows, as numpy reduces and divides them (a transposed view rounds otherwise).
+    # The columns laid out row by row: numpy's norms sum a strided axis in another order.
     columns = np.ascontiguousarray(columns)
     scales = np.linalg.norm(columns, axis=0)
     scales[scales == 0.0] = 1.0
