@@ -707,6 +707,17 @@ class _EquationError:
         # After the coefficients, one row per coefficient of its derivatives by the
         # parameters: the free ones' gradients of [den; num].
         self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
+        # The latest start evaluated, and its [den; num] and their gradients: every filter
+        # fits from the same starts.
+        self._latest: Tuple[Optional[bytes], Optional[Tuple[np.ndarray, ...]]] = (None, None)
+
+    def _at(self, point: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the evaluation at ``point``, its ``[den; num]`` and their gradients' rows."""
+        key = point.tobytes()
+        if key != self._latest[0]:
+            evaluated = self._evaluate(point)
+            self._latest = key, (evaluated, evaluated[self._order], evaluated[self._gradient].T)
+        return self._latest[1]
 
     def _stabilized_array(self, theta: np.ndarray) -> np.ndarray:
         """Return ``[den; num]`` and then each one's derivatives by the parameters, flat."""
@@ -738,7 +749,7 @@ class _EquationError:
         # (the evaluation returns a new array and keeps nothing of it).
         point = start.copy()
         point[positions] = values
-        evaluated = evaluate(point)
+        evaluated = self._at(point)[0]
         residual = factor @ evaluated[order]
         # The products of the fit's own arrays (the Gram matrix, gradient and cost) by
         # ndarray.dot: the same numbers as the matmul operator's, without its ufunc machinery's
@@ -832,9 +843,9 @@ class _EquationError:
                         upper: np.ndarray) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        evaluated = self._evaluate(start)
-        jacobian = factor @ evaluated[self._gradient].T
-        residual = factor @ evaluated[self._order]
+        _, coefficients, gradients = self._at(start)
+        jacobian = factor @ gradients
+        residual = factor @ coefficients
         step = least_squares(jacobian, -residual)
         moved = values + step
         if np.logical_and.reduce((moved >= lower) & (moved <= upper)):
