@@ -144,8 +144,11 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
             lowest[0] = state
         return state
 
-    trials = {tau: [fitted(tau, filters.select(index)) for index in range(filters.count)]
-              for tau in grid[coarse]}
+    def by_every_filter(tau: float) -> List[Optional[State]]:
+        filters.factors(tau)        # every filter's input parts of a new fraction in one pass
+        return [fitted(tau, filters.select(index)) for index in range(filters.count)]
+
+    trials = {tau: by_every_filter(tau) for tau in grid[coarse]}
     costs = np.array([[np.inf if state is None else state.cost for state in row]
                       for row in trials.values()]).reshape(-1, filters.count)
     index = int(np.argmin(np.min(costs, axis=0))) if np.isfinite(costs).any() \

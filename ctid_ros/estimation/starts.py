@@ -20,17 +20,19 @@ The equations are sections 10 and 11 of ``docs/algorithm.md``.
 
 from functools import lru_cache
 import math
+import threading
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import weakref
 
 from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
-from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, filter_responses, shifted
+from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, filter_responses
 from ctid_ros.errors import EstimationError, ModelError
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
-from ctid_ros.estimation.linear_algebra import least_squares, solve_or_none
+from ctid_ros.estimation.linear_algebra import (bounded_least_squares, least_squares,
+                                                solve_or_none)
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -284,10 +286,9 @@ def _best_filter_fit(problem: Problem, starts: Sequence[np.ndarray], free: np.nd
 
     """
     best, chosen = None, None
-    filters.factors(tau)            # every filter's input parts in one pass, kept for select
-    for index in range(filters.count):
-        state = best_candidate(problem, distinct(equation_error_fits(
-            problem, starts, free, tau, filters.select(index))), seen)
+    # Every filter's fits first: their input parts in one pass, the fit's set-up done once.
+    for index, fits in enumerate(_fits_by_filter(problem, starts, free, tau, filters)):
+        state = best_candidate(problem, distinct(fits), seen)
         if state is not None and (best is None or state.cost < best.cost):
             best, chosen = state, index
     return best, chosen
@@ -416,10 +417,10 @@ class StateVariableFilters:
                 # Both act on y from t_0, so they are filtered without the input's dead time.
                 undelayed = _filter_discretized(*filter_of, 0.0, 'zoh')
                 if problem.initial_state:
-                    nuisance.append(undelayed.free_responses(len(data)))
+                    nuisance.append(undelayed.free_responses(len(data)).T)
                 if problem.output_offset:
-                    nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]).T)
-            self._filters.append((filter_of, y_parts.T, nuisance, {}, {}))
+                    nuisance.append(undelayed.outputs(np.ones(len(data)), [np.ones(1)]))
+            self._filters.append(_FilterSignals(filter_of, nuisance, y_parts))
 
     def factors(self, tau: float) -> List[np.ndarray]:
         """
@@ -435,27 +436,25 @@ class StateVariableFilters:
         whole = int(np.floor(delay / ts + 1e-9))
         fraction = round(max(delay / ts - whole, 0.0), 9)
         # The input parts of every filter that needs them, in one pass (filter_responses).
-        missing = [entry for entry in self._filters
-                   if (whole, fraction) not in entry[4] and fraction not in entry[3]]
+        key = (whole, fraction)
+        missing = [signals for signals in self._filters
+                   if key not in signals.by_shift and fraction not in signals.by_fraction]
         if missing:
-            parts = self._input_parts([entry[0] for entry in missing], fraction * ts)
-            for (_, _, _, by_fraction, _), part in zip(missing, parts):
+            parts = self._input_parts([signals.filter_of for signals in missing], fraction * ts)
+            for signals, part in zip(missing, parts):
+                by_fraction = signals.by_fraction
                 if len(by_fraction) >= _REMEMBERED_FRACTIONS:
                     del by_fraction[next(iter(by_fraction))]
                 by_fraction[fraction] = part
         factors = []
-        for filter_of, y_parts, nuisance, by_fraction, by_shift in self._filters:
-            if (whole, fraction) in by_shift:
-                factors.append(by_shift[whole, fraction])
-                continue
-            u_parts = shifted(by_fraction[fraction], -whole)[bank.trim:]
-            triangular = _triangular_factor(np.concatenate(nuisance + [y_parts, -u_parts], axis=1))
-            leading = sum(part.shape[1] for part in nuisance)
-            factor = triangular[leading:, leading:]
-            factor.setflags(write=False)
-            if len(by_shift) >= _REMEMBERED_FACTORS:
-                del by_shift[next(iter(by_shift))]
-            by_shift[whole, fraction] = factor
+        for signals in self._filters:
+            by_shift = signals.by_shift
+            factor = by_shift.get(key)
+            if factor is None:
+                factor = signals.factor(whole - bank.trim, fraction)
+                if len(by_shift) >= _REMEMBERED_FACTORS:
+                    del by_shift[next(iter(by_shift))]
+                by_shift[key] = factor
             factors.append(factor)
         return factors
 
@@ -474,19 +473,103 @@ class StateVariableFilters:
     def _input_parts(self, filters_of: List[Tuple[int, float, float]], delay: float
                      ) -> List[np.ndarray]:
         """
-        Return ``p^j/E e^{-delay p} u_c`` for every channel, as columns, for every filter.
+        Return ``p^j/E e^{-delay p} u_c`` for every channel, as rows, for every filter.
 
         ``filters_of`` are the filters' ``(order, lam, ts)``. The input is the one the
         simulations run on (extended by a sample under an output skew, whose extra dead time
-        ``delay`` includes): the caller drops the first row then.
+        ``delay`` includes): the caller drops the first sample then.
         """
         discretes = [_filter_discretized(*filter_of, delay, self._bank.intersample)
                      for filter_of in filters_of]
         channels = [[response.outputs(self._u_powers)
                      for response in filter_responses(discretes, channel)]
                     for channel in self._bank.driving.T]
-        return [np.concatenate([outputs[index] for outputs in channels]).T
+        if len(channels) == 1:
+            # One channel's parts as they are: concatenating one array would copy it.
+            return channels[0]
+        return [np.concatenate([outputs[index] for outputs in channels])
                 for index in range(len(discretes))]
+
+
+class _FilterSignals:
+    """
+    One state-variable filter's signals of the data, and the factors formed from them.
+
+    The signals are rows (one per column of the equation error's regressors): ``fixed``, the
+    ones that do not depend on the dead time (the initial-state and offset parts, then the
+    output parts); ``by_fraction``, the input parts (unshifted, as long as the simulations'
+    input) by the dead time's fraction of a sample; ``by_shift``, the factors by the dead
+    time's whole samples and fraction. A factor's signals ``[fixed; -u_parts]`` are written
+    into a buffer of the thread's (:func:`_signals_buffer`): the fixed ones when the buffer
+    last held another filter's, the delayed input parts every time (no shifted copy, negated
+    copy and joined columns per dead time), each a contiguous copy of whole rows.
+    """
+
+    __slots__ = ('filter_of', 'fixed', 'leading', 'by_fraction', 'by_shift', 'own_signals',
+                 '__weakref__')
+
+    def __init__(self, filter_of: Tuple[int, float, float], nuisance: List[np.ndarray],
+                 y_parts: np.ndarray):
+        self.filter_of = filter_of
+        self.fixed = np.concatenate(nuisance + [y_parts]) if nuisance else y_parts
+        self.leading = sum(part.shape[0] for part in nuisance)
+        self.by_fraction: Dict[float, np.ndarray] = {}
+        self.by_shift: Dict[Tuple[int, float], np.ndarray] = {}
+        # Signals too long for the thread's buffers (:data:`_KEPT_SIGNALS_SIZE`), kept here.
+        self.own_signals: Optional[np.ndarray] = None
+
+    def factor(self, offset: int, fraction: float) -> np.ndarray:
+        """Return the factor of the columns, ``u_parts[k]`` the input parts' ``k - offset``."""
+        parts, fixed = self.by_fraction[fraction], self.fixed
+        size, count = fixed.shape
+        signals = _signals_buffer(self, (size + parts.shape[0], count))
+        inputs = signals[size:]
+        # -shifted(parts.T, -offset)[:count].T, written in place (its zeros negated too).
+        if offset >= 0:
+            samples = count - offset if offset < count else 0
+            inputs[:, :count - samples] = -0.0
+            np.negative(parts[:, :samples], out=inputs[:, count - samples:])
+        else:
+            np.negative(parts[:, -offset:count - offset], out=inputs)
+        leading = self.leading
+        # The columns are the buffer's transpose, a view: numpy's Gram matrix of them
+        # (signals @ signals.T) is the one of the same columns laid out row by row, to the bit.
+        factor = _triangular_factor(signals.T)[leading:, leading:]
+        factor.setflags(write=False)
+        return factor
+
+
+# Per thread, the signals buffers of the latest filters: a factor's signals go into memory the
+# thread has written before, where a new array of a record's length would map fresh pages
+# (each first write a page fault: on a 10 000-sample record more time than the filling).
+# At most _KEPT_SIGNALS buffers of at most _KEPT_SIGNALS_SIZE numbers (2 MiB) each stay with a
+# thread; longer signals stay with their filter, as long as the problem.
+_SIGNALS = threading.local()
+_KEPT_SIGNALS = 6
+_KEPT_SIGNALS_SIZE = 1 << 18
+
+
+def _signals_buffer(signals: _FilterSignals, shape: Tuple[int, int]) -> np.ndarray:
+    """Return a buffer for the rows of ``signals``' factors, its fixed rows filled."""
+    if shape[0] * shape[1] > _KEPT_SIGNALS_SIZE:
+        buffer = signals.own_signals
+        if buffer is None or buffer.shape != shape:
+            buffer = signals.own_signals = np.empty(shape)
+            buffer[:signals.fixed.shape[0]] = signals.fixed
+        return buffer
+    kept = getattr(_SIGNALS, 'buffers', None)
+    if kept is None:
+        kept = _SIGNALS.buffers = {}
+    key = signals.filter_of, shape
+    buffer, filler = kept.pop(key, (None, None))
+    if buffer is None:
+        buffer = np.empty(shape)
+    if filler is None or filler() is not signals:
+        buffer[:signals.fixed.shape[0]] = signals.fixed
+    kept[key] = buffer, weakref.ref(signals)
+    if len(kept) > _KEPT_SIGNALS:
+        del kept[next(iter(kept))]
+    return buffer
 
 
 @lru_cache(maxsize=_SHARED_FILTERS)
@@ -496,7 +579,11 @@ def _filter_discretized(order: int, lam: float, ts: float, delay: float, hold: s
     Return ``1/(p + lam)^order`` discretised with sample time ``ts``, dead time and hold.
 
     It depends on these numbers only, not on the data: every problem of the same sample time
-    and length (:func:`filter_bandwidths`) shares it.
+    and length (:func:`filter_bandwidths`) shares it. Kept here although
+    :meth:`ContinuousFilter.discretize` keeps its discretisations too: a hit here is one call,
+    where reaching that cache builds the realisation first (``np.poly``, its roots and
+    balancing) and then forms the cache's key under its lock: 67 to 96 profiled calls (orders
+    1 to 4) for each of the six filters of a problem.
     """
     realization = ContinuousFilter(np.poly(np.full(order, -lam)) if order else np.ones(1))
     return realization.discretize(ts, delay, hold)
@@ -512,7 +599,7 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     ``cond(R_s)^2`` rounding errors, so it serves only where the scaled columns are well
     conditioned (:data:`_GRAM_CONDITION`; the state-variable filters of the reference systems
     give 1-170); otherwise LAPACK's QR factorisation (geqrf, as ``np.linalg.qr(mode='r')``
-    calls it) of the scaled columns.
+    calls it) of the scaled columns. ``columns`` is left as it is.
     """
     gram = columns.T @ columns
     scales = np.sqrt(gram.diagonal())
@@ -520,6 +607,8 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     cholesky, info = lapack.dpotrf(gram / (scales[:, None] * scales))      # np.outer's
     if info == 0 and lapack.dtrcon(cholesky)[0] > 1.0 / _GRAM_CONDITION:
         return cholesky * scales
+    # The columns laid out row by row: numpy's norms sum a strided axis in another order.
+    columns = np.ascontiguousarray(columns)
     scales = np.linalg.norm(columns, axis=0)
     scales[scales == 0.0] = 1.0
     factored, _, _, info = lapack.dgeqrf(np.asfortranarray(columns / scales), overwrite_a=True)
@@ -567,14 +656,22 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
     their start values.
 
     """
+    return [theta for fits in _fits_by_filter(problem, starts, free, tau, filters)
+            for theta in fits]
+
+
+def _fits_by_filter(problem: Problem, starts: Sequence[np.ndarray], free: np.ndarray,
+                    tau: float, filters: StateVariableFilters) -> List[List[np.ndarray]]:
+    """Return :func:`equation_error_fits`, filter by filter (none for nothing free)."""
     model = problem.model
     if not free.any():
-        return []
+        return [[] for _ in range(filters.count)]
     lower, upper = problem.lower[free], problem.upper[free]
-    fits = []
+    by_filter = []
     equation = _EquationError(model, free)
     solution = equation.linear_solution if model.is_affine else equation.local_solution
     for factor in filters.factors(tau):
+        fits = []
         for start in starts:
             theta = start.copy()
             try:
@@ -582,7 +679,8 @@ def equation_error_fits(problem: Problem, starts: Sequence[np.ndarray], free: np
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
             fits.append(theta)
-    return fits
+        by_filter.append(fits)
+    return by_filter
 
 
 class _EquationError:
@@ -609,6 +707,17 @@ class _EquationError:
         # After the coefficients, one row per coefficient of its derivatives by the
         # parameters: the free ones' gradients of [den; num].
         self._gradient = rows + self._order[None, :] * free.size + self._positions[:, None]
+        # The latest start evaluated, and its [den; num] and their gradients: every filter
+        # fits from the same starts.
+        self._latest: Tuple[Optional[bytes], Optional[Tuple[np.ndarray, ...]]] = (None, None)
+
+    def _at(self, point: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the evaluation at ``point``, its ``[den; num]`` and their gradients' rows."""
+        key = point.tobytes()
+        if key != self._latest[0]:
+            evaluated = self._evaluate(point)
+            self._latest = key, (evaluated, evaluated[self._order], evaluated[self._gradient].T)
+        return self._latest[1]
 
     def _stabilized_array(self, theta: np.ndarray) -> np.ndarray:
         """Return ``[den; num]`` and then each one's derivatives by the parameters, flat."""
@@ -640,7 +749,7 @@ class _EquationError:
         # (the evaluation returns a new array and keeps nothing of it).
         point = start.copy()
         point[positions] = values
-        evaluated = evaluate(point)
+        evaluated = self._at(point)[0]
         residual = factor @ evaluated[order]
         # The products of the fit's own arrays (the Gram matrix, gradient and cost) by
         # ndarray.dot: the same numbers as the matmul operator's, without its ufunc machinery's
@@ -734,18 +843,15 @@ class _EquationError:
                         upper: np.ndarray) -> np.ndarray:
         """Exact minimiser for an affine structure (the residual is linear), within bounds."""
         values = start[self._free]
-        evaluated = self._evaluate(start)
-        jacobian = factor @ evaluated[self._gradient].T
-        residual = factor @ evaluated[self._order]
+        _, coefficients, gradients = self._at(start)
+        jacobian = factor @ gradients
+        residual = factor @ coefficients
         step = least_squares(jacobian, -residual)
         moved = values + step
         if np.logical_and.reduce((moved >= lower) & (moved <= upper)):
             return moved
-        # Imported here: the bounded solve is rare, and scipy.optimize is slow to import.
-        from scipy import optimize
-        return values + optimize.lsq_linear(jacobian, -residual,
-                                            bounds=(lower - values, upper - values),
-                                            method='bvls').x
+        return values + bounded_least_squares(jacobian, -residual, lower - values,
+                                              upper - values)
 
 
 def local_fit(problem: Problem, start: State, method: str, first_ls: bool,

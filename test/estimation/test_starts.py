@@ -1,6 +1,7 @@
 """Equation-error starts and the warm-start check (docs/algorithm.md sections 10 and 11)."""
 
 import gc
+import threading
 import weakref
 
 from ctid_ros import Data, EstimationError, Model, ModelError
@@ -177,6 +178,35 @@ def test_whole_sample_dead_time_shortcut_matches_direct_filtering():
     for on, off in zip(filters.factors(1.2), filters.factors(1.2 + 1e-8)):
         gram_on, gram_off = on.T @ on, off.T @ off
         assert np.max(np.abs(gram_on - gram_off)) < 1e-7 * np.max(np.abs(gram_on))
+
+
+def test_factors_of_problems_taking_turns_in_a_thread_are_those_of_a_fresh_thread():
+    # Two records of one length share the thread's columns buffers (the same filters): each
+    # problem's factors must be formed from its own output parts, however they take turns.
+    system = systems.first_order_dead_time()
+    problems = [problem_for(system.model, system.data(seed=seed), system.bounds)
+                for seed in (3, 4)]
+    turns = [(0, 1.2), (1, 1.2), (0, 0.7), (1, 2.35), (0, 2.35), (0, 0.0)]
+    filters = [StateVariableFilters(problem, filter_bandwidths(problem.data, 3))
+               for problem in problems]
+    taking_turns = [filters[index].factors(tau) for index, tau in turns]
+    alone = {}
+
+    def fresh(index):
+        # A new thread starts without buffers; each problem's filters are formed anew.
+        own = StateVariableFilters(problems[index], filter_bandwidths(problems[index].data, 3))
+        alone[index] = [own.factors(tau) for other, tau in turns if other == index]
+
+    for index in (0, 1):
+        thread = threading.Thread(target=fresh, args=(index,))
+        thread.start()
+        thread.join()
+    expected = iter(alone[0]), iter(alone[1])
+    for (index, _), factors in zip(turns, taking_turns):
+        for got, want in zip(factors, next(expected[index])):
+            np.testing.assert_array_equal(got, want)
+    # The records differ, so the turns did not just repeat one problem's factors.
+    assert not np.array_equal(taking_turns[0][0], taking_turns[1][0])
 
 
 @pytest.mark.parametrize('seed', range(3, 8))
