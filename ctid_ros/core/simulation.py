@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache, partial
 import math
 import threading
-from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
@@ -959,21 +959,6 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
 _NO_PAIRS = np.zeros((0, 0), dtype=complex)
 
 
-@lru_cache(maxsize=8)
-def _pair_rows(pairs: int) -> np.ndarray:
-    """
-    Return the coefficients that drive each complex mode by its own two real-form rows.
-
-    Mode ``i`` of ``pairs``: the real part of its driving in row ``2i``, the imaginary part
-    in row ``2i + 1`` (:func:`_form_recursions`). Read-only, shared.
-    """
-    coefficients = np.zeros((pairs, 2 * pairs), dtype=complex)
-    coefficients[np.arange(pairs), 2 * np.arange(pairs)] = 1.0
-    coefficients[np.arange(pairs), 2 * np.arange(pairs) + 1] = 1j
-    coefficients.setflags(write=False)
-    return coefficients
-
-
 def _form_drives(drives: np.ndarray, real: int) -> np.ndarray:
     """
     Return the real-form rows (:func:`_form_recursions`' ``out``) of the kept modes' drives.
@@ -1046,7 +1031,7 @@ def _trajectories(rows: int, length: int) -> Tuple[np.ndarray, Optional[np.ndarr
 
 
 def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: np.ndarray,
-                     coefficients: np.ndarray, out: np.ndarray,
+                     coefficients: Optional[np.ndarray], out: np.ndarray,
                      blocks: Optional[np.ndarray] = None) -> None:
     """
     Write uncoupled modes ``m_i[k] = p_i m_i[k-1] + d_i[k]`` into ``out``, from rest.
@@ -1054,12 +1039,13 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     In real form: ``poles`` the kept poles, the first ``real`` of them real; ``driving`` the
     drives ``d_i`` of the real modes (one row each); a complex mode ``i`` is driven by
     ``sum_j c_ij x_j`` of the real ``inputs`` rows ``x_j`` and the rows of ``coefficients``
-    ``c_ij`` (one per complex mode); ``out``: one row per real mode, then two per complex
+    ``c_ij`` (one per complex mode), or (``coefficients`` None) by ``x_2i + 1j x_2i+1``, its
+    driving's real and imaginary parts; ``out``: one row per real mode, then two per complex
     mode (its real and imaginary parts), and ``blocks`` its blocks as one view if known
-    (:func:`_trajectories`). Every row is contiguous, all of one length. A
-    complex mode driven by real rows runs without complex arrays where it runs in blocks
-    (:func:`_blocked_pairs`): its block products are real ones, and every output map is a
-    real product.
+    (:func:`_trajectories`). Every row is contiguous, all of one length; ``inputs`` are read
+    before ``out`` is written (they may be its rows). A complex mode driven by one real row
+    runs without complex arrays where it runs in blocks (:func:`_blocked_pairs`): its block
+    products are real ones, and every output map is a real product.
     """
     rows, length = out.shape
     if length == 0:
@@ -1073,14 +1059,22 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     # One real input: its products with the real and imaginary parts of c T, half a complex
     # product's. Several: one complex driving per mode and the complex recursions, whose
     # product has as many terms as the inputs' real ones and fewer calls.
-    if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
+    if coefficients is None:
+        # Each mode's driving from its own two rows: the values the product with the rows
+        # [1, 1j] gives (every other term is a product with zero), without casting the real
+        # rows to a complex copy first.
+        runs = np.empty((pairs.size, length), dtype=complex)
+        runs.real = inputs[0::2]
+        runs.imag = inputs[1::2]
+    elif inputs.shape[0] == 1 and length % _BLOCK == 0 and \
             length >= _BLOCKED_MIN_PAIR_LENGTH and _MAX(abs(pairs), None) <= 1.0 and \
             all_finite(coefficients) and all_finite(inputs):
         # Rows of whole blocks: their blocks are given (_trajectories).
         _blocked_pairs(pairs, inputs, coefficients, out[real:], blocks[real:])
         return
+    else:
+        runs = _product(coefficients, inputs)
     # The complex drivings run in place: no second complex array of the record's length.
-    runs = _product(coefficients, inputs)
     recursions(pairs, runs, runs)
     out[real::2] = runs.real
     out[real + 1::2] = runs.imag
@@ -1561,13 +1555,17 @@ class _DiscreteModes:
         if modal.dtype.kind == 'c':
             return self._run_complex(factors[:, None] * modal + _product(slopes.T, signals),
                                      count, below)
-        if not pairs:
-            driving = factors[:, None] * modal
-            driving += _product(slopes.T, signals)
-            return self._run_form(driving, driving[:0], _NO_PAIRS)
-        driving = _form_scaling(factors, real) @ modal
-        driving += _product(_form_drives(slopes.T, real), signals)
-        return self._run_form(driving[:real], driving[real:], _pair_rows(pairs), below)
+
+        def form(rows: np.ndarray) -> None:
+            # Every row's driving, sample k at k, in the trajectories' own rows.
+            if pairs:
+                np.matmul(_form_scaling(factors, real), modal, out=rows)
+                rows += _product(_form_drives(slopes.T, real), signals)
+            else:
+                np.multiply(factors[:, None], modal, out=rows)
+                rows += _product(slopes.T, signals)
+
+        return self._run_form(form, signals.shape[1], None, None, below)
 
     def run(self, signals: np.ndarray, count: int) -> np.ndarray:
         """
@@ -1582,11 +1580,13 @@ class _DiscreteModes:
         """
         real = self.continuous.real
         drives = self.drives.T
+        length = signals.shape[1]
         if real == drives.shape[0]:
-            return self._run_form(partial(_product, drives.real, signals), signals, _NO_PAIRS)
-        if signals.shape[1] < _BLOCKED_MIN_PAIR_LENGTH:
+            return self._run_form(partial(_product, drives.real, signals), length, signals,
+                                  _NO_PAIRS)
+        if length < _BLOCKED_MIN_PAIR_LENGTH:
             return self._run_complex(_product(drives, signals), count)
-        return self._run_form(partial(_product, drives[:real].real, signals), signals,
+        return self._run_form(partial(_product, drives[:real].real, signals), length, signals,
                               drives[real:])
 
     def _run_complex(self, driving: np.ndarray, count: int,
@@ -1612,32 +1612,32 @@ class _DiscreteModes:
             trajectories[kept:] = below
         return trajectories
 
-    def _run_form(self, driving: Union[np.ndarray, Callable[[np.ndarray], object]],
-                  inputs: np.ndarray, coefficients: np.ndarray,
+    def _run_form(self, form: Callable[[np.ndarray], object], length: int,
+                  inputs: Optional[np.ndarray], coefficients: Optional[np.ndarray],
                   below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
 
-        ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
-        at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
-        ``driving``: the real modes' drives ``d``, or a function that writes them into the
-        rows it is given: the real modes' own rows, sample k at k, then run in place (the
-        recursions read a row before they write it), without an array of the drives' size.
-        ``below``: rows of the result's length copied under the modes' rows.
+        ``m[k+1] = p m[k] + d[k]`` over ``length`` samples: the recursions write one sample on
+        into rows that start at rest, in the blocks of ``d`` (as the sums of a recursion of
+        ``d`` itself round). ``form`` writes the drives ``d`` into the rows it is given, sample
+        k at k, which then run in place (the recursions read a row before they write it),
+        without an array of the drives' size: the real modes' rows, the complex modes being
+        driven by ``coefficients`` times the real ``inputs``; or (``inputs`` None) every row,
+        a complex mode's two rows the real and imaginary parts of its driving. ``below``: rows
+        of the result's length copied under the modes' rows.
         """
         real = self.continuous.real
         rows = 2 * self.poles.size - real
-        length = inputs.shape[1]
         trajectories, blocks = _trajectories(rows + (0 if below is None else below.shape[0]),
                                              length)
-        formed = callable(driving)
-        if formed:
-            driving(trajectories[:real, :length])
-            driving = trajectories[:real, :length]
-        _form_recursions(self.poles, real, driving, inputs, coefficients,
+        formed = real if inputs is not None else rows
+        form(trajectories[:formed, :length])
+        if inputs is None:
+            inputs = trajectories[real:rows, :length]
+        _form_recursions(self.poles, real, trajectories[:real, :length], inputs, coefficients,
                          trajectories[:rows, 1:], None if blocks is None else blocks[:rows])
-        if formed:
-            trajectories[:real, 0] = 0.0                                # from rest
+        trajectories[:formed, 0] = 0.0                                  # from rest
         if below is not None:
             trajectories[rows:] = below
         return trajectories
