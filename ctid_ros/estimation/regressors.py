@@ -275,14 +275,10 @@ class SignalBank:
             # Both products have degree 2 deg D: the coefficient arrays align. Every row is
             # mapped, the dead time's zero one too: the rounding of the others depends on how
             # many rows one product maps, and the covariance of a near-singular fit shows it.
-            # np.convolve of two equal-length factors is np.correlate with the second reversed:
-            # the same products summed in the same order, without convolve's wrapper per row.
-            den_reversed, num_reversed = den[::-1], num_full[::-1]
-            sensitivity_numerators = [
-                np.correlate(num_jac[i], den_reversed, 'full')
-                - np.correlate(den_jacobian[i], num_reversed, 'full') for i in range(params)]
+            sensitivity_numerators = _row_products(num_jac, den) - \
+                _row_products(den_jacobian, num_full)
             # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
-            sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
+            sensitivities = u_responses[j].squared_outputs(sensitivity_numerators)
             if sensitivities is None:
                 if sensitivity_responses is None:
                     # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
@@ -341,6 +337,25 @@ class SignalBank:
                              self._outputs_kept)
         return Linearization(output, phi, psi.T if instruments is None else instruments.psi,
                              delay_jump, coefficients.delay_gradient)
+
+
+def _row_products(rows: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """
+    Return the polynomial products ``np.convolve(row, factor)`` of every row, one row each.
+
+    ``rows`` ``(q, m)`` and ``factor`` ``(m,)``, highest power first. One ``np.correlate`` with
+    the reversed factor (convolve's own sums) over the rows laid end to end, each followed by
+    ``m - 1`` zeros: every product's window holds its own row and zeros, which add exact zeros
+    to the same sums, without a call of numpy's wrappers per row.
+    """
+    count, size = rows.shape
+    width = 2 * size - 1
+    if not count:
+        return np.zeros((0, width))
+    spaced = np.zeros((count, width))
+    spaced[:, :size] = rows
+    return np.correlate(spaced.reshape(-1), factor[::-1], 'full')[:count * width] \
+        .reshape(count, width)
 
 
 def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
