@@ -357,10 +357,6 @@ class ContinuousFilter:
                    intersample: str = 'zoh') -> 'DiscreteFilter':
         """Exact discretisation for the intersample assumption, including a fractional delay."""
         _check_intersample(intersample)
-        if not (math.isfinite(ts) and ts > 0):
-            raise DataError(f'sample time must be positive and finite, got {ts}')
-        if not (math.isfinite(delay) and delay >= 0):
-            raise ModelError(f'dead time must be non-negative and finite, got {delay}')
         # Shared by every caller: the starts' state-variable filters and the estimator's
         # denominators come back within a fit and from fit to fit on one record.
         key = (self.den.tobytes(), float(ts), float(delay), intersample)
@@ -370,6 +366,12 @@ class ContinuousFilter:
             if discrete is not None:
                 _DISCRETIZATIONS[key] = discrete
                 return discrete
+        # Checked before a discretisation is kept: every key kept is valid, and an invalid
+        # one (a NaN never equals a key) always arrives here.
+        if not (math.isfinite(ts) and ts > 0):
+            raise DataError(f'sample time must be positive and finite, got {ts}')
+        if not (math.isfinite(delay) and delay >= 0):
+            raise ModelError(f'dead time must be non-negative and finite, got {delay}')
         discrete = self._discretization(ts, delay, intersample)
         with _DISCRETIZATIONS_LOCK:
             _DISCRETIZATIONS[key] = discrete
@@ -1080,21 +1082,17 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     out[real + 1::2] = runs.imag
 
 
-def _block_matrices(poles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+@lru_cache(maxsize=16)
+def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
     """
     Return the pole powers ``p^0 .. p^B`` and the transposed block matrices of the poles.
 
+    The poles are of type ``kind`` (``dtype.char``), their bytes ``key``.
     ``matrices[i, j, k] = p_i^(k - j)`` for ``k >= j``, else 0: ``block @ matrices[i]`` runs a
     block of :data:`_BLOCK` samples from rest. Both are read-only and remembered by the poles'
-    bytes (:func:`_pole_blocks`): a denominator's poles come back for its cost, its
-    linearisation and its sensitivities' chains.
+    bytes: a denominator's poles come back for its cost, its linearisation and its
+    sensitivities' chains.
     """
-    return _pole_blocks(poles.tobytes(), poles.dtype.char)
-
-
-@lru_cache(maxsize=16)
-def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
-    """:func:`_block_matrices` of the poles of type ``kind`` whose bytes are ``key``."""
     poles = np.frombuffer(key, dtype=kind)
     powers = np.zeros((poles.size, _BLOCK + 2), dtype=poles.dtype)
     powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
@@ -1104,19 +1102,18 @@ def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
     return powers[:, :_BLOCK + 1], matrices
 
 
-def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:
+def _blocks(rows: np.ndarray) -> Optional[np.ndarray]:
     """
-    Return views of each row's blocks of :data:`_BLOCK` samples, (blocks, B) each.
+    Return one view of every row's blocks of :data:`_BLOCK` samples, (rows, blocks, B).
 
     None unless the rows are of whole blocks and each contiguous (the rows themselves may be
-    apart): no copy is ever made.
+    apart): no copy is ever made. Splitting the contiguous last axis keeps the rows' own
+    stride, so numpy's reshape gives a view of rows that are apart too.
     """
     count, length = rows.shape
     if length % _BLOCK or rows.strides[1] != rows.itemsize:
         return None
-    if rows.flags.c_contiguous:
-        return rows.reshape(count, length // _BLOCK, _BLOCK)       # one view of them all
-    return [row.reshape(-1, _BLOCK) for row in rows]
+    return rows.reshape(count, length // _BLOCK, _BLOCK)
 
 
 def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
@@ -1132,7 +1129,7 @@ def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarr
     parts, a row each) in place, through ``out_blocks``, its blocks as one view.
     """
     blocks = out.shape[1] // _BLOCK
-    powers, matrices = _block_matrices(poles)
+    powers, matrices = _pole_blocks(poles.tobytes(), poles.dtype.char)
     source = _blocks(inputs)[0]
     # c T for every complex mode, its real and imaginary parts contiguous.
     scaled = coefficients[:, 0, None, None] * matrices
@@ -1192,19 +1189,20 @@ def recursions(poles: np.ndarray, values: np.ndarray,
     ``out``, if given, receives the result (of the values' shape and the result's type) and
     is returned; blocks of whole rows are written in place (:func:`_blocked_recursions`).
     """
-    return _recursions(poles, values, out, None)
+    return _recursions(np.asarray(poles), values, out, None)
 
 
 def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray],
                 blocks: Optional[np.ndarray], alone: bool = False) -> np.ndarray:
     """
-    :func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known.
+    :func:`recursions` of the ``poles`` array (not a sequence).
+
+    ``blocks``: ``out``'s blocks as one view, where known.
 
     ``alone``: each row runs in blocks or as a substitution as it would if it were the only
     row (its own size, pole and values decide), so that its values do not depend on the rows
     run with it: rows of several filters run together give each filter's values alone.
     """
-    poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
     dtype = complex if complex_valued else float
@@ -1215,7 +1213,11 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
             values = values.astype(dtype)
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are the ufuncs' reductions, without numpy's Python wrappers.
-        if _blocked_size(1 if alone else rows, length, complex_valued):
+        # Blocks where they are worth it: a complex row of _BLOCKED_MIN_COMPLEX_LENGTH
+        # samples, real rows of _BLOCKED_MIN_LENGTH and _BLOCKED_MIN_SIZE in all.
+        if length >= _BLOCKED_MIN_COMPLEX_LENGTH if complex_valued else \
+                length >= _BLOCKED_MIN_LENGTH and \
+                (1 if alone else rows) * length >= _BLOCKED_MIN_SIZE:
             if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
                 return _blocked_recursions(poles if poles.dtype == dtype else
                                            poles.astype(dtype), values, out, blocks, alone)
@@ -1237,8 +1239,9 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     """:func:`recursions` as banded triangular solves, for values of the solve's type."""
     rows, length = values.shape
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
-    # A complex sample takes twice the memory of a real one: half as many per solve.
-    step = max(1, (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length)
+    # A complex sample takes twice the memory of a real one: half as many per solve (at
+    # least one row).
+    step = (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length or 1
     parts = []
     for first in range(0, rows, step):
         chunk = values[first:first + step]          # the last one may be shorter
@@ -1251,8 +1254,10 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
         # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
         # values), a third of its time.
         out, _ = solve(band, chunk.reshape(-1, 1), uplo='L', diag='U')
+        if rows <= step:
+            return out.reshape(count, length)           # one solve (the usual case)
         parts.append(out.reshape(count, length))
-    return parts[0] if rows <= step else np.concatenate(parts)
+    return np.concatenate(parts)
 
 
 # The largest temporary (bytes) the blocked recursions form in one piece: glibc's default
@@ -1275,13 +1280,6 @@ _BLOCKED_MIN_PAIR_LENGTH = 4096
 _BLOCK_EXPONENTS = np.arange(_BLOCK + 1)
 _BLOCK_LAG = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))    # j - k
 _BLOCK_INDEX = np.where(_BLOCK_LAG <= 0, -_BLOCK_LAG, _BLOCK + 1)
-
-
-def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
-    """Return True if ``rows`` recursions of ``length`` samples are worth running in blocks."""
-    if complex_valued:
-        return length >= _BLOCKED_MIN_COMPLEX_LENGTH
-    return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
@@ -1308,7 +1306,7 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     if padded is None:
         padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
         padded.reshape(rows, -1)[:, :length] = values
-    powers, transposed = _block_matrices(poles)
+    powers, transposed = _pole_blocks(poles.tobytes(), poles.dtype.char)
     # In place where the rows are of whole blocks and one array (a caller's other rows are
     # written from the whole response below).
     response = out_blocks if out_blocks is not None else \
@@ -1328,7 +1326,7 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     carried = _recursions(powers[:, _BLOCK], ends, None, None, alone)
     # The carried states' products, a temporary of the response's size, are formed a few
     # rows at a time: a larger one is memory glibc maps from the system afresh on every run.
-    step = max(1, _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize))
+    step = _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize) or 1
     for first in range(0, rows, step):
         last = first + step
         response[first:last, 1:, :] += \
