@@ -18,6 +18,7 @@ from functools import lru_cache
 import math
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
+from ctid_ros.core.simulation import all_finite
 from ctid_ros.estimation.linear_algebra import condition, solve_or_none, symmetric_eigen
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
@@ -143,11 +144,6 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     """Column norms of ``psi`` (1 for a zero column): the scaling of every solve."""
     scales = np.linalg.norm(psi, axis=0)
     return np.where(scales > 0.0, scales, 1.0)
-
-
-def _finite(matrix: np.ndarray) -> bool:
-    """Return True if every element is finite (``np.isfinite(matrix).all()``, its reduction)."""
-    return bool(np.logical_and.reduce(np.isfinite(matrix), axis=None))
 
 
 # Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
@@ -317,7 +313,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
         matrix = _block(side.cross, free) / outer
-        if not _finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
+        if not all_finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
             return None
         step = solve_or_none(matrix, rhs)
         if step is None:
@@ -325,7 +321,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         step /= scales
     else:
         gram = _block(side.gram, free) / outer
-        if not _finite(gram):
+        if not all_finite(gram):
             return None
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
