@@ -1466,19 +1466,22 @@ class _ContinuousModes:
         transition = None
         drive: Dict[Sample, np.ndarray] = {}
         factors = []
+        span = 0.0
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
             series = _series_factors(x)
             first, second = _hold_factors(x, series)
-            factors.append((length, start, end, x, e, first, second, series))
+            # The drives before the sub-interval too: their slopes (drive_slopes) carry them.
+            factors.append((length, start, end, x, e, first, second, series, drive))
+            span += length
             # The first sub-interval's transition is its exponential itself (times 1, exact).
             transition = e if transition is None else e * transition
             drive = self._advanced(drive, length, start, end, e, first, second)
         drives = np.array(list(drive.values()))
         if not (all_finite(transition) and all_finite(drives)):
             return None
-        return _DiscreteModes(self, transition, list(drive), drives, factors)
+        return _DiscreteModes(self, transition, list(drive), drives, factors, span)
 
     def _advanced(self, drive: Dict['Sample', np.ndarray], length: float, start, end,
                   e: np.ndarray, first: np.ndarray, second: np.ndarray
@@ -1501,18 +1504,17 @@ class _ContinuousModes:
         Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
 
         ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
-        end, ``x``, ``e^x``, the hold factors and :func:`_series_factors`). Returns
+        end, ``x``, ``e^x``, the hold factors, :func:`_series_factors` and the drives up to
+        the sub-interval's start, which are not written to). Returns
         ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
         ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
         """
-        drive: Dict[Sample, np.ndarray] = {}
         slope: Dict[Sample, np.ndarray] = {}
-        for length, start, end, x, e, first, second, series in factors:
+        for length, start, end, x, e, first, second, series, drive in factors:
             first_slope, second_slope = _hold_factor_slopes(x, first, second, series)
             q_slope = length * length * second_slope * self.residues
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
                      for sample, vector in drive.items()}
-            drive = self._advanced(drive, length, start, end, e, first, second)
             _accumulate(slope, (start, length * length * first_slope * self.residues - q_slope),
                         (end, q_slope))
         zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
@@ -1528,6 +1530,7 @@ class _DiscreteModes:
     samples: List[Sample]
     drives: np.ndarray         # (samples, kept modes)
     factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
+    span: float                # the sub-intervals' scaled lengths summed: one sample period
 
     def chains(self, modal: np.ndarray, signals: np.ndarray, count: int,
                below: Optional[np.ndarray] = None) -> np.ndarray:
@@ -1544,7 +1547,7 @@ class _DiscreteModes:
         """
         continuous = self.continuous
         real = continuous.real
-        length = sum(factor[0] for factor in self.factors)
+        length = self.span
         slopes = continuous.drive_slopes(self.factors, self.samples)
         # One driving row per real mode and two per complex one (its real and imaginary
         # parts), each complex mode then driven by its own two rows.

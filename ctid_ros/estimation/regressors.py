@@ -255,7 +255,9 @@ class SignalBank:
             regressor_row = len(u_numerators)
             if regressors:
                 u_numerators.extend(num_jac[num_moves])
-            u_parts = u_responses[j].outputs(u_numerators)[:, trim:] if u_numerators else None
+            # The rows all have deg D + 1 coefficients: one 2-D array, mapped in one pass.
+            u_parts = u_responses[j].outputs(np.array(u_numerators))[:, trim:] \
+                if u_numerators else None
             if known is None:
                 output = _summed(output, u_parts[0])
             if delay_used:
