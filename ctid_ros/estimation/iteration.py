@@ -62,6 +62,7 @@ _PROGRESS_SPAN = 2
 # of bench/estimator.py: among 10, 30 and no limit, 30 needs the fewest simulations on most.
 _NEAR_MINIMUM = 30.0
 _TINY = np.finfo(float).tiny
+_INF = math.inf
 
 
 # A bound a step ran into: (parameter index, bound value).
@@ -415,12 +416,19 @@ def on_bounds(theta: np.ndarray, problem: Problem, tolerance: float = 1e-9
     constant of 5e-10 s identified at a sample time of 1e-12 s is not on its bound at 0 (the
     iteration clips to a bound exactly, so a parameter held there equals it).
     """
-    # Every update asks, for a handful of parameters: Python floats, not numpy's dispatch.
+    # Every update asks, for a handful of parameters: Python floats, not numpy's dispatch,
+    # and operators, not calls: a finite bound is one between the infinities, and a gap
+    # within tolerance times the larger magnitude is within it times either magnitude
+    # (rounding keeps the order of the products, and negation is exact).
     values = theta.tolist()
-    near_lower = [math.isfinite(low) and value - low <= tolerance * max(abs(value), abs(low))
-                  for value, low in zip(values, problem.lower.tolist())]
-    near_upper = [math.isfinite(high) and high - value <= tolerance * max(abs(value), abs(high))
-                  for value, high in zip(values, problem.upper.tolist())]
+    near_lower = [-_INF < low < _INF and (
+        (gap := value - low) <= tolerance * value or gap <= -(tolerance * value) or
+        gap <= tolerance * low or gap <= -(tolerance * low))
+        for value, low in zip(values, problem.lower.tolist())]
+    near_upper = [-_INF < high < _INF and (
+        (gap := high - value) <= tolerance * value or gap <= -(tolerance * value) or
+        gap <= tolerance * high or gap <= -(tolerance * high))
+        for value, high in zip(values, problem.upper.tolist())]
     return np.array(near_lower, dtype=bool), np.array(near_upper, dtype=bool)
 
 
