@@ -134,14 +134,19 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     ``np.roots`` gives them; the quadratic takes the larger root first and the other from
     their product, so neither cancels.
     """
-    if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
-            not all_finite(coefficients):
+    if coefficients.size not in (2, 3) or coefficients[0] == 0.0:
         return None
+    # Python floats and math (IEEE divisions and square roots, as numpy's): no numpy scalars
+    # per candidate.
     if coefficients.size == 2:
-        return np.array([-coefficients[1] / coefficients[0]])
-    # Python floats and math (IEEE square roots, as numpy's): no numpy scalars per candidate.
+        lead, last = coefficients.tolist()
+        if not (math.isfinite(lead) and math.isfinite(last)):
+            return None
+        return np.array([-last / lead])
     a, b, c = coefficients.tolist()
     discriminant = b * b - 4.0 * a * c
+    # Not finite where a coefficient is not (an infinity meets a product, NaNs propagate) or
+    # the squares overflow.
     if not math.isfinite(discriminant):
         return None
     if discriminant < 0.0:
