@@ -907,8 +907,15 @@ class _Run:
             (self.near or size < _NEAR_MINIMUM)
         self.struggling += struggled
         state = self.state
-        change = max(abs(scale * move) / max(abs(value), 1e-12)
-                     for move, value in zip(step.tolist(), state.theta.tolist()))
+        # The largest relative change |scale move| / max(|value|, 1e-12), in Python floats and
+        # operators (magnitudes by negation, exact): no builtin call per parameter.
+        change = 0.0
+        for move, value in zip(step.tolist(), state.theta.tolist()):
+            moved = scale * move
+            size = value if value >= 0.0 else -value
+            relative = (moved if moved >= 0.0 else -moved) / (size if size > 1e-12 else 1e-12)
+            if relative > change:
+                change = relative
         previous = max(state.cost, _TINY)
         decrease = (state.cost - new_state.cost) / previous
         self.state = new_state
