@@ -787,7 +787,8 @@ class StateResponse:
             out = np.concatenate([_form_map(on_chains, continuous.real),
                                   _form_map(on_modes, continuous.real)], axis=1) @ self._chains
         else:
-            out = _product(on_chains, self._chains) + _product(on_modes, modal)
+            out = _product(on_chains, self._chains)
+            out += _product(on_modes, modal)            # the same sum, into the first product
         if size == 2 * order + 1 and _ANY(ascending[:, -1], None):
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
