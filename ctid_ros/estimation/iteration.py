@@ -150,9 +150,15 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
 # Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
 # Python bools costs a fraction of the array methods' reduction machinery.
 
-def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """Return the rows and columns of the free parameters (the matrix if all are free)."""
-    return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
+def _block(matrix: np.ndarray, free: np.ndarray, every: Optional[bool] = None) -> np.ndarray:
+    """
+    Return the rows and columns of the free parameters (the matrix if all are free).
+
+    ``every``: whether every parameter is free, if the caller knows already.
+    """
+    if every is None:
+        every = all(free.tolist())
+    return matrix if every else matrix[np.ix_(free, free)]
 
 
 class _Side:
@@ -306,6 +312,7 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
 def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: float,
                          rcond: Optional[float] = None) -> Optional[np.ndarray]:
     """Direction of :func:`_direction` with the sensitivities of one side."""
+    every = all(free.tolist())              # every parameter free (as a rule): nothing to pick
     scales = side.scales(free)
     outer = scales[:, None] * scales                          # np.outer's own product
     rhs = side.gradient[free] / scales
@@ -313,7 +320,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         phi_s = side.phi[:, free] / scales
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
-        matrix = _block(side.cross, free) / outer
+        matrix = _block(side.cross, free, every) / outer
         if not all_finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
             return None
         step = solve_or_none(matrix, rhs)
@@ -321,7 +328,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
             return None
         step /= scales
     else:
-        gram = _block(side.gram, free) / outer
+        gram = _block(side.gram, free, every) / outer
         if not all_finite(gram):
             return None
         if kind == 'gn':
@@ -333,7 +340,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
             step /= scales
     if not all(map(math.isfinite, step.tolist())):
         return None
-    if all(free.tolist()):
+    if every:
         return step
     full = np.zeros(free.size)
     full[free] = step
