@@ -197,10 +197,14 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
     for order in range(1, max_order + 1):
         if impulse.size < 3 * order + 2:
             return None
-        # rows[j] = h[j + order], h[j + order - 1], ..., h[j]; the recurrence holds from
-        # k = order + 1 on, i.e. for the rows after the first.
-        rows = impulse[np.arange(1, impulse.size - order)[:, None] + np.arange(order, -1, -1)]
-        tail = least_squares(rows[:, 1:], -rows[:, 0])
+        # Row j: h[j + order] = -(tail . (h[j + order - 1], ..., h[j])); the recurrence holds
+        # from k = order + 1 on, i.e. for j >= 1. Column c of the matrix is h shifted by
+        # order - c, copied in the column-major order LAPACK takes (no index arrays).
+        count = impulse.size - order - 1
+        matrix = np.empty((count, order), order='F')
+        for column in range(order):
+            matrix[:, column] = impulse[order - column:order - column + count]
+        tail = least_squares(matrix, -impulse[order + 1:])
         den = np.concatenate([[1.0], tail])
         num = np.convolve(den, impulse[:order + 1])[:order + 1]
         if not (all_finite(den) and num[0] != 0.0):
