@@ -1232,7 +1232,8 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
         if length >= _BLOCKED_MIN_COMPLEX_LENGTH if complex_valued else \
                 length >= _BLOCKED_MIN_LENGTH and \
                 (1 if alone else rows) * length >= _BLOCKED_MIN_SIZE:
-            if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
+            # Every pole at most 1 in magnitude (a NaN is not, as its maximum is not).
+            if all(map((1.0).__ge__, abs(poles).tolist())) and all_finite(values):
                 return _blocked_recursions(poles if poles.dtype == dtype else
                                            poles.astype(dtype), values, out, blocks, alone)
             if alone and rows > 1:
@@ -1409,7 +1410,7 @@ def _series_factors(x: np.ndarray) -> Optional[np.ndarray]:
     Rows: :func:`_hold_factors` and :func:`_hold_factor_slopes` summed as power series, from
     one product of the powers of ``x``; None if some ``|x|`` reaches :data:`_SERIES_LIMIT`.
     """
-    if _MAX(abs(x), None) < _SERIES_LIMIT:
+    if all(map(_SERIES_LIMIT.__gt__, abs(x).tolist())):          # a handful: Python floats
         return (_powers(x) @ _SERIES).T
     return None
 
@@ -1780,17 +1781,18 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
         return None
-    magnitudes = abs(poles)
-    # The largest magnitude is NaN or infinite if any is (none is negative).
-    largest = _MAX(magnitudes, None)
-    if not math.isfinite(largest):
+    # The extremes of a handful of values by Python's own max and min of their floats, a
+    # tenth of a ufunc reduction's work (the same values: no NaN gets past the first test).
+    magnitudes = abs(poles).tolist()
+    if not all(map(math.isfinite, magnitudes)):
         return None
-    nonzero = magnitudes[magnitudes > 0.0]
-    if nonzero.size and largest > _MODAL_RANGE_LIMIT * _MIN(nonzero, None):
+    largest = max(magnitudes)
+    nonzero = [magnitude for magnitude in magnitudes if magnitude > 0.0]
+    if nonzero and largest > _MODAL_RANGE_LIMIT * min(nonzero):
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
     differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
-    if _MIN(abs(differences), None) <= 1e-8 * max(largest, 1.0):
+    if min(abs(differences).ravel().tolist()) <= 1e-8 * max(largest, 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
@@ -1803,11 +1805,11 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         return None
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
-    if _ANY(poles.imag, None):
+    imaginary = poles.imag.tolist()
+    if any(imaginary):
         # The real modes first, then one of each conjugate pair: their trajectories run in the
         # real form of :func:`_form_recursions` without selecting rows. Python lists: a
         # handful of poles, for every new denominator.
-        imaginary = poles.imag.tolist()
         real = [index for index, value in enumerate(imaginary) if value == 0.0]
         keep = np.array(real + [index for index, value in enumerate(imaginary) if value > 0.0])
         kept = poles[keep]
@@ -1820,9 +1822,10 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         keep, kept, basis, weights = None, poles.real, basis.real, np.array([1.0] * n)
         residues = (1.0 / _PROD(differences, 1)).real
         spread = _SUM(inverse, 1).real
-    amplification = _MAX(abs(residues) ** 2 * (1.0 + 2.0 * abs(spread)), None)
+    # Every amplification within the limit: the largest is, and a NaN is not (as its maximum).
+    amplifications = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).tolist()
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
-                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
+                            all(map(_SQUARED_AMPLIFICATION_LIMIT.__ge__, amplifications)),
                             n if keep is None else len(real))
 
 
