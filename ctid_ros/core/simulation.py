@@ -61,14 +61,13 @@ _SQUARED_AMPLIFICATION_LIMIT = 1e6
 # Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
 # one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
 _CHAIN_MAX_ORDER = 8
-# The reductions behind the array methods ``sum``, ``all``, ``prod``, ``max``, ``min`` and
-# ``any`` (axis None for the whole array; the same values), called directly: the methods and
-# np.any reach them through Python functions of numpy's, several calls per small array.
+# The reductions behind the array methods ``sum``, ``all``, ``prod`` and ``any`` (axis None
+# for the whole array; the same values), called directly: the methods and np.any reach them
+# through Python functions of numpy's, several calls per small array. The extremes of a
+# handful of values are Python's max and min of their floats, a tenth of a reduction's work.
 _SUM = np.add.reduce
 _ALL = np.logical_and.reduce
 _PROD = np.multiply.reduce
-_MAX = np.maximum.reduce
-_MIN = np.minimum.reduce
 _ANY = np.logical_or.reduce
 # Up to this many values Python's own tests and reductions cost less than one ufunc reduction
 # (about a microsecond, most of it its iterator's set-up).
@@ -188,7 +187,8 @@ def _time_scale(roots: np.ndarray) -> float:
     if roots.size == 0:
         return 1.0
     magnitudes = abs(roots)
-    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, _MAX(magnitudes, None, initial=0.0))]
+    # The largest of a handful of magnitudes (none negative) by Python's max of their floats.
+    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, *magnitudes.tolist())]
     if magnitudes.size == 0:
         return 1.0
     logarithms = np.log(magnitudes)
@@ -1083,7 +1083,8 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
         runs.real = inputs[0::2]
         runs.imag = inputs[1::2]
     elif inputs.shape[0] == 1 and length % _BLOCK == 0 and \
-            length >= _BLOCKED_MIN_PAIR_LENGTH and _MAX(abs(pairs), None) <= 1.0 and \
+            length >= _BLOCKED_MIN_PAIR_LENGTH and \
+            all(map((1.0).__ge__, abs(pairs).tolist())) and \
             all_finite(coefficients) and all_finite(inputs):
         # Rows of whole blocks: their blocks are given (_trajectories).
         _blocked_pairs(pairs, inputs, coefficients, out[real:], blocks[real:])
