@@ -797,7 +797,7 @@ class StateResponse:
         else:
             out = _product(on_chains, self._chains)
             out += _product(on_modes, modal)            # the same sum, into the first product
-        if size == 2 * order + 1 and _ANY(ascending[:, -1], None):
+        if size == 2 * order + 1 and any(ascending[:, -1].tolist()):
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
 

@@ -223,9 +223,8 @@ class SignalBank:
         delay_used = any(coefficients.delay_gradient.tolist())
         delay = coefficients.delay + self.extra_delay
         # A zero row of a Jacobian (a gain moves no D, a lag no N) maps to a zero regressor:
-        # only the parameters that move a polynomial are mapped for phi. (ndarray.any(axis=1) is
-        # np.logical_or.reduce behind two Python wrappers: called directly.)
-        den_moves = np.logical_or.reduce(den_jacobian, axis=1)
+        # only the parameters that move a polynomial are mapped for phi.
+        den_moves = _moving_rows(den_jacobian)
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
@@ -240,7 +239,7 @@ class SignalBank:
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
             num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
-            num_moves = np.logical_or.reduce(num_jac, axis=1)
+            num_moves = _moving_rows(num_jac)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -339,6 +338,16 @@ class SignalBank:
                              self._outputs_kept)
         return Linearization(output, phi, psi.T if instruments is None else instruments.psi,
                              delay_jump, coefficients.delay_gradient)
+
+
+def _moving_rows(jacobian: np.ndarray) -> np.ndarray:
+    """
+    Return which rows of a Jacobian hold a nonzero value (``jacobian.any(axis=1)``).
+
+    A handful of rows: Python's any over their floats (a NaN counts, as in numpy), a fraction
+    of a ufunc reduction's work.
+    """
+    return np.array([any(row) for row in jacobian.tolist()], dtype=bool)
 
 
 def _row_products(rows: np.ndarray, factor: np.ndarray) -> np.ndarray:
