@@ -28,11 +28,12 @@ and several such filters over one signal run each chain state in one call
 holds up to high orders, and no Python loop runs per sample.
 """
 
+import cmath
 from dataclasses import dataclass
 from functools import cached_property, lru_cache, partial
 import math
 import threading
-from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from ctid_ros.errors import DataError, ModelError
 import numpy as np
@@ -60,15 +61,17 @@ _SQUARED_AMPLIFICATION_LIMIT = 1e6
 # Highest order of a single repeated root (the state-variable filters (p + lam)^n) propagated as
 # one real Jordan chain (binomial basis; beyond this its coefficients grow): else Schur form.
 _CHAIN_MAX_ORDER = 8
-# The reductions behind the array methods ``sum``, ``all``, ``prod``, ``max``, ``min`` and
-# ``any`` (axis None for the whole array; the same values), called directly: the methods and
-# np.any reach them through Python functions of numpy's, several calls per small array.
+# The reductions behind the array methods ``sum``, ``all``, ``prod`` and ``any`` (axis None
+# for the whole array; the same values), called directly: the methods and np.any reach them
+# through Python functions of numpy's, several calls per small array. The extremes of a
+# handful of values are Python's max and min of their floats, a tenth of a reduction's work.
 _SUM = np.add.reduce
 _ALL = np.logical_and.reduce
 _PROD = np.multiply.reduce
-_MAX = np.maximum.reduce
-_MIN = np.minimum.reduce
 _ANY = np.logical_or.reduce
+# Up to this many values Python's own tests and reductions cost less than one ufunc reduction
+# (about a microsecond, most of it its iterator's set-up).
+_FEW_VALUES = 16
 
 
 def _polynomial(coefficients, what: str) -> np.ndarray:
@@ -93,9 +96,13 @@ def all_finite(values: np.ndarray) -> bool:
     Return True if every value (real or complex) is finite.
 
     The ufuncs' own calls instead of ``np.isfinite(values).all()``, which reaches the
-    reduction through a Python wrapper. Not a sum tested once: the sum of ``+inf`` and
-    ``-inf``, or one that overflows, raises a RuntimeWarning, and silencing it costs more.
+    reduction through a Python wrapper; a few values (the coefficients and small matrices
+    tested for every candidate) by ``cmath.isfinite`` on their Python numbers, a tenth of a
+    ufunc reduction's work. Not a sum tested once: the sum of ``+inf`` and ``-inf``, or one
+    that overflows, raises a RuntimeWarning, and silencing it costs more.
     """
+    if values.size <= _FEW_VALUES:
+        return all(map(cmath.isfinite, values.ravel().tolist()))
     return bool(_ALL(np.isfinite(values), None))
 
 
@@ -134,14 +141,19 @@ def _low_order_roots(coefficients: np.ndarray) -> Optional[np.ndarray]:
     ``np.roots`` gives them; the quadratic takes the larger root first and the other from
     their product, so neither cancels.
     """
-    if coefficients.size not in (2, 3) or coefficients[0] == 0.0 or \
-            not all_finite(coefficients):
+    if coefficients.size not in (2, 3) or coefficients[0] == 0.0:
         return None
+    # Python floats and math (IEEE divisions and square roots, as numpy's): no numpy scalars
+    # per candidate.
     if coefficients.size == 2:
-        return np.array([-coefficients[1] / coefficients[0]])
-    # Python floats and math (IEEE square roots, as numpy's): no numpy scalars per candidate.
+        lead, last = coefficients.tolist()
+        if not (math.isfinite(lead) and math.isfinite(last)):
+            return None
+        return np.array([-last / lead])
     a, b, c = coefficients.tolist()
     discriminant = b * b - 4.0 * a * c
+    # Not finite where a coefficient is not (an infinity meets a product, NaNs propagate) or
+    # the squares overflow.
     if not math.isfinite(discriminant):
         return None
     if discriminant < 0.0:
@@ -175,7 +187,8 @@ def _time_scale(roots: np.ndarray) -> float:
     if roots.size == 0:
         return 1.0
     magnitudes = abs(roots)
-    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, _MAX(magnitudes, None, initial=0.0))]
+    # The largest of a handful of magnitudes (none negative) by Python's max of their floats.
+    magnitudes = magnitudes[magnitudes > 1e-12 * max(1.0, *magnitudes.tolist())]
     if magnitudes.size == 0:
         return 1.0
     logarithms = np.log(magnitudes)
@@ -357,10 +370,6 @@ class ContinuousFilter:
                    intersample: str = 'zoh') -> 'DiscreteFilter':
         """Exact discretisation for the intersample assumption, including a fractional delay."""
         _check_intersample(intersample)
-        if not (math.isfinite(ts) and ts > 0):
-            raise DataError(f'sample time must be positive and finite, got {ts}')
-        if not (math.isfinite(delay) and delay >= 0):
-            raise ModelError(f'dead time must be non-negative and finite, got {delay}')
         # Shared by every caller: the starts' state-variable filters and the estimator's
         # denominators come back within a fit and from fit to fit on one record.
         key = (self.den.tobytes(), float(ts), float(delay), intersample)
@@ -370,6 +379,12 @@ class ContinuousFilter:
             if discrete is not None:
                 _DISCRETIZATIONS[key] = discrete
                 return discrete
+        # Checked before a discretisation is kept: every key kept is valid, and an invalid
+        # one (a NaN never equals a key) always arrives here.
+        if not (math.isfinite(ts) and ts > 0):
+            raise DataError(f'sample time must be positive and finite, got {ts}')
+        if not (math.isfinite(delay) and delay >= 0):
+            raise ModelError(f'dead time must be non-negative and finite, got {delay}')
         discrete = self._discretization(ts, delay, intersample)
         with _DISCRETIZATIONS_LOCK:
             _DISCRETIZATIONS[key] = discrete
@@ -780,8 +795,9 @@ class StateResponse:
             out = np.concatenate([_form_map(on_chains, continuous.real),
                                   _form_map(on_modes, continuous.real)], axis=1) @ self._chains
         else:
-            out = _product(on_chains, self._chains) + _product(on_modes, modal)
-        if size == 2 * order + 1 and _ANY(ascending[:, -1], None):
+            out = _product(on_chains, self._chains)
+            out += _product(on_modes, modal)            # the same sum, into the first product
+        if size == 2 * order + 1 and any(ascending[:, -1].tolist()):
             out += ascending[:, -1, None] * self._held                # np.outer's product
         return out
 
@@ -959,21 +975,6 @@ def _run(poles: np.ndarray, coupling: Optional[np.ndarray], driving: np.ndarray)
 _NO_PAIRS = np.zeros((0, 0), dtype=complex)
 
 
-@lru_cache(maxsize=8)
-def _pair_rows(pairs: int) -> np.ndarray:
-    """
-    Return the coefficients that drive each complex mode by its own two real-form rows.
-
-    Mode ``i`` of ``pairs``: the real part of its driving in row ``2i``, the imaginary part
-    in row ``2i + 1`` (:func:`_form_recursions`). Read-only, shared.
-    """
-    coefficients = np.zeros((pairs, 2 * pairs), dtype=complex)
-    coefficients[np.arange(pairs), 2 * np.arange(pairs)] = 1.0
-    coefficients[np.arange(pairs), 2 * np.arange(pairs) + 1] = 1j
-    coefficients.setflags(write=False)
-    return coefficients
-
-
 def _form_drives(drives: np.ndarray, real: int) -> np.ndarray:
     """
     Return the real-form rows (:func:`_form_recursions`' ``out``) of the kept modes' drives.
@@ -1046,7 +1047,7 @@ def _trajectories(rows: int, length: int) -> Tuple[np.ndarray, Optional[np.ndarr
 
 
 def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: np.ndarray,
-                     coefficients: np.ndarray, out: np.ndarray,
+                     coefficients: Optional[np.ndarray], out: np.ndarray,
                      blocks: Optional[np.ndarray] = None) -> None:
     """
     Write uncoupled modes ``m_i[k] = p_i m_i[k-1] + d_i[k]`` into ``out``, from rest.
@@ -1054,12 +1055,13 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     In real form: ``poles`` the kept poles, the first ``real`` of them real; ``driving`` the
     drives ``d_i`` of the real modes (one row each); a complex mode ``i`` is driven by
     ``sum_j c_ij x_j`` of the real ``inputs`` rows ``x_j`` and the rows of ``coefficients``
-    ``c_ij`` (one per complex mode); ``out``: one row per real mode, then two per complex
+    ``c_ij`` (one per complex mode), or (``coefficients`` None) by ``x_2i + 1j x_2i+1``, its
+    driving's real and imaginary parts; ``out``: one row per real mode, then two per complex
     mode (its real and imaginary parts), and ``blocks`` its blocks as one view if known
-    (:func:`_trajectories`). Every row is contiguous, all of one length. A
-    complex mode driven by real rows runs without complex arrays where it runs in blocks
-    (:func:`_blocked_pairs`): its block products are real ones, and every output map is a
-    real product.
+    (:func:`_trajectories`). Every row is contiguous, all of one length; ``inputs`` are read
+    before ``out`` is written (they may be its rows). A complex mode driven by one real row
+    runs without complex arrays where it runs in blocks (:func:`_blocked_pairs`): its block
+    products are real ones, and every output map is a real product.
     """
     rows, length = out.shape
     if length == 0:
@@ -1073,34 +1075,39 @@ def _form_recursions(poles: np.ndarray, real: int, driving: np.ndarray, inputs: 
     # One real input: its products with the real and imaginary parts of c T, half a complex
     # product's. Several: one complex driving per mode and the complex recursions, whose
     # product has as many terms as the inputs' real ones and fewer calls.
-    if inputs.shape[0] == 1 and length % _BLOCK == 0 and \
-            length >= _BLOCKED_MIN_PAIR_LENGTH and _MAX(abs(pairs), None) <= 1.0 and \
+    if coefficients is None:
+        # Each mode's driving from its own two rows: the values the product with the rows
+        # [1, 1j] gives (every other term is a product with zero), without casting the real
+        # rows to a complex copy first.
+        runs = np.empty((pairs.size, length), dtype=complex)
+        runs.real = inputs[0::2]
+        runs.imag = inputs[1::2]
+    elif inputs.shape[0] == 1 and length % _BLOCK == 0 and \
+            length >= _BLOCKED_MIN_PAIR_LENGTH and \
+            all(map((1.0).__ge__, abs(pairs).tolist())) and \
             all_finite(coefficients) and all_finite(inputs):
         # Rows of whole blocks: their blocks are given (_trajectories).
         _blocked_pairs(pairs, inputs, coefficients, out[real:], blocks[real:])
         return
+    else:
+        runs = _product(coefficients, inputs)
     # The complex drivings run in place: no second complex array of the record's length.
-    runs = _product(coefficients, inputs)
     recursions(pairs, runs, runs)
     out[real::2] = runs.real
     out[real + 1::2] = runs.imag
 
 
-def _block_matrices(poles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+@lru_cache(maxsize=16)
+def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
     """
     Return the pole powers ``p^0 .. p^B`` and the transposed block matrices of the poles.
 
+    The poles are of type ``kind`` (``dtype.char``), their bytes ``key``.
     ``matrices[i, j, k] = p_i^(k - j)`` for ``k >= j``, else 0: ``block @ matrices[i]`` runs a
     block of :data:`_BLOCK` samples from rest. Both are read-only and remembered by the poles'
-    bytes (:func:`_pole_blocks`): a denominator's poles come back for its cost, its
-    linearisation and its sensitivities' chains.
+    bytes: a denominator's poles come back for its cost, its linearisation and its
+    sensitivities' chains.
     """
-    return _pole_blocks(poles.tobytes(), poles.dtype.char)
-
-
-@lru_cache(maxsize=16)
-def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
-    """:func:`_block_matrices` of the poles of type ``kind`` whose bytes are ``key``."""
     poles = np.frombuffer(key, dtype=kind)
     powers = np.zeros((poles.size, _BLOCK + 2), dtype=poles.dtype)
     powers[:, :_BLOCK + 1] = poles[:, None] ** _BLOCK_EXPONENTS       # p^0 .. p^B, then 0
@@ -1110,19 +1117,18 @@ def _pole_blocks(key: bytes, kind: str) -> Tuple[np.ndarray, np.ndarray]:
     return powers[:, :_BLOCK + 1], matrices
 
 
-def _blocks(rows: np.ndarray) -> Optional[Sequence[np.ndarray]]:
+def _blocks(rows: np.ndarray) -> Optional[np.ndarray]:
     """
-    Return views of each row's blocks of :data:`_BLOCK` samples, (blocks, B) each.
+    Return one view of every row's blocks of :data:`_BLOCK` samples, (rows, blocks, B).
 
     None unless the rows are of whole blocks and each contiguous (the rows themselves may be
-    apart): no copy is ever made.
+    apart): no copy is ever made. Splitting the contiguous last axis keeps the rows' own
+    stride, so numpy's reshape gives a view of rows that are apart too.
     """
     count, length = rows.shape
     if length % _BLOCK or rows.strides[1] != rows.itemsize:
         return None
-    if rows.flags.c_contiguous:
-        return rows.reshape(count, length // _BLOCK, _BLOCK)       # one view of them all
-    return [row.reshape(-1, _BLOCK) for row in rows]
+    return rows.reshape(count, length // _BLOCK, _BLOCK)
 
 
 def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarray,
@@ -1138,7 +1144,7 @@ def _blocked_pairs(poles: np.ndarray, inputs: np.ndarray, coefficients: np.ndarr
     parts, a row each) in place, through ``out_blocks``, its blocks as one view.
     """
     blocks = out.shape[1] // _BLOCK
-    powers, matrices = _block_matrices(poles)
+    powers, matrices = _pole_blocks(poles.tobytes(), poles.dtype.char)
     source = _blocks(inputs)[0]
     # c T for every complex mode, its real and imaginary parts contiguous.
     scaled = coefficients[:, 0, None, None] * matrices
@@ -1198,19 +1204,20 @@ def recursions(poles: np.ndarray, values: np.ndarray,
     ``out``, if given, receives the result (of the values' shape and the result's type) and
     is returned; blocks of whole rows are written in place (:func:`_blocked_recursions`).
     """
-    return _recursions(poles, values, out, None)
+    return _recursions(np.asarray(poles), values, out, None)
 
 
 def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray],
                 blocks: Optional[np.ndarray], alone: bool = False) -> np.ndarray:
     """
-    :func:`recursions`; ``blocks``: ``out``'s blocks as one view, where known.
+    :func:`recursions` of the ``poles`` array (not a sequence).
+
+    ``blocks``: ``out``'s blocks as one view, where known.
 
     ``alone``: each row runs in blocks or as a substitution as it would if it were the only
     row (its own size, pole and values decide), so that its values do not depend on the rows
     run with it: rows of several filters run together give each filter's values alone.
     """
-    poles = np.asarray(poles)
     rows, length = values.shape
     complex_valued = values.dtype.kind == 'c' or poles.dtype.kind == 'c'
     dtype = complex if complex_valued else float
@@ -1221,8 +1228,13 @@ def _recursions(poles: np.ndarray, values: np.ndarray, out: Optional[np.ndarray]
             values = values.astype(dtype)
         # Finite values only: a block's product would spread a NaN or inf to the samples
         # before it. The checks are the ufuncs' reductions, without numpy's Python wrappers.
-        if _blocked_size(1 if alone else rows, length, complex_valued):
-            if _MAX(abs(poles), None) <= 1.0 and all_finite(values):
+        # Blocks where they are worth it: a complex row of _BLOCKED_MIN_COMPLEX_LENGTH
+        # samples, real rows of _BLOCKED_MIN_LENGTH and _BLOCKED_MIN_SIZE in all.
+        if length >= _BLOCKED_MIN_COMPLEX_LENGTH if complex_valued else \
+                length >= _BLOCKED_MIN_LENGTH and \
+                (1 if alone else rows) * length >= _BLOCKED_MIN_SIZE:
+            # Every pole at most 1 in magnitude (a NaN is not, as its maximum is not).
+            if all(map((1.0).__ge__, abs(poles).tolist())) and all_finite(values):
                 return _blocked_recursions(poles if poles.dtype == dtype else
                                            poles.astype(dtype), values, out, blocks, alone)
             if alone and rows > 1:
@@ -1243,8 +1255,9 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     """:func:`recursions` as banded triangular solves, for values of the solve's type."""
     rows, length = values.shape
     solve = lapack.ztbtrs if complex_valued else lapack.dtbtrs
-    # A complex sample takes twice the memory of a real one: half as many per solve.
-    step = max(1, (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length)
+    # A complex sample takes twice the memory of a real one: half as many per solve (at
+    # least one row).
+    step = (_BAND_SIZE // 2 if complex_valued else _BAND_SIZE) // length or 1
     parts = []
     for first in range(0, rows, step):
         chunk = values[first:first + step]          # the last one may be shorter
@@ -1257,8 +1270,10 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
         # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
         # values), a third of its time.
         out, _ = solve(band, chunk.reshape(-1, 1), uplo='L', diag='U')
+        if rows <= step:
+            return out.reshape(count, length)           # one solve (the usual case)
         parts.append(out.reshape(count, length))
-    return parts[0] if rows <= step else np.concatenate(parts)
+    return np.concatenate(parts)
 
 
 # The largest temporary (bytes) the blocked recursions form in one piece: glibc's default
@@ -1281,13 +1296,6 @@ _BLOCKED_MIN_PAIR_LENGTH = 4096
 _BLOCK_EXPONENTS = np.arange(_BLOCK + 1)
 _BLOCK_LAG = np.subtract.outer(np.arange(_BLOCK), np.arange(_BLOCK))    # j - k
 _BLOCK_INDEX = np.where(_BLOCK_LAG <= 0, -_BLOCK_LAG, _BLOCK + 1)
-
-
-def _blocked_size(rows: int, length: int, complex_valued: bool) -> bool:
-    """Return True if ``rows`` recursions of ``length`` samples are worth running in blocks."""
-    if complex_valued:
-        return length >= _BLOCKED_MIN_COMPLEX_LENGTH
-    return length >= _BLOCKED_MIN_LENGTH and rows * length >= _BLOCKED_MIN_SIZE
 
 
 def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
@@ -1314,7 +1322,7 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     if padded is None:
         padded = np.zeros((rows, blocks, _BLOCK), dtype=values.dtype)
         padded.reshape(rows, -1)[:, :length] = values
-    powers, transposed = _block_matrices(poles)
+    powers, transposed = _pole_blocks(poles.tobytes(), poles.dtype.char)
     # In place where the rows are of whole blocks and one array (a caller's other rows are
     # written from the whole response below).
     response = out_blocks if out_blocks is not None else \
@@ -1334,7 +1342,7 @@ def _blocked_recursions(poles: np.ndarray, values: np.ndarray,
     carried = _recursions(powers[:, _BLOCK], ends, None, None, alone)
     # The carried states' products, a temporary of the response's size, are formed a few
     # rows at a time: a larger one is memory glibc maps from the system afresh on every run.
-    step = max(1, _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize))
+    step = _TEMPORARY_SIZE // (blocks * _BLOCK * values.itemsize) or 1
     for first in range(0, rows, step):
         last = first + step
         response[first:last, 1:, :] += \
@@ -1403,7 +1411,7 @@ def _series_factors(x: np.ndarray) -> Optional[np.ndarray]:
     Rows: :func:`_hold_factors` and :func:`_hold_factor_slopes` summed as power series, from
     one product of the powers of ``x``; None if some ``|x|`` reaches :data:`_SERIES_LIMIT`.
     """
-    if _MAX(abs(x), None) < _SERIES_LIMIT:
+    if all(map(_SERIES_LIMIT.__gt__, abs(x).tolist())):          # a handful: Python floats
         return (_powers(x) @ _SERIES).T
     return None
 
@@ -1474,19 +1482,22 @@ class _ContinuousModes:
         transition = None
         drive: Dict[Sample, np.ndarray] = {}
         factors = []
+        span = 0.0
         for length, start, end in segments:
             x = self.poles * length
             e = np.exp(x)
             series = _series_factors(x)
             first, second = _hold_factors(x, series)
-            factors.append((length, start, end, x, e, first, second, series))
+            # The drives before the sub-interval too: their slopes (drive_slopes) carry them.
+            factors.append((length, start, end, x, e, first, second, series, drive))
+            span += length
             # The first sub-interval's transition is its exponential itself (times 1, exact).
             transition = e if transition is None else e * transition
             drive = self._advanced(drive, length, start, end, e, first, second)
         drives = np.array(list(drive.values()))
         if not (all_finite(transition) and all_finite(drives)):
             return None
-        return _DiscreteModes(self, transition, list(drive), drives, factors)
+        return _DiscreteModes(self, transition, list(drive), drives, factors, span)
 
     def _advanced(self, drive: Dict['Sample', np.ndarray], length: float, start, end,
                   e: np.ndarray, first: np.ndarray, second: np.ndarray
@@ -1509,18 +1520,17 @@ class _ContinuousModes:
         Return the derivatives of the drives of :meth:`discretize` in the poles, residues fixed.
 
         ``factors`` are :meth:`discretize`'s per sub-interval (length, values at start and
-        end, ``x``, ``e^x``, the hold factors and :func:`_series_factors`). Returns
+        end, ``x``, ``e^x``, the hold factors, :func:`_series_factors` and the drives up to
+        the sub-interval's start, which are not written to). Returns
         ``(samples, kept modes)`` in the order of ``samples``: the drives of the chain
         ``r_i/(z - z_i)^2`` (:meth:`_DiscreteModes.chains`).
         """
-        drive: Dict[Sample, np.ndarray] = {}
         slope: Dict[Sample, np.ndarray] = {}
-        for length, start, end, x, e, first, second, series in factors:
+        for length, start, end, x, e, first, second, series, drive in factors:
             first_slope, second_slope = _hold_factor_slopes(x, first, second, series)
             q_slope = length * length * second_slope * self.residues
             slope = {sample: e * slope.get(sample, 0.0) + length * e * vector
                      for sample, vector in drive.items()}
-            drive = self._advanced(drive, length, start, end, e, first, second)
             _accumulate(slope, (start, length * length * first_slope * self.residues - q_slope),
                         (end, q_slope))
         zero = np.zeros(self.poles.size, dtype=self.poles.dtype)
@@ -1536,6 +1546,7 @@ class _DiscreteModes:
     samples: List[Sample]
     drives: np.ndarray         # (samples, kept modes)
     factors: List              # per scaled sub-interval: ContinuousModes.discretize's values
+    span: float                # the sub-intervals' scaled lengths summed: one sample period
 
     def chains(self, modal: np.ndarray, signals: np.ndarray, count: int,
                below: Optional[np.ndarray] = None) -> np.ndarray:
@@ -1552,7 +1563,7 @@ class _DiscreteModes:
         """
         continuous = self.continuous
         real = continuous.real
-        length = sum(factor[0] for factor in self.factors)
+        length = self.span
         slopes = continuous.drive_slopes(self.factors, self.samples)
         # One driving row per real mode and two per complex one (its real and imaginary
         # parts), each complex mode then driven by its own two rows.
@@ -1561,13 +1572,17 @@ class _DiscreteModes:
         if modal.dtype.kind == 'c':
             return self._run_complex(factors[:, None] * modal + _product(slopes.T, signals),
                                      count, below)
-        if not pairs:
-            driving = factors[:, None] * modal
-            driving += _product(slopes.T, signals)
-            return self._run_form(driving, driving[:0], _NO_PAIRS)
-        driving = _form_scaling(factors, real) @ modal
-        driving += _product(_form_drives(slopes.T, real), signals)
-        return self._run_form(driving[:real], driving[real:], _pair_rows(pairs), below)
+
+        def form(rows: np.ndarray) -> None:
+            # Every row's driving, sample k at k, in the trajectories' own rows.
+            if pairs:
+                np.matmul(_form_scaling(factors, real), modal, out=rows)
+                rows += _product(_form_drives(slopes.T, real), signals)
+            else:
+                np.multiply(factors[:, None], modal, out=rows)
+                rows += _product(slopes.T, signals)
+
+        return self._run_form(form, signals.shape[1], None, None, below)
 
     def run(self, signals: np.ndarray, count: int) -> np.ndarray:
         """
@@ -1582,11 +1597,13 @@ class _DiscreteModes:
         """
         real = self.continuous.real
         drives = self.drives.T
+        length = signals.shape[1]
         if real == drives.shape[0]:
-            return self._run_form(partial(_product, drives.real, signals), signals, _NO_PAIRS)
-        if signals.shape[1] < _BLOCKED_MIN_PAIR_LENGTH:
+            return self._run_form(partial(_product, drives.real, signals), length, signals,
+                                  _NO_PAIRS)
+        if length < _BLOCKED_MIN_PAIR_LENGTH:
             return self._run_complex(_product(drives, signals), count)
-        return self._run_form(partial(_product, drives[:real].real, signals), signals,
+        return self._run_form(partial(_product, drives[:real].real, signals), length, signals,
                               drives[real:])
 
     def _run_complex(self, driving: np.ndarray, count: int,
@@ -1612,32 +1629,32 @@ class _DiscreteModes:
             trajectories[kept:] = below
         return trajectories
 
-    def _run_form(self, driving: Union[np.ndarray, Callable[[np.ndarray], object]],
-                  inputs: np.ndarray, coefficients: np.ndarray,
+    def _run_form(self, form: Callable[[np.ndarray], object], length: int,
+                  inputs: Optional[np.ndarray], coefficients: Optional[np.ndarray],
                   below: Optional[np.ndarray] = None) -> np.ndarray:
         """
         Return the kept modes in real form (:func:`_form_recursions`' arguments), from rest.
 
-        ``m[k+1] = p m[k] + d[k]``: the recursions write one sample on into rows that start
-        at rest, in the blocks of ``d`` (as the sums of a recursion of ``d`` itself round).
-        ``driving``: the real modes' drives ``d``, or a function that writes them into the
-        rows it is given: the real modes' own rows, sample k at k, then run in place (the
-        recursions read a row before they write it), without an array of the drives' size.
-        ``below``: rows of the result's length copied under the modes' rows.
+        ``m[k+1] = p m[k] + d[k]`` over ``length`` samples: the recursions write one sample on
+        into rows that start at rest, in the blocks of ``d`` (as the sums of a recursion of
+        ``d`` itself round). ``form`` writes the drives ``d`` into the rows it is given, sample
+        k at k, which then run in place (the recursions read a row before they write it),
+        without an array of the drives' size: the real modes' rows, the complex modes being
+        driven by ``coefficients`` times the real ``inputs``; or (``inputs`` None) every row,
+        a complex mode's two rows the real and imaginary parts of its driving. ``below``: rows
+        of the result's length copied under the modes' rows.
         """
         real = self.continuous.real
         rows = 2 * self.poles.size - real
-        length = inputs.shape[1]
         trajectories, blocks = _trajectories(rows + (0 if below is None else below.shape[0]),
                                              length)
-        formed = callable(driving)
-        if formed:
-            driving(trajectories[:real, :length])
-            driving = trajectories[:real, :length]
-        _form_recursions(self.poles, real, driving, inputs, coefficients,
+        formed = real if inputs is not None else rows
+        form(trajectories[:formed, :length])
+        if inputs is None:
+            inputs = trajectories[real:rows, :length]
+        _form_recursions(self.poles, real, trajectories[:real, :length], inputs, coefficients,
                          trajectories[:rows, 1:], None if blocks is None else blocks[:rows])
-        if formed:
-            trajectories[:real, 0] = 0.0                                # from rest
+        trajectories[:formed, 0] = 0.0                                  # from rest
         if below is not None:
             trajectories[rows:] = below
         return trajectories
@@ -1765,17 +1782,18 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
         return None
-    magnitudes = abs(poles)
-    # The largest magnitude is NaN or infinite if any is (none is negative).
-    largest = _MAX(magnitudes, None)
-    if not math.isfinite(largest):
+    # The extremes of a handful of values by Python's own max and min of their floats, a
+    # tenth of a ufunc reduction's work (the same values: no NaN gets past the first test).
+    magnitudes = abs(poles).tolist()
+    if not all(map(math.isfinite, magnitudes)):
         return None
-    nonzero = magnitudes[magnitudes > 0.0]
-    if nonzero.size and largest > _MODAL_RANGE_LIMIT * _MIN(nonzero, None):
+    largest = max(magnitudes)
+    nonzero = [magnitude for magnitude in magnitudes if magnitude > 0.0]
+    if nonzero and largest > _MODAL_RANGE_LIMIT * min(nonzero):
         return None                     # beyond any physical model: the state-space path says so
     differences = poles[:, None] - poles[None, :]
     differences.flat[::n + 1] = 1.0                 # the diagonal, as np.fill_diagonal sets it
-    if _MIN(abs(differences), None) <= 1e-8 * max(largest, 1.0):
+    if min(abs(differences).ravel().tolist()) <= 1e-8 * max(largest, 1.0):
         realisation.repeated_roots = True
         return None                     # (nearly) repeated poles: no eigenvector basis
     vandermonde = poles[None, :] ** np.arange(n)[:, None]
@@ -1788,11 +1806,11 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         return None
     inverse = 1.0 / differences
     inverse.flat[::n + 1] = 0.0
-    if _ANY(poles.imag, None):
+    imaginary = poles.imag.tolist()
+    if any(imaginary):
         # The real modes first, then one of each conjugate pair: their trajectories run in the
         # real form of :func:`_form_recursions` without selecting rows. Python lists: a
         # handful of poles, for every new denominator.
-        imaginary = poles.imag.tolist()
         real = [index for index, value in enumerate(imaginary) if value == 0.0]
         keep = np.array(real + [index for index, value in enumerate(imaginary) if value > 0.0])
         kept = poles[keep]
@@ -1805,9 +1823,10 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
         keep, kept, basis, weights = None, poles.real, basis.real, np.array([1.0] * n)
         residues = (1.0 / _PROD(differences, 1)).real
         spread = _SUM(inverse, 1).real
-    amplification = _MAX(abs(residues) ** 2 * (1.0 + 2.0 * abs(spread)), None)
+    # Every amplification within the limit: the largest is, and a NaN is not (as its maximum).
+    amplifications = (abs(residues) ** 2 * (1.0 + 2.0 * abs(spread))).tolist()
     return _ContinuousModes(kept, basis, keep, weights, residues, spread,
-                            bool(amplification <= _SQUARED_AMPLIFICATION_LIMIT),
+                            all(map(_SQUARED_AMPLIFICATION_LIMIT.__ge__, amplifications)),
                             n if keep is None else len(real))
 
 

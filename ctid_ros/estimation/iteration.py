@@ -18,6 +18,7 @@ from functools import lru_cache
 import math
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
+from ctid_ros.core.simulation import all_finite
 from ctid_ros.estimation.linear_algebra import condition, solve_or_none, symmetric_eigen
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
@@ -61,6 +62,7 @@ _PROGRESS_SPAN = 2
 # of bench/estimator.py: among 10, 30 and no limit, 30 needs the fewest simulations on most.
 _NEAR_MINIMUM = 30.0
 _TINY = np.finfo(float).tiny
+_INF = math.inf
 
 
 # A bound a step ran into: (parameter index, bound value).
@@ -145,17 +147,18 @@ def column_scales(psi: np.ndarray) -> np.ndarray:
     return np.where(scales > 0.0, scales, 1.0)
 
 
-def _finite(matrix: np.ndarray) -> bool:
-    """Return True if every element is finite (``np.isfinite(matrix).all()``, its reduction)."""
-    return bool(np.logical_and.reduce(np.isfinite(matrix), axis=None))
-
-
 # Masks over the parameters (a handful) are tested as lists: the builtin any/all of a few
 # Python bools costs a fraction of the array methods' reduction machinery.
 
-def _block(matrix: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """Return the rows and columns of the free parameters (the matrix if all are free)."""
-    return matrix if all(free.tolist()) else matrix[np.ix_(free, free)]
+def _block(matrix: np.ndarray, free: np.ndarray, every: Optional[bool] = None) -> np.ndarray:
+    """
+    Return the rows and columns of the free parameters (the matrix if all are free).
+
+    ``every``: whether every parameter is free, if the caller knows already.
+    """
+    if every is None:
+        every = all(free.tolist())
+    return matrix if every else matrix[np.ix_(free, free)]
 
 
 class _Side:
@@ -309,6 +312,7 @@ def _direction(kind: str, linear: _Linear, free: np.ndarray, damping: float = 0.
 def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: float,
                          rcond: Optional[float] = None) -> Optional[np.ndarray]:
     """Direction of :func:`_direction` with the sensitivities of one side."""
+    every = all(free.tolist())              # every parameter free (as a rule): nothing to pick
     scales = side.scales(free)
     outer = scales[:, None] * scales                          # np.outer's own product
     rhs = side.gradient[free] / scales
@@ -316,16 +320,16 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
         phi_s = side.phi[:, free] / scales
         step = np.linalg.lstsq(phi_s, side.error, rcond=None)[0] / scales
     elif kind == 'iv':
-        matrix = _block(side.cross, free) / outer
-        if not _finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
+        matrix = _block(side.cross, free, every) / outer
+        if not all_finite(matrix) or condition(matrix) > _IV_CONDITION_LIMIT:
             return None
         step = solve_or_none(matrix, rhs)
         if step is None:
             return None
         step /= scales
     else:
-        gram = _block(side.gram, free) / outer
-        if not _finite(gram):
+        gram = _block(side.gram, free, every) / outer
+        if not all_finite(gram):
             return None
         if kind == 'gn':
             step = _gauss_newton(side, free, scales, gram, rhs, rcond)
@@ -336,7 +340,7 @@ def _one_sided_direction(kind: str, side: _Side, free: np.ndarray, damping: floa
             step /= scales
     if not all(map(math.isfinite, step.tolist())):
         return None
-    if all(free.tolist()):
+    if every:
         return step
     full = np.zeros(free.size)
     full[free] = step
@@ -419,12 +423,19 @@ def on_bounds(theta: np.ndarray, problem: Problem, tolerance: float = 1e-9
     constant of 5e-10 s identified at a sample time of 1e-12 s is not on its bound at 0 (the
     iteration clips to a bound exactly, so a parameter held there equals it).
     """
-    # Every update asks, for a handful of parameters: Python floats, not numpy's dispatch.
+    # Every update asks, for a handful of parameters: Python floats, not numpy's dispatch,
+    # and operators, not calls: a finite bound is one between the infinities, and a gap
+    # within tolerance times the larger magnitude is within it times either magnitude
+    # (rounding keeps the order of the products, and negation is exact).
     values = theta.tolist()
-    near_lower = [math.isfinite(low) and value - low <= tolerance * max(abs(value), abs(low))
-                  for value, low in zip(values, problem.lower.tolist())]
-    near_upper = [math.isfinite(high) and high - value <= tolerance * max(abs(value), abs(high))
-                  for value, high in zip(values, problem.upper.tolist())]
+    near_lower = [-_INF < low < _INF and (
+        (gap := value - low) <= tolerance * value or gap <= -(tolerance * value) or
+        gap <= tolerance * low or gap <= -(tolerance * low))
+        for value, low in zip(values, problem.lower.tolist())]
+    near_upper = [-_INF < high < _INF and (
+        (gap := high - value) <= tolerance * value or gap <= -(tolerance * value) or
+        gap <= tolerance * high or gap <= -(tolerance * high))
+        for value, high in zip(values, problem.upper.tolist())]
     return np.array(near_lower, dtype=bool), np.array(near_upper, dtype=bool)
 
 
@@ -903,8 +914,15 @@ class _Run:
             (self.near or size < _NEAR_MINIMUM)
         self.struggling += struggled
         state = self.state
-        change = max(abs(scale * move) / max(abs(value), 1e-12)
-                     for move, value in zip(step.tolist(), state.theta.tolist()))
+        # The largest relative change |scale move| / max(|value|, 1e-12), in Python floats and
+        # operators (magnitudes by negation, exact): no builtin call per parameter.
+        change = 0.0
+        for move, value in zip(step.tolist(), state.theta.tolist()):
+            moved = scale * move
+            size = value if value >= 0.0 else -value
+            relative = (moved if moved >= 0.0 else -moved) / (size if size > 1e-12 else 1e-12)
+            if relative > change:
+                change = relative
         previous = max(state.cost, _TINY)
         decrease = (state.cost - new_state.cost) / previous
         self.state = new_state

@@ -21,7 +21,7 @@ import math
 import operator
 from typing import Optional, Tuple
 
-from ctid_ros.core.simulation import all_pole, companion_roots
+from ctid_ros.core.simulation import all_finite, all_pole, companion_roots
 from ctid_ros.estimation.correlation import fft_size
 from ctid_ros.estimation.linear_algebra import least_squares
 import numpy as np
@@ -171,7 +171,7 @@ def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERIO
     A shaping filter with ``h[0] = 1`` has a unit determinant: it adds nothing to the
     likelihood's normalisation, so shaped and plain models compare on this score directly.
     """
-    if model.innovation_variance <= 0.0 or not np.isfinite(model.innovation_variance):
+    if model.innovation_variance <= 0.0 or not math.isfinite(model.innovation_variance):
         return math.inf
     penalty = _PENALTIES[criterion](model.order, count)
     return count * math.log(model.innovation_variance) + penalty
@@ -192,18 +192,22 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
     impulse = np.asarray(impulse, dtype=float)
     # np.max and np.sum are these reductions behind numpy's dispatch.
     peak = float(np.maximum.reduce(np.abs(impulse), axis=None, initial=0.0))
-    if peak == 0.0 or not np.isfinite(impulse).all():
+    if peak == 0.0 or not all_finite(impulse):
         return None
     for order in range(1, max_order + 1):
         if impulse.size < 3 * order + 2:
             return None
-        # rows[j] = h[j + order], h[j + order - 1], ..., h[j]; the recurrence holds from
-        # k = order + 1 on, i.e. for the rows after the first.
-        rows = impulse[np.arange(1, impulse.size - order)[:, None] + np.arange(order, -1, -1)]
-        tail = least_squares(rows[:, 1:], -rows[:, 0])
+        # Row j: h[j + order] = -(tail . (h[j + order - 1], ..., h[j])); the recurrence holds
+        # from k = order + 1 on, i.e. for j >= 1. Column c of the matrix is h shifted by
+        # order - c, copied in the column-major order LAPACK takes (no index arrays).
+        count = impulse.size - order - 1
+        matrix = np.empty((count, order), order='F')
+        for column in range(order):
+            matrix[:, column] = impulse[order - column:order - column + count]
+        tail = least_squares(matrix, -impulse[order + 1:])
         den = np.concatenate([[1.0], tail])
         num = np.convolve(den, impulse[:order + 1])[:order + 1]
-        if not (np.isfinite(den).all() and num[0] != 0.0):
+        if not (all_finite(den) and num[0] != 0.0):
             continue
         # den * (impulse - response) is den * impulse after the first order + 1 samples: where
         # that exceeds |den|_1 times the tolerance, so does the error itself (no filtering).
@@ -256,7 +260,7 @@ def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
         prewhitened = inverse_filtered(shaping, residual - residual.mean())
-    if not np.isfinite(prewhitened).all():
+    if not all_finite(prewhitened):
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)
     return NoiseModel(inner.ar, inner.innovation_variance, float(np.var(residual)),
@@ -313,9 +317,25 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
     through ``1/A`` backwards in time. ``scale`` is ``N / (N - n)`` for the covariance of an
     estimate (:func:`coloured_covariance`).
     """
+    return np.sqrt(scale * model.innovation_variance) * _backward_filtered(columns, model)
+
+
+def unit_root(columns: np.ndarray, model: NoiseModel) -> np.ndarray:
+    """
+    Return :func:`noise_root` of ``columns`` for unit innovations: the filtering alone.
+
+    ``noise_root(columns, model, scale)`` is ``sqrt(scale sigma_w^2)`` times it, to the last
+    bit: one filter pass serves every scale and every use of the same model's filter. A new
+    array in C order, as the scaled one is: its products read it as such.
+    """
+    return np.array(_backward_filtered(columns, model), order='C')
+
+
+def _backward_filtered(columns: np.ndarray, model: NoiseModel) -> np.ndarray:
+    """Return ``H^T X``: the columns filtered through ``model``'s filter backwards in time."""
     columns = np.asarray(columns, dtype=float)
     if model.shaping is not None:
-        # H^T X: the columns filtered through H backwards in time.
+        # H^T X: the columns filtered through the shaping backwards in time.
         count = columns.shape[0]
         size = fft_size(count + model.shaping.size)
         spectrum = np.fft.rfft(columns[::-1].reshape(count, -1), size, axis=0)
@@ -324,17 +344,7 @@ def noise_root(columns: np.ndarray, model: NoiseModel, scale: float = 1.0) -> np
         columns = filtered[::-1].reshape(columns.shape)
     if model.order:
         columns = all_pole(model.ar, columns[::-1])[::-1]
-    return np.sqrt(scale * model.innovation_variance) * columns
-
-
-def unit_root(columns: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """
-    Return :func:`noise_root` of ``columns`` for unit innovations: the filtering alone.
-
-    ``noise_root(columns, model, scale)`` is ``sqrt(scale sigma_w^2)`` times it, to the last
-    bit: one filter pass serves every scale and every use of the same model's filter.
-    """
-    return noise_root(columns, NoiseModel(model.ar, 1.0, model.variance, model.shaping))
+    return columns
 
 
 def noise_memory(model: NoiseModel, limit: int) -> int:

@@ -84,10 +84,10 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
     if den[0] == 0.0 or not all_finite(den):
         return False
     roots = polynomial_roots(den)
-    # ndarray.max is np.maximum.reduce behind two Python wrappers: called directly, as for every
-    # candidate.
-    scale = max(np.maximum.reduce(abs(roots)), _TINY)
-    return bool(np.maximum.reduce(roots.real) < -margin * scale)
+    # Every candidate is checked: the extremes of its few roots by Python's max of their floats
+    # (a tenth of a ufunc reduction's work; the roots of finite coefficients hold no NaN).
+    scale = max(max(abs(roots).tolist()), _TINY)
+    return max(roots.real.tolist()) < -margin * scale
 
 
 def _remembered(cache: Dict[Hashable, Value], key: Hashable,
@@ -223,9 +223,8 @@ class SignalBank:
         delay_used = any(coefficients.delay_gradient.tolist())
         delay = coefficients.delay + self.extra_delay
         # A zero row of a Jacobian (a gain moves no D, a lag no N) maps to a zero regressor:
-        # only the parameters that move a polynomial are mapped for phi. (ndarray.any(axis=1) is
-        # np.logical_or.reduce behind two Python wrappers: called directly.)
-        den_moves = np.logical_or.reduce(den_jacobian, axis=1)
+        # only the parameters that move a polynomial are mapped for phi.
+        den_moves = _moving_rows(den_jacobian)
         # Only a dead time's jump reads the discretisation itself.
         bank_u = self._discrete(den, delay, self.intersample) if delay_used else None
         u_responses = self._channel_responses(self._responses, den, delay,
@@ -240,7 +239,7 @@ class SignalBank:
             signal = self.driving[:, j]
             num_full = _pad(num, order + 1)
             num_jac = _pad(coefficients.num_jacobian[:, j], order + 1)
-            num_moves = np.logical_or.reduce(num_jac, axis=1)
+            num_moves = _moving_rows(num_jac)
             if delay_used and num_full[0] != 0.0:
                 raise EstimationError(
                     'cannot estimate the dead time of a biproper model (numerator and '
@@ -255,7 +254,9 @@ class SignalBank:
             regressor_row = len(u_numerators)
             if regressors:
                 u_numerators.extend(num_jac[num_moves])
-            u_parts = u_responses[j].outputs(u_numerators)[:, trim:] if u_numerators else None
+            # The rows all have deg D + 1 coefficients: one 2-D array, mapped in one pass.
+            u_parts = u_responses[j].outputs(np.array(u_numerators))[:, trim:] \
+                if u_numerators else None
             if known is None:
                 output = _summed(output, u_parts[0])
             if delay_used:
@@ -275,14 +276,10 @@ class SignalBank:
             # Both products have degree 2 deg D: the coefficient arrays align. Every row is
             # mapped, the dead time's zero one too: the rounding of the others depends on how
             # many rows one product maps, and the covariance of a near-singular fit shows it.
-            # np.convolve of two equal-length factors is np.correlate with the second reversed:
-            # the same products summed in the same order, without convolve's wrapper per row.
-            den_reversed, num_reversed = den[::-1], num_full[::-1]
-            sensitivity_numerators = [
-                np.correlate(num_jac[i], den_reversed, 'full')
-                - np.correlate(den_jacobian[i], num_reversed, 'full') for i in range(params)]
+            sensitivity_numerators = _row_products(num_jac, den) - \
+                _row_products(den_jacobian, num_full)
             # Read off the modes of D where it has uncoupled ones, else simulated through 1/D^2.
-            sensitivities = u_responses[j].squared_outputs(np.array(sensitivity_numerators))
+            sensitivities = u_responses[j].squared_outputs(sensitivity_numerators)
             if sensitivities is None:
                 if sensitivity_responses is None:
                     # np.convolve multiplies polynomials without np.polymul's poly1d overhead.
@@ -341,6 +338,35 @@ class SignalBank:
                              self._outputs_kept)
         return Linearization(output, phi, psi.T if instruments is None else instruments.psi,
                              delay_jump, coefficients.delay_gradient)
+
+
+def _moving_rows(jacobian: np.ndarray) -> np.ndarray:
+    """
+    Return which rows of a Jacobian hold a nonzero value (``jacobian.any(axis=1)``).
+
+    A handful of rows: Python's any over their floats (a NaN counts, as in numpy), a fraction
+    of a ufunc reduction's work.
+    """
+    return np.array([any(row) for row in jacobian.tolist()], dtype=bool)
+
+
+def _row_products(rows: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """
+    Return the polynomial products ``np.convolve(row, factor)`` of every row, one row each.
+
+    ``rows`` ``(q, m)`` and ``factor`` ``(m,)``, highest power first. One ``np.correlate`` with
+    the reversed factor (convolve's own sums) over the rows laid end to end, each followed by
+    ``m - 1`` zeros: every product's window holds its own row and zeros, which add exact zeros
+    to the same sums, without a call of numpy's wrappers per row.
+    """
+    count, size = rows.shape
+    width = 2 * size - 1
+    if not count:
+        return np.zeros((0, width))
+    spaced = np.zeros((count, width))
+    spaced[:, :size] = rows
+    return np.correlate(spaced.reshape(-1), factor[::-1], 'full')[:count * width] \
+        .reshape(count, width)
 
 
 def _spread(values: np.ndarray, rows: np.ndarray) -> np.ndarray:

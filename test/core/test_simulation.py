@@ -557,7 +557,7 @@ def test_blocked_recursions_of_remembered_poles_give_the_same_values():
     np.testing.assert_allclose(first, np.stack([signal.lfilter([1.0], [1.0, -pole], row)
                                                 for pole, row in zip(poles, values)]),
                                rtol=0.0, atol=1e-12 * np.abs(first).max())
-    powers, matrices = simulation._block_matrices(poles)
+    powers, matrices = simulation._pole_blocks(poles.tobytes(), poles.dtype.char)
     assert not powers.flags.writeable and not matrices.flags.writeable
 
 
