@@ -14,8 +14,8 @@ from typing import Optional, Tuple
 import numpy as np
 from scipy.linalg import lapack
 
-__all__ = ['bounded_least_squares', 'condition', 'least_squares', 'normal_solution', 'solve',
-           'solve_or_none', 'symmetric_eigen', 'symmetric_eigenvalues', 'thin_svd']
+__all__ = ['condition', 'least_squares', 'normal_solution', 'solve', 'solve_or_none',
+           'symmetric_eigen', 'symmetric_eigenvalues', 'thin_svd']
 
 # The spacing of floats at 1: numpy's least-squares cutoff is it times the longer side.
 _EPSILON = np.finfo(float).eps
@@ -39,120 +39,6 @@ def least_squares(matrix: np.ndarray, rhs: np.ndarray,
     if info != 0:
         raise np.linalg.LinAlgError(f'least-squares solution failed (LAPACK info {info})')
     return solution[:columns]
-
-
-def bounded_least_squares(matrix: np.ndarray, rhs: np.ndarray, lower: np.ndarray,
-                          upper: np.ndarray) -> np.ndarray:
-    """
-    Return ``scipy.optimize.lsq_linear(matrix, rhs, (lower, upper), method='bvls').x``.
-
-    The least-squares solution within the bounds (finite or infinite, ``lower < upper``) of a
-    tall, small problem: the unbounded solution where it lies within them, else the
-    bounded-variable least-squares algorithm of Stark and Parker. The same steps and
-    arithmetic as scipy's (its default tolerance 1e-10 and iteration limit), so the same
-    result to the bit, without most of its checks of the arguments, its report and its
-    import. Raises ValueError, as scipy does, unless every lower bound is below its upper one.
-    """
-    if np.logical_or.reduce(lower >= upper):
-        raise ValueError('Each lower bound must be strictly less than each upper bound.')
-    # lsq_linear's unbounded solution, its cutoff machine precision.
-    solution = least_squares(matrix, rhs, -1)
-    if np.logical_and.reduce((solution >= lower) & (solution <= upper)):
-        return solution
-    return _bounded_variables(matrix, rhs, solution, lower, upper, 1e-10)
-
-
-def _bounded_variables(matrix: np.ndarray, rhs: np.ndarray, start: np.ndarray,
-                       lower: np.ndarray, upper: np.ndarray, tolerance: float) -> np.ndarray:
-    """Return scipy's ``bvls(matrix, rhs, start, lower, upper, tolerance, None, 0).x``."""
-    size = matrix.shape[1]
-    x = start.copy()
-    on_bound = np.zeros(size)
-    mask = x <= lower
-    x[mask] = lower[mask]
-    on_bound[mask] = -1
-    mask = x >= upper
-    x[mask] = upper[mask]
-    on_bound[mask] = 1
-    free = on_bound == 0
-    active = ~free
-    free_set = free.nonzero()[0]
-    residual = matrix.dot(x) - rhs
-    cost = 0.5 * np.dot(residual, residual)
-    gradient = matrix.T.dot(residual)
-    # The start: least squares on the free variables, those it puts beyond a bound fixed
-    # there, until the free ones' solution is feasible.
-    iteration = 0
-    while free_set.size > 0:
-        iteration += 1
-        solution = least_squares(matrix[:, free_set], rhs - matrix.dot(x * active))
-        below = solution < lower[free_set]
-        above = solution > upper[free_set]
-        beyond = below | above
-        if below.any():
-            index = free_set[below]
-            x[index] = lower[index]
-            active[index] = True
-            on_bound[index] = -1
-        if above.any():
-            index = free_set[above]
-            x[index] = upper[index]
-            active[index] = True
-            on_bound[index] = 1
-        x[free_set[~beyond]] = solution[~beyond]
-        residual = matrix.dot(x) - rhs
-        cost = 0.5 * np.dot(residual, residual)
-        gradient = matrix.T.dot(residual)
-        if beyond.any():
-            free_set = free_set[~beyond]
-        else:
-            break
-    optimality = _violation(gradient, on_bound)
-    for _ in range(iteration, size + iteration):
-        if optimality < tolerance:
-            break
-        on_bound[np.argmax(gradient * on_bound)] = 0
-        while True:
-            free = on_bound == 0
-            active = ~free
-            free_set = free.nonzero()[0]
-            x_free = x[free_set]
-            lower_free, upper_free = lower[free_set], upper[free_set]
-            solution = least_squares(matrix[:, free_set], rhs - matrix.dot(x * active))
-            below = (solution < lower_free).nonzero()[0]
-            above = (solution > upper_free).nonzero()[0]
-            beyond = np.hstack((below, above))
-            if beyond.size > 0:
-                # The step towards the solution stops at the first bound it meets.
-                alphas = np.hstack((lower_free[below] - x_free[below],
-                                    upper_free[above] - x_free[above])) / \
-                    (solution[beyond] - x_free[beyond])
-                first = np.argmin(alphas)
-                alpha = alphas[first]
-                x_free *= 1 - alpha
-                x_free += alpha * solution
-                x[free_set] = x_free
-                on_bound[free_set[beyond[first]]] = -1 if first < below.size else 1
-            else:
-                x[free_set] = solution
-                break
-        residual = matrix.dot(x) - rhs
-        new_cost = 0.5 * np.dot(residual, residual)
-        settled = cost - new_cost < tolerance * cost
-        cost = new_cost
-        gradient = matrix.T.dot(residual)
-        optimality = _violation(gradient, on_bound)
-        if settled:
-            break
-    return x
-
-
-def _violation(gradient: np.ndarray, on_bound: np.ndarray) -> float:
-    """Return the largest violation of the optimality conditions (scipy's KKT measure)."""
-    violation = gradient * on_bound
-    free = on_bound == 0
-    violation[free] = np.abs(gradient[free])
-    return np.max(violation)
 
 
 def solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:

@@ -28,11 +28,11 @@ from ctid_ros.core.data import Data
 from ctid_ros.core.model import Model
 from ctid_ros.core.simulation import ContinuousFilter, DiscreteFilter, filter_responses
 from ctid_ros.errors import EstimationError, ModelError
+from ctid_ros.estimation.bvls import bounded_least_squares
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
-from ctid_ros.estimation.linear_algebra import (bounded_least_squares, least_squares,
-                                                solve_or_none)
+from ctid_ros.estimation.linear_algebra import least_squares, solve_or_none
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np

@@ -70,24 +70,3 @@ def test_solve_or_none_gives_none_for_a_singular_matrix():
     np.testing.assert_array_equal(linear_algebra.solve_or_none(matrix, np.ones(2)),
                                   np.linalg.solve(matrix, np.ones(2)))
     assert linear_algebra.solve_or_none(np.array([[1.0, 2.0], [2.0, 4.0]]), np.ones(2)) is None
-
-
-def test_bounded_least_squares_gives_scipys_bvls_bits():
-    from scipy.optimize import lsq_linear
-    rng = np.random.default_rng(11)
-    through_bvls = 0
-    for _ in range(300):
-        rows = int(rng.integers(2, 9))
-        columns = int(rng.integers(1, rows + 1))
-        matrix = rng.standard_normal((rows, columns)) * 10.0 ** rng.uniform(-3, 3, columns)
-        rhs = rng.standard_normal(rows)
-        lower = np.where(rng.random(columns) < 0.8, rng.uniform(-1.0, 0.5, columns), -np.inf)
-        upper = np.where(rng.random(columns) < 0.5, rng.uniform(0.6, 2.0, columns), np.inf)
-        expected = lsq_linear(matrix, rhs, bounds=(lower, upper), method='bvls')
-        through_bvls += expected.status != 3
-        np.testing.assert_array_equal(
-            linear_algebra.bounded_least_squares(matrix, rhs, lower, upper), expected.x)
-    assert through_bvls > 100           # the bounded algorithm itself, not only the unbounded
-    with pytest.raises(ValueError):
-        linear_algebra.bounded_least_squares(np.eye(2), np.ones(2), np.zeros(2),
-                                             np.array([1.0, 0.0]))
