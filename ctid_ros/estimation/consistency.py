@@ -664,7 +664,8 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: Cov
     if shaping is None or not free.any():
         return None
     error = parts.residual
-    shaped = shaped_noise_model(error, shaping)
+    # The loop's degree in s is its sampled sensitivity's order where there is no dead time.
+    shaped = shaped_noise_model(error, shaping, order_hint=problem.model.den_degree)
     count = error.size
     if not model_score(shaped, count) < model_score(parts.residual_noise, count):
         return None
