@@ -1370,7 +1370,9 @@ def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
     count, order = columns.shape[0], den.size - 1
     if count == 0 or columns.shape[1] == 0:
         return np.zeros(values.shape)
-    band = np.empty((order + 1, count))
+    # In LAPACK's column-major order: a row-major band would be copied into it on every call
+    # (as large again, a record's length per lag, and its pages faulted in afresh).
+    band = np.empty((order + 1, count), order='F')
     band[:] = den[:, None]
     for lag in range(1, order + 1):
         band[lag, max(count - lag, 0):] = 0.0       # outside the matrix
