@@ -1262,9 +1262,10 @@ def _banded_recursions(poles: np.ndarray, values: np.ndarray, complex_valued: bo
     for first in range(0, rows, step):
         chunk = values[first:first + step]          # the last one may be shorter
         count = chunk.shape[0]
-        band = np.empty((2, count * length), dtype=values.dtype)
+        # Column-major, as LAPACK reads it (all_pole): no copy per solve.
+        band = np.empty((2, count * length), dtype=values.dtype, order='F')
         band[0] = 1.0
-        below = band[1].reshape(count, length)
+        below = band[1].reshape(count, length)          # a view of the strided row
         below[:] = -poles[first:first + step, None]
         below[:, -1] = 0.0                  # a row's last sample does not feed the next row
         # Unit diagonal: the solve skips its division by 1 per sample (exact, so the same
@@ -1370,7 +1371,9 @@ def all_pole(den: np.ndarray, values: np.ndarray) -> np.ndarray:
     count, order = columns.shape[0], den.size - 1
     if count == 0 or columns.shape[1] == 0:
         return np.zeros(values.shape)
-    band = np.empty((order + 1, count))
+    # In LAPACK's column-major order: a row-major band would be copied into it on every call
+    # (as large again, a record's length per lag, and its pages faulted in afresh).
+    band = np.empty((order + 1, count), order='F')
     band[:] = den[:, None]
     for lag in range(1, order + 1):
         band[lag, max(count - lag, 0):] = 0.0       # outside the matrix

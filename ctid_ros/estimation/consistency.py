@@ -638,11 +638,17 @@ def loop_sensitivity(problem: Problem, state: State) -> Optional[np.ndarray]:
     if getattr(problem.model, 'controller', None) is None:
         return None
     count = problem.measured.size
+    coefficients = state.coefficients
     for length in sorted({max(count // 2, 1), count}):
-        pulse = np.zeros(length)
-        pulse[0] = 1.0
-        shaping = -np.asarray(problem.model.simulate(state.theta, pulse, problem.data.ts),
-                              dtype=float)
+        # The model's response to the pulse (Model.simulate's values); a constant input's
+        # channel, which it would add, is left to Model.simulate.
+        if coefficients.num.shape[0] == 1:
+            response = problem.bank.pulse_response(coefficients, length)
+        else:
+            pulse = np.zeros(length)
+            pulse[0] = 1.0
+            response = problem.model.simulate(state.theta, pulse, problem.data.ts)
+        shaping = -np.asarray(response, dtype=float)
         shaping[0] += 1.0
         significant = np.flatnonzero(np.abs(shaping) > 1e-12 * np.abs(shaping).max())
         if significant[-1] < length - length // 4 or length == count:
@@ -664,7 +670,8 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: Cov
     if shaping is None or not free.any():
         return None
     error = parts.residual
-    shaped = shaped_noise_model(error, shaping)
+    # The loop's degree in s is its sampled sensitivity's order where there is no dead time.
+    shaped = shaped_noise_model(error, shaping, order_hint=problem.model.den_degree)
     count = error.size
     if not model_score(shaped, count) < model_score(parts.residual_noise, count):
         return None

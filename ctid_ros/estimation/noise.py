@@ -177,8 +177,8 @@ def model_score(model: NoiseModel, count: int, criterion: str = DEFAULT_CRITERIO
     return count * math.log(model.innovation_variance) + penalty
 
 
-def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
-                  ) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER,
+                  order_hint: int = 1) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     """
     Return ``(num, den)`` of the lowest order whose impulse response is ``impulse``, or None.
 
@@ -188,13 +188,21 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
     An order is accepted only if the filter ``num/den`` reproduces ``impulse`` over its whole
     length to 1e-10 of its peak; None if no order up to ``max_order`` does (then the response
     is not that of a low-order filter, or too short to tell).
+
+    ``order_hint``: an order the caller expects (a loop's degree). The search starts there
+    only where :func:`_lower_orders_fail` proves that every lower order fails the test above;
+    so the result is the same with any hint, only found sooner with a good one.
     """
     impulse = np.asarray(impulse, dtype=float)
     # np.max and np.sum are these reductions behind numpy's dispatch.
     peak = float(np.maximum.reduce(np.abs(impulse), axis=None, initial=0.0))
     if peak == 0.0 or not all_finite(impulse):
         return None
-    for order in range(1, max_order + 1):
+    first = 1
+    if 1 < order_hint <= max_order and impulse.size >= 3 * order_hint + 2 and \
+            _lower_orders_fail(impulse, order_hint, peak):
+        first = order_hint
+    for order in range(first, max_order + 1):
         if impulse.size < 3 * order + 2:
             return None
         # Row j: h[j + order] = -(tail . (h[j + order - 1], ..., h[j])); the recurrence holds
@@ -224,7 +232,35 @@ def rational_form(impulse: np.ndarray, max_order: int = _MAX_RATIONAL_ORDER
     return None
 
 
-def inverse_filtered(shaping: np.ndarray, values: np.ndarray) -> np.ndarray:
+def _lower_orders_fail(impulse: np.ndarray, order: int, peak: float) -> bool:
+    """
+    Return True if it is proven that no order below ``order`` passes :func:`rational_form`.
+
+    Order ``m``'s recurrence ``r = (den * h)[m + 1:]`` is ``H_m den`` for the matrix ``H_m`` of
+    ``h`` shifted by ``0..m``; over rows ``k > order - 1`` it is ``H den`` (``den`` padded
+    with zeros) for ``H = H_(order - 1)``, so ``max|r| >= |r|_2 / sqrt(n) >=
+    sigma_min(H) |den|_2 / sqrt(n) >= sigma_min(H) |den|_1 / sqrt(order n)`` for every
+    ``den`` with ``den[0] = 1``. Where that exceeds twice the test's bound
+    ``2 |den|_1 1e-10 peak`` (room for the rounding of the convolution), every lower order
+    fails. ``sigma_min(H)^2`` is the Gram matrix's least eigenvalue, less a bound on the
+    rounding of its sums and of the eigenvalue. False where that is not shown.
+    """
+    size, top = impulse.size, order - 1
+    rows = size - top - 1
+    shifted = np.empty((rows, order), order='F')
+    for column in range(order):
+        shifted[:, column] = impulse[top + 1 - column:top + 1 - column + rows]
+    gram = shifted.T @ shifted
+    if not all_finite(gram):
+        return False
+    rounding = 4.0 * (size + order) * np.finfo(float).eps * float(np.trace(gram))
+    bound = 4.0 * _RATIONAL_TOLERANCE * peak
+    least = float(np.linalg.eigvalsh(gram)[0]) - rounding
+    return least > bound * bound * order * size
+
+
+def inverse_filtered(shaping: np.ndarray, values: np.ndarray,
+                     order_hint: int = 1) -> np.ndarray:
     """
     Return ``H^-1 values`` for the filter ``H`` of impulse response ``shaping`` (``h[0] != 0``).
 
@@ -234,9 +270,10 @@ def inverse_filtered(shaping: np.ndarray, values: np.ndarray) -> np.ndarray:
     closed-loop model is one, of the loop's order) the same inverse is ``den/num``: an FIR pass
     and an all-pole recursion of that low order, equal to the long form to the rounding of
     the response's own cut. A response without such a form takes the long recursion.
+    ``order_hint``: the order of that form the caller expects (:func:`rational_form`).
     """
     values = np.asarray(values, dtype=float)
-    form = rational_form(shaping)
+    form = rational_form(shaping, order_hint=order_hint)
     if form is None:
         # Imported here: only a shaping without a low-order form needs it, and scipy.signal is
         # slow to import (all_pole's banded solve with a band this long is far slower).
@@ -247,19 +284,20 @@ def inverse_filtered(shaping: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def shaped_noise_model(residual: np.ndarray, shaping: np.ndarray,
-                       criterion: str = DEFAULT_CRITERION) -> NoiseModel:
+                       criterion: str = DEFAULT_CRITERION, order_hint: int = 1) -> NoiseModel:
     """
     Fit ``e = H A^-1 w``: an autoregressive model of ``H^-1 e`` for a known filter ``H``.
 
     ``shaping`` is the impulse response of ``H`` (``h[0] = 1``, negligible beyond its length);
-    ``H^-1 e`` is computed by :func:`inverse_filtered`.
+    ``H^-1 e`` is computed by :func:`inverse_filtered` (``order_hint``: ``H``'s expected
+    order, which only speeds the search for its rational form).
     Where ``H`` has zeros on the unit circle (the sensitivity of a loop with integrators) the
     substitution is marginally stable: a residual it does not fit blows up, and
     :func:`model_score` then prefers the plain model.
     """
     residual = np.asarray(residual, dtype=float)
     with np.errstate(all='ignore'):
-        prewhitened = inverse_filtered(shaping, residual - residual.mean())
+        prewhitened = inverse_filtered(shaping, residual - residual.mean(), order_hint)
     if not all_finite(prewhitened):
         return NoiseModel(np.ones(1), math.inf, float(np.var(residual)), np.asarray(shaping))
     inner = noise_model(prewhitened, criterion=criterion)

@@ -181,6 +181,19 @@ class SignalBank:
         """
         return self._discrete(den, delay + self.extra_delay, self.intersample)
 
+    def pulse_response(self, coefficients: Coefficients, length: int) -> np.ndarray:
+        """
+        Return the first channel's ``N/D`` response to a unit pulse over ``length`` samples.
+
+        The pulse held over its sample (zero-order hold) with the model's own dead time and
+        no output skew: the values ``Model.simulate`` gives for it, from the discretisation
+        the bank keeps for ``D`` rather than a new one.
+        """
+        pulse = np.zeros(length)
+        pulse[0] = 1.0
+        discrete = self._discrete(coefficients.den, coefficients.delay, 'zoh')
+        return discrete.outputs(pulse, coefficients.num[:1])[0]
+
     @staticmethod
     def _output_key(coefficients: Coefficients) -> Hashable:
         return coefficients.den.tobytes(), coefficients.num.tobytes(), float(coefficients.delay)

@@ -88,6 +88,22 @@ def test_loop_sensitivity_has_its_low_order_rational_form_found():
     np.testing.assert_allclose(response, shaping, rtol=0.0, atol=1e-10 * np.abs(shaping).max())
 
 
+def test_order_hint_finds_the_same_form_with_any_hint():
+    shaping = loop_sensitivity_response(4000)
+    num, den = rational_form(shaping)
+    # A right hint (the loop's degree) and wrong ones, below and above, give the same result.
+    for hint in (1, 2, 3, 4, 7):
+        hinted = rational_form(shaping, order_hint=hint)
+        np.testing.assert_array_equal(hinted[0], num)
+        np.testing.assert_array_equal(hinted[1], den)
+    # A response with a pole and a zero 1e-12 apart has an order-1 form: a hint of its
+    # nominal order 2 must not skip it.
+    pulse = np.eye(1, 500)[0]
+    near = signal.lfilter([1.0, -0.5 - 1e-12], np.poly([0.5, 0.8]), pulse)
+    assert rational_form(near)[1].size == 2
+    assert rational_form(near, order_hint=2)[1].size == 2
+
+
 def test_inverse_filter_equals_the_long_forward_substitution():
     shaping = loop_sensitivity_response(4000)
     residual = ar1(0.5, 4000, np.random.default_rng(7))

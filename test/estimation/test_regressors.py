@@ -165,3 +165,17 @@ def test_dead_time_sensitivity_on_the_lattice_is_one_sided(samples):
     # Off the lattice both sides agree.
     off = bank.linearize(model.coefficients(theta + [0.0, 0.037, 0.0]), regressors=False)
     assert off.delay_jump is None
+
+
+@pytest.mark.parametrize('intersample', ['zoh', 'foh'])
+def test_pulse_response_is_the_models_simulated_pulse(intersample):
+    model = Model('K/((T*s + 1)*(0.05*s + 1))', controller='2 + 1/s')
+    params = {'K': 1.5, 'T': 0.4}
+    u = prbs(9, 4)[:1500]
+    bank = SignalBank(model, u, model.simulate(params, u, 0.01), 0.01, intersample)
+    pulse = np.zeros(700)
+    pulse[0] = 1.0
+    # The bank's kept discretisation gives Model.simulate's zero-order-hold pulse response
+    # to the bit, whatever the bank's own intersample behaviour.
+    np.testing.assert_array_equal(bank.pulse_response(model.coefficients(params), 700),
+                                  model.simulate(params, pulse, 0.01))
