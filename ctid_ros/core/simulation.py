@@ -64,13 +64,13 @@ _CHAIN_MAX_ORDER = 8
 # The reductions behind the array methods ``sum``, ``all``, ``prod`` and ``any`` (axis None
 # for the whole array; the same values), called directly: the methods and np.any reach them
 # through Python functions of numpy's, several calls per small array. The extremes of a
-# handful of values are Python's max and min of their floats, a tenth of a reduction's work.
+# handful of values are Python's max and min of their floats, without a ufunc's set-up.
 _SUM = np.add.reduce
 _ALL = np.logical_and.reduce
 _PROD = np.multiply.reduce
 _ANY = np.logical_or.reduce
-# Up to this many values Python's own tests and reductions cost less than one ufunc reduction
-# (about a microsecond, most of it its iterator's set-up).
+# Up to this many values Python's own tests and reductions cost less than one ufunc reduction,
+# most of whose cost is its iterator's set-up.
 _FEW_VALUES = 16
 
 
@@ -97,8 +97,8 @@ def all_finite(values: np.ndarray) -> bool:
 
     The ufuncs' own calls instead of ``np.isfinite(values).all()``, which reaches the
     reduction through a Python wrapper; a few values (the coefficients and small matrices
-    tested for every candidate) by ``cmath.isfinite`` on their Python numbers, a tenth of a
-    ufunc reduction's work. Not a sum tested once: the sum of ``+inf`` and ``-inf``, or one
+    tested for every candidate) by ``cmath.isfinite`` on their Python numbers, without a
+    ufunc's set-up. Not a sum tested once: the sum of ``+inf`` and ``-inf``, or one
     that overflows, raises a RuntimeWarning, and silencing it costs more.
     """
     if values.size <= _FEW_VALUES:
@@ -1785,8 +1785,8 @@ def _continuous_modes(realisation: ContinuousFilter) -> Optional[_ContinuousMode
     poles = realisation._roots.astype(complex) / realisation.scale
     if poles.size != n:
         return None
-    # The extremes of a handful of values by Python's own max and min of their floats, a
-    # tenth of a ufunc reduction's work (the same values: no NaN gets past the first test).
+    # The extremes of a handful of values by Python's own max and min of their floats, without
+    # a ufunc's set-up (the same values: no NaN gets past the first test).
     magnitudes = abs(poles).tolist()
     if not all(map(math.isfinite, magnitudes)):
         return None

@@ -4,7 +4,7 @@ Bounded-variable least squares (Stark and Parker), step for step as SciPy's.
 ``scipy.optimize.lsq_linear(method='bvls')`` spends more on checking its arguments, building
 its result and its norms than on the few-by-few problems of the equation-error starts
 (issue #26): this is the algorithm alone, with the same steps and arithmetic, so the same
-result to the bit (``test/estimation/test_linear_algebra.py`` compares them).
+result to the bit (``test/estimation/test_bvls.py`` compares them).
 :func:`bounded_least_squares` runs it where the unbounded solution leaves the box.
 
 Adapted from SciPy's ``scipy/optimize/_lsq/bvls.py``, which carries this notice:

@@ -467,7 +467,7 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
-                      std: np.ndarray, parts: CovarianceParts,
+                      std: np.ndarray, *, parts: CovarianceParts,
                       root: Optional[np.ndarray] = None) -> Consistency:
     """
     Test whether one parameter vector holds over the record (module docstring).
@@ -716,7 +716,7 @@ def small_sample_factors(free: np.ndarray, noise: NoiseModel,
 
 
 def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseModel,
-                     free: np.ndarray, parts: CovarianceParts, removed_share: float = 0.0,
+                     free: np.ndarray, *, parts: CovarianceParts, removed_share: float = 0.0,
                      restored_factors: Optional[np.ndarray] = None) -> Any:
     """
     Return the estimate ``result`` with its consistency checked and reported.
@@ -770,7 +770,7 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
     result.std = {name: value * factor for (name, value), factor in
                   zip(result.std.items(), factors)}
     std = np.array([result.std[name] for name in names], dtype=float)
-    consistency = check_consistency(problem, state, noise, free, std, parts, root)
+    consistency = check_consistency(problem, state, noise, free, std, parts=parts, root=root)
     result.consistency = consistency
     result.std_noise = dict(consistency.std_noise)
     if consistency.consistent:

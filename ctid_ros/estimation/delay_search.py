@@ -145,7 +145,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         return state
 
     def by_every_filter(tau: float) -> List[Optional[State]]:
-        filters.factors(tau)        # every filter's input parts of a new fraction in one pass
+        filters.factors(tau)        # every filter's factor at tau, their input parts in one pass
         return [fitted(tau, filters.select(index)) for index in range(filters.count)]
 
     trials = {tau: by_every_filter(tau) for tau in grid[coarse]}

@@ -491,8 +491,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         start='initial' if from_initial else 'search', initial_state=initial_state,
         output_offset=output_offset, integrator_cutoff=cutoff, residuals=residuals)
     return with_consistency(result, problem, final.state, uncertainty.noise, uncertainty.free,
-                            uncertainty.parts, uncertainty.removed_share,
-                            uncertainty.restored_factors)
+                            parts=uncertainty.parts, removed_share=uncertainty.removed_share,
+                            restored_factors=uncertainty.restored_factors)
 
 
 def _refuse_blind(problem: Problem, state: State, blind: Optional[BlindCombination],

@@ -919,8 +919,9 @@ class _Run:
         change = 0.0
         for move, value in zip(step.tolist(), state.theta.tolist()):
             moved = scale * move
-            size = value if value >= 0.0 else -value
-            relative = (moved if moved >= 0.0 else -moved) / (size if size > 1e-12 else 1e-12)
+            magnitude = value if value >= 0.0 else -value
+            relative = (moved if moved >= 0.0 else -moved) / \
+                (magnitude if magnitude > 1e-12 else 1e-12)
             if relative > change:
                 change = relative
         previous = max(state.cost, _TINY)

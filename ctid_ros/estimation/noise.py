@@ -238,7 +238,8 @@ def _lower_orders_fail(impulse: np.ndarray, order: int, peak: float) -> bool:
 
     Order ``m``'s recurrence ``r = (den * h)[m + 1:]`` is ``H_m den`` for the matrix ``H_m`` of
     ``h`` shifted by ``0..m``; over rows ``k > order - 1`` it is ``H den`` (``den`` padded
-    with zeros) for ``H = H_(order - 1)``, so ``max|r| >= |r|_2 / sqrt(n) >=
+    with zeros) for ``H = H_(order - 1)``, so, ``n`` the number of those rows (below the
+    response's length, which the test uses for it: a stricter test), ``max|r| >= |r|_2 / sqrt(n) >=
     sigma_min(H) |den|_2 / sqrt(n) >= sigma_min(H) |den|_1 / sqrt(order n)`` for every
     ``den`` with ``den[0] = 1``. Where that exceeds twice the test's bound
     ``2 |den|_1 1e-10 peak`` (room for the rounding of the convolution), every lower order

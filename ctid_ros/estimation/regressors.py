@@ -85,7 +85,7 @@ def is_stable(den: np.ndarray, margin: float = 1e-9) -> bool:
         return False
     roots = polynomial_roots(den)
     # Every candidate is checked: the extremes of its few roots by Python's max of their floats
-    # (a tenth of a ufunc reduction's work; the roots of finite coefficients hold no NaN).
+    # (no ufunc set-up for a few values; the roots of finite coefficients hold no NaN).
     scale = max(max(abs(roots).tolist()), _TINY)
     return max(roots.real.tolist()) < -margin * scale
 
@@ -187,7 +187,8 @@ class SignalBank:
 
         The pulse held over its sample (zero-order hold) with the model's own dead time and
         no output skew: the values ``Model.simulate`` gives for it, from the discretisation
-        the bank keeps for ``D`` rather than a new one.
+        of ``D`` already made for the state (the process-wide cache ``_realization`` reads)
+        rather than a new one.
         """
         pulse = np.zeros(length)
         pulse[0] = 1.0
@@ -363,6 +364,11 @@ def _moving_rows(jacobian: np.ndarray) -> np.ndarray:
     return np.array([any(row) for row in jacobian.tolist()], dtype=bool)
 
 
+# Windows this long or longer are summed by BLAS's unrolled dot kernel (OpenBLAS), in an
+# order that depends on where the window starts: _row_products' zero padding then moves bits.
+_UNROLLED_DOT = 16
+
+
 def _row_products(rows: np.ndarray, factor: np.ndarray) -> np.ndarray:
     """
     Return the polynomial products ``np.convolve(row, factor)`` of every row, one row each.
@@ -370,12 +376,16 @@ def _row_products(rows: np.ndarray, factor: np.ndarray) -> np.ndarray:
     ``rows`` ``(q, m)`` and ``factor`` ``(m,)``, highest power first. One ``np.correlate`` with
     the reversed factor (convolve's own sums) over the rows laid end to end, each followed by
     ``m - 1`` zeros: every product's window holds its own row and zeros, which add exact zeros
-    to the same sums, without a call of numpy's wrappers per row.
+    to the same sums, without a call of numpy's wrappers per row. From
+    :data:`_UNROLLED_DOT` coefficients on, BLAS's dot product sums a window in another order
+    than a row's own correlate would, so such rows go one at a time.
     """
     count, size = rows.shape
     width = 2 * size - 1
     if not count:
         return np.zeros((0, width))
+    if size >= _UNROLLED_DOT:
+        return np.array([np.correlate(row, factor[::-1], 'full') for row in rows])
     spaced = np.zeros((count, width))
     spaced[:, :size] = rows
     return np.correlate(spaced.reshape(-1), factor[::-1], 'full')[:count * width] \

@@ -201,8 +201,10 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     # The residual and every input transformed together; the residual's autocorrelation, its
     # cross-correlation with each input and each input's autocorrelation (rows 0, 1..m and
     # m + 1..2m) back in one inverse transform.
-    spectra, energies, size = _centred_spectra(np.concatenate([residual[None], inputs.T]),
-                                               span)
+    # Row-major whatever the inputs' layout: each row's mean is then summed as for that
+    # series alone (a column-major stack sums in another order, a few ulps apart).
+    spectra, energies, size = _centred_spectra(
+        np.ascontiguousarray(np.concatenate([residual[None], inputs.T])), span)
     error, signals = spectra[:1], spectra[1:]
     scales = np.sqrt([energies[0] * energy for energy in energies] +
                      [energy * energy for energy in energies[1:]])[:, None]

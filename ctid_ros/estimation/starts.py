@@ -530,7 +530,10 @@ class _FilterSignals:
             inputs[:, :count - samples] = -0.0
             np.negative(parts[:, :samples], out=inputs[:, count - samples:])
         else:
-            np.negative(parts[:, -offset:count - offset], out=inputs)
+            # A negative dead time (a caller of StateVariableFilters' own): the tail is zeros.
+            samples = max(min(count, parts.shape[1] + offset), 0)
+            np.negative(parts[:, -offset:samples - offset], out=inputs[:, :samples])
+            inputs[:, samples:] = -0.0
         leading = self.leading
         # The columns are the buffer's transpose, a view: numpy's Gram matrix of them
         # (signals @ signals.T) is the one of the same columns laid out row by row, to the bit.

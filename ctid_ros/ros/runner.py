@@ -3,7 +3,8 @@ Running a node as a process: ``main()`` of ``ctid_node`` and ``ctid_plant``.
 
 :func:`run_node` reads the command line (``--help``, anything outside ``--ros-args`` is an
 error), initialises rclpy, spins the node until SIGINT (Ctrl-C) or SIGTERM and shuts
-everything down in order: the node (its estimator thread with it) before the context, so no
+everything down in order: the node (its estimator thread with it, unless an estimate outlasts
+the node's grace period: it is then abandoned and publishes nothing) before the context, so no
 callback or publication meets an invalid context, and the context's handle before the
 interpreter's exit, so no DDS thread outlives it; the exit status is 0.
 
@@ -89,11 +90,15 @@ def _spin(factory: Callable[[], Node], name: str, arguments: List[str],
         # The node is held here, not taken back from the executor: shutdown() forgets its
         # nodes, and a node left undestroyed kept its threads (the estimator's too) running
         # into the interpreter's exit, which now and then ended in a segmentation fault.
-        if node is not None:
-            node.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown()
-        # The DDS participant and its threads end with the context's handle, here rather
-        # than at exit, when the libraries they use are being unloaded.
-        context.destroy()
+        try:
+            if node is not None:
+                node.destroy_node()
+        finally:
+            try:
+                executor.shutdown()
+                rclpy.try_shutdown()
+            finally:
+                # The DDS participant and its threads end with the context's handle, here
+                # rather than at exit, when the libraries they use are being unloaded.
+                context.destroy()
     return 0

@@ -271,3 +271,14 @@ def test_the_cached_default_filters_let_their_problem_be_collected():
     assert alive() is None
     # The filters taken out still work without the problem.
     np.testing.assert_array_equal(filters.factors(0.0)[0], factors[0])
+
+
+def test_a_negative_dead_time_factor_is_that_of_zero_filled_inputs():
+    # StateVariableFilters is public: a dead time below zero shifts the inputs the other way,
+    # their tail zeros (as the shifted copy did), rather than failing to broadcast.
+    system = systems.first_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=3), system.bounds)
+    filters = StateVariableFilters(problem, filter_bandwidths(problem.data, 3))
+    ahead = filters.factors(-0.02)
+    assert len(ahead) == filters.count
+    assert all(np.isfinite(factor).all() for factor in ahead)
