@@ -142,8 +142,11 @@ class IdentificationNode(TopicIntake, ParameterHandling, Estimating, Reporting, 
         """Configure and activate at once (``lifecycle: false``); raise what went wrong."""
         for transition in (self.trigger_configure, self.trigger_activate):
             if transition() != _SUCCESS:
-                self._worker.stop()            # the node will not be spun: end the thread
-                raise ConfigError(self._transition_error or 'the node could not start')
+                error = self._transition_error or 'the node could not start'
+                # Never spun nor returned: its thread and handles end here, so the context
+                # (and its DDS participant) can end before the process exits.
+                self.destroy_node()
+                raise ConfigError(error)
 
     @property
     def config(self) -> Optional[IdentificationConfig]:

@@ -1,6 +1,7 @@
-"""run_node: a signal destroys the node it made, so none of its threads outlives the run."""
+"""run_node: the node it made and its context end with the run, and their threads with them."""
 
 import os
+from pathlib import Path
 import signal
 import threading
 
@@ -14,6 +15,12 @@ PARAMETERS = {'input_topic': 'runner_u', 'output_topic': 'runner_y',
               'input_field': 'point.x', 'output_field': 'point.x', 'model': 'K/(T*s + 1)',
               'parameter_names': ['K', 'T'], 'initial': [1.0, 1.0], 'sample_time': 0.005,
               'window': 2.0, 'update_period': 0.1}
+
+
+def dds_threads() -> int:
+    """Count this process's DDS threads (Fast DDS names them dds.*; its static watchdog aside)."""
+    names = [(task / 'comm').read_text().strip() for task in Path('/proc/self/task').iterdir()]
+    return sum(name.startswith('dds.') and name != 'dds.shm.wdog' for name in names)
 
 
 class RecordedNode(IdentificationNode):
@@ -34,6 +41,7 @@ def test_a_signal_destroys_the_node_and_ends_its_estimator_thread():
     made = []
     returned = threading.Event()
     before = set(threading.enumerate())
+    participants = dds_threads()
 
     def factory():
         node = RecordedNode(parameter_overrides=[Parameter(name, value=value)
@@ -58,3 +66,22 @@ def test_a_signal_destroys_the_node_and_ends_its_estimator_thread():
     left = [thread.name for thread in threading.enumerate()
             if thread not in before and thread is not stopper and thread.is_alive()]
     assert left == []
+    # The run's DDS participant has ended (another test's may end meanwhile, none starts).
+    assert dds_threads() <= participants
+
+
+@pytest.mark.ros
+def test_a_node_that_refuses_its_configuration_ends_with_its_context():
+    # The node's constructor raises: run_node never holds it, so the node destroys itself
+    # before raising, or its handles would keep the context and its DDS threads alive.
+    participants = dds_threads()
+    before = set(threading.enumerate())
+
+    def factory():
+        return RecordedNode(parameter_overrides=[
+            Parameter(name, value=value)
+            for name, value in {**PARAMETERS, 'update_period': 0.05}.items()])
+
+    assert run_node(factory, 'ctid_node', ['ctid_node']) == 2
+    assert dds_threads() <= participants
+    assert [thread for thread in threading.enumerate() if thread not in before] == []
