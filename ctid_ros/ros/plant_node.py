@@ -87,6 +87,16 @@ class PlantNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('ctid_plant', **kwargs)
+        try:
+            self._configure()
+        except BaseException:
+            # Never returned to a caller that could destroy it: its handles end here, or they
+            # would keep the context and its DDS threads alive into the process's exit.
+            self.destroy_node()
+            raise
+
+    def _configure(self) -> None:
+        """Declare and read the parameters, build the simulator, publishers and timer."""
         self.declare_parameters('', [(name, default) for name, default, _ in PLANT_PARAMETERS])
         value = self._value
         self._message_type = value('message_type')

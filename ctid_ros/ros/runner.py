@@ -25,7 +25,7 @@ import sys
 import threading
 from typing import Callable, List, Optional
 
-from ctid_ros.errors import ConfigError
+from ctid_ros.errors import CtidError
 from ctid_ros.ros.command_line import command_line
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -47,8 +47,9 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
 
     ``-h``/``--help`` before ``--ros-args`` prints ``usage()`` and returns 0 without starting;
     any other argument outside ``--ros-args`` is an error (status 2), and so are an
-    environment ROS cannot start in and a configuration the node refuses to start with
-    (:func:`~ctid_ros.ros.command_line.command_line`). A signal returns 0 within
+    environment ROS cannot start in (:func:`~ctid_ros.ros.command_line.command_line`) and a
+    configuration the node refuses to start with (any of the library's errors, a model text
+    that does not parse among them: one message, no traceback). A signal returns 0 within
     :data:`SIGNAL_LATENCY` plus the callback in progress and the node's own
     ``destroy_node``; the handlers of both signals are restored on return.
     """
@@ -81,7 +82,7 @@ def _spin(factory: Callable[[], Node], name: str, arguments: List[str],
         executor.add_node(node)
         while not stop.is_set() and executor.context.ok():
             executor.spin_once(timeout_sec=SIGNAL_LATENCY)
-    except (ConfigError, ParameterException) as error:
+    except (CtidError, ParameterException) as error:
         print(f'{name}: error: {error}', file=sys.stderr)
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):

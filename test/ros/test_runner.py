@@ -6,6 +6,7 @@ import signal
 import threading
 
 from ctid_ros.ros.node import IdentificationNode
+from ctid_ros.ros.plant_node import PlantNode
 from ctid_ros.ros.runner import run_node
 from node_harness import wait_for
 import pytest
@@ -85,3 +86,19 @@ def test_a_node_that_refuses_its_configuration_ends_with_its_context():
     assert run_node(factory, 'ctid_node', ['ctid_node']) == 2
     assert dds_threads() <= participants
     assert [thread for thread in threading.enumerate() if thread not in before] == []
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('name, value', [('message_type', 'no_such_type'),
+                                         ('model', 'K/(T*s+')])
+def test_a_plant_that_refuses_its_configuration_says_why_and_ends(name, value, capsys):
+    # A model text that does not parse raised ModelError through run_node: a traceback and
+    # status 1 instead of one message and status 2.
+    participants = dds_threads()
+
+    def factory():
+        return PlantNode(parameter_overrides=[Parameter(name, value=value)])
+
+    assert run_node(factory, 'ctid_plant', ['ctid_plant']) == 2
+    assert capsys.readouterr().err.startswith('ctid_plant: error: ')
+    assert dds_threads() <= participants
