@@ -42,6 +42,7 @@ from ctid_ros.estimation.identifiability import (blind_combination, BlindCombina
 from ctid_ros.estimation.integrating import default_cutoff, StabilizedModel
 from ctid_ros.estimation.iteration import (Iteration, IterationPolicy, IterationResult,
                                            on_bounds, Opening)
+from ctid_ros.estimation.linear_algebra import thin_svd
 from ctid_ros.estimation.noise import (coloured_covariance, measured_every, noise_model,
                                        NoiseModel, unit_root)
 from ctid_ros.estimation.options import check_options
@@ -329,7 +330,7 @@ def covariance(problem: Problem, state: State,
         # A zero column, which the identifiability check's decomposition leaves out (scaled
         # by 1 here). At a kink of the cost in the dead time ``psi`` is already the mean of
         # the two one-sided sensitivities (:class:`Sensitivities`).
-        svd = np.linalg.svd(columns, full_matrices=False)
+        svd = thin_svd(columns)
     model = noise_model(error, autocorrelation=autocorrelation)
     rows = free.nonzero()[0]
     # The sensitivities' basis filtered once, for the sandwich and the checks after it.

@@ -23,7 +23,7 @@ from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_finite, all_pole, companion_roots
 from ctid_ros.estimation.correlation import fft_size
-from ctid_ros.estimation.linear_algebra import least_squares
+from ctid_ros.estimation.linear_algebra import least_squares, symmetric_eigenvalues, thin_svd
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
@@ -256,7 +256,7 @@ def _lower_orders_fail(impulse: np.ndarray, order: int, peak: float) -> bool:
         return False
     rounding = 4.0 * (size + order) * np.finfo(float).eps * float(np.trace(gram))
     bound = 4.0 * _RATIONAL_TOLERANCE * peak
-    least = float(np.linalg.eigvalsh(gram)[0]) - rounding
+    least = float(symmetric_eigenvalues(gram)[0]) - rounding
     return least > bound * bound * order * size
 
 
@@ -331,7 +331,7 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     count = residual.size
     if model is None:
         model = noise_model(residual, autocorrelation=autocorrelation, criterion=criterion)
-    left, singular, right_t = np.linalg.svd(psi, full_matrices=False) if svd is None else svd
+    left, singular, right_t = thin_svd(psi) if svd is None else svd
     if singular.size == 0 or singular[-1] <= 0.0:
         return np.full((psi.shape[1],) * 2, np.inf), model
     mapping = right_t.T / singular                       # V S^-1
