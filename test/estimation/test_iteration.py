@@ -238,7 +238,6 @@ def test_a_point_the_iteration_cannot_leave_but_that_is_no_minimum_is_stalled():
     assert unchecked.converged
 
 
-
 def test_after_a_gauss_newton_rescue_its_step_goes_first_without_the_regressors():
     # The long dead time from 0.3-17 times its true values: far from the minimum the IV step
     # is refused and the full Gauss-Newton step taken, the cost falling by a tenth or more;
