@@ -877,10 +877,13 @@ class _Run:
 
         Far from a minimum, or where the residual is large, the IV step can be refused update
         after update while the Gauss-Newton step is taken in full each time: its linearisation
-        then needs no filtered output, and the refused IV step no simulation. The update is
-        otherwise the IV schedule's (the same size measure, stopping rules and bookkeeping:
-        it counts as struggling). Where the Gauss-Newton step is not taken in full (or the
-        dead time sits on a kink) the IV schedule takes the same point over.
+        then needs no filtered output, and the refused IV step no simulation. The update
+        counts as struggling, as the rescued one did: its size is the struggling update's
+        measure (the truncated Gauss-Newton step of (8.1), after the whole Gauss-Newton step
+        in place of the IV one), and the stopping rules, the slow-progress give-up and the
+        hand-over to the near-minimum mode are the IV schedule's. Where the Gauss-Newton step
+        is not taken in full (or the dead time sits on a kink) the IV schedule takes the same
+        point over.
         """
         self.rescued = False
         linear = self._linearized(False)
