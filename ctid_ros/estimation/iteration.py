@@ -63,6 +63,11 @@ _PROGRESS_SPAN = 2
 _NEAR_MINIMUM = 30.0
 _TINY = np.finfo(float).tiny
 _INF = math.inf
+# After an IV update that the full Gauss-Newton step took with a fall of the cost by at least
+# this share (far from a minimum), the next update tries that step first (_Run._rescued).
+# Below it the IV step is tried first again: near a minimum or on a plateau Gauss-Newton
+# predicts little and the IV step, which sees further, often goes on in full.
+_RESCUE_DECREASE = 0.1
 
 
 # A bound a step ran into: (parameter index, bound value).
@@ -790,6 +795,12 @@ class _Run:
         self.near = policy.method == 'iv' and policy.opening is Opening.NEAR_MINIMUM
         # The bound that cut the latest update (None if it was whole or shorter).
         self.creeping: Optional[_Bound] = None
+        # The latest IV update was taken by the full Gauss-Newton step (the IV step was not),
+        # the cost falling by _RESCUE_DECREASE at least: the next one tries it first.
+        self.rescued = False
+        # An attempt refused at the current point (the full Gauss-Newton step of a rescue or
+        # near a minimum), not tried again when the IV schedule takes the point over.
+        self.refused: Optional[Tuple[str, float, Tuple[float, ...]]] = None
 
     def result(self) -> IterationResult:
         """Iterate until a stopping rule fires and return the outcome."""
@@ -825,6 +836,8 @@ class _Run:
     def _update(self) -> Optional[StopReason]:
         """Take one update; return why to stop, or None to go on (maybe from the same point)."""
         policy = self.policy
+        if self.rescued and not self.near:
+            return self._rescued()
         linear = self._linearized(policy.method != 'gn' and not self.near)
         bounded = on_bounds(self.state.theta, self.problem)
         free = _free_mask(linear, bounded, self.frozen)
@@ -850,12 +863,51 @@ class _Run:
             # Gauss-Newton step can fail where the IV step, which carries part of the curvature
             # it leaves out, succeeds: the same point again, with the IV schedule.
             self.near = False
+            self.refused = ('gn', 0.0, _FULL_STEP)
             return None
         if accepted is None:
             if policy.steps is Steps.FULL_ONLY:
                 return StopReason.NO_FULL_STEP
             return StopReason.NO_DECREASE if self._optimal() else StopReason.STALLED
         return self._record(accepted, primary, size, linear)
+
+    def _rescued(self) -> Optional[StopReason]:
+        """
+        Take the full Gauss-Newton step first after it rescued the previous IV update.
+
+        Far from a minimum, or where the residual is large, the IV step can be refused update
+        after update while the Gauss-Newton step is taken in full each time: its linearisation
+        then needs no filtered output, and the refused IV step no simulation. The update
+        counts as struggling, as the rescued one did: its size is the struggling update's
+        measure (the truncated Gauss-Newton step of (8.1), after the whole Gauss-Newton step
+        in place of the IV one), and the stopping rules, the slow-progress give-up and the
+        hand-over to the near-minimum mode are the IV schedule's. Where the Gauss-Newton step
+        is not taken in full (or the dead time sits on a kink) the IV schedule takes the same
+        point over.
+        """
+        self.rescued = False
+        linear = self._linearized(False)
+        if linear.kinked:
+            return None
+        bounded = on_bounds(self.state.theta, self.problem)
+        free = _free_mask(linear, bounded, self.frozen)
+        if not any(free.tolist()):
+            return StopReason.ALL_AT_BOUNDS
+        point = _Point(linear, free, bounded)
+        size = self._size(point, 'gn')
+        if size < NEGLIGIBLE_STEP:
+            return StopReason.NEGLIGIBLE_UPDATE
+        if _slow(self.costs, self.struggled, self.policy.min_progress):
+            return StopReason.SLOW
+        step = point.direction('gn', 0.0)
+        if step is None:
+            return None
+        outcome = _try_step(self.problem, self.state, step, True, _FULL_STEP,
+                            land=self.creeping)
+        if outcome is None:
+            self.refused = ('gn', 0.0, _FULL_STEP)
+            return None
+        return self._record(('gn', step, outcome), 'iv', size, linear)
 
     def _size(self, point: _Point, primary: str) -> float:
         """Return the primary update's length in standard deviations of the estimate (8.1)."""
@@ -889,7 +941,9 @@ class _Run:
             if across is not None:
                 return across
         full_only = self.policy.steps is Steps.FULL_ONLY or self.near
-        tried = set()
+        # Its outcome here is known: the same candidate, refused.
+        tried = set() if self.refused is None else {self.refused}
+        self.refused = None
         for kind, damping, scales, monotone in schedule.attempts(primary, full_only):
             step = point.direction(kind, damping)
             if step is None or (kind, damping, scales) in tried:
@@ -909,6 +963,8 @@ class _Run:
         """Move to the accepted point, record it and apply the convergence tests."""
         kind, step, (new_state, scale, self.creeping) = accepted
         struggled = kind != primary or scale < 1.0
+        self.rescued = primary == 'iv' and kind == 'gn' and scale == 1.0 and \
+            new_state.cost <= (1.0 - _RESCUE_DECREASE) * self.state.cost
         self.struggled.append(struggled)
         self.near = self.policy.method == 'iv' and not struggled and \
             (self.near or size < _NEAR_MINIMUM)
@@ -982,8 +1038,10 @@ def iterate(problem: Problem, state: State, policy: IterationPolicy,
     Levenberg-Marquardt (``docs/algorithm.md`` section 6). For ``'iv'``, once a full update was
     shorter than :data:`_NEAR_MINIMUM` standard deviations the primary step is Gauss-Newton,
     full steps only, until one needs another direction or a shorter step; where no full
-    Gauss-Newton step decreases the cost the same point is updated by the IV schedule. The
-    stopping rules are the same for both (section 8).
+    Gauss-Newton step decreases the cost the same point is updated by the IV schedule. After
+    an IV update that the full Gauss-Newton step took with the cost falling by
+    :data:`_RESCUE_DECREASE` or more, the next update tries that step first (section 5). The
+    stopping rules are the same for all (section 8).
 
     """
     if frozen is None:

@@ -236,3 +236,41 @@ def test_a_point_the_iteration_cannot_leave_but_that_is_no_minimum_is_stalled():
     # Without the test the same point passed as converged.
     unchecked = run(problem, start_at(problem, {'b': 1.0, 'a1': 1.0, 'a0': 4.0}))
     assert unchecked.converged
+
+
+def test_after_a_gauss_newton_rescue_its_step_goes_first_without_the_regressors():
+    # The long dead time from 0.3-17 times its true values: far from the minimum the IV step
+    # is refused and the full Gauss-Newton step taken, the cost falling by a tenth or more;
+    # the next update then linearises without the regressors (no filtering of y through 1/D)
+    # and takes that step again first. The run still ends at the minimum a run from the truth
+    # reaches.
+    system = systems.second_order_dead_time()
+    problem = problem_for(system.model, system.data(seed=1001), system.bounds)
+    start = start_at(problem, {'b0': 5.0448, 'tau': 5.6201, 'a1': 18.0911, 'a0': 2.633})
+    first_asked = {}
+    linearize = problem.linearize
+
+    def recorded(coefficients, regressors=True):
+        first_asked.setdefault(coefficients.den.tobytes(), regressors)
+        return linearize(coefficients, regressors)
+
+    problem.linearize = recorded
+    result = run(problem, start, first_ls=False, tolerance=1e-6, check_optimality=True)
+    history = result.history
+    costs = [start.cost] + [update.cost for update in history]
+    # Two full Gauss-Newton updates in a row, each lowering the cost by a tenth or more: the
+    # point between them was linearised without the regressors first.
+    between = [history[index].theta for index in range(len(history) - 1)
+               if all(history[later].direction == 'gn' and history[later].step == 1.0 and
+                      costs[later + 1] <= 0.9 * costs[later] for later in (index, index + 1))]
+    assert between
+    for theta in between:
+        den = problem.model.coefficients(theta).den.tobytes()
+        assert first_asked[den] is False
+    assert result.converged
+    assert optimality(problem, result.state, np.zeros(4, dtype=bool)) < OPTIMALITY_LIMIT
+    near = problem_for(system.model, system.data(seed=1001), system.bounds)
+    reference = run(near, start_at(near, system.truth), first_ls=False, tolerance=1e-6,
+                    check_optimality=True)
+    assert result.state.cost == pytest.approx(reference.state.cost, rel=1e-9)
+    assert np.allclose(result.state.theta, reference.state.theta, rtol=1e-4)
