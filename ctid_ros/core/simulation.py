@@ -736,11 +736,21 @@ class StateResponse:
 
     @classmethod
     def _of_modes(cls, discrete: DiscreteFilter, values: np.ndarray, modes: '_Modes',
-                  held_by: Optional['StateResponse']) -> 'StateResponse':
-        """Return the response whose modes were run already (:func:`filter_responses`)."""
+                  held_by: Optional['StateResponse'], signals: Optional[np.ndarray] = None,
+                  padded: Optional[np.ndarray] = None) -> 'StateResponse':
+        """
+        Return the response whose modes were run already (:func:`filter_responses`).
+
+        ``signals`` and ``padded``: for uncoupled modes (:attr:`DiscreteFilter.modes`), the
+        sampled signal rows and the trajectories :meth:`_DiscreteModes.run` would have given,
+        which :meth:`squared_outputs` reads.
+        """
         response = cls.__new__(cls)
         response._start(discrete, values)
         response._modes, response._held_by = modes, held_by
+        if padded is not None:
+            response._discrete_modes = discrete.modes
+            response._signals, response._padded = signals, padded
         return response
 
     def squared_outputs(self, numerators: np.ndarray) -> Optional[np.ndarray]:
@@ -1910,7 +1920,8 @@ def filter_responses(filters: Sequence[DiscreteFilter], values: np.ndarray
     (:func:`_run_chains`), on the signal sampled once, and share its delayed, held input: the
     work around each recursion is paid once per state, not once per filter and state. The
     values are those of one filter at a time (each row's recursion is chosen as alone).
-    Other filters are run one at a time.
+    First-order filters (one real mode each) over the same input samples and feedthrough run
+    in one recursion the same way. Other filters are run one at a time.
 
     Parameters
     ----------
@@ -1926,20 +1937,69 @@ def filter_responses(filters: Sequence[DiscreteFilter], values: np.ndarray
 
     """
     filters = list(filters)
-    chains = [discrete.chain for discrete in filters]
-    first = chains[0] if chains else None
-    if len(filters) < 2 or not all(
-            chain is not None and chain.samples == first.samples and
-            chain.drives.shape == first.drives.shape and discrete.feed == filters[0].feed
-            for discrete, chain in zip(filters, chains)):
+    first = filters[0] if filters else None
+    key = None if first is None else _run_together_key(first)
+    if len(filters) < 2 or key is None or not all(
+            _run_together_key(discrete) == key and discrete.feed == first.feed
+            for discrete in filters[1:]):
         return [discrete.response(values) for discrete in filters]
     count = values.shape[0]
-    signals = _sampled_rows(values, first.samples, -(-count // _BLOCK) * _BLOCK)
+    length = -(-count // _BLOCK) * _BLOCK
+    if first.chain is None:
+        return _first_order_responses(filters, values, length)
+    chains = [discrete.chain for discrete in filters]
+    signals = _sampled_rows(values, first.chain.samples, length)
     trajectories = _run_chains(chains, signals)
-    order = first.transition.shape[0]
+    order = first.chain.transition.shape[0]
     responses: List[StateResponse] = []
     for index, (discrete, chain) in enumerate(zip(filters, chains)):
         modes = chain.modes(trajectories[index * order:(index + 1) * order], count)
         responses.append(StateResponse._of_modes(discrete, values, modes,
                                                  responses[0] if responses else None))
+    return responses
+
+
+def _run_together_key(discrete: DiscreteFilter) -> Optional[Tuple]:
+    """
+    Return what filters run together in :func:`filter_responses` share, None if it runs alone.
+
+    A repeated-root chain: its order and input samples; one real mode (a first-order
+    filter): its input samples.
+    """
+    if discrete.chain is not None:
+        return 'chain', discrete.chain.transition.shape[0], tuple(discrete.chain.samples)
+    modes = discrete.modes
+    if modes is not None and modes.poles.size == 1 and modes.continuous.real == 1:
+        return 'mode', tuple(modes.samples)
+    return None
+
+
+def _first_order_responses(filters: Sequence[DiscreteFilter], values: np.ndarray,
+                           length: int) -> List[StateResponse]:
+    """
+    Return the responses of first-order filters (one real mode each) run in one recursion.
+
+    As :meth:`_DiscreteModes.run` runs each alone (rows of ``length`` samples, whole blocks),
+    each row's recursion chosen as if alone (:func:`_recursions`): the same values. The
+    filters share the input samples and feedthrough (:func:`_run_together_key`).
+    """
+    count = values.shape[0]
+    modes = [discrete.modes for discrete in filters]
+    signals = _sampled_rows(values, modes[0].samples, length)
+    trajectories, blocks = _trajectories(len(filters), length)
+    driving = trajectories[:, :length]
+    for index, mode in enumerate(modes):
+        _product(mode.drives.T.real, signals, driving[index:index + 1])
+    poles = np.array([mode.poles[0].real for mode in modes])
+    _recursions(poles, driving, trajectories[:, 1:], blocks, True)
+    trajectories[:, 0] = 0.0                                            # from rest
+    responses: List[StateResponse] = []
+    for index, (discrete, mode) in enumerate(zip(filters, modes)):
+        padded = trajectories[index:index + 1]
+        continuous = mode.continuous
+        modal = _Modes.uncoupled(continuous.basis, continuous.keep, continuous.weights,
+                                 padded[:, :count], continuous.real)
+        responses.append(StateResponse._of_modes(discrete, values, modal,
+                                                 responses[0] if responses else None,
+                                                 signals, padded))
     return responses

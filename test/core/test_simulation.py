@@ -447,6 +447,26 @@ def test_chains_run_together_give_each_filters_own_values(count, order, delay, i
                                       discrete.outputs(values, numerators))
 
 
+@pytest.mark.parametrize('count', [50, 600, 2550, 10220])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'foh'), (0.0137, 'zoh'), (0.0137, 'foh')])
+def test_first_order_filters_run_together_give_each_filters_own_values(count, delay,
+                                                                       intersample):
+    # First-order filters 1/(p + lam) over one signal in one recursion: each filter's values
+    # alone, to the bit, their outputs and the squared outputs read off their modes.
+    filters = [ContinuousFilter([1.0, lam]).discretize(0.001, delay, intersample)
+               for lam in np.geomspace(0.5, 300.0, 3)]
+    values = np.random.default_rng(23).standard_normal(count)
+    numerators = [np.ones(2), np.ones(1)]
+    squared = np.array([[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]])
+    together = simulation.filter_responses(filters, values)
+    assert len(together) == len(filters)
+    for discrete, joint in zip(filters, together):
+        alone = discrete.response(values)
+        np.testing.assert_array_equal(joint.outputs(numerators), alone.outputs(numerators))
+        np.testing.assert_array_equal(joint.squared_outputs(squared),
+                                      alone.squared_outputs(squared))
+
+
 def test_filters_that_are_not_one_chain_kind_run_one_at_a_time():
     values = np.random.default_rng(19).standard_normal(300)
     filters = [ContinuousFilter(np.poly([-2.0, -2.0])).discretize(0.01),
