@@ -1746,9 +1746,12 @@ def _run_chains(chains: Sequence[_Chain], signals: np.ndarray) -> np.ndarray:
     poles = np.array([chain.transition[0, 0] for chain in chains])
     for m in range(order):
         if m:
+            # The states before m add into its driving in place (BLAS gemv, y += A x): no
+            # temporary product and second pass per state. Whole rows, contiguous: the last
+            # sample of the sum is written by the recursion below, which never reads it.
             for first, chain in zip(range(0, rows, order), chains):
-                driving[first + m] += chain.transition[m, :m] @ \
-                    trajectories[first:first + m, :length]
+                blas.dgemv(1.0, trajectories[first:first + m].T, chain.transition[m, :m],
+                           1.0, trajectories[first + m], overwrite_y=True)
         _recursions(poles, driving[m::order], trajectories[m::order, 1:],
                     None if blocks is None else blocks[m::order], True)
         trajectories[m::order, 0] = 0.0                                 # from rest
