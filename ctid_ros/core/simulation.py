@@ -1297,6 +1297,13 @@ _BAND_SIZE = 16384
 _BLOCK = 16
 _BLOCKED_MIN_LENGTH = 8 * _BLOCK
 _BLOCKED_MIN_SIZE = 1536
+# The powers k and factorials k! of a chain's transition entries (t h)^k/k!, and where each
+# entry of an n x n lower triangular Toeplitz matrix (the top left of these) reads a row of
+# them: i - j on and below the diagonal, else the last entry, a zero (_Chain.block_maps).
+_CHAIN_POWERS = np.arange(_CHAIN_MAX_ORDER, dtype=float)
+_CHAIN_FACTORIALS = np.array([float(math.factorial(k)) for k in range(_CHAIN_MAX_ORDER)])
+_CHAIN_LAGS = np.subtract.outer(np.arange(_CHAIN_MAX_ORDER), np.arange(_CHAIN_MAX_ORDER))
+_CHAIN_LAGS[_CHAIN_LAGS < 0] = -1
 # Bands of the carried states kept per chain (:meth:`_ChainBlocks.band`): one per record
 # length in use.
 _KEPT_BANDS = 4
@@ -1736,12 +1743,18 @@ class _Chain:
         each entry is ``(j h)^k/k! e^{z0 j h}`` of a stable root) and the maps are finite.
         """
         order = self.transition.shape[0]
-        if not abs(self.transition[0, 0]) <= 1.0:
+        pole = float(self.transition[0, 0])
+        if not abs(pole) <= 1.0:
             return None
-        powers = np.empty((_BLOCK + 1, order, order))
-        powers[0] = np.eye(order)
-        for exponent in range(1, _BLOCK + 1):
-            np.matmul(self.transition, powers[exponent - 1], out=powers[exponent])
+        # T = e^{(z0 + N) h} = p sum_k (h N)^k/k! (N the chain's subdiagonal shift) is lower
+        # triangular Toeplitz, and T^t = p^t sum_k (t h N)^k/k!: every power in closed form
+        # from T's first two entries, a column of (t h)^k/k! p^t per power, then zeros.
+        step = float(self.transition[1, 0]) / pole if pole else 0.0
+        exponents = np.arange(_BLOCK + 1.0)[:, None]
+        columns = np.zeros((_BLOCK + 1, order + 1))
+        columns[:, :order] = (pole ** exponents * (exponents * step) ** _CHAIN_POWERS[:order]
+                              / _CHAIN_FACTORIALS[:order])
+        powers = columns[:, _CHAIN_LAGS[:order, :order]]
         count = len(self.samples)
         # T^t B_q for t = 0 .. B, then zeros (where _BLOCK_INDEX reads above the diagonal):
         # responses[q, i, j] is what the signal row q's sample i of a block adds to the states
