@@ -469,6 +469,20 @@ def test_chains_in_blocks_are_the_state_by_state_recursions(count, order, delay,
     assert np.all(np.abs(blocked - by_state) <= 1e-13 * largest)
 
 
+def test_chains_run_together_where_only_some_run_in_blocks_give_their_own_values():
+    # An unstable repeated root (its powers grow: no blocks) among stable ones: each chain
+    # still gives the values of its own run, to the bit.
+    chains = [ContinuousFilter(np.poly(np.full(2, root))).discretize(0.01).chain
+              for root in (-3.0, 0.5, -40.0)]
+    assert [chain.block_maps is None for chain in chains] == [False, True, False]
+    values = np.random.default_rng(37).standard_normal(2000)
+    signals = simulation._sampled_rows(values, chains[0].samples, 2000)
+    together = simulation._run_chains(chains, signals)
+    for index, chain in enumerate(chains):
+        np.testing.assert_array_equal(together[2 * index:2 * index + 2],
+                                      simulation._run_chains([chain], signals))
+
+
 def test_chains_of_short_or_non_finite_signals_run_state_by_state():
     chains = [ContinuousFilter(np.poly(np.full(3, -lam))).discretize(0.01).chain
               for lam in (1.0, 20.0)]
