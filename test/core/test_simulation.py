@@ -447,6 +447,74 @@ def test_chains_run_together_give_each_filters_own_values(count, order, delay, i
                                       discrete.outputs(values, numerators))
 
 
+@pytest.mark.parametrize('count', [1600, 2550, 10220])
+@pytest.mark.parametrize('order', [2, 4])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'foh'), (0.0, 'zoh'), (0.0137, 'zoh'),
+                                                (0.0137, 'foh'), (0.02, 'foh')])
+def test_chains_in_blocks_are_the_state_by_state_recursions(count, order, delay, intersample):
+    # A chain's states in blocks at once (a window of shifted signal rows, or the rows side
+    # by side where a masked sample breaks the shift) against its states one recursion after
+    # the other, which the chains of short records keep: within 1e-13 of each state's
+    # largest value (both round; the slow filter integrates a random walk over the record).
+    lams = np.geomspace(10.0 / (count * 0.01), 0.3 * np.pi / 0.01, 3)
+    chains = [ContinuousFilter(np.poly(np.full(order, -lam))).discretize(0.01, delay,
+                                                                         intersample).chain
+              for lam in lams]
+    values = np.cumsum(np.random.default_rng(29).standard_normal(count))
+    signals = simulation._sampled_rows(values, chains[0].samples, -(-count // 16) * 16)
+    blocked = simulation._run_chains(chains, signals)
+    assert all(chain.block_maps is not None for chain in chains)
+    by_state = simulation._chain_states(chains, signals)
+    largest = np.abs(by_state).max(axis=1, keepdims=True)
+    assert np.all(np.abs(blocked - by_state) <= 1e-13 * largest)
+
+
+def test_chains_run_together_where_only_some_run_in_blocks_give_their_own_values():
+    # An unstable repeated root (its powers grow: no blocks) among stable ones: each chain
+    # still gives the values of its own run, to the bit.
+    chains = [ContinuousFilter(np.poly(np.full(2, root))).discretize(0.01).chain
+              for root in (-3.0, 0.5, -40.0)]
+    assert [chain.block_maps is None for chain in chains] == [False, True, False]
+    values = np.random.default_rng(37).standard_normal(2000)
+    signals = simulation._sampled_rows(values, chains[0].samples, 2000)
+    together = simulation._run_chains(chains, signals)
+    for index, chain in enumerate(chains):
+        np.testing.assert_array_equal(together[2 * index:2 * index + 2],
+                                      simulation._run_chains([chain], signals))
+
+
+def test_chains_of_short_or_non_finite_signals_run_state_by_state():
+    chains = [ContinuousFilter(np.poly(np.full(3, -lam))).discretize(0.01).chain
+              for lam in (1.0, 20.0)]
+    values = np.random.default_rng(31).standard_normal(2000)
+    values[700] = np.nan
+    for length in (1024, 2000):
+        signals = simulation._sampled_rows(values[:length], chains[0].samples,
+                                           -(-length // 16) * 16)
+        np.testing.assert_array_equal(simulation._run_chains(chains, signals),
+                                      simulation._chain_states(chains, signals))
+
+
+@pytest.mark.parametrize('count', [50, 600, 2550, 10220])
+@pytest.mark.parametrize('delay, intersample', [(0.0, 'foh'), (0.0137, 'zoh'), (0.0137, 'foh')])
+def test_first_order_filters_run_together_give_each_filters_own_values(count, delay,
+                                                                       intersample):
+    # First-order filters 1/(p + lam) over one signal in one recursion: each filter's values
+    # alone, to the bit, their outputs and the squared outputs read off their modes.
+    filters = [ContinuousFilter([1.0, lam]).discretize(0.001, delay, intersample)
+               for lam in np.geomspace(0.5, 300.0, 3)]
+    values = np.random.default_rng(23).standard_normal(count)
+    numerators = [np.ones(2), np.ones(1)]
+    squared = np.array([[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]])
+    together = simulation.filter_responses(filters, values)
+    assert len(together) == len(filters)
+    for discrete, joint in zip(filters, together):
+        alone = discrete.response(values)
+        np.testing.assert_array_equal(joint.outputs(numerators), alone.outputs(numerators))
+        np.testing.assert_array_equal(joint.squared_outputs(squared),
+                                      alone.squared_outputs(squared))
+
+
 def test_filters_that_are_not_one_chain_kind_run_one_at_a_time():
     values = np.random.default_rng(19).standard_normal(300)
     filters = [ContinuousFilter(np.poly([-2.0, -2.0])).discretize(0.01),
