@@ -173,11 +173,12 @@ def _gram(columns: np.ndarray) -> np.ndarray:
     """
     Return ``columns^T columns`` for the sensitivities over a record.
 
-    OpenBLAS forms the products of three columns over a record at about two thirds of the
-    speed of four (10220 samples: 37 us for three, 22 us for three with a fourth zero column),
-    so three columns from :data:`_PADDED_ROWS` rows on are padded with a zero column: its
+    OpenBLAS forms the products of three columns over a record more slowly than those of
+    four, so three columns from :data:`_PADDED_ROWS` rows on get a zero fourth column: its
     products are zeros and the others are the same sums, to the bit (checked on every call
-    of 10 estimates per reference system). Other counts and shorter records gain nothing.
+    of 10 estimates per reference system). Other counts and shorter records gain nothing
+    (one or five columns padded take longer, and one column's products change in the last
+    bits).
     """
     count, rows = columns.shape[1], columns.shape[0]
     if count != 3 or rows < _PADDED_ROWS:
