@@ -439,31 +439,30 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
     Return the backward all-pole filter's free responses before ``ends``, ``span`` rows each.
 
     The filter (``1/A`` backwards in time, as in ``noise_root``) holds the values of
-    ``filtered`` at ``end .. end + order - 1`` and gets no input before ``end``: the input that
-    gives those values from rest is ``A`` applied to them, then zeros. Response ``i`` covers
-    rows ``end - span .. end - 1``, of which only the last ``lengths[i]`` are kept (the rest
-    zero). Shape ``(len(ends), span, columns)``; one filter pass for all.
+    ``filtered`` at ``end .. end + order - 1`` (zero past the record) and gets no input before
+    ``end``: the input that gives those values from rest is ``A`` applied to them, then zeros.
+    Response ``i`` covers rows ``end - span .. end - 1``, of which only the last ``lengths[i]``
+    are kept (the rest zero). Shape ``(len(ends), span, columns)``.
+
+    The free response is linear in the held values: the filter's free responses to each unit
+    state (one small filter pass, ``span x order``) map every end's values at once, where a
+    filter pass of every end's driving would run ``len(ends) x columns`` recursions.
     """
     order = ar.size - 1
-    columns = filtered.shape[1]
-    result = np.zeros((ends.size, span, columns))
+    count, columns = filtered.shape
     if order == 0 or span == 0:
-        return result
-    # In reversed time the driving input of response i is nonzero on its first `held` rows.
-    driving = np.zeros((order + span, ends.size, columns))
-    helds = np.minimum(ends + order, filtered.shape[0]) - ends
-    for index, (end, held) in enumerate(zip(ends, helds)):
-        if held == 0 or lengths[index] == 0:
-            continue
-        part = np.zeros((held, columns))
-        for lag in range(min(order, held - 1) + 1):
-            part[:held - lag] += ar[lag] * filtered[end + lag:end + held]
-        driving[:held, index] = part[::-1]
-    response = all_pole(ar, driving.reshape(order + span, -1)).reshape(driving.shape)
-    for index, (held, length) in enumerate(zip(helds, lengths)):
-        if held and length:
-            result[index, span - length:] = response[held:held + length, index][::-1]
-    return result
+        return np.zeros((ends.size, span, columns))
+    rows = ends[:, None] + np.arange(order)
+    states = np.where((rows < count)[:, :, None], filtered[np.minimum(rows, count - 1)], 0.0)
+    # In reversed time, the input that leaves unit state m (the value at end + m) from rest:
+    # A applied to it, on the state's first order rows.
+    driving = np.zeros((order + span, order))
+    for state in range(order):
+        driving[order - 1 - state:order, state] = ar[:state + 1]
+    # Row r of the basis: the responses at row end - span + r in forward time.
+    basis = all_pole(ar, driving)[:order - 1:-1]
+    keep = np.arange(span) >= span - lengths[:, None]
+    return np.where(keep[:, :, None], basis @ states, 0.0)
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
