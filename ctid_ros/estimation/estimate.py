@@ -322,14 +322,17 @@ def covariance(problem: Problem, state: State,
     error = problem.measured - lin.output
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
+    sensitivities = sensitivities or Sensitivities(problem)
+    free, psi, norms, svd = sensitivities.at(state)
     scales = np.where(norms > 0.0, norms, 1.0)
-    # The column-scaled sensitivities, once for the sandwich and the checks after it.
-    columns = psi / scales
+    # The column-scaled sensitivities the identifiability check decomposed, for the sandwich
+    # and the checks after it.
+    columns = sensitivities.scaled(state)
     if svd is None:
         # A zero column, which the identifiability check's decomposition leaves out (scaled
         # by 1 here). At a kink of the cost in the dead time ``psi`` is already the mean of
         # the two one-sided sensitivities (:class:`Sensitivities`).
+        columns = psi / scales
         svd = thin_svd(columns)
     model = noise_model(error, autocorrelation=autocorrelation)
     rows = free.nonzero()[0]
