@@ -268,9 +268,15 @@ _Blocks = Tuple[Tuple[str, ...], np.ndarray, np.ndarray]
 
 
 def _deviations(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
-                filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
-    """Return :func:`block_deviations` as the blocks' names, ``d_b`` and ``var(d_b)`` by row."""
-    blocks = _filtered_once(scaled, error, noise, scale, filtered)
+                filtered: Optional[np.ndarray] = None, factor: Optional[np.ndarray] = None
+                ) -> Optional[_Blocks]:
+    """
+    Return :func:`block_deviations` as the blocks' names, ``d_b`` and ``var(d_b)`` by row.
+
+    ``filtered``: the filtered sensitivities, or with ``factor`` (p x p) the matrix whose
+    product with ``factor`` they are (:func:`_filtered_once`).
+    """
+    blocks = _filtered_once(scaled, error, noise, scale, filtered, factor)
     return _filtered_by_block(scaled, error, noise, scale) if blocks is None else blocks
 
 
@@ -315,7 +321,8 @@ def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel,
 
 
 def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
-                   filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
+                   filtered: Optional[np.ndarray] = None, factor: Optional[np.ndarray] = None
+                   ) -> Optional[_Blocks]:
     """
     :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
 
@@ -328,7 +335,9 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     memory. Inside the block the squares sum through ``F``'s Gram matrix. None (the block by
     block filtering then) for a shaped noise model, an all-pole filter whose memory is not
     shorter than every block, or sensitivities worse conditioned than
-    :data:`_NORMAL_CONDITION`. ``filtered``: ``F``, if the caller has it.
+    :data:`_NORMAL_CONDITION`. ``filtered``: ``F``, if the caller has it, or with ``factor``
+    (p x p) a ``Z`` with ``F = Z factor``: ``F``'s products are then ``Z``'s times ``factor``,
+    and ``F`` itself (N x p) is never formed.
     """
     count, params = scaled.shape
     if noise.shaping is not None:
@@ -359,11 +368,16 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
             locals_ - inverse, axis1=1, axis2=2)
         return names, deviations, variances
     if filtered is None:
-        filtered = noise_root(scaled, noise, scale)
+        filtered, factor = noise_root(scaled, noise, scale), None
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
     # block and the memory before it: F G^-1. Through F's products over the pieces.
     filtered_edges = np.array(sorted({*edges.tolist(), *firsts.tolist(), *inners.tolist()}))
     filtered_grams = _running_grams(filtered, filtered_edges)
+    # Rows of F taken below are rows of Z: factor rides on the p x p maps they meet.
+    local_maps, whole_map = locals_, inverse
+    if factor is not None:
+        filtered_grams = factor.T @ filtered_grams @ factor
+        local_maps, whole_map = factor @ locals_, factor @ inverse
     difference = locals_ - inverse
     outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
     inside = _between(filtered_grams, filtered_edges, starts, inners)
@@ -373,8 +387,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
                               inverse * (outside @ inverse), axis=1)
     if memory:
         # Each block's end: F less the response to the samples after the block; before each
-        # block: the response to the block's state at its start. All from one filter pass,
-        # then row by row.
+        # block: the response to the block's state at its start. Row by row.
         responses = _free_responses(
             filtered, noise.ar, np.concatenate([stops, starts]),
             np.concatenate([stops - inners, starts - firsts]), memory)
@@ -384,8 +397,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         rows_before = starts[:, None] - memory + span
         before = np.where((rows_before >= 0)[:, :, None],
                           filtered[np.maximum(rows_before, 0)], 0.0)
-        root = np.concatenate([at_end - ends, befores], axis=1) @ locals_ - \
-            np.concatenate([at_end, before], axis=1) @ inverse
+        root = np.concatenate([at_end - ends, befores], axis=1) @ local_maps - \
+            np.concatenate([at_end, before], axis=1) @ whole_map
         variances += np.add.reduce(root * root, axis=1)
     return names, deviations, variances
 
@@ -506,13 +519,15 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         parts.scaled[:, free[given]]
     count = error.size
     scale = count / max(count - params, 1)
-    filtered = None
+    factor = None
     if root is not None and root.shape[1] == params:
-        # The scale folded into the p x p factor: one N x p product, no scaled copy of it.
+        # The filtered sensitivities are root factor, the scale folded into the p x p factor:
+        # their products are root's times it, and they are never formed.
         _, singular, right_t = parts.svd
-        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * singular[:, None] *
-                           right_t)
-    blocks = _deviations(scaled, error, noise, scale, filtered)
+        factor = np.sqrt(scale * noise.innovation_variance) * singular[:, None] * right_t
+    else:
+        root = None
+    blocks = _deviations(scaled, error, noise, scale, root, factor)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
