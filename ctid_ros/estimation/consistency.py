@@ -151,6 +151,9 @@ class CovarianceParts:
     root : ndarray or None
         ``U`` filtered through the covariance's noise model's ``1/A`` backwards for unit
         innovations (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
+    again : ndarray or None
+        ``root`` filtered so once more, for the small-sample factors
+        (:func:`~ctid_ros.estimation.projected_noise.filtered_twice`); None where not computed.
 
     """
 
@@ -160,6 +163,7 @@ class CovarianceParts:
     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]
     residual_noise: NoiseModel
     root: Optional[np.ndarray] = None
+    again: Optional[np.ndarray] = None
 
 
 def consistency_bound(tests: int) -> float:
@@ -701,7 +705,8 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: Cov
 def small_sample_factors(free: np.ndarray, noise: NoiseModel,
                          svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]],
                          removed_share: float = 0.0,
-                         root: Optional[np.ndarray] = None) -> np.ndarray:
+                         root: Optional[np.ndarray] = None,
+                         again: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
 
@@ -714,7 +719,7 @@ def small_sample_factors(free: np.ndarray, noise: NoiseModel,
     parameters (None if none is free); ``removed_share``: the share of the noise's
     low-frequency level the fit took out of the residual, which the noise model then had to
     restore; ``root``: ``U`` filtered through the noise model's ``1/A`` backwards for unit
-    innovations, if the caller has it.
+    innovations, and ``again``: ``root`` filtered so once more, if the caller has them.
     """
     factors = np.ones(free.size)
     if svd is None or not free.any():
@@ -723,7 +728,7 @@ def small_sample_factors(free: np.ndarray, noise: NoiseModel,
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
-                            int(free.sum()), removed_share, root)
+                            int(free.sum()), removed_share, root, again)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / _Z_975
     return factors
@@ -770,13 +775,13 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_shaped = True
     # The sensitivities' basis filtered once through the noise model, for the small-sample
     # factors and the consistency check alike.
-    svd, root = parts.svd, parts.root
+    svd, root, again = parts.svd, parts.root, parts.again
     if fed_back is not None or svd is None or noise.shaping is not None or not noise.order:
-        root = None
+        root = again = None
     elif root is None:
-        root = unit_root(svd[0], noise)
+        root, again = unit_root(svd[0], noise), None
     factors = small_sample_factors(free, noise, svd,
-                                   0.0 if fed_back is not None else removed_share, root)
+                                   0.0 if fed_back is not None else removed_share, root, again)
     # np.outer's product.
     result.covariance = result.covariance * (factors[:, None] * factors)
     result.std_change = {name: value / factor for (name, value), factor in
