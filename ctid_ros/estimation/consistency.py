@@ -151,6 +151,9 @@ class CovarianceParts:
     root : ndarray or None
         ``U`` filtered through the covariance's noise model's ``1/A`` backwards for unit
         innovations (:func:`~ctid_ros.estimation.noise.unit_root`); None where not computed.
+    again : ndarray or None
+        ``root`` filtered so once more, for the small-sample factors
+        (:func:`~ctid_ros.estimation.projected_noise.filtered_twice`); None where not computed.
 
     """
 
@@ -160,6 +163,7 @@ class CovarianceParts:
     svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]
     residual_noise: NoiseModel
     root: Optional[np.ndarray] = None
+    again: Optional[np.ndarray] = None
 
 
 def consistency_bound(tests: int) -> float:
@@ -268,9 +272,15 @@ _Blocks = Tuple[Tuple[str, ...], np.ndarray, np.ndarray]
 
 
 def _deviations(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
-                filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
-    """Return :func:`block_deviations` as the blocks' names, ``d_b`` and ``var(d_b)`` by row."""
-    blocks = _filtered_once(scaled, error, noise, scale, filtered)
+                filtered: Optional[np.ndarray] = None, factor: Optional[np.ndarray] = None
+                ) -> Optional[_Blocks]:
+    """
+    Return :func:`block_deviations` as the blocks' names, ``d_b`` and ``var(d_b)`` by row.
+
+    ``filtered``: the filtered sensitivities, or with ``factor`` (p x p) the matrix whose
+    product with ``factor`` they are (:func:`_filtered_once`).
+    """
+    blocks = _filtered_once(scaled, error, noise, scale, filtered, factor)
     return _filtered_by_block(scaled, error, noise, scale) if blocks is None else blocks
 
 
@@ -315,7 +325,8 @@ def _filtered_by_block(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel,
 
 
 def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, scale: float,
-                   filtered: Optional[np.ndarray] = None) -> Optional[_Blocks]:
+                   filtered: Optional[np.ndarray] = None, factor: Optional[np.ndarray] = None
+                   ) -> Optional[_Blocks]:
     """
     :func:`_filtered_by_block` from one backward filter of the sensitivities, or None.
 
@@ -328,7 +339,9 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
     memory. Inside the block the squares sum through ``F``'s Gram matrix. None (the block by
     block filtering then) for a shaped noise model, an all-pole filter whose memory is not
     shorter than every block, or sensitivities worse conditioned than
-    :data:`_NORMAL_CONDITION`. ``filtered``: ``F``, if the caller has it.
+    :data:`_NORMAL_CONDITION`. ``filtered``: ``F``, if the caller has it, or with ``factor``
+    (p x p) a ``Z`` with ``F = Z factor``: ``F``'s products are then ``Z``'s times ``factor``,
+    and ``F`` itself (N x p) is never formed.
     """
     count, params = scaled.shape
     if noise.shaping is not None:
@@ -359,11 +372,16 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
             locals_ - inverse, axis1=1, axis2=2)
         return names, deviations, variances
     if filtered is None:
-        filtered = noise_root(scaled, noise, scale)
+        filtered, factor = noise_root(scaled, noise, scale), None
     # Inside each block, away from its end: (F G_b^-1 - F G^-1) row by row; outside the
     # block and the memory before it: F G^-1. Through F's products over the pieces.
     filtered_edges = np.array(sorted({*edges.tolist(), *firsts.tolist(), *inners.tolist()}))
     filtered_grams = _running_grams(filtered, filtered_edges)
+    # Rows of F taken below are rows of Z: factor rides on the p x p maps they meet.
+    local_maps, whole_map = locals_, inverse
+    if factor is not None:
+        filtered_grams = factor.T @ filtered_grams @ factor
+        local_maps, whole_map = factor @ locals_, factor @ inverse
     difference = locals_ - inverse
     outside = filtered_grams[-1] - _between(filtered_grams, filtered_edges, firsts, stops)
     inside = _between(filtered_grams, filtered_edges, starts, inners)
@@ -373,8 +391,7 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
                               inverse * (outside @ inverse), axis=1)
     if memory:
         # Each block's end: F less the response to the samples after the block; before each
-        # block: the response to the block's state at its start. All from one filter pass,
-        # then row by row.
+        # block: the response to the block's state at its start. Row by row.
         responses = _free_responses(
             filtered, noise.ar, np.concatenate([stops, starts]),
             np.concatenate([stops - inners, starts - firsts]), memory)
@@ -384,8 +401,8 @@ def _filtered_once(scaled: np.ndarray, error: np.ndarray, noise: NoiseModel, sca
         rows_before = starts[:, None] - memory + span
         before = np.where((rows_before >= 0)[:, :, None],
                           filtered[np.maximum(rows_before, 0)], 0.0)
-        root = np.concatenate([at_end - ends, befores], axis=1) @ locals_ - \
-            np.concatenate([at_end, before], axis=1) @ inverse
+        root = np.concatenate([at_end - ends, befores], axis=1) @ local_maps - \
+            np.concatenate([at_end, before], axis=1) @ whole_map
         variances += np.add.reduce(root * root, axis=1)
     return names, deviations, variances
 
@@ -439,31 +456,30 @@ def _free_responses(filtered: np.ndarray, ar: np.ndarray, ends: np.ndarray,
     Return the backward all-pole filter's free responses before ``ends``, ``span`` rows each.
 
     The filter (``1/A`` backwards in time, as in ``noise_root``) holds the values of
-    ``filtered`` at ``end .. end + order - 1`` and gets no input before ``end``: the input that
-    gives those values from rest is ``A`` applied to them, then zeros. Response ``i`` covers
-    rows ``end - span .. end - 1``, of which only the last ``lengths[i]`` are kept (the rest
-    zero). Shape ``(len(ends), span, columns)``; one filter pass for all.
+    ``filtered`` at ``end .. end + order - 1`` (zero past the record) and gets no input before
+    ``end``: the input that gives those values from rest is ``A`` applied to them, then zeros.
+    Response ``i`` covers rows ``end - span .. end - 1``, of which only the last ``lengths[i]``
+    are kept (the rest zero). Shape ``(len(ends), span, columns)``.
+
+    The free response is linear in the held values: the filter's free responses to each unit
+    state (one small filter pass, ``span x order``) map every end's values at once, where a
+    filter pass of every end's driving would run ``len(ends) x columns`` recursions.
     """
     order = ar.size - 1
-    columns = filtered.shape[1]
-    result = np.zeros((ends.size, span, columns))
+    count, columns = filtered.shape
     if order == 0 or span == 0:
-        return result
-    # In reversed time the driving input of response i is nonzero on its first `held` rows.
-    driving = np.zeros((order + span, ends.size, columns))
-    helds = np.minimum(ends + order, filtered.shape[0]) - ends
-    for index, (end, held) in enumerate(zip(ends, helds)):
-        if held == 0 or lengths[index] == 0:
-            continue
-        part = np.zeros((held, columns))
-        for lag in range(min(order, held - 1) + 1):
-            part[:held - lag] += ar[lag] * filtered[end + lag:end + held]
-        driving[:held, index] = part[::-1]
-    response = all_pole(ar, driving.reshape(order + span, -1)).reshape(driving.shape)
-    for index, (held, length) in enumerate(zip(helds, lengths)):
-        if held and length:
-            result[index, span - length:] = response[held:held + length, index][::-1]
-    return result
+        return np.zeros((ends.size, span, columns))
+    rows = ends[:, None] + np.arange(order)
+    states = np.where((rows < count)[:, :, None], filtered[np.minimum(rows, count - 1)], 0.0)
+    # In reversed time, the input that leaves unit state m (the value at end + m) from rest:
+    # A applied to it, on the state's first order rows.
+    driving = np.zeros((order + span, order))
+    for state in range(order):
+        driving[order - 1 - state:order, state] = ar[:state + 1]
+    # Row r of the basis: the responses at row end - span + r in forward time.
+    basis = all_pole(ar, driving)[:order - 1:-1]
+    keep = np.arange(span) >= span - lengths[:, None]
+    return np.where(keep[:, :, None], basis @ states, 0.0)
 
 
 def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: np.ndarray,
@@ -507,13 +523,15 @@ def check_consistency(problem: Problem, state: State, noise: NoiseModel, free: n
         parts.scaled[:, free[given]]
     count = error.size
     scale = count / max(count - params, 1)
-    filtered = None
+    factor = None
     if root is not None and root.shape[1] == params:
-        # The scale folded into the p x p factor: one N x p product, no scaled copy of it.
+        # The filtered sensitivities are root factor, the scale folded into the p x p factor:
+        # their products are root's times it, and they are never formed.
         _, singular, right_t = parts.svd
-        filtered = root @ (np.sqrt(scale * noise.innovation_variance) * singular[:, None] *
-                           right_t)
-    blocks = _deviations(scaled, error, noise, scale, filtered)
+        factor = np.sqrt(scale * noise.innovation_variance) * singular[:, None] * right_t
+    else:
+        root = None
+    blocks = _deviations(scaled, error, noise, scale, root, factor)
     if blocks is None:
         return Consistency(True, 0.0, 0, 'the record does not determine the parameters',
                            std_noise=std_noise)
@@ -687,7 +705,8 @@ def _fed_back_noise(problem: Problem, state: State, free: np.ndarray, parts: Cov
 def small_sample_factors(free: np.ndarray, noise: NoiseModel,
                          svd: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]],
                          removed_share: float = 0.0,
-                         root: Optional[np.ndarray] = None) -> np.ndarray:
+                         root: Optional[np.ndarray] = None,
+                         again: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return ``t_0.975(nu_i) / z_0.975`` per parameter: the 95 % t quantile over the normal one.
 
@@ -700,7 +719,7 @@ def small_sample_factors(free: np.ndarray, noise: NoiseModel,
     parameters (None if none is free); ``removed_share``: the share of the noise's
     low-frequency level the fit took out of the residual, which the noise model then had to
     restore; ``root``: ``U`` filtered through the noise model's ``1/A`` backwards for unit
-    innovations, if the caller has it.
+    innovations, and ``again``: ``root`` filtered so once more, if the caller has them.
     """
     factors = np.ones(free.size)
     if svd is None or not free.any():
@@ -709,7 +728,7 @@ def small_sample_factors(free: np.ndarray, noise: NoiseModel,
     if singular[-1] <= 0.0:
         return factors
     freedom = noise_freedom(left, right_t.T / singular, noise, left.shape[0],
-                            int(free.sum()), removed_share, root)
+                            int(free.sum()), removed_share, root, again)
     # scipy.special's inverse t distribution: scipy.stats would cost a second of import.
     factors[free] = special.stdtrit(freedom, 0.975) / _Z_975
     return factors
@@ -756,13 +775,13 @@ def with_consistency(result: Any, problem: Problem, state: State, noise: NoiseMo
             result.residuals.noise_shaped = True
     # The sensitivities' basis filtered once through the noise model, for the small-sample
     # factors and the consistency check alike.
-    svd, root = parts.svd, parts.root
+    svd, root, again = parts.svd, parts.root, parts.again
     if fed_back is not None or svd is None or noise.shaping is not None or not noise.order:
-        root = None
+        root = again = None
     elif root is None:
-        root = unit_root(svd[0], noise)
+        root, again = unit_root(svd[0], noise), None
     factors = small_sample_factors(free, noise, svd,
-                                   0.0 if fed_back is not None else removed_share, root)
+                                   0.0 if fed_back is not None else removed_share, root, again)
     # np.outer's product.
     result.covariance = result.covariance * (factors[:, None] * factors)
     result.std_change = {name: value / factor for (name, value), factor in

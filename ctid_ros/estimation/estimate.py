@@ -44,12 +44,13 @@ from ctid_ros.estimation.iteration import (Iteration, IterationPolicy, Iteration
                                            on_bounds, Opening)
 from ctid_ros.estimation.linear_algebra import thin_svd
 from ctid_ros.estimation.noise import (coloured_covariance, measured_every, noise_model,
-                                       NoiseModel, unit_root)
+                                       NoiseModel)
 from ctid_ros.estimation.options import check_options
 from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter, DelayRange,
                                          nuisance_columns, orthonormal_basis, Problem,
                                          settling_time, State, with_fitted_nuisance)
-from ctid_ros.estimation.projected_noise import low_frequency_level, restored_covariance
+from ctid_ros.estimation.projected_noise import (filtered_twice, low_frequency_level,
+                                                 restored_covariance)
 from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
@@ -322,19 +323,25 @@ def covariance(problem: Problem, state: State,
     error = problem.measured - lin.output
     count, params = lin.psi.shape
     variance = float(error @ error) / max(count - params, 1)
-    free, psi, norms, svd = (sensitivities or Sensitivities(problem)).at(state)
+    sensitivities = sensitivities or Sensitivities(problem)
+    free, psi, norms, svd = sensitivities.at(state)
     scales = np.where(norms > 0.0, norms, 1.0)
-    # The column-scaled sensitivities, once for the sandwich and the checks after it.
-    columns = psi / scales
+    # The column-scaled sensitivities the identifiability check decomposed, for the sandwich
+    # and the checks after it.
+    columns = sensitivities.scaled(state)
     if svd is None:
         # A zero column, which the identifiability check's decomposition leaves out (scaled
         # by 1 here). At a kink of the cost in the dead time ``psi`` is already the mean of
         # the two one-sided sensitivities (:class:`Sensitivities`).
+        columns = psi / scales
         svd = thin_svd(columns)
     model = noise_model(error, autocorrelation=autocorrelation)
     rows = free.nonzero()[0]
-    # The sensitivities' basis filtered once, for the sandwich and the checks after it.
-    root = unit_root(svd[0], model) if model.order and rows.size else None
+    # The sensitivities' basis filtered once, for the sandwich and the checks after it, and
+    # again for the small-sample factors: from one recursion (filtered_twice).
+    root = again = None
+    if model.order and rows.size:
+        root, again = filtered_twice(svd[0], model)
     scaled, model = coloured_covariance(columns, error, rows.size, svd, model=model, root=root)
     # The residual lacks the noise the fit projected off: restore it before the sandwich.
     restored = restored_covariance(columns, error, svd, start=model)
@@ -348,6 +355,7 @@ def covariance(problem: Problem, state: State,
         restored_factors = np.ones(params)
         restored_factors[free] = np.where(np.isfinite(ratio) & (ratio > 0.0), ratio, 1.0)
         scaled, model, root = restored
+        again = None
     result = np.full((params, params), np.nan)
     # np.ix_'s indexing and np.outer's product.
     result[rows[:, None], rows] = scaled / (scales[:, None] * scales)
@@ -358,7 +366,7 @@ def covariance(problem: Problem, state: State,
         condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else np.inf
         weakest[free] = vt[-1] * np.sign(vt[-1][np.abs(vt[-1]).argmax()])
     parts = CovarianceParts(columns, scales, error, svd if rows.size else None, residual_noise,
-                            root)
+                            root, again)
     return Uncertainty(result, variance, condition, weakest, model, free, removed_share,
                        restored_factors, parts)
 

@@ -66,12 +66,13 @@ class Sensitivities:
     The sensitivities of the free parameters at the latest state asked for, and their SVD.
 
     The identifiability check and the covariance of one estimate use the same column-scaled
-    sensitivities: one decomposition serves both.
+    sensitivities: one decomposition serves both, and the scaled columns it decomposed serve
+    the covariance and the checks after it (:meth:`scaled`).
     """
 
     def __init__(self, problem: Problem):
         self._problem = problem
-        self._latest: Optional[Tuple[State, tuple]] = None
+        self._latest: Optional[Tuple[State, tuple, Optional[np.ndarray]]] = None
 
     def at(self, state: State) -> Tuple[np.ndarray, np.ndarray, np.ndarray, Optional[tuple]]:
         """
@@ -90,9 +91,23 @@ class Sensitivities:
             psi = lin.psi if lin.delay_jump is None else lin.psi + 0.5 * lin.delay_jump
             psi = psi[:, free]
             norms = np.linalg.norm(psi, axis=0)
-            svd = None if any((norms == 0.0).tolist()) else thin_svd(psi / norms)
-            self._latest = (state, (free, psi, norms, svd))
+            scaled = None if any((norms == 0.0).tolist()) else psi / norms
+            svd = None
+            if scaled is not None:
+                scaled.flags.writeable = False
+                svd = thin_svd(scaled)
+            self._latest = (state, (free, psi, norms, svd), scaled)
         return self._latest[1]
+
+    def scaled(self, state: State) -> Optional[np.ndarray]:
+        """
+        Return ``psi[:, free] / norms`` at ``state``, the matrix :meth:`at` decomposed.
+
+        None if a column is zero (no decomposition then). Read-only: the covariance and the
+        checks after it share it.
+        """
+        self.at(state)
+        return self._latest[2]
 
 
 def blind_combination(problem: Problem, state: State,

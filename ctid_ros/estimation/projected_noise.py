@@ -42,8 +42,8 @@ from ctid_ros.estimation.noise import (DEFAULT_CRITERION, noise_model, noise_roo
                                        unit_root)
 import numpy as np
 
-__all__ = ['RESTORE_PASSES', 'low_frequency_level', 'noise_freedom', 'restored_covariance',
-           'restored_noise_model']
+__all__ = ['RESTORE_PASSES', 'filtered_twice', 'low_frequency_level', 'noise_freedom',
+           'restored_covariance', 'restored_noise_model']
 
 # Most refits of the noise model to the restored autocovariance (each adds back what the
 # previous model says the projection removed; the low-frequency level settles within a per
@@ -54,6 +54,13 @@ RESTORE_PASSES = 3
 _NEGLIGIBLE = 0.005
 # Longest lag the noise model may use (noise.noise_model's own limits are lower).
 _MAX_LAG = 30
+# filtered_twice takes one recursion of A^2 and A's FIR back from it for polynomials of at most
+# this order (each FIR pass costs a fraction of a recursion's) whose coefficients after a_0 sum
+# in magnitude to at most this share of a_0: A then keeps every root within that radius, and
+# the squared recursion and the FIR stay within a few ulps of two recursions of A (roots near
+# the unit circle would cost the squared recursion digits).
+_FIR_ORDER = 8
+_FIR_SUM = 0.9
 
 
 def _lag_sums(first: np.ndarray, second: np.ndarray, lags: int, size: int) -> np.ndarray:
@@ -163,8 +170,33 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
     return mapping @ (filtered.T @ filtered) @ mapping.T, model, root
 
 
+def filtered_twice(columns: np.ndarray, model: NoiseModel) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return ``Z = H^T X`` and ``Y = H^T Z``: the columns through ``1/A`` backwards once and twice.
+
+    ``Z`` is :func:`~ctid_ros.estimation.noise.unit_root` of the columns ``X`` for the unshaped
+    ``model`` and ``Y`` that of ``Z``. ``H^T`` is ``1/A`` backwards in time, so ``Y`` is ``X``
+    through ``1/A^2`` and ``Z = A(S^T) Y`` (``S`` the lower shift, ``Y`` zero past the record):
+    one recursion of twice the order and ``order`` FIR passes, where two recursions of ``A``
+    would run. Two recursions where ``A`` is long or near the unit circle
+    (:data:`_FIR_ORDER`, :data:`_FIR_SUM`).
+    """
+    ar = model.ar
+    order = ar.size - 1
+    unit = NoiseModel(ar, 1.0, model.variance)
+    if order > _FIR_ORDER or float(np.abs(ar[1:]).sum()) > _FIR_SUM * abs(float(ar[0])):
+        once = unit_root(columns, unit)
+        return once, unit_root(once, unit)
+    twice = unit_root(columns, NoiseModel(np.convolve(ar, ar), 1.0, model.variance))
+    once = ar[0] * twice
+    for lag in range(1, order + 1):
+        once[:-lag] += ar[lag] * twice[lag:]
+    return once, twice
+
+
 def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
-                  root: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+                  root: Optional[np.ndarray] = None, again: Optional[np.ndarray] = None
+                  ) -> Tuple[np.ndarray, np.ndarray]:
     """
     Return ``log d`` and its gradient in ``a_1 .. a_p``, ``d`` the diagonal of ``M Z^T Z M^T``.
 
@@ -172,11 +204,12 @@ def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
     innovations (``S`` the lower shift). ``dH/da_k = -S^k H^2``: lower triangular Toeplitz
     matrices commute, so ``dZ/da_k = -(S^T)^k Y`` with ``Y = H^T Z``, the root filtered once
     more, moved ``k`` samples earlier. Two filter passes give the exact gradient, where
-    differences would take one pass per coefficient. ``root``: ``Z``, if the caller has it.
+    differences would take one pass per coefficient. ``root``: ``Z``, and ``again``: ``Y``
+    (:func:`filtered_twice`), if the caller has them.
     """
     unit = NoiseModel(model.ar, 1.0, model.variance)
     root = noise_root(left, unit) if root is None else root
-    again = noise_root(root, unit)
+    again = noise_root(root, unit) if again is None else again
     # Through p x p Gram matrices: numpy's product of the long, reversed root with the
     # mapping does not reach BLAS speed.
     diagonal = np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
@@ -202,7 +235,8 @@ def _toeplitz_steps(order: int) -> np.ndarray:
 
 def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, count: int,
                   parameters: int, removed_share: float = 0.0,
-                  root: Optional[np.ndarray] = None) -> np.ndarray:
+                  root: Optional[np.ndarray] = None,
+                  again: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return each standard deviation's effective degrees of freedom (module docstring).
 
@@ -223,6 +257,8 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
     root : ndarray, optional
         ``left`` filtered through ``1/A`` backwards in time for unit innovations
         (:func:`~ctid_ros.estimation.noise.noise_root`), if the caller has it.
+    again : ndarray, optional
+        ``root`` filtered so once more (:func:`filtered_twice`), if the caller has it.
 
     Returns
     -------
@@ -239,7 +275,7 @@ def noise_freedom(left: np.ndarray, mapping: np.ndarray, model: NoiseModel, coun
     variance = np.full(rows, 2.0 / residual_freedom)
     order = model.order
     if order:
-        _, gradient = _log_diagonal(mapping, left, model, root)
+        _, gradient = _log_diagonal(mapping, left, model, root, again)
         # Lower triangular Toeplitz matrices of a_0 .. a_p-1 and a_p .. a_1, by indexing
         # (past the last coefficient: the zero appended above the diagonal).
         steps = _toeplitz_steps(order)

@@ -1,7 +1,8 @@
 """The noise a fit projected off, restored before the covariance; its degrees of freedom."""
 
-from ctid_ros.estimation.noise import noise_model
-from ctid_ros.estimation.projected_noise import noise_freedom, restored_noise_model
+from ctid_ros.estimation.noise import noise_model, NoiseModel
+from ctid_ros.estimation.projected_noise import (filtered_twice, noise_freedom,
+                                                 restored_noise_model)
 import numpy as np
 import pytest
 from scipy import signal
@@ -53,3 +54,18 @@ def test_a_slow_parameter_under_coloured_noise_has_few_degrees_of_freedom():
     # A residual that lacks a quarter of the low-frequency level determines its model less.
     depleted = noise_freedom(slow, np.eye(1), model, count, 1, removed_share=0.25)
     assert depleted[0] == pytest.approx(0.75 * freedom[0], rel=0.1)
+
+
+@pytest.mark.parametrize('roots', [[0.5], [0.6, -0.25], [0.3 * np.exp(0.8j), 0.3 * np.exp(-0.8j)],
+                                   [0.999], [0.2] * 9])
+def test_columns_filtered_twice_equal_two_backward_filters(roots):
+    # Z = H^T X and Y = H^T Z, H the impulse-response matrix of 1/A, against lfilter on the
+    # reversed columns: the squared recursion with A's FIR where A is short and far from the
+    # unit circle, two recursions where not (a root at 0.999, order 9).
+    ar = np.real(np.poly(roots))
+    columns = np.random.default_rng(5).standard_normal((1500, 3))
+    once = signal.lfilter([1.0], ar, columns[::-1], axis=0)
+    twice = signal.lfilter([1.0], ar, once, axis=0)[::-1]
+    root, again = filtered_twice(columns, NoiseModel(ar, 0.3, 1.0))
+    np.testing.assert_allclose(root, once[::-1], rtol=0, atol=1e-12 * np.abs(once).max())
+    np.testing.assert_allclose(again, twice, rtol=0, atol=1e-12 * np.abs(twice).max())
