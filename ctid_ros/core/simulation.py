@@ -705,12 +705,8 @@ class StateResponse:
                 # Padded to whole blocks: the recursions read them without another copy.
                 signals = _sampled_rows(values, discrete.modes.samples,
                                         -(-self._count // _BLOCK) * _BLOCK)
-                modes = discrete.modes.continuous
-                self._padded = discrete.modes.run(signals, self._count)
-                self._modes = _Modes.uncoupled(
-                    modes.basis, modes.keep, modes.weights, self._padded[:, :self._count],
-                    None if self._padded.dtype.kind == 'c' else modes.real)
-                self._discrete_modes, self._signals = discrete.modes, signals
+                self._hold_modes(discrete.modes, signals,
+                                 discrete.modes.run(signals, self._count))
             elif discrete.chain is not None:
                 signals = _sampled_rows(values, discrete.chain.samples,
                                         -(-self._count // _BLOCK) * _BLOCK)
@@ -735,23 +731,40 @@ class StateResponse:
         self._chains: Optional[np.ndarray] = None
         self._padded: Optional[np.ndarray] = None
 
+    def _hold_modes(self, discrete_modes: '_DiscreteModes', signals: np.ndarray,
+                    padded: np.ndarray) -> None:
+        """
+        Hold the uncoupled modes' trajectories ``padded`` over the sampled ``signals``.
+
+        ``padded`` as :meth:`_DiscreteModes.run` returns them (real form, or complex rows),
+        which :meth:`squared_outputs` reads again with ``signals``.
+        """
+        modes = discrete_modes.continuous
+        self._padded = padded
+        self._modes = _Modes.uncoupled(modes.basis, modes.keep, modes.weights,
+                                       padded[:, :self._count],
+                                       None if padded.dtype.kind == 'c' else modes.real)
+        self._discrete_modes, self._signals = discrete_modes, signals
+
     @classmethod
-    def _of_modes(cls, discrete: DiscreteFilter, values: np.ndarray, modes: '_Modes',
-                  held_by: Optional['StateResponse'], signals: Optional[np.ndarray] = None,
+    def _of_modes(cls, discrete: DiscreteFilter, values: np.ndarray,
+                  modes: Optional['_Modes'], held_by: Optional['StateResponse'],
+                  signals: Optional[np.ndarray] = None,
                   padded: Optional[np.ndarray] = None) -> 'StateResponse':
         """
         Return the response whose modes were run already (:func:`filter_responses`).
 
-        ``signals`` and ``padded``: for uncoupled modes (:attr:`DiscreteFilter.modes`), the
-        sampled signal rows and the trajectories :meth:`_DiscreteModes.run` would have given,
-        which :meth:`squared_outputs` reads.
+        ``modes``: a chain's modes; or, for uncoupled modes (:attr:`DiscreteFilter.modes`),
+        ``signals`` and ``padded``: the sampled signal rows and the trajectories
+        :meth:`_DiscreteModes.run` would have given (:meth:`_hold_modes`).
         """
         response = cls.__new__(cls)
         response._start(discrete, values)
-        response._modes, response._held_by = modes, held_by
+        response._held_by = held_by
         if padded is not None:
-            response._discrete_modes = discrete.modes
-            response._signals, response._padded = signals, padded
+            response._hold_modes(discrete.modes, signals, padded)
+        else:
+            response._modes = modes
         return response
 
     def squared_outputs(self, numerators: np.ndarray) -> Optional[np.ndarray]:
@@ -2160,7 +2173,6 @@ def _first_order_responses(filters: Sequence[DiscreteFilter], values: np.ndarray
     each row's recursion chosen as if alone (:func:`_recursions`): the same values. The
     filters share the input samples and feedthrough (:func:`_run_together_key`).
     """
-    count = values.shape[0]
     modes = [discrete.modes for discrete in filters]
     signals = _sampled_rows(values, modes[0].samples, length)
     trajectories, blocks = _trajectories(len(filters), length)
@@ -2171,12 +2183,8 @@ def _first_order_responses(filters: Sequence[DiscreteFilter], values: np.ndarray
     _recursions(poles, driving, trajectories[:, 1:], blocks, True)
     trajectories[:, 0] = 0.0                                            # from rest
     responses: List[StateResponse] = []
-    for index, (discrete, mode) in enumerate(zip(filters, modes)):
-        padded = trajectories[index:index + 1]
-        continuous = mode.continuous
-        modal = _Modes.uncoupled(continuous.basis, continuous.keep, continuous.weights,
-                                 padded[:, :count], continuous.real)
-        responses.append(StateResponse._of_modes(discrete, values, modal,
+    for index, discrete in enumerate(filters):
+        responses.append(StateResponse._of_modes(discrete, values, None,
                                                  responses[0] if responses else None,
-                                                 signals, padded))
+                                                 signals, trajectories[index:index + 1]))
     return responses
