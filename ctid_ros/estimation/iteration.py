@@ -861,12 +861,10 @@ class _Run:
         if self.rescued and not self.near:
             return self._rescued()
         linear = self._linearized(policy.method != 'gn' and not self.near)
-        bounded = on_bounds(self.state.theta, self.problem)
-        free = _free_mask(linear, bounded, self.frozen)
-        if not any(free.tolist()):
+        point = self._point(linear)
+        if point is None:
             return StopReason.ALL_AT_BOUNDS
         primary = self._primary()
-        point = _Point(linear, free, bounded)
         size = np.inf
         if primary != 'ls':
             size = self._size(point, primary)
@@ -911,11 +909,9 @@ class _Run:
         linear = self._linearized(False)
         if linear.kinked:
             return None
-        bounded = on_bounds(self.state.theta, self.problem)
-        free = _free_mask(linear, bounded, self.frozen)
-        if not any(free.tolist()):
+        point = self._point(linear)
+        if point is None:
             return StopReason.ALL_AT_BOUNDS
-        point = _Point(linear, free, bounded)
         size = self._size(point, 'gn')
         if size < NEGLIGIBLE_STEP:
             return StopReason.NEGLIGIBLE_UPDATE
@@ -930,6 +926,14 @@ class _Run:
             self.refused = ('gn', 0.0, _FULL_STEP)
             return None
         return self._record(('gn', step, outcome), 'iv', size, linear)
+
+    def _point(self, linear: _Linear) -> Optional[_Point]:
+        """Return the update's point at the current state, None if every parameter is held."""
+        bounded = on_bounds(self.state.theta, self.problem)
+        free = _free_mask(linear, bounded, self.frozen)
+        if not any(free.tolist()):
+            return None
+        return _Point(linear, free, bounded)
 
     def _size(self, point: _Point, primary: str) -> float:
         """Return the primary update's length in standard deviations of the estimate (8.1)."""
