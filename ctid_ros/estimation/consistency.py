@@ -40,6 +40,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
 from ctid_ros.estimation.correlation import bonferroni_quantile
+from ctid_ros.estimation.linear_algebra import gram_matrix
 from ctid_ros.estimation.noise import (coloured_covariance, model_score, noise_memory,
                                        noise_root, NoiseModel, shaped_noise_model, unit_root)
 from ctid_ros.estimation.problem import Problem, State
@@ -224,7 +225,7 @@ def _pseudo_inverse(psi: np.ndarray) -> Optional[np.ndarray]:
     Otherwise through the SVD, which keeps the precision the normal equations would square
     away.
     """
-    gram = psi.T @ psi
+    gram = gram_matrix(psi)
     eigenvalues = np.linalg.eigvalsh(gram)
     if eigenvalues[0] > 0.0 and eigenvalues[0] >= eigenvalues[-1] / _NORMAL_CONDITION ** 2:
         # (N x p) @ (p x p) by einsum: matmul runs these shapes far from BLAS speed.

@@ -15,7 +15,7 @@ from functools import lru_cache
 from typing import List, Optional
 
 from ctid_ros.core.data import Data
-from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
+from ctid_ros.estimation.linear_algebra import gram_matrix, least_squares, normal_solution
 import numpy as np
 from scipy import special
 
@@ -325,7 +325,7 @@ def whitening_filter(values: np.ndarray, order: int = _PREWHITENING_ORDER) -> np
         lagged[:, k] = values[order - k:count - k]
     # The normal equations where the past values are well conditioned (a cond^2 eps relative
     # error), least squares otherwise.
-    products = lagged.T @ lagged
+    products = gram_matrix(lagged)
     coefficients = normal_solution(products[1:, 1:], products[1:, 0], _NORMAL_CONDITION)
     if coefficients is None:
         coefficients = least_squares(lagged[:, 1:], lagged[:, 0])

@@ -17,7 +17,7 @@ from ctid_ros.core.model import Coefficients
 from ctid_ros.core.simulation import shifted
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
-from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
+from ctid_ros.estimation.linear_algebra import gram_matrix, least_squares, normal_solution
 from ctid_ros.estimation.problem import DelayRange, Problem, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
@@ -337,7 +337,7 @@ def neighbouring_delays(problem: Problem, best: State, delay_index: int,
     linearised = problem.linearize(best.coefficients, regressors=False)
     sensitivities = linearised.psi[:, others]
     # Both neighbours' normal matrices are this one less the row their shift drops.
-    gram = sensitivities.T @ sensitivities
+    gram = gram_matrix(sensitivities)
     lowest = None
     for offset in _PROBE_OFFSETS:
         theta = best.theta.copy()

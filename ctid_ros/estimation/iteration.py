@@ -19,7 +19,8 @@ import math
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from ctid_ros.core.simulation import all_finite
-from ctid_ros.estimation.linear_algebra import condition, solve_or_none, symmetric_eigen
+from ctid_ros.estimation.linear_algebra import (condition, gram_matrix, solve_or_none,
+                                                symmetric_eigen)
 from ctid_ros.estimation.problem import Problem, State
 from ctid_ros.estimation.regressors import Linearization
 import numpy as np
@@ -68,9 +69,6 @@ _INF = math.inf
 # Below it the IV step is tried first again: near a minimum or on a plateau Gauss-Newton
 # predicts little and the IV step, which sees further, often goes on in full.
 _RESCUE_DECREASE = 0.1
-# Records from this many samples on have the normal products of three sensitivities padded
-# (_gram).
-_PADDED_ROWS = 1024
 
 
 # A bound a step ran into: (parameter index, bound value).
@@ -169,25 +167,6 @@ def _block(matrix: np.ndarray, free: np.ndarray, every: Optional[bool] = None) -
     return matrix if every else matrix[np.ix_(free, free)]
 
 
-def _gram(columns: np.ndarray) -> np.ndarray:
-    """
-    Return ``columns^T columns`` for the sensitivities over a record.
-
-    OpenBLAS forms the products of three columns over a record more slowly than those of
-    four, so three columns from :data:`_PADDED_ROWS` rows on get a zero fourth column: its
-    products are zeros and the others are the same sums, to the bit (checked on every call
-    of 10 estimates per reference system). Other counts and shorter records gain nothing
-    (one or five columns padded take longer, and one column's products change in the last
-    bits).
-    """
-    count, rows = columns.shape[1], columns.shape[0]
-    if count != 3 or rows < _PADDED_ROWS:
-        return columns.T @ columns
-    padded = np.zeros((4, rows))
-    padded[:3] = columns.T
-    return (padded @ padded.T)[:3, :3]
-
-
 class _Side:
     """
     The sensitivities of one side of a dead-time kink and their small products.
@@ -209,7 +188,7 @@ class _Side:
     def gram(self) -> np.ndarray:
         """``psi^T psi``."""
         if self._gram is None:
-            self._gram = _gram(self.psi)
+            self._gram = gram_matrix(self.psi)
         return self._gram
 
     @property

@@ -23,7 +23,8 @@ from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_finite, all_pole, companion_roots
 from ctid_ros.estimation.correlation import fft_size
-from ctid_ros.estimation.linear_algebra import least_squares, symmetric_eigenvalues, thin_svd
+from ctid_ros.estimation.linear_algebra import (gram_matrix, least_squares, symmetric_eigenvalues,
+                                                thin_svd)
 import numpy as np
 
 __all__ = ['DEFAULT_CRITERION', 'NoiseModel', 'coloured_covariance', 'inverse_filtered',
@@ -251,7 +252,7 @@ def _lower_orders_fail(impulse: np.ndarray, order: int, peak: float) -> bool:
     shifted = np.empty((rows, order), order='F')
     for column in range(order):
         shifted[:, column] = impulse[top + 1 - column:top + 1 - column + rows]
-    gram = shifted.T @ shifted
+    gram = gram_matrix(shifted)
     if not all_finite(gram):
         return False
     rounding = 4.0 * (size + order) * np.finfo(float).eps * float(np.trace(gram))
@@ -341,9 +342,9 @@ def coloured_covariance(psi: np.ndarray, residual: np.ndarray, parameters: int,
     scale = count / max(count - parameters, 1)
     if root is None:
         filtered = noise_root(left, model, scale)
-        return mapping @ (filtered.T @ filtered) @ mapping.T, model
+        return mapping @ gram_matrix(filtered) @ mapping.T, model
     # The unit root's p x p products scaled, rather than a scaled copy of the N x p root.
-    gram = (scale * model.innovation_variance) * (root.T @ root)
+    gram = (scale * model.innovation_variance) * gram_matrix(root)
     return mapping @ gram @ mapping.T, model
 
 

@@ -38,6 +38,7 @@ from functools import lru_cache
 from typing import Optional, Tuple
 
 from ctid_ros.core.simulation import all_pole
+from ctid_ros.estimation.linear_algebra import gram_matrix
 from ctid_ros.estimation.noise import (DEFAULT_CRITERION, noise_model, noise_root, NoiseModel,
                                        unit_root)
 import numpy as np
@@ -167,7 +168,7 @@ def restored_covariance(psi: np.ndarray, residual: np.ndarray,
     root = unit_root(left, model)
     # noise_root(left, model) to the last bit (unit_root): one filter pass for both.
     filtered = np.sqrt(model.innovation_variance) * root
-    return mapping @ (filtered.T @ filtered) @ mapping.T, model, root
+    return mapping @ gram_matrix(filtered) @ mapping.T, model, root
 
 
 def filtered_twice(columns: np.ndarray, model: NoiseModel) -> Tuple[np.ndarray, np.ndarray]:
@@ -212,7 +213,7 @@ def _log_diagonal(mapping: np.ndarray, left: np.ndarray, model: NoiseModel,
     again = noise_root(root, unit) if again is None else again
     # Through p x p Gram matrices: numpy's product of the long, reversed root with the
     # mapping does not reach BLAS speed.
-    diagonal = np.einsum('ij,jk,ik->i', mapping, root.T @ root, mapping)
+    diagonal = np.einsum('ij,jk,ik->i', mapping, gram_matrix(root), mapping)
     order = model.order
     crosses = np.zeros((order,) + (root.shape[1],) * 2)
     for lag in range(1, min(order, root.shape[0] - 1) + 1):

@@ -32,7 +32,7 @@ from ctid_ros.estimation.bvls import bounded_least_squares
 from ctid_ros.estimation.correlation import independent_of_input
 from ctid_ros.estimation.iteration import (iterate, IterationPolicy, IterationResult,
                                            Opening, Steps)
-from ctid_ros.estimation.linear_algebra import least_squares, solve_or_none
+from ctid_ros.estimation.linear_algebra import gram_matrix, least_squares, solve_or_none
 from ctid_ros.estimation.problem import (delay_parameter, DelayRange, FittedModel, Problem,
                                          settling_time, State)
 import numpy as np
@@ -604,7 +604,7 @@ def _triangular_factor(columns: np.ndarray) -> np.ndarray:
     give 1-170); otherwise LAPACK's QR factorisation (geqrf, as ``np.linalg.qr(mode='r')``
     calls it) of the scaled columns. ``columns`` is left as it is.
     """
-    gram = columns.T @ columns
+    gram = gram_matrix(columns)
     scales = np.sqrt(gram.diagonal())
     scales[scales == 0.0] = 1.0
     cholesky, info = lapack.dpotrf(gram / (scales[:, None] * scales))      # np.outer's

@@ -70,3 +70,17 @@ def test_solve_or_none_gives_none_for_a_singular_matrix():
     np.testing.assert_array_equal(linear_algebra.solve_or_none(matrix, np.ones(2)),
                                   np.linalg.solve(matrix, np.ones(2)))
     assert linear_algebra.solve_or_none(np.array([[1.0, 2.0], [2.0, 4.0]]), np.ones(2)) is None
+
+
+@pytest.mark.parametrize('rows', [10, 1023, 1024, 2550, 10220])
+@pytest.mark.parametrize('count', [1, 2, 3, 4])
+def test_gram_matrix_is_the_product_of_the_columns(rows, count):
+    # The padded product (three columns from 1024 rows on) sums the same terms in the same
+    # order as the plain one in OpenBLAS; another BLAS may order them otherwise, so within a
+    # few units of the last place of the largest entry.
+    columns = np.random.default_rng(rows + count).standard_normal((rows, count))
+    got = linear_algebra.gram_matrix(columns)
+    expected = columns.T @ columns
+    assert got.shape == (count, count)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=8 * np.spacing(np.abs(expected).max()))
+    np.testing.assert_array_equal(got, got.T)
