@@ -34,6 +34,9 @@ Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
 DelayRange = Optional[Tuple[float, float]]
 # What the estimation fits: the user's model, or its stable reformulation if it integrates.
 FittedModel = Union[Model, StabilizedModel]
+# The largest coefficient of an admissible denominator lies between these: its square (the
+# regressors filter through 1/D^2) is then a normal float.
+_REALISABLE = (1e-150, 1e150)
 
 
 @dataclass
@@ -391,6 +394,11 @@ class Problem:
         except ModelError:
             return None
         if coefficients.delay < 0.0 or not is_stable(coefficients.den):
+            return None
+        # A search drifting along a direction the output hardly sees (a zero cancelling a
+        # pole, every coefficient shrinking together) can reach coefficients whose squares
+        # underflow: the filters of 1/D could not be built there.
+        if not _REALISABLE[0] < max(map(abs, coefficients.den.tolist())) < _REALISABLE[1]:
             return None
         sign = np.sign(coefficients.den[0])
         if self._leading_sign is not None and sign != self._leading_sign:

@@ -442,3 +442,16 @@ def test_a_dead_time_beyond_half_the_record_is_an_error_that_says_so():
                        r'output is zero over the 10 s record .* A dead time beyond half the '
                        r'record is not searched'):
         estimate(FOPDT, Data(u, y, 0.01), {'K': 1.0, 'T': 1.0, 'tau': 0.0})
+
+
+def test_two_mass_drive_on_noise_free_data_gives_the_truth_not_a_model_error():
+    # Motor speed of a drive with a compliant belt: an integrator and a resonance at 55 rad/s
+    # with damping 0.03. The automatic start drifted along the cancelling direction J2, c,
+    # k -> 0 until its filters underflowed and estimate raised ModelError on a valid model.
+    model = Model('(J2*s**2 + c*s + k)/(J1*J2*s**3 + (J1 + J2)*c*s**2 + (J1 + J2)*k*s)')
+    truth = {'J1': 0.01, 'J2': 0.02, 'c': 0.02, 'k': 20.0}
+    u = prbs(11, 2)[:2000]
+    result = estimate(model, Data(u, model.simulate(truth, u, 0.002), 0.002))
+    assert result.converged
+    for name, value in truth.items():
+        assert result.params[name] == pytest.approx(value, rel=1e-3)
