@@ -62,7 +62,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 __all__ = [
-    'Estimate', 'ILL_CONDITIONED', 'LOW_FIT', 'Uncertainty', 'build_problem',
+    'Estimate', 'ILL_CONDITIONED', 'LOW_FIT', 'SIGNAL_SCALES', 'Uncertainty', 'build_problem',
     'covariance', 'estimate', 'fit_percent',
 ]
 
@@ -70,6 +70,8 @@ __all__ = [
 ILL_CONDITIONED = 1e3
 # Below this fit (%) the estimate carries a warning that the model explains almost nothing.
 LOW_FIT = 10.0
+# The variation of every signal must exceed the first, its values stay below the second.
+SIGNAL_SCALES = (1e-60, 1e60)
 _MAX_RESIDUAL_LAGS = 200
 
 
@@ -248,16 +250,31 @@ def _check_excitation(model: Model, data: Data) -> None:
                         f'({", ".join(model.inputs)}), the data have {data.input_count}')
     # np.ptp's reductions, without its dispatch.
     inputs = data.u.reshape(len(data), -1)
-    spans = np.maximum.reduce(inputs, axis=0) - np.minimum.reduce(inputs, axis=0)
-    for name, span in zip(model.inputs, spans):
+    highs, lows = np.maximum.reduce(inputs, axis=0), np.minimum.reduce(inputs, axis=0)
+    for name, span in zip(model.inputs, (highs - lows).tolist()):
         if span == 0.0:
             raise EstimationError(f'the input {name} is constant: it does not excite the '
                                   'system, so no dynamic parameter can be identified')
-    if np.maximum.reduce(data.y, axis=None) - np.minimum.reduce(data.y, axis=None) == 0.0:
+    high, low = np.maximum.reduce(data.y, axis=None), np.minimum.reduce(data.y, axis=None)
+    if high - low == 0.0:
         raise EstimationError('the output is constant: the data carry no information about '
                               'the dynamics (is the output topic/column the right one?)')
     if len(data) < 10:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
+    for name, top, bottom in zip((*model.inputs, model.output), (*highs.tolist(), float(high)),
+                                 (*lows.tolist(), float(low))):
+        _check_scale(name, top, bottom)
+
+
+def _check_scale(name: str, high: float, low: float) -> None:
+    # The estimator forms sums of squares and products of the signals: beyond these scales
+    # they leave the floating-point range (a residual's correlations came out zero at 1e90).
+    peak = max(abs(high), abs(low))
+    if peak > SIGNAL_SCALES[1] or high - low < SIGNAL_SCALES[0]:
+        raise DataError(f'{name} spans {high - low:.3g} with values up to {peak:.3g}: the '
+                        'estimator squares the signals, so it needs variations above '
+                        f'{SIGNAL_SCALES[0]:.0e} and values below {SIGNAL_SCALES[1]:.0e}; '
+                        f'express {name} in other units (scale it) before identification')
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 import re
 
-from ctid_ros import Data, estimate, EstimationError, Model, ModelError
+from ctid_ros import Data, DataError, estimate, EstimationError, Model, ModelError
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.regressors import SignalBank
@@ -455,3 +455,20 @@ def test_two_mass_drive_on_noise_free_data_gives_the_truth_not_a_model_error():
     assert result.converged
     for name, value in truth.items():
         assert result.params[name] == pytest.approx(value, rel=1e-3)
+
+
+def test_signals_beyond_the_squarable_scales_are_a_data_error_not_a_crash():
+    # y in units 1e90 too small made the residual's correlations 0 (their normalisation
+    # overflowed) and the noise model divided by zero: ZeroDivisionError out of estimate.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(7, 4)
+    y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.33}, u, 0.05)
+    y = y + 0.05 * np.random.default_rng(0).standard_normal(u.size)
+    for scale in (1e90, 1e-100):
+        with pytest.raises(DataError, match='express y in other units'):
+            estimate(model, Data(u, scale * y, 0.05))
+    with pytest.raises(DataError, match='express u in other units'):
+        estimate(model, Data(1e-61 * u, y, 0.05))
+    result = estimate(model, Data(u, 1e59 * y, 0.05))
+    assert result.params['K'] == pytest.approx(2e59, rel=0.02)
+    assert result.params['T'] == pytest.approx(1.5, rel=0.03)
