@@ -55,8 +55,8 @@ from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAG
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
                                         automatic_start, final_iteration, look_elsewhere,
-                                        other_side_of_the_sample, symmetry_restarts,
-                                        warm_start)
+                                        onto_the_sample, other_side_of_the_sample,
+                                        symmetry_restarts, warm_start)
 from ctid_ros.estimation.starts import Initial
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -495,6 +495,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             fit = look_elsewhere(problem, fit, policy, delay_index, analysis)
             fit = other_side_of_the_sample(problem, fit, policy, delay_index, delay_range)
             blind = blind_combination(problem, fit.state, sensitivities)
+        fit = onto_the_sample(problem, fit, policy, delay_index)
         _refuse_blind(problem, fit.state, blind, rng)
         final, history, profile = fit.result, list(fit.history), list(start.profile)
         residuals = analysis if analysis.state is final.state else \
