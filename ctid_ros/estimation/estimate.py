@@ -509,6 +509,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     std = np.sqrt(np.abs(parameter_covariance.diagonal()))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
+    if delay_index is not None and delay_range is not None:
+        notes.extend(_outside_the_search(problem, final.state, delay_index, delay_range))
     result = Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
         covariance=parameter_covariance, fit=fit, converged=final.converged,
@@ -599,6 +601,25 @@ def _fit_note(fit: float) -> Optional[str]:
                 'input and output are the right signals (not swapped), the dead time and the '
                 'structure, or that the input excites the output above its noise')
     return None
+
+
+def _outside_the_search(problem: Problem, state: State, delay_index: int,
+                        delay_range: DelayRange) -> List[str]:
+    """
+    Say so where the dead time ended more than half a sample outside the range searched.
+
+    ``delay_range`` (``--delay-range``, the node's ``delay_min``/``delay_max``) is where the
+    dead time is searched, not a bound: the final iteration may leave it for a lower cost. A
+    user who gave it believed the dead time inside; the estimate says where it went instead.
+    """
+    low, high = problem.delay_bracket(delay_index, delay_range)
+    tau = float(state.theta[delay_index])
+    margin = 0.5 * problem.data.ts
+    if low - margin <= tau <= high + margin:
+        return []
+    name = problem.model.parameters[delay_index]
+    return [f'{name} went to {tau:.4g} s, outside the dead-time search range {low:g} to '
+            f'{high:g} s: the fit is lower there; bound {name} to keep it inside']
 
 
 def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertainty,

@@ -472,3 +472,18 @@ def test_signals_beyond_the_squarable_scales_are_a_data_error_not_a_crash():
     result = estimate(model, Data(u, 1e59 * y, 0.05))
     assert result.params['K'] == pytest.approx(2e59, rel=0.02)
     assert result.params['T'] == pytest.approx(1.5, rel=0.03)
+
+
+def test_a_dead_time_that_leaves_the_search_range_is_said_to():
+    # delay_range is where the dead time is searched, not a bound: the fit left 1..2 s for
+    # the true 0.33 s without a word, although the user had said it lay in 1..2 s.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(9, 6)
+    y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.33}, u, 0.05)
+    data = Data(u, y + 0.1 * np.random.default_rng(4).standard_normal(u.size), 0.05)
+    outside = estimate(model, data, bounds={'T': (1e-3, None)}, delay_range=(1.0, 2.0))
+    assert outside.params['tau'] == pytest.approx(0.33, abs=0.01)
+    assert any('outside the dead-time search range 1 to 2 s' in note
+               for note in outside.warnings)
+    inside = estimate(model, data, bounds={'T': (1e-3, None)}, delay_range=(0.2, 0.5))
+    assert not any('search range' in note for note in inside.warnings)
