@@ -11,7 +11,7 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 
 from dataclasses import dataclass, field
 import math
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 from ctid_ros.core.model import Coefficients
 from ctid_ros.core.simulation import shifted
@@ -199,7 +199,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         if best is None or joint.state.cost < best.cost:
             best, history, margin = joint.state, joint.history, profiled - joint.state.cost
     best, history = _probe_neighbours(problem, best, history, delay_index, profile, frozen,
-                                      fixed, profiled_policy)
+                                      fixed, profiled_policy, lambda tau: fitted(tau, chosen))
     best, history = _lag_for_delay(problem, best, history, delay_index, low, fixed)
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
 
@@ -286,7 +286,8 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
 
 def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,
                       profile: List[Tuple[float, float, State]], frozen: np.ndarray,
-                      fixed: np.ndarray, profiled_policy: IterationPolicy
+                      fixed: np.ndarray, profiled_policy: IterationPolicy,
+                      fitted: Callable[[float], Optional[State]]
                       ) -> Tuple[State, List[Iteration]]:
     """
     Refine the profile's fits one sample either side of the best dead time too.
@@ -294,18 +295,29 @@ def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], d
     The equation-error profile is only a proxy of the output-error one: its minimum can sit a
     sample off, next to the basin of another structure (a lag traded for dead time, a
     lag collapsed onto its limit). Each neighbour's own fit is iterated with the dead time
-    frozen; one that beats ``best`` is refined jointly, and the better end kept.
+    frozen; one that beats ``best`` is refined jointly, and the better end kept. The
+    neighbours are those of the refined dead time and of the profile's lowest point; where
+    the grid has no point there (its points several samples apart), ``fitted`` gives the
+    equation-error fit at that sample.
     """
     ts = problem.data.ts
-    centre = best.theta[delay_index]
     taus = np.array([tau for tau, _, _ in profile])
+    lowest = taus[int(np.argmin([cost for _, cost, _ in profile]))]
     tried = set()
-    for offset in _PROBE_OFFSETS:
-        index = int(np.argmin(np.abs(taus - (centre + offset * ts))))
-        if abs(taus[index] - (centre + offset * ts)) > 0.5 * ts or index in tried:
+    for centre, offset in [(centre, offset) for centre in (best.theta[delay_index], lowest)
+                           for offset in _PROBE_OFFSETS]:
+        tau = problem.on_delay_lattice(centre + offset * ts)
+        index = int(np.argmin(np.abs(taus - tau)))
+        if abs(taus[index] - tau) <= 0.5 * ts:
+            tau, state = taus[index], profile[index][2]
+        elif tau >= taus[0] and tau <= taus[-1]:
+            state = fitted(tau)
+        else:
             continue
-        tried.add(index)
-        probe = iterate(problem, profile[index][2], profiled_policy, frozen).state
+        if tau in tried or state is None:
+            continue
+        tried.add(tau)
+        probe = iterate(problem, state, profiled_policy, frozen).state
         if probe.cost >= best.cost:
             continue
         joint = iterate(problem, probe, _JOINT, fixed)
