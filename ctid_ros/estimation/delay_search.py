@@ -11,14 +11,14 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 
 from dataclasses import dataclass, field
 import math
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 from ctid_ros.core.model import Coefficients
 from ctid_ros.core.simulation import shifted
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
 from ctid_ros.estimation.linear_algebra import least_squares, normal_solution
-from ctid_ros.estimation.problem import DelayRange, Problem, State
+from ctid_ros.estimation.problem import DelayRange, Problem, reduction_limits, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
                                         StateVariableFilters)
@@ -253,8 +253,9 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     """
     tau = best.theta[delay_index]
     ts = problem.data.ts
+    limits = _order_limits(problem, best.theta)
     # Within ten times its limit a lag's pole is a hundred times the Nyquist frequency: gone.
-    collapsed = [index for index, limit in problem.reductions.items()
+    collapsed = [index for index, limit in limits.items()
                  if not fixed[index] and abs(best.theta[index]) <= _COLLAPSED * abs(limit)]
     # Lags below the sample time at the whole-sample dead times either side of tau: with the
     # lag on its limit the output is a shifted input, blind to the dead time between samples.
@@ -262,7 +263,7 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     knots = [knot for knot in (lattice - ts, lattice, lattice + ts) if knot >= low]
     # A lag below a tenth of the sample time leaves the output within exp(-10) of a shifted
     # input.
-    short = [index for index, limit in problem.reductions.items()
+    short = [index for index, limit in limits.items()
              if not fixed[index] and abs(best.theta[index]) < _SHORT_LAG * ts]
     for index in sorted(set(collapsed) | set(short)):
         trials = [] if index not in collapsed else \
@@ -270,10 +271,10 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
         if index in short:
             trials += [(share * ts, knot) for share in _SUB_SAMPLE_LAGS for knot in knots]
         for delta, delay in trials:
-            if delta <= abs(problem.reductions[index]):
+            if delta <= abs(limits[index]):
                 continue
             theta = best.theta.copy()
-            theta[index] = np.sign(problem.reductions[index]) * delta
+            theta[index] = np.sign(limits[index]) * delta
             theta[delay_index] = delay
             coefficients = problem.admissible(theta)
             if coefficients is None:
@@ -282,6 +283,23 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
             if joint.state.cost < best.cost:
                 best, history = joint.state, joint.history
     return best, history
+
+
+def _order_limits(problem: Problem, theta: np.ndarray) -> Dict[int, float]:
+    """
+    Return the order-reduction limits, with a user's bound where it stops a lag first.
+
+    :attr:`Problem.reductions` holds the lags (and masses) bounded at the value where their
+    pole leaves the sampled band; a tighter bound of the user's (``T >= 0.001``) keeps them
+    out of it. A lag on such a bound below a tenth of a sample has collapsed all the same.
+    """
+    limits = dict(problem.reductions)
+    for index, value in reduction_limits(problem.model, theta, problem.data.ts).items():
+        bound = problem.lower[index] if value > 0.0 else problem.upper[index]
+        if index not in limits and 0.0 < bound / value and \
+                abs(bound) < _SHORT_LAG * problem.data.ts:
+            limits[index] = float(bound)
+    return limits
 
 
 def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,
