@@ -447,10 +447,11 @@ def test_a_dead_time_beyond_half_the_record_is_an_error_that_says_so():
 def test_two_mass_drive_on_noise_free_data_gives_the_truth_not_a_model_error():
     # Motor speed of a drive with a compliant belt: an integrator and a resonance at 55 rad/s
     # with damping 0.03. The automatic start drifted along the cancelling direction J2, c,
-    # k -> 0 until its filters underflowed and estimate raised ModelError on a valid model.
+    # k -> 0 until its filters underflowed and estimate raised ModelError on a valid model
+    # ('denominator is identically zero').
     model = Model('(J2*s**2 + c*s + k)/(J1*J2*s**3 + (J1 + J2)*c*s**2 + (J1 + J2)*k*s)')
     truth = {'J1': 0.01, 'J2': 0.02, 'c': 0.02, 'k': 20.0}
-    u = prbs(11, 2)[:2000]
+    u = np.tile(prbs(11, 2), 5)[:20000]
     result = estimate(model, Data(u, model.simulate(truth, u, 0.002), 0.002))
     assert result.converged
     for name, value in truth.items():
