@@ -294,10 +294,14 @@ def _order_limits(problem: Problem, theta: np.ndarray) -> Dict[int, float]:
     out of it. A lag on such a bound below a tenth of a sample has collapsed all the same.
     """
     limits = dict(problem.reductions)
+    short = _SHORT_LAG * problem.data.ts
+    # Only a parameter already below a tenth of a sample can be such a lag: usually none.
+    if all(value >= short or value <= -short for index, value in enumerate(theta.tolist())
+           if index not in limits):
+        return limits
     for index, value in reduction_limits(problem.model, theta, problem.data.ts).items():
         bound = problem.lower[index] if value > 0.0 else problem.upper[index]
-        if index not in limits and 0.0 < bound / value and \
-                abs(bound) < _SHORT_LAG * problem.data.ts:
+        if index not in limits and 0.0 < bound / value and abs(bound) < short:
             limits[index] = float(bound)
     return limits
 

@@ -261,20 +261,18 @@ def _check_excitation(model: Model, data: Data) -> None:
                               'the dynamics (is the output topic/column the right one?)')
     if len(data) < 10:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
-    for name, top, bottom in zip((*model.inputs, model.output), (*highs.tolist(), float(high)),
-                                 (*lows.tolist(), float(low))):
-        _check_scale(name, top, bottom)
-
-
-def _check_scale(name: str, high: float, low: float) -> None:
     # The estimator forms sums of squares and products of the signals: beyond these scales
     # they leave the floating-point range (a residual's correlations came out zero at 1e90).
-    peak = max(abs(high), abs(low))
-    if peak > SIGNAL_SCALES[1] or high - low < SIGNAL_SCALES[0]:
-        raise DataError(f'{name} spans {high - low:.3g} with values up to {peak:.3g}: the '
-                        'estimator squares the signals, so it needs variations above '
-                        f'{SIGNAL_SCALES[0]:.0e} and values below {SIGNAL_SCALES[1]:.0e}; '
-                        f'express {name} in other units (scale it) before identification')
+    # Checked on the extremes' Python floats, in one comparison chain per signal.
+    small, large = SIGNAL_SCALES
+    for name, top, bottom in zip((*model.inputs, model.output), (*highs.tolist(), float(high)),
+                                 (*lows.tolist(), float(low))):
+        if not (-large <= bottom and top <= large and top - bottom >= small):
+            peak = top if top >= -bottom else -bottom
+            raise DataError(f'{name} spans {top - bottom:.3g} with values up to {peak:.3g}: '
+                            'the estimator squares the signals, so it needs variations above '
+                            f'{small:.0e} and values below {large:.0e}; express {name} in '
+                            'other units (scale it) before identification')
 
 
 @dataclass
