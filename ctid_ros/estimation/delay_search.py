@@ -11,14 +11,14 @@ with ``tau`` frozen, then jointly. The method is section 12 of ``docs/algorithm.
 
 from dataclasses import dataclass, field
 import math
-from typing import List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 from ctid_ros.core.model import Coefficients
 from ctid_ros.core.simulation import shifted
 from ctid_ros.estimation.iteration import (iterate, Iteration, IterationPolicy, IterationResult,
                                            Opening)
 from ctid_ros.estimation.linear_algebra import gram_matrix, least_squares, normal_solution
-from ctid_ros.estimation.problem import DelayRange, Problem, State
+from ctid_ros.estimation.problem import DelayRange, Problem, reduction_limits, State
 from ctid_ros.estimation.starts import (best_candidate, default_filters, distinct,
                                         equation_error_fits, explains_data, local_fit,
                                         StateVariableFilters)
@@ -199,7 +199,7 @@ def delay_search(problem: Problem, start: State, delay_index: int, delay_range: 
         if best is None or joint.state.cost < best.cost:
             best, history, margin = joint.state, joint.history, profiled - joint.state.cost
     best, history = _probe_neighbours(problem, best, history, delay_index, profile, frozen,
-                                      fixed, profiled_policy)
+                                      fixed, profiled_policy, lambda tau: fitted(tau, chosen))
     best, history = _lag_for_delay(problem, best, history, delay_index, low, fixed)
     return DelaySearch(best, [(tau, cost) for tau, cost, _ in profile], history)
 
@@ -253,8 +253,9 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     """
     tau = best.theta[delay_index]
     ts = problem.data.ts
+    limits = _order_limits(problem, best.theta)
     # Within ten times its limit a lag's pole is a hundred times the Nyquist frequency: gone.
-    collapsed = [index for index, limit in problem.reductions.items()
+    collapsed = [index for index, limit in limits.items()
                  if not fixed[index] and abs(best.theta[index]) <= _COLLAPSED * abs(limit)]
     # Lags below the sample time at the whole-sample dead times either side of tau: with the
     # lag on its limit the output is a shifted input, blind to the dead time between samples.
@@ -262,7 +263,7 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     knots = [knot for knot in (lattice - ts, lattice, lattice + ts) if knot >= low]
     # A lag below a tenth of the sample time leaves the output within exp(-10) of a shifted
     # input.
-    short = [index for index, limit in problem.reductions.items()
+    short = [index for index, limit in limits.items()
              if not fixed[index] and abs(best.theta[index]) < _SHORT_LAG * ts]
     for index in sorted(set(collapsed) | set(short)):
         trials = [] if index not in collapsed else \
@@ -270,10 +271,10 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
         if index in short:
             trials += [(share * ts, knot) for share in _SUB_SAMPLE_LAGS for knot in knots]
         for delta, delay in trials:
-            if delta <= abs(problem.reductions[index]):
+            if delta <= abs(limits[index]):
                 continue
             theta = best.theta.copy()
-            theta[index] = np.sign(problem.reductions[index]) * delta
+            theta[index] = np.sign(limits[index]) * delta
             theta[delay_index] = delay
             coefficients = problem.admissible(theta)
             if coefficients is None:
@@ -284,9 +285,31 @@ def _lag_for_delay(problem: Problem, best: State, history: List[Iteration], dela
     return best, history
 
 
+def _order_limits(problem: Problem, theta: np.ndarray) -> Dict[int, float]:
+    """
+    Return the order-reduction limits, with a user's bound where it stops a lag first.
+
+    :attr:`Problem.reductions` holds the lags (and masses) bounded at the value where their
+    pole leaves the sampled band; a tighter bound of the user's (``T >= 0.001``) keeps them
+    out of it. A lag on such a bound below a tenth of a sample has collapsed all the same.
+    """
+    limits = dict(problem.reductions)
+    short = _SHORT_LAG * problem.data.ts
+    # Only a parameter already below a tenth of a sample can be such a lag: usually none.
+    if all(value >= short or value <= -short for index, value in enumerate(theta.tolist())
+           if index not in limits):
+        return limits
+    for index, value in reduction_limits(problem.model, theta, problem.data.ts).items():
+        bound = problem.lower[index] if value > 0.0 else problem.upper[index]
+        if index not in limits and 0.0 < bound / value and abs(bound) < short:
+            limits[index] = float(bound)
+    return limits
+
+
 def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], delay_index: int,
                       profile: List[Tuple[float, float, State]], frozen: np.ndarray,
-                      fixed: np.ndarray, profiled_policy: IterationPolicy
+                      fixed: np.ndarray, profiled_policy: IterationPolicy,
+                      fitted: Callable[[float], Optional[State]]
                       ) -> Tuple[State, List[Iteration]]:
     """
     Refine the profile's fits one sample either side of the best dead time too.
@@ -294,18 +317,29 @@ def _probe_neighbours(problem: Problem, best: State, history: List[Iteration], d
     The equation-error profile is only a proxy of the output-error one: its minimum can sit a
     sample off, next to the basin of another structure (a lag traded for dead time, a
     lag collapsed onto its limit). Each neighbour's own fit is iterated with the dead time
-    frozen; one that beats ``best`` is refined jointly, and the better end kept.
+    frozen; one that beats ``best`` is refined jointly, and the better end kept. The
+    neighbours are those of the refined dead time and of the profile's lowest point; where
+    the grid has no point there (its points several samples apart), ``fitted`` gives the
+    equation-error fit at that sample.
     """
     ts = problem.data.ts
-    centre = best.theta[delay_index]
     taus = np.array([tau for tau, _, _ in profile])
+    lowest = taus[int(np.argmin([cost for _, cost, _ in profile]))]
     tried = set()
-    for offset in _PROBE_OFFSETS:
-        index = int(np.argmin(np.abs(taus - (centre + offset * ts))))
-        if abs(taus[index] - (centre + offset * ts)) > 0.5 * ts or index in tried:
+    for centre, offset in [(centre, offset) for centre in (best.theta[delay_index], lowest)
+                           for offset in _PROBE_OFFSETS]:
+        tau = problem.on_delay_lattice(centre + offset * ts)
+        index = int(np.argmin(np.abs(taus - tau)))
+        if abs(taus[index] - tau) <= 0.5 * ts:
+            tau, state = taus[index], profile[index][2]
+        elif tau >= taus[0] and tau <= taus[-1]:
+            state = fitted(tau)
+        else:
             continue
-        tried.add(index)
-        probe = iterate(problem, profile[index][2], profiled_policy, frozen).state
+        if tau in tried or state is None:
+            continue
+        tried.add(tau)
+        probe = iterate(problem, state, profiled_policy, frozen).state
         if probe.cost >= best.cost:
             continue
         joint = iterate(problem, probe, _JOINT, fixed)

@@ -55,14 +55,14 @@ from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAG
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
                                         automatic_start, final_iteration, look_elsewhere,
-                                        other_side_of_the_sample, symmetry_restarts,
-                                        warm_start)
+                                        onto_the_sample, other_side_of_the_sample,
+                                        symmetry_restarts, warm_start)
 from ctid_ros.estimation.starts import Initial
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
 __all__ = [
-    'Estimate', 'ILL_CONDITIONED', 'LOW_FIT', 'Uncertainty', 'build_problem',
+    'Estimate', 'ILL_CONDITIONED', 'LOW_FIT', 'SIGNAL_SCALES', 'Uncertainty', 'build_problem',
     'covariance', 'estimate', 'fit_percent',
 ]
 
@@ -70,6 +70,8 @@ __all__ = [
 ILL_CONDITIONED = 1e3
 # Below this fit (%) the estimate carries a warning that the model explains almost nothing.
 LOW_FIT = 10.0
+# The variation of every signal must exceed the first, its values stay below the second.
+SIGNAL_SCALES = (1e-60, 1e60)
 _MAX_RESIDUAL_LAGS = 200
 
 
@@ -248,16 +250,29 @@ def _check_excitation(model: Model, data: Data) -> None:
                         f'({", ".join(model.inputs)}), the data have {data.input_count}')
     # np.ptp's reductions, without its dispatch.
     inputs = data.u.reshape(len(data), -1)
-    spans = np.maximum.reduce(inputs, axis=0) - np.minimum.reduce(inputs, axis=0)
-    for name, span in zip(model.inputs, spans):
+    highs, lows = np.maximum.reduce(inputs, axis=0), np.minimum.reduce(inputs, axis=0)
+    for name, span in zip(model.inputs, (highs - lows).tolist()):
         if span == 0.0:
             raise EstimationError(f'the input {name} is constant: it does not excite the '
                                   'system, so no dynamic parameter can be identified')
-    if np.maximum.reduce(data.y, axis=None) - np.minimum.reduce(data.y, axis=None) == 0.0:
+    high, low = np.maximum.reduce(data.y, axis=None), np.minimum.reduce(data.y, axis=None)
+    if high - low == 0.0:
         raise EstimationError('the output is constant: the data carry no information about '
                               'the dynamics (is the output topic/column the right one?)')
     if len(data) < 10:
         raise EstimationError(f'only {len(data)} samples: too few to identify a model')
+    # The estimator forms sums of squares and products of the signals: beyond these scales
+    # they leave the floating-point range (a residual's correlations came out zero at 1e90).
+    # Checked on the extremes' Python floats, in one comparison chain per signal.
+    small, large = SIGNAL_SCALES
+    for name, top, bottom in zip((*model.inputs, model.output), (*highs.tolist(), float(high)),
+                                 (*lows.tolist(), float(low))):
+        if not (-large <= bottom and top <= large and top - bottom >= small):
+            peak = top if top >= -bottom else -bottom
+            raise DataError(f'{name} spans {top - bottom:.3g} with values up to {peak:.3g}: '
+                            'the estimator squares the signals, so it needs variations above '
+                            f'{small:.0e} and values below {large:.0e}; express {name} in '
+                            'other units (scale it) before identification')
 
 
 @dataclass
@@ -478,6 +493,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
             fit = look_elsewhere(problem, fit, policy, delay_index, analysis)
             fit = other_side_of_the_sample(problem, fit, policy, delay_index, delay_range)
             blind = blind_combination(problem, fit.state, sensitivities)
+        fit = onto_the_sample(problem, fit, policy, delay_index)
         _refuse_blind(problem, fit.state, blind, rng)
         final, history, profile = fit.result, list(fit.history), list(start.profile)
         residuals = analysis if analysis.state is final.state else \
@@ -491,6 +507,8 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     std = np.sqrt(np.abs(parameter_covariance.diagonal()))
     fit = fit_percent(problem.measured, problem.prediction(final.state.coefficients))
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
+    if delay_index is not None and delay_range is not None:
+        notes.extend(_outside_the_search(problem, final.state, delay_index, delay_range))
     result = Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
         covariance=parameter_covariance, fit=fit, converged=final.converged,
@@ -581,6 +599,25 @@ def _fit_note(fit: float) -> Optional[str]:
                 'input and output are the right signals (not swapped), the dead time and the '
                 'structure, or that the input excites the output above its noise')
     return None
+
+
+def _outside_the_search(problem: Problem, state: State, delay_index: int,
+                        delay_range: DelayRange) -> List[str]:
+    """
+    Say so where the dead time ended more than half a sample outside the range searched.
+
+    ``delay_range`` (``--delay-range``, the node's ``delay_min``/``delay_max``) is where the
+    dead time is searched, not a bound: the final iteration may leave it for a lower cost. A
+    user who gave it believed the dead time inside; the estimate says where it went instead.
+    """
+    low, high = problem.delay_bracket(delay_index, delay_range)
+    tau = float(state.theta[delay_index])
+    margin = 0.5 * problem.data.ts
+    if low - margin <= tau <= high + margin:
+        return []
+    name = problem.model.parameters[delay_index]
+    return [f'{name} went to {tau:.4g} s, outside the dead-time search range {low:g} to '
+            f'{high:g} s: the fit is lower there; bound {name} to keep it inside']
 
 
 def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertainty,

@@ -34,6 +34,9 @@ Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
 DelayRange = Optional[Tuple[float, float]]
 # What the estimation fits: the user's model, or its stable reformulation if it integrates.
 FittedModel = Union[Model, StabilizedModel]
+# The magnitude of an admissible denominator's leading coefficient lies between these: its
+# square (the regressors filter through 1/D^2, scaled by it) is then a normal float.
+_REALISABLE = (1e-150, 1e150)
 
 
 @dataclass
@@ -391,6 +394,14 @@ class Problem:
         except ModelError:
             return None
         if coefficients.delay < 0.0 or not is_stable(coefficients.den):
+            return None
+        # A search drifting along a direction the output hardly sees (a zero cancelling a
+        # pole, every coefficient shrinking together) can reach coefficients whose squares
+        # underflow: the filters of 1/D could not be built there. Comparisons only: every
+        # candidate is checked.
+        leading = coefficients.den[0]
+        small, large = _REALISABLE
+        if not (small < leading < large or -large < leading < -small):
             return None
         sign = np.sign(coefficients.den[0])
         if self._leading_sign is not None and sign != self._leading_sign:

@@ -44,8 +44,8 @@ from scipy import special
 __all__ = [
     'Fit', 'Start', 'against_the_data_basin', 'against_the_data_guess', 'automatic_start',
     'final_iteration',
-    'from_best_seen', 'look_elsewhere', 'other_side_of_the_sample', 'prepared',
-    'symmetry_restarts', 'warm_start',
+    'from_best_seen', 'look_elsewhere', 'onto_the_sample', 'other_side_of_the_sample',
+    'prepared', 'symmetry_restarts', 'warm_start',
 ]
 
 _SYMMETRY_RESTARTS = 3
@@ -609,6 +609,38 @@ def other_side_of_the_sample(problem: Problem, fit: Fit, policy: IterationPolicy
     again = iterate(problem, across.state, policy)
     return from_best_seen(problem, fit.extended(across.history + again.history,
                                                 _lower(fit.result, again)), policy)
+
+
+def onto_the_sample(problem: Problem, fit: Fit, policy: IterationPolicy,
+                    delay_index: Optional[int]) -> Fit:
+    """
+    Finish a fit that stalled with its dead time just off a sample instant (stage 6).
+
+    On the sample lattice the cost has a kink along the dead time: from just above it (or
+    below) the gradient points at the lattice, but every step that crosses it rises, so the
+    iteration creeps up to the kink and stops as stalled, not converged, although the point is
+    a minimum. The dead time is put on the lattice point within :data:`_ON_THE_KINK` samples,
+    where the iteration sees both sides; its result is kept if it is no worse.
+
+    Evidence: a first order with a dead time of exactly five samples (ts 60 s, T 3600 s, tau
+    300 s, SNR 20 dB): 4 of 40 seeds stalled 1e-9 samples above 300 s, where refits from
+    nearby lowered the cost by less than 1e-5 of the noise variance.
+    """
+    if delay_index is None or fit.result.reason is not StopReason.STALLED or \
+            not _on_a_kink(problem, fit.state, delay_index):
+        return fit
+    theta = fit.state.theta.copy()
+    theta[delay_index] = problem.on_delay_lattice(theta[delay_index])
+    coefficients = problem.admissible(theta)
+    if coefficients is None:
+        return fit
+    snapped = problem.state(theta, coefficients)
+    if snapped.cost > fit.state.cost:
+        return fit
+    again = iterate(problem, snapped, policy)
+    if again.state.cost > fit.state.cost:
+        return fit
+    return fit.extended(again.history, again)
 
 
 def _lower(first: IterationResult, second: IterationResult) -> IterationResult:

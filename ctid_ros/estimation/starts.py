@@ -72,6 +72,13 @@ _GRAM_CONDITION = 1e3
 # Discretised state-variable filters kept for every problem: the records of one length and
 # sample time (a node's windows, a benchmark's records, a record's halves) use the same ones.
 _SHARED_FILTERS = 64
+# An equation-error fit whose coefficients all shrank by more than this from its start has
+# slid towards the trivial zero of R [den; num] (fits found there: 1e-34 to 1e-162).
+_COLLAPSE = 1e-12
+# Per fitted model, per mask of free parameters: whether a coefficient no free parameter moves
+# is nonzero (:meth:`_EquationError.anchored`): a property of the structure, asked once.
+_ANCHORED: 'weakref.WeakKeyDictionary[FittedModel, Dict[bytes, bool]]' = \
+    weakref.WeakKeyDictionary()
 
 
 def _given_values(model: FittedModel, initial: Initial) -> Dict[str, float]:
@@ -673,12 +680,17 @@ def _fits_by_filter(problem: Problem, starts: Sequence[np.ndarray], free: np.nda
     by_filter = []
     equation = _EquationError(model, free)
     solution = equation.linear_solution if model.is_affine else equation.local_solution
+    # Only a local fit of a structure with no fixed coefficient can collapse (an affine one is
+    # solved exactly): the others skip the check.
+    anchored = model.is_affine or not starts or equation.anchored(starts[0])
     for factor in filters.factors(tau):
         fits = []
         for start in starts:
             theta = start.copy()
             try:
                 theta[free] = solution(factor, start, lower, upper)
+                if not anchored and equation.collapsed(start, theta):
+                    continue
             except (ValueError, ModelError, np.linalg.LinAlgError):
                 continue
             fits.append(theta)
@@ -713,6 +725,8 @@ class _EquationError:
         # The latest start evaluated, and its [den; num] and their gradients: every filter
         # fits from the same starts.
         self._latest: Tuple[Optional[bytes], Optional[Tuple[np.ndarray, ...]]] = (None, None)
+        # Whether a coefficient no free parameter moves is nonzero (:meth:`anchored`).
+        self._anchored: Optional[bool] = None
 
     def _at(self, point: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return the evaluation at ``point``, its ``[den; num]`` and their gradients' rows."""
@@ -721,6 +735,38 @@ class _EquationError:
             evaluated = self._evaluate(point)
             self._latest = key, (evaluated, evaluated[self._order], evaluated[self._gradient].T)
         return self._latest[1]
+
+    def anchored(self, point: np.ndarray) -> bool:
+        """
+        Return True if a coefficient no free parameter moves is nonzero (judged at ``point``).
+
+        ``R [den; num]`` vanishes at ``den = num = 0``. Such a coefficient (the 1 of ``T s +
+        1``, a known numerator) keeps every fit away from there; see :meth:`collapsed`.
+        """
+        if self._anchored is None:
+            known = _ANCHORED.setdefault(self._model, {})
+            key = self._free.tobytes()
+            if key not in known:
+                _, coefficients, gradients = self._at(point)
+                moved = np.abs(gradients).sum(axis=1) > 0.0
+                known[key] = bool(((coefficients != 0.0) & ~moved).any())
+            self._anchored = known[key]
+        return self._anchored
+
+    def collapsed(self, start: np.ndarray, fit: np.ndarray) -> bool:
+        """
+        Return True if the fit from ``start`` shrank every coefficient towards zero.
+
+        Where no coefficient is fixed (:meth:`anchored`: a two-mass drive, ``(J2 s^2 + c s +
+        k)/(J1 J2 s^3 + (J1 + J2) c s^2 + ...)``) a local fit can slide towards the trivial
+        zero of ``R [den; num]`` instead of fitting the data: ``J2, c, k -> 0`` with every
+        coefficient below 1e-34 of its start's, a model that is no model.
+        """
+        if self.anchored(start):
+            return False
+        coefficients = self._at(start)[1]
+        fitted = self._at(fit)[1]
+        return float(fitted @ fitted) < _COLLAPSE ** 2 * float(coefficients @ coefficients)
 
     def _stabilized_array(self, theta: np.ndarray) -> np.ndarray:
         """Return ``[den; num]`` and then each one's derivatives by the parameters, flat."""

@@ -2,7 +2,7 @@
 
 import re
 
-from ctid_ros import Data, estimate, EstimationError, Model, ModelError
+from ctid_ros import Data, DataError, estimate, EstimationError, Model, ModelError
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.regressors import SignalBank
@@ -442,3 +442,49 @@ def test_a_dead_time_beyond_half_the_record_is_an_error_that_says_so():
                        r'output is zero over the 10 s record .* A dead time beyond half the '
                        r'record is not searched'):
         estimate(FOPDT, Data(u, y, 0.01), {'K': 1.0, 'T': 1.0, 'tau': 0.0})
+
+
+def test_two_mass_drive_on_noise_free_data_gives_the_truth_not_a_model_error():
+    # Motor speed of a drive with a compliant belt: an integrator and a resonance at 55 rad/s
+    # with damping 0.03. The automatic start drifted along the cancelling direction J2, c,
+    # k -> 0 until its filters underflowed and estimate raised ModelError on a valid model
+    # ('denominator is identically zero').
+    model = Model('(J2*s**2 + c*s + k)/(J1*J2*s**3 + (J1 + J2)*c*s**2 + (J1 + J2)*k*s)')
+    truth = {'J1': 0.01, 'J2': 0.02, 'c': 0.02, 'k': 20.0}
+    u = np.tile(prbs(11, 2), 5)[:20000]
+    result = estimate(model, Data(u, model.simulate(truth, u, 0.002), 0.002))
+    assert result.converged
+    for name, value in truth.items():
+        assert result.params[name] == pytest.approx(value, rel=1e-3)
+
+
+def test_signals_beyond_the_squarable_scales_are_a_data_error_not_a_crash():
+    # y in units 1e90 too small made the residual's correlations 0 (their normalisation
+    # overflowed) and the noise model divided by zero: ZeroDivisionError out of estimate.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(7, 4)
+    y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.33}, u, 0.05)
+    y = y + 0.05 * np.random.default_rng(0).standard_normal(u.size)
+    for scale in (1e90, 1e-100):
+        with pytest.raises(DataError, match='express y in other units'):
+            estimate(model, Data(u, scale * y, 0.05))
+    with pytest.raises(DataError, match='express u in other units'):
+        estimate(model, Data(1e-61 * u, y, 0.05))
+    result = estimate(model, Data(u, 1e59 * y, 0.05))
+    assert result.params['K'] == pytest.approx(2e59, rel=0.02)
+    assert result.params['T'] == pytest.approx(1.5, rel=0.03)
+
+
+def test_a_dead_time_that_leaves_the_search_range_is_said_to():
+    # delay_range is where the dead time is searched, not a bound: the fit left 1..2 s for
+    # the true 0.33 s without a word, although the user had said it lay in 1..2 s.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(9, 6)
+    y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.33}, u, 0.05)
+    data = Data(u, y + 0.1 * np.random.default_rng(4).standard_normal(u.size), 0.05)
+    outside = estimate(model, data, bounds={'T': (1e-3, None)}, delay_range=(1.0, 2.0))
+    assert outside.params['tau'] == pytest.approx(0.33, abs=0.01)
+    assert any('outside the dead-time search range 1 to 2 s' in note
+               for note in outside.warnings)
+    inside = estimate(model, data, bounds={'T': (1e-3, None)}, delay_range=(0.2, 0.5))
+    assert not any('search range' in note for note in inside.warnings)

@@ -74,6 +74,17 @@ def test_admissible_set_is_the_box_with_a_stable_denominator_of_fixed_leading_si
     assert problem.admissible(flipped) is None                           # the order would drop
 
 
+def test_coefficients_whose_squares_underflow_are_not_admissible():
+    # The two-mass drive's automatic start drifted to J2, c, k ~ 1e-160, where D ~ 1e-160 and
+    # the filters of 1/D^2 underflow: building them raised ModelError out of estimate.
+    model = Model('K/(a*s + b)')
+    u = prbs(7, 4)
+    problem = problem_for(model, Data(u, model.simulate([1.0, 1.0, 2.0], u, 0.1), 0.1))
+    assert problem.admissible(np.array([1e-160, 1e-160, 2e-160])) is None
+    assert problem.admissible(np.array([1e160, 1e160, 2e160])) is None
+    assert problem.admissible(np.array([1e-40, 1e-40, 2e-40])) is not None
+
+
 def test_transient_exclusion_drops_the_settling_time_at_most_half_the_record():
     system = systems.first_order_dead_time()               # N = 2550, ts = 0.1
     problem = problem_for(system.model, system.data(seed=1), system.bounds)

@@ -2,6 +2,7 @@
 
 from ctid_ros import Data, estimate, Model
 from ctid_ros.core import reference_systems as systems
+from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.estimate import build_problem
 from ctid_ros.estimation.identifiability import structurally_blind
 import numpy as np
@@ -118,3 +119,23 @@ def test_a_symmetric_crude_start_with_short_lags_is_not_structurally_blind():
     rng = np.random.default_rng(0)
     assert not structurally_blind(SOPDT, np.array([1.5, 0.3, 1e-4, 1e-4]), rng)
     assert not structurally_blind(FOPDT, np.array([1.5, 0.0, 1e-5]), rng)
+
+
+@pytest.mark.parametrize('truth, ts, hold, seed', [
+    ({'K': 0.5, 'T': 3600.0, 'tau': 300.0}, 60.0, 6, 15),     # stalled 1e-7 s below 300 s
+    ({'K': 0.5, 'T': 3600.0, 'tau': 300.0}, 60.0, 6, 32),     # and 1e-7 s above
+    ({'K': 2.0, 'T': 5.0, 'tau': 0.5}, 0.1, 10, 8),
+])
+def test_a_dead_time_of_whole_samples_converges_on_the_kink(truth, ts, hold, seed):
+    # The cost has a kink at a whole-sample dead time: the iteration crept up to it, every
+    # step across it rose, and it stopped as 'stalled' (not converged, with a warning) at a
+    # minimum. Put on the sample instant, the iteration sees both sides and converges.
+    u = prbs(7 if ts == 60.0 else 8, hold)
+    clean = FOPDT.simulate(truth, u, ts)
+    y = clean + clean.std() / 10 * np.random.default_rng(seed).standard_normal(u.size)
+    result = estimate(FOPDT, Data(u, y, ts), bounds={'T': (1e-3 * ts, None)})
+    assert result.converged, result.stop_reason
+    assert not any('not converged' in warning for warning in result.warnings)
+    assert result.params['tau'] == pytest.approx(truth['tau'], rel=1e-6)
+    for name in ('K', 'T'):
+        assert result.params[name] == pytest.approx(truth[name], abs=3 * result.std[name])

@@ -4,7 +4,7 @@ import gc
 import threading
 import weakref
 
-from ctid_ros import Data, EstimationError, Model, ModelError
+from ctid_ros import Data, estimate, EstimationError, Model, ModelError
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
 from ctid_ros.estimation.iteration import StopReason
@@ -282,3 +282,19 @@ def test_a_negative_dead_time_factor_is_that_of_zero_filled_inputs():
     ahead = filters.factors(-0.02)
     assert len(ahead) == filters.count
     assert all(np.isfinite(factor).all() for factor in ahead)
+
+
+def test_an_equation_error_fit_that_shrinks_every_coefficient_to_zero_is_no_start():
+    # A two-mass drive has no coefficient that no parameter moves: the equation error
+    # R [den; num] vanishes as J2, c, k -> 0, and the automatic start slid there (J2, c, k
+    # ~ -1e-34, a pure inertia 1/(J1 s) with a negative leading coefficient), which then
+    # anchored the sign of D and bounded J2 below zero: the estimate ended at a fit of 5 %.
+    model = Model('(J2*s**2 + c*s + k)/(J1*J2*s**3 + (J1 + J2)*c*s**2 + (J1 + J2)*k*s)')
+    truth = {'J1': 0.01, 'J2': 0.02, 'c': 0.02, 'k': 20.0}
+    u = np.random.default_rng(0).choice([-1.0, 1.0], 2001).repeat(2)[:4000]
+    clean = model.simulate(truth, u, 0.002)
+    noise = np.std(clean) / 10 ** 1.5 * np.random.default_rng(100).standard_normal(u.size)
+    result = estimate(model, Data(u, clean + noise, 0.002))
+    assert result.converged
+    for name, value in truth.items():
+        assert abs(result.params[name] - value) < 3 * result.std[name]
