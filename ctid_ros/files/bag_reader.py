@@ -71,6 +71,8 @@ _METADATA_NODES = 1_000_000
 _QUOTE_LIMIT = 300
 # Messages per block of a rosbags-read bag handed to a columnar reader.
 _RAW_BLOCK = 1 << 15
+# Bytes decompressed at a time when a compressed storage file is measured.
+_DECOMPRESSION_PIECE = 1 << 20
 
 
 def _quoted(error: BaseException) -> str:
@@ -565,24 +567,52 @@ def _open_directory(path: Path) -> _Source:
 
 
 def _check_compressed_file(path: Path) -> None:
-    """Refuse a zstd-compressed storage file whose stated size is absurd for its own size."""
+    """
+    Refuse a zstd-compressed storage file that expands beyond the ratio limit.
+
+    rosbag2 compresses a storage file as a stream (``ZSTD_compressStream2`` over pieces of
+    128 KiB), so the frame of any file larger than that does not state its decompressed size,
+    and a file may hold several frames: the size is measured by decompressing the file once, a
+    piece at a time with nothing kept, and the measurement stops at the limit.
+    """
     try:
         with open(path, 'rb') as stream:
             head = stream.read(32)
             size = os.fstat(stream.fileno()).st_size
+            try:
+                zstandard.frame_content_size(head)
+            except zstandard.ZstdError:
+                raise BagError(f'metadata.yaml says the storage files are zstd-compressed '
+                               f'(compression_mode: file) but {path} is not: fix '
+                               'compression_mode and compression_format in metadata.yaml'
+                               ) from None
+            limit = MAX_COMPRESSION_RATIO * max(size, MIB)
+            stream.seek(0)
+            expanded = _expanded_size(stream, limit, path)
     except OSError as error:
         raise BagError(f'cannot read {path}: {error.strerror or error}') from None
+    if expanded > limit:
+        raise BagError(f'{path} decompresses to more than {limit // MIB} MiB from '
+                       f'{size_text(size)} (the ratio limit is {MAX_COMPRESSION_RATIO}, at least '
+                       f'{MAX_COMPRESSION_RATIO} MiB): a decompression bomb, or decompress the '
+                       'bag yourself (zstd -d) and fix metadata.yaml')
+
+
+def _expanded_size(stream: Any, limit: int, path: Path) -> int:
+    """Return the bytes the zstd frames of ``stream`` decompress to, or ``limit + 1`` if more."""
+    reader = zstandard.ZstdDecompressor().stream_reader(stream, read_across_frames=True,
+                                                        closefd=False)
+    expanded = 0
     try:
-        stated = zstandard.frame_content_size(head)
-    except zstandard.ZstdError:
-        raise BagError(f'metadata.yaml says the storage files are zstd-compressed '
-                       f'(compression_mode: file) but {path} is not: fix compression_mode and '
-                       'compression_format in metadata.yaml') from None
-    if stated < 0 or stated > MAX_COMPRESSION_RATIO * max(size, MIB):
-        amount = 'an unknown size' if stated < 0 else size_text(stated)
-        raise BagError(f'{path} decompresses to {amount} from {size_text(size)} (the ratio '
-                       f'limit is {MAX_COMPRESSION_RATIO}): a decompression bomb, or decompress '
-                       'the bag yourself (zstd -d) and fix metadata.yaml')
+        while expanded <= limit:
+            piece = reader.read(_DECOMPRESSION_PIECE)
+            if not piece:
+                break
+            expanded += len(piece)
+    except zstandard.ZstdError as error:
+        raise BagError(f'{path} is damaged: its zstd data cannot be decompressed ({error}); '
+                       'the storage file cannot be read') from None
+    return expanded
 
 
 class BagReader:

@@ -14,6 +14,7 @@ import hostile_corpus
 import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+import zstandard
 
 RECORDS = make_records(seed=0)
 KINDS = ['sqlite3', 'mcap_dir', 'mcap_file']
@@ -323,11 +324,34 @@ def test_compressed_storage_files_are_checked_before_rosbags_decompresses_them(b
                        r'\(compression_mode: file\) but .*sqlite3.db3 is not'):
         BagReader(bag)
     database = bag / 'sqlite3.db3'
-    # A frame that does not state its size could expand without bound in rosbags.
-    database.write_bytes(hostile_corpus.zeros_zstd(8 << 20, content_size=False))
-    with pytest.raises(BagError, match='decompresses to an unknown size from .* .the ratio '
-                       'limit is 1000.: a decompression bomb'):
+    # A frame that does not state its size is measured, up to the limit (1000 MiB here).
+    database.write_bytes(hostile_corpus.zeros_zstd(1 << 30, content_size=False))
+    with pytest.raises(BagError, match='decompresses to more than 1000 MiB from 32 KiB .the '
+                       'ratio limit is 1000, at least 1000 MiB.: a decompression bomb'):
         BagReader(bag)
+    # Damaged zstd data is named as such.
+    database.write_bytes(hostile_corpus.zeros_zstd(1 << 20)[:-40] + bytes(40))
+    with pytest.raises(BagError, match='is damaged: its zstd data cannot be decompressed'):
+        BagReader(bag)
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_file_compressed_bags_are_read_although_their_frames_state_no_size(tmp_path, storage):
+    """
+    rosbag2 (and rosbags) compress a storage file as a stream: its size is not in the frame.
+
+    Such bags (``ros2 bag record --compression-mode file``) were refused as decompression
+    bombs; they are read whole, and left as they were.
+    """
+    path = tmp_path / 'bag'
+    write_rosbag2(path, RECORDS, storage, compression='file')
+    (stored,) = path.glob('*.zstd')
+    assert zstandard.frame_content_size(stored.read_bytes()[:32]) == -1
+    digest = hashlib.sha256(stored.read_bytes()).hexdigest()
+    with BagReader(path) as bag:
+        assert_records(list(bag.messages()), RECORDS)
+        assert bag.warnings == []
+    assert hashlib.sha256(stored.read_bytes()).hexdigest() == digest
 
 
 def _ros1_bag(tmp_path, seconds=1.0):
