@@ -306,6 +306,8 @@ def _capacity(bag: BagReader, config: IdentificationConfig, topics: Sequence[str
 
 def _report(arguments: argparse.Namespace, replay: Replay, topics: Tuple[str, str],
             origin_ns: int) -> None:
+    for warning in replay.warnings:
+        print(f'ctid replay: warning: {warning}', file=sys.stderr)
     for skipped in replay.skipped:
         print(f'ctid replay: no estimate at t={(skipped.time_ns - origin_ns) / NANOSECONDS:.2f} '
               f's: {skipped.reason}', file=sys.stderr)

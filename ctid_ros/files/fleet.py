@@ -395,7 +395,7 @@ def analyse_bag(task: BagTask) -> BagResult:
             topics = tuple(bag.topic_name(topic) or topic for topic in topics)
             samples = sample_columns(bag, config, topics, task.span_start_ns, task.span_end_ns)
             replay = replay_columns(samples, config, sliding=task.sliding, topics=topics)
-            warnings = list(bag.warnings)
+            warnings = list(bag.warnings) + replay.warnings
     except CtidError as error:
         return BagResult(_error_row(task, identity, str(error)))
     except Exception as error:   # a bug or a library failing on odd bytes: still one row

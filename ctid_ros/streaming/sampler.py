@@ -11,16 +11,17 @@ way in both, e.g. ``input /plant/u (data)``, in every message about them.
 """
 
 from dataclasses import dataclass
-from typing import Any, Optional, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.buffer import INPUT, OUTPUT, SampleBuffer
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.message_fields import (extract_values, has_header_stamp, message_stamp,
-                                               parse_field_path, sample_stamp)
+                                               MissingElementError, parse_field_path,
+                                               sample_stamp)
 import numpy as np
 
-__all__ = ['MessageSampler', 'ROLES', 'Sample', 'stream_names']
+__all__ = ['FieldErrors', 'MessageSampler', 'ROLES', 'Sample', 'stream_names']
 
 ROLES = (INPUT, OUTPUT)
 
@@ -58,11 +59,6 @@ class Sample:
     y: Optional[float]
     errors: Tuple[Tuple[str, ConfigError], ...] = ()
     zero_stamp: bool = False
-
-    def check(self) -> None:
-        """Raise the first field error, if any (the replay stops on a wrong field path)."""
-        if self.errors:
-            raise self.errors[0][1]
 
     def add_to(self, buffer: SampleBuffer) -> None:
         """
@@ -136,7 +132,8 @@ class MessageSampler:
         Return the samples ``msg`` carries, received on ``topic`` at ``receive_ns``.
 
         A field that cannot be read is reported in :attr:`Sample.errors`, not raised: the
-        live node counts it and goes on, the replay stops (:meth:`Sample.check`).
+        live node counts it and goes on, the replay too unless the path is wrong
+        (:class:`FieldErrors`).
         """
         values = [None, None]
         errors = []
@@ -151,3 +148,65 @@ class MessageSampler:
         zero = (self._stamp_source == 'header' and stamp == int(receive_ns)
                 and has_header_stamp(msg) and message_stamp(msg) is None)
         return Sample(stamp, *values, tuple(errors), zero_stamp=zero)
+
+
+class FieldErrors:
+    """
+    The messages of a replay whose configured field could not be read, per role.
+
+    The live node counts such a message (``field_errors`` on ``/diagnostics``), takes what
+    else it carries and goes on; so does the replay, which then gives the node's estimates on
+    the same messages. A message that lacks the selected element
+    (:class:`~ctid_ros.streaming.message_fields.MissingElementError`: a joint another driver
+    publishes on the same ``/joint_states``, an ``effort`` array left empty at times) is
+    skipped and counted; a path the message cannot have (no such field, not a number) is a
+    wrong path and raised at once, and so is the first error of a stream of which no message
+    at all could be read, once the replay ends (:meth:`check`).
+
+    Parameters
+    ----------
+    names : (str, str)
+        Labels of the input and output streams (:func:`stream_names`).
+
+    """
+
+    def __init__(self, names: Sequence[str]):
+        self.names = dict(zip(ROLES, names))
+        self.read = dict.fromkeys(ROLES, 0)
+        self.failed = dict.fromkeys(ROLES, 0)
+        self.first: Dict[str, ConfigError] = {}
+
+    def add(self, sample: Sample, roles: Sequence[str]) -> None:
+        """Count one message carrying ``roles``; raise its error if its path is wrong."""
+        failed = dict(sample.errors)
+        for role in roles:
+            if role in failed:
+                self.fail(role, failed[role])
+            else:
+                self.read[role] += 1
+
+    def fail(self, role: str, error: ConfigError, count: int = 1) -> None:
+        """Count ``count`` messages whose ``role`` field failed with ``error`` (the first)."""
+        if not isinstance(error, MissingElementError):
+            raise error
+        self.failed[role] += count
+        self.first.setdefault(role, error)
+
+    def merge(self, other: 'FieldErrors') -> None:
+        """Add the counts of ``other`` (the errors of a later block of messages)."""
+        for role in ROLES:
+            self.read[role] += other.read[role]
+            if other.failed[role]:
+                self.fail(role, other.first[role], other.failed[role])
+
+    def check(self) -> None:
+        """Raise the first error of a stream whose every message failed (a wrong path)."""
+        for role in ROLES:
+            if self.failed[role] and not self.read[role]:
+                raise self.first[role]
+
+    def warnings(self) -> List[str]:
+        """Say for each stream how many of its messages were skipped, and the first reason."""
+        return [f'{self.names[role]}: {self.failed[role]} of '
+                f'{self.failed[role] + self.read[role]} messages skipped, as the live node skips '
+                f'them: {self.first[role]}' for role in ROLES if self.failed[role]]

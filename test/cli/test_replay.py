@@ -25,8 +25,9 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
-from replay_fixtures import (CLOSED_LOOP, DELAY, float_records, joint_state_records, OPEN_LOOP,
-                             params_file, simulate, STEP_NS, T0_NS, TS, write_bag, write_mcap)
+from replay_fixtures import (CLOSED_LOOP, DELAY, float_records, joint_state_records, name_joints,
+                             OPEN_LOOP, params_file, simulate, STEP_NS, T0_NS, TS, write_bag,
+                             write_mcap)
 
 
 def replay(capsys, *arguments):
@@ -593,3 +594,26 @@ def test_a_full_disk_under_output_is_one_line_and_leaves_nothing(tmp_path, capsy
         assert code == 2 and out == '' and err.count('\n') == 1, err
         assert f'error: cannot write {output}: No space left on device' in err
         assert list(disk.iterdir()) == []
+
+
+@pytest.mark.parametrize('output', [False, True])
+def test_a_joint_state_topic_of_two_drivers_replays_with_a_warning(tmp_path, capsys,
+                                                                   output):
+    """Every third JointState comes from another driver (no 'joint'): skipped, as live."""
+    u, y = simulate(OPEN_LOOP, 10.0)
+    records = name_joints(joint_state_records(u, y, latency_ns=1_000_000),
+                          [['joint', 'arm'], ['arm', 'joint'], ['wheel_right']])
+    bag = write_bag(tmp_path, records, 'mcap-file')
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]')
+    arguments = ['replay', str(bag), '--params-file', str(params), '--json']
+    arguments += ['--output', str(tmp_path / 'out.mcap')] if output else []
+    code = main(arguments)
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert json.loads(out)['params'] == pytest.approx(OPEN_LOOP['truth'], rel=0.03)
+    assert (f'ctid replay: warning: output /joint_states (position[joint]): '
+            f'{len(records) // 3} of {len(records)} messages skipped, as the live node skips '
+            "them: field position[joint]: no joint 'joint' in name; names seen: "
+            'wheel_right') in err

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.sampler import MessageSampler, Sample
+from ctid_ros.streaming.sampler import FieldErrors, MessageSampler, Sample
 import numpy as np
 import pytest
 
@@ -34,14 +34,52 @@ def test_one_topic_carrying_input_and_output():
     sample.add_to(buffer)
     stats = buffer.stats()
     assert (stats.u.accepted, stats.y.accepted) == (1, 1)
-    # A missing entry: counted by the node, raised by the replay; the output still comes.
+    # A missing entry: counted by the node and the replay; the output still comes.
     broken = sampler('/joint_states', T0_NS + 7, joint_state(0, [1.0], [4.0]))
     assert broken.stamp_ns == T0_NS + 7                 # unset header: the receive time
     assert broken.zero_stamp and not sample.zero_stamp  # ... counted as a zero stamp
     assert broken.u is None and broken.y == 4.0
     assert [role for role, _ in broken.errors] == ['input']
-    with pytest.raises(ConfigError, match=r'index 1 out of range'):
-        broken.check()
+    errors = FieldErrors(sampler.names)
+    errors.add(sample, sampler.roles('/joint_states'))
+    errors.add(broken, sampler.roles('/joint_states'))
+    errors.check()
+    assert errors.warnings() == ['input /joint_states (effort[0], effort[1]): 1 of 2 messages '
+                                 'skipped, as the live node skips them: field effort[1]: index '
+                                 '1 out of range for effort, an array of length 1']
+
+
+def test_field_errors_skip_missing_elements_and_raise_wrong_paths():
+    """A message without the joint is skipped; a path no message can have stops the replay."""
+    config = IdentificationConfig(model='K/(T*s + 1)', input_topic='/joint_states',
+                                  output_topic='/joint_states', input_field='effort[wheel]',
+                                  output_field='position[wheel]')
+    sampler = MessageSampler(config, ('/joint_states', '/joint_states'))
+    roles = sampler.roles('/joint_states')
+
+    def named(names):
+        message = joint_state(T0_NS, [1.0] * len(names), [2.0] * len(names))
+        message.name = names
+        return sampler('/joint_states', T0_NS, message)
+
+    errors = FieldErrors(sampler.names)
+    errors.add(named(['arm']), roles)
+    # No message had the joint yet: the first error is the reason.
+    with pytest.raises(ConfigError, match="no joint 'wheel' in name; names seen: arm"):
+        errors.check()
+    errors.add(named(['arm', 'wheel']), roles)
+    errors.check()
+    assert (errors.read, errors.failed) == ({'input': 1, 'output': 1},
+                                            {'input': 1, 'output': 1})
+    # A field the type does not have is raised at once.
+    wrong = MessageSampler(IdentificationConfig(
+        model='K/(T*s + 1)', input_topic='/joint_states', output_topic='/joint_states',
+        input_field='effort[wheel]', output_field='positions[0]'),
+        ('/joint_states', '/joint_states'))
+    message = joint_state(T0_NS, [1.0], [2.0])
+    message.name = ['wheel']
+    with pytest.raises(ConfigError, match="has no field 'positions'"):
+        errors.add(wrong('/joint_states', T0_NS, message), roles)
 
 
 def test_separate_topics_and_receive_stamps():
