@@ -15,7 +15,8 @@ an update is accepted as it is and validated on configure, as nav2 does.
 :class:`ParameterHandling` is the part of the identification node that does this; it reads
 and replaces the node's configuration, sampler and buffer (``_config``, ``_sampler``,
 ``_buffer`` under ``_lock``) and asks the node to follow a new configuration through the
-methods :meth:`_follow_topics` and :meth:`_follow_outputs`.
+methods :meth:`_follow_topics` and :meth:`_follow_outputs`; new field paths are checked
+against the types published on the topics (:meth:`_unreadable_fields`).
 """
 
 import math
@@ -179,6 +180,7 @@ class ParameterHandling:
             current = self._config
             config = bounded(lambda: current.updated(changes), VALIDATION_TIMEOUT,
                              self._validating)
+            self._check_fields(current, config)
             baseline = self._changed_baseline(current, config, changes)
             if changed_parameters(current, config):
                 # The same values again (the declaration of baseline.<name> for a new model, a
@@ -196,6 +198,21 @@ class ParameterHandling:
             self._internal_error('parameter update', error)
             return SetParametersResult(successful=False, reason=f'internal error: {error!r}')
         return SetParametersResult(successful=True)
+
+    def _check_fields(self, old: IdentificationConfig, new: IdentificationConfig) -> None:
+        """
+        Refuse new field paths that no published type has, where the old ones are read.
+
+        Such a change would stop the estimates while the publishers go on; where the old
+        paths fit no published type either (or a topic has no publisher yet), it is accepted
+        and followed as the types come.
+        """
+        if (new.input_fields, new.output_field) == (old.input_fields, old.output_field):
+            return
+        unreadable = self._unreadable_fields(new)
+        if unreadable is not None and self._unreadable_fields(old) is None:
+            raise ConfigError(f'{unreadable}; the node keeps reading '
+                              f'{", ".join(old.input_fields)} and {old.output_field}')
 
     def _changed_baseline(self, old: IdentificationConfig, new: IdentificationConfig,
                           changes: Mapping[str, Any]) -> Optional[Tuple[Optional[Baseline], str]]:
