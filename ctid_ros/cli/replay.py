@@ -43,7 +43,7 @@ from typing import (Any, Callable, Iterable, Iterator, Optional, Sequence, TextI
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
 from ctid_ros.errors import BagError, ConfigError
-from ctid_ros.files.bag_reader import BagReader, open_bag
+from ctid_ros.files.bag_reader import BagReader, open_bag, readable_part
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
@@ -192,19 +192,10 @@ def _last_time(block: SampleColumns) -> int:
     return int(block.log_time_ns[-1]) if block.log_time_ns.size else 0
 
 
-def _readable(records: Iterable[Any], warn: TextIO) -> Iterator[Any]:
+def _readable(records: Iterable[Any], stream: TextIO) -> Iterator[Any]:
     """Yield records (or blocks) until the bag turns out damaged, then warn and stop."""
-    iterator = iter(records)
-    while True:
-        try:
-            record = next(iterator)
-        except StopIteration:
-            return
-        except BagError as error:
-            print(f'ctid replay: warning: {error}; estimating from the messages before it',
-                  file=warn)
-            return
-        yield record
+    return readable_part(records, lambda text: print(f'ctid replay: warning: {text}',
+                                                     file=stream))
 
 
 def _copied(records: Iterable[BagRecord], writer: Optional['EstimateWriter']

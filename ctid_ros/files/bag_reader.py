@@ -24,7 +24,7 @@ import os
 from pathlib import Path
 import re
 from typing import (Any, Callable, Dict, Iterable, Iterator, List, Mapping, NamedTuple,
-                    Optional, Sequence, Tuple, Union)
+                    Optional, Sequence, Tuple, TypeVar, Union)
 
 from ctid_ros.core.limits import (MAX_COMPRESSION_RATIO, MAX_METADATA_BYTES, MIB, read_limited,
                                   size_text)
@@ -44,7 +44,7 @@ from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
 import zstandard
 
-__all__ = ['BagReader', 'open_bag']
+__all__ = ['BagReader', 'open_bag', 'readable_part']
 
 _VERSION = re.compile(rb'^\s*version:\s*(\d+)', re.MULTILINE)
 _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
@@ -873,6 +873,29 @@ class BagReader:
             raise BagError(f'topic(s) {", ".join(missing)} not in {self.path}; it has: '
                            f'{listing}')
         return selected
+
+
+_Item = TypeVar('_Item')
+
+
+def readable_part(items: Iterable[_Item], warn: Callable[[str], None]) -> Iterator[_Item]:
+    """
+    Yield the records (or blocks) of a bag until one cannot be read, then warn and stop.
+
+    A damaged chunk or message ends the readable part of a bag, not its use: the estimate is
+    made on the messages before it, as from a truncated file, and ``warn`` gets the error with
+    what was done about it.
+    """
+    iterator = iter(items)
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except BagError as error:
+            warn(f'{error}; estimating from the messages before it')
+            return
+        yield item
 
 
 def open_bag(path: PathLike) -> BagReader:

@@ -900,6 +900,8 @@ class McapSource:
         except _ChunkRefused as error:
             raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
                            ) from None
+        except BagError as error:
+            raise self._damaged(offset, error) from None
 
     def _iterate(self, decoders: Mapping[int, Any], start_ns: Optional[int],
                  end_ns: Optional[int]) -> Iterator[BagRecord]:
@@ -938,6 +940,16 @@ class McapSource:
         except _ChunkRefused as error:
             raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
                            ) from None
+        except BagError as error:
+            raise self._damaged(offset, error) from None
+
+    def _damaged(self, offset: int, error: BagError) -> BagError:
+        """Name the file and the place of a chunk that cannot be read (a CRC mismatch)."""
+        text = str(error)
+        if text.startswith(str(self.path)):
+            return error
+        return BagError(f'{self.path} is corrupted at byte {offset} and cannot be read '
+                        f'further: {text}')
 
     def first_message(self) -> Optional[bytes]:
         """Return the serialised first message of the file (any channel), None if it has none."""

@@ -17,8 +17,10 @@ import hostile_corpus
 import lz4.frame
 from mcap.reader import make_reader
 from mcap.records import Chunk
-from mcap.writer import Writer as McapWriter
+from mcap.writer import CompressionType, Writer as McapWriter
 import pytest
+from replay_fixtures import damage_chunk, DELAY, float_records, simulate
+from replay_fixtures import write_mcap as write_replay_mcap
 import zstandard
 
 RECORDS = make_records(seed=0)
@@ -279,3 +281,16 @@ def test_a_chunk_of_more_messages_than_one_gather_is_located_exactly(tmp_path, m
     assert indexed == _raw_messages(damaged, ['/u', '/y'], *window) and len(walks) == 1
     assert [(topic, struct.unpack_from('<d', data, 4)[0]) for topic, _, data in indexed] == [
         (('/u', '/y')[k % 2], k) for k in range(3, 60_000)]
+
+
+def test_a_chunk_failing_its_crc_is_named_with_the_file_and_its_place(tmp_path):
+    # The CRC mismatch of an uncompressed chunk said only "chunk CRC mismatch: damaged".
+    u, y = simulate(DELAY, 10.0)
+    path = write_replay_mcap(tmp_path / 'run.mcap', float_records(u, y),
+                             compression=CompressionType.NONE)
+    index = damage_chunk(path, 0.5)
+    with BagReader(path) as bag, pytest.raises(BagError) as raised:
+        for _ in bag.messages():
+            pass
+    assert str(raised.value) == (f'{path} is corrupted at byte {index.chunk_start_offset} and '
+                                 'cannot be read further: chunk CRC mismatch: damaged')
