@@ -10,7 +10,8 @@ A parameter update is validated by :class:`~ctid_ros.streaming.config.Identifica
 whose resource limits are checked before anything is allocated, in a helper thread with a time
 bound (:data:`VALIDATION_TIMEOUT`, :func:`bounded`), so a model text that takes long to analyse
 cannot block the executor; the parameter callback never waits for an estimate. Unconfigured,
-an update is accepted as it is and validated on configure, as nav2 does.
+an update is accepted as it is and validated on configure, as nav2 does; the parameters read
+at configure (topics, stamp source, QoS: ``configure_only``) change only then.
 
 :class:`ParameterHandling` is the part of the identification node that does this; it reads
 and replaces the node's configuration, sampler and buffer (``_config``, ``_sampler``,
@@ -46,6 +47,8 @@ VALIDATION_TIMEOUT = 5.0
 BUFFER_PARAMETERS = ('window', 'sample_time', 'max_gap', 'reorder_horizon', 'transient',
                      'max_message_rate')
 _INT64_MAX = 2 ** 63 - 1
+# Parameters read at configure, fixed while the node is configured.
+_CONFIGURE_ONLY = frozenset(spec.name for spec in PARAMETERS if spec.configure_only)
 _ARRAY_TYPES = {'string_array': Parameter.Type.STRING_ARRAY}
 
 
@@ -146,6 +149,22 @@ def changed_parameters(old: IdentificationConfig, new: IdentificationConfig) -> 
                           if before.get(name) != after.get(name))
 
 
+def _refuse_configure_only(config: IdentificationConfig, changes: Mapping[str, Any]) -> None:
+    """
+    Refuse a change of a parameter read at configure while the node is configured.
+
+    The topics, the stamp source and the QoS make the subscriptions and the streams' labels; a
+    managed node takes new values between cleanup and configure (as nav2 nodes read theirs at
+    configure), a plain node at start-up. The same value again is no change.
+    """
+    fixed = sorted(name for name, value in changes.items()
+                   if name in _CONFIGURE_ONLY and value != config.value(name))
+    if fixed:
+        raise ConfigError(f'{", ".join(fixed)}: read-only while the node is configured; a '
+                          'managed node (lifecycle: true) takes a new value between cleanup '
+                          'and configure, a plain node at start-up')
+
+
 class ParameterHandling:
     """
     Reading the parameters at configure and following their runtime changes.
@@ -178,6 +197,7 @@ class ParameterHandling:
             changes = {name: defaults.get(name, math.nan) if value is None else value
                        for name, value in changes.items()}
             current = self._config
+            _refuse_configure_only(current, changes)
             config = bounded(lambda: current.updated(changes), VALIDATION_TIMEOUT,
                              self._validating)
             self._check_fields(current, config)
