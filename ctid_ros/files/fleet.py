@@ -395,12 +395,16 @@ def analyse_bag(task: BagTask) -> BagResult:
         topics = (resolve_topic(config.input_topic, task.node_name),
                   resolve_topic(config.output_topic, task.node_name))
         with open_bag(task.path) as bag:
+            if bag.truncated:     # said with an error too: it explains one from a short part
+                damage.extend(bag.warnings)
             topics = tuple(bag.topic_name(topic) or topic for topic in topics)
+            for topic in sorted(set(topics)):
+                bag.topic_schema(topic)     # a missing topic is no damage: said at once
             # A damaged chunk ends the bag there: estimated on what came before, as replayed.
             samples = readable_part(sample_columns(bag, config, topics, task.span_start_ns,
                                                    task.span_end_ns), damage.append)
             replay = replay_columns(samples, config, sliding=task.sliding, topics=topics)
-            warnings = list(bag.warnings) + damage + replay.warnings
+            warnings = list(dict.fromkeys(bag.warnings + damage)) + replay.warnings
     except CtidError as error:
         return BagResult(_error_row(task, identity, '; '.join([str(error), *damage])))
     except Exception as error:   # a bug or a library failing on odd bytes: still one row

@@ -294,3 +294,33 @@ def test_a_chunk_failing_its_crc_is_named_with_the_file_and_its_place(tmp_path):
             pass
     assert str(raised.value) == (f'{path} is corrupted at byte {index.chunk_start_offset} and '
                                  'cannot be read further: chunk CRC mismatch: damaged')
+
+
+@pytest.mark.parametrize('compression, share', [(CompressionType.NONE, 0.55),
+                                                (CompressionType.ZSTD, 0.2),
+                                                (CompressionType.LZ4, 0.2)])
+def test_a_chunk_cut_short_yields_its_whole_records_before_the_cut(tmp_path, compression,
+                                                                   share):
+    """
+    A recording in one chunk (as rosbags writes a small bag), its file cut at 70 %.
+
+    Nothing was read ("cut before its first complete chunk"); now every whole record of an
+    uncompressed chunk before the cut, and the whole blocks of a zstd or lz4 one.
+    """
+    u, y = simulate(DELAY, 40.0)
+    records = float_records(u, y)
+    path = write_replay_mcap(tmp_path / 'run.mcap', records, chunk_size=1 << 24,
+                             compression=compression)
+    with open(path, 'rb') as stream:
+        (index,) = make_reader(stream).get_summary().chunk_indexes
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(path.read_bytes()[:index.chunk_start_offset + int(0.7 * index.chunk_length)])
+    with BagReader(cut) as bag:
+        messages = list(bag.messages())
+        assert bag.truncated
+        assert f'the file ends in the middle of a chunk, of which {len(messages)} messages are ' \
+            'read up to the cut' in bag.warnings[0]
+    assert share * len(records) < len(messages) < 0.75 * len(records)
+    assert [(m.topic, m.log_time_ns) for m in messages] == \
+        [(r.topic, r.time_ns) for r in records[:len(messages)]]
+    assert [m.msg.data for m in messages] == [r.fields['data'] for r in records[:len(messages)]]
