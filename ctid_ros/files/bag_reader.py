@@ -18,11 +18,15 @@ message of the bag.
 """
 
 import bz2
+import contextlib
 import functools
 import math
 import os
 from pathlib import Path
 import re
+import shutil
+import sqlite3
+import tempfile
 from typing import (Any, Callable, Dict, Iterable, Iterator, List, Mapping, NamedTuple,
                     Optional, Sequence, Tuple, TypeVar, Union)
 
@@ -73,6 +77,8 @@ _QUOTE_LIMIT = 300
 _RAW_BLOCK = 1 << 15
 # Bytes decompressed at a time when a compressed storage file is measured.
 _DECOMPRESSION_PIECE = 1 << 20
+# The files SQLite keeps beside a database in WAL mode.
+_SQLITE_SIDE_FILES = ('.db3-wal', '.db3-shm')
 
 
 def _quoted(error: BaseException) -> str:
@@ -271,8 +277,13 @@ class _RosbagsSource:
         self.path = path
         self.truncated = False
         self.warnings: List[str] = []
-        reader = _open_reader([path], path)
-        storage = _storage(reader) if path.is_dir() else None
+        opened, self._merged = _merged_logs(path, self.warnings)
+        try:
+            reader = _open_reader([opened], path)
+        except BagError:
+            self._remove_merged()
+            raise
+        storage = _storage(reader) if opened.is_dir() else None
         # One uncompressed MCAP storage file: its blocks are read without rosbags' per-message
         # Python (raw_blocks); rosbags reads the same messages from it.
         self._mcap_file = storage.files[0] if (
@@ -465,6 +476,64 @@ class _RosbagsSource:
         self._reader.close()
         if self._mcap is not None:
             self._mcap.close()
+        self._remove_merged()
+
+    def _remove_merged(self) -> None:
+        if self._merged is not None:
+            self._merged.cleanup()
+            self._merged = None
+
+
+def _merged_logs(path: Path, warnings: List[str]
+                 ) -> Tuple[Path, Optional[tempfile.TemporaryDirectory]]:
+    """
+    Return what rosbags is to open for ``path``, with the messages of unmerged SQLite logs.
+
+    rosbags opens a ``.db3`` file as immutable, which ignores its write-ahead log: the
+    messages a recorder wrote last (``--storage-preset-profile resilient`` keeps the database
+    in WAL mode) are left out without a word when it did not close the database (a crash, a
+    power cut, a copy taken while it was written). Such a database is copied with its log into
+    a temporary directory and the log merged there (beside links to the bag's other files); the
+    bag is left as it is, and ``warnings`` says so. Returns ``(path, None)`` when no database
+    has a log that holds anything.
+    """
+    databases = [path] if path.suffix == '.db3' else sorted(path.glob('*.db3')) \
+        if path.is_dir() else []
+    pending = [database for database in databases if _log_size(database)]
+    if not pending:
+        return path, None
+    temporary = tempfile.TemporaryDirectory(prefix='ctid-bag-')
+    root = Path(temporary.name)
+    try:
+        if path.is_dir():
+            for item in path.iterdir():
+                if item.is_file() and item not in pending and \
+                        not item.name.endswith(_SQLITE_SIDE_FILES):
+                    (root / item.name).symlink_to(item.resolve())
+        for database in pending:
+            copy = root / database.name
+            shutil.copyfile(database, copy)
+            shutil.copyfile(f'{database}-wal', f'{copy}-wal')
+            with contextlib.closing(sqlite3.connect(copy)) as connection:
+                connection.execute('PRAGMA wal_checkpoint(TRUNCATE)')
+                connection.execute('PRAGMA journal_mode=DELETE')
+            warnings.append(f'{database}-wal holds messages not merged into {database.name} '
+                            '(the recorder did not close the database: a crash, or a copy '
+                            'taken while it was written); they are read from a merged copy, '
+                            'the bag is left as it is')
+    except (OSError, sqlite3.Error) as error:
+        temporary.cleanup()
+        warnings.append(f'the write-ahead log of {pending[0]} cannot be merged ({error}): the '
+                        'messages it holds are left out')
+        return path, None
+    return (root if path.is_dir() else root / path.name), temporary
+
+
+def _log_size(database: Path) -> int:
+    try:
+        return os.stat(f'{database}-wal').st_size
+    except OSError:
+        return 0
 
 
 _Source = Union[_RosbagsSource, McapSource]

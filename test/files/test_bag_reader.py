@@ -503,3 +503,48 @@ def test_a_bag_without_stored_definitions_is_decoded_with_the_standard_types(bag
             assert_fields(message.msg, record.fields)
         with pytest.raises(BagError, match='not a standard ROS 2 Jazzy type'):
             bag.messages('/plant/sample')
+
+
+def test_messages_in_an_unmerged_sqlite_log_are_read_and_the_bag_left_alone(bags, tmp_path):
+    """
+    A database in WAL mode copied while its recorder wrote (or left by a crash).
+
+    rosbags opens it as immutable, which ignores the log: the last half of the recording was
+    left out without a word.
+    """
+    live = tmp_path / 'live'
+    shutil.copytree(bags['sqlite3'], live)
+    database = live / 'sqlite3.db3'
+    half = RECORDS[len(RECORDS) // 2].time_ns
+    connection = sqlite3.connect(database)
+    try:
+        connection.execute('PRAGMA journal_mode=WAL')
+        rows = connection.execute('SELECT topic_id, timestamp, data FROM messages WHERE '
+                                  'timestamp >= ? ORDER BY id', (half,)).fetchall()
+        connection.execute('DELETE FROM messages WHERE timestamp >= ?', (half,))
+        connection.commit()
+        connection.execute('PRAGMA wal_checkpoint(TRUNCATE)')
+        connection.executemany('INSERT INTO messages (topic_id, timestamp, data) VALUES '
+                               '(?, ?, ?)', rows)
+        connection.commit()
+        bag = tmp_path / 'bag'
+        bag.mkdir()
+        for name in ('metadata.yaml', 'sqlite3.db3', 'sqlite3.db3-wal'):
+            shutil.copyfile(live / name, bag / name)
+    finally:
+        connection.close()
+    assert (bag / 'sqlite3.db3-wal').stat().st_size > 0
+    digests = {path.name: hashlib.sha256(path.read_bytes()).hexdigest()
+               for path in bag.iterdir()}
+    with BagReader(bag) as reader:
+        assert_records(list(reader.messages()), RECORDS)
+        assert reader.warnings[0] == (
+            f'{bag}/sqlite3.db3-wal holds messages not merged into sqlite3.db3 (the recorder '
+            'did not close the database: a crash, or a copy taken while it was written); they '
+            'are read from a merged copy, the bag is left as it is')
+        assert reader.message_count() == len(RECORDS)
+    assert {path.name: hashlib.sha256(path.read_bytes()).hexdigest()
+            for path in bag.iterdir()} == digests
+    # The .db3 file alone, too.
+    with BagReader(bag / 'sqlite3.db3') as reader:
+        assert reader.message_count() == len(RECORDS)
