@@ -37,8 +37,8 @@ import json
 import operator
 from pathlib import Path
 import sys
-from typing import (Any, Callable, Iterable, Iterator, Optional, Sequence, TextIO, Tuple,
-                    TYPE_CHECKING)
+from typing import (Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence, TextIO,
+                    Tuple, TYPE_CHECKING)
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
@@ -53,6 +53,7 @@ from ctid_ros.streaming.contract import ERROR, NANOSECONDS, resolve_topic
 from ctid_ros.streaming.params_file import load_params_file, load_units
 from ctid_ros.streaming.replay import (Replay, replay_columns, replay_messages, SampleColumns,
                                        SkippedTick)
+from ctid_ros.streaming.sampler import message_type, normalized_type
 from ctid_ros.streaming.session import buffer_capacity
 
 if TYPE_CHECKING:   # for annotations only: the writer loads with --output (run time below)
@@ -128,10 +129,13 @@ def run(arguments: argparse.Namespace) -> int:
         else:
             records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns),
                                 sys.stderr)
-            types = bag.topics()
-            for topic in selected:
-                writer.add_topic(topic, types[topic], bag.topic_schema(topic))
-            messages = progress(_copied(records, writer), start_ns or bag.start_time_ns,
+            schemas = {topic: bag.topic_schema(topic) for topic in selected}
+            for topic, schema in schemas.items():
+                writer.add_topic(topic, schema.msgtype, schema)
+            declared = {topic: normalized_type(schema.msgtype)
+                        for topic, schema in schemas.items()}
+            messages = progress(_copied(records, writer, declared),
+                                start_ns or bag.start_time_ns,
                                 end_ns or bag.end_time_ns, sys.stderr)
             replay = replay_messages(messages, config, sliding=arguments.sliding,
                                      topics=topics, capacity=_capacity(bag, config, selected),
@@ -198,11 +202,17 @@ def _readable(records: Iterable[Any], stream: TextIO) -> Iterator[Any]:
                                                      file=stream))
 
 
-def _copied(records: Iterable[BagRecord], writer: Optional['EstimateWriter']
-            ) -> Iterator[Message]:
-    """Yield ``(topic, log_time_ns, msg)``, first copying each record into ``writer``."""
+def _copied(records: Iterable[BagRecord], writer: Optional['EstimateWriter'],
+            declared: Mapping[str, str]) -> Iterator[Message]:
+    """
+    Yield ``(topic, log_time_ns, msg)``, first copying each record into ``writer``.
+
+    Only a record of the type its topic is declared with in ``writer`` is copied: a topic
+    recorded with several types (a ``std_msgs/String`` publisher beside the ``Float64`` one)
+    has one channel, whose schema the others' bytes do not fit; the replay ignores them too.
+    """
     for record in records:
-        if writer is not None:
+        if writer is not None and message_type(record.msg) == declared[record.topic]:
             writer.write(record.topic, record.log_time_ns, record.data)
         yield record.topic, record.log_time_ns, record.msg
 

@@ -137,7 +137,7 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
             stop, damage = row, error
             break
         sample = sampler(stream.stream.topic, log_time_ns, msg)
-        errors.add(sample, stream.roles)
+        errors.add(sample, stream.roles, stream.stream.msgtype)
         stamps[row] = sample.stamp_ns
         # A field the message lacks gives no sample; the message's other field still does.
         roles[row] &= (sample.u is not None, sample.y is not None)

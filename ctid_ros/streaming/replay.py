@@ -32,7 +32,7 @@ from ctid_ros.streaming.baseline import configured_baseline
 from ctid_ros.streaming.buffer import BufferStats, INPUT, OUTPUT, resample
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import failure_status, NANOSECONDS, resolve_topic
-from ctid_ros.streaming.sampler import FieldErrors, MessageSampler
+from ctid_ros.streaming.sampler import FieldErrors, message_type, MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
 
@@ -347,7 +347,7 @@ def _replay_span(messages: Iterable[Tuple[str, int, Any]], config: Identificatio
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         count += 1
         sample = sampler(topic, log_time_ns, msg)
-        errors.add(sample, sampler.roles(topic))
+        errors.add(sample, sampler.roles(topic), message_type(msg))
         for (stamps, samples), value in zip(streams, (sample.u, sample.y)):
             if value is not None:
                 stamps.append(sample.stamp_ns)
@@ -391,7 +391,7 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
             tick += period_ns
         count += 1
         sample = sampler(topic, log_time_ns, msg)
-        errors.add(sample, sampler.roles(topic))
+        errors.add(sample, sampler.roles(topic), message_type(msg))
         sample.add_to(buffer)
     if tick is not None and tick <= log_time_ns:
         ticks.fire(tick)
