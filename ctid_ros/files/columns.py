@@ -111,6 +111,7 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
     values = np.zeros((count, width))
     roles = np.zeros((count, 2), dtype=bool)
     one_by_one: List[np.ndarray] = []
+    unstamped: List[Tuple[Tuple[str, ...], np.ndarray]] = []
     errors = FieldErrors(sampler.names)
     for key, stream in streams.items():
         rows = np.flatnonzero(raw.topic == key)
@@ -125,6 +126,9 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
         stamps[rows] = sample_stamps(decoded.stamp_ns, raw.log_time_ns[rows], stamp_source)
         _place(values, rows, decoded.values, stream)
         one_by_one.append(rows[decoded.fallback])
+        if stamp_source == 'header' and decoded.stamp_ns is not None:
+            # Those the streaming decoder takes count theirs through the sampler.
+            unstamped.append((stream.roles, rows[(decoded.stamp_ns == 0) & ~decoded.fallback]))
     rows = np.sort(np.concatenate(one_by_one)) if one_by_one else np.zeros(0, dtype=np.int64)
     stop = count
     damage: Optional[BagError] = None
@@ -146,6 +150,9 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
         if OUTPUT in stream.roles and sample.y is not None:
             values[row, -1] = sample.y
     errors.read.update(zip((INPUT, OUTPUT), roles[:stop].sum(axis=0).tolist()))
+    for carried, rows in unstamped:
+        for role in carried:
+            errors.unstamped[role] += int(np.count_nonzero(rows < stop))
     if stop:
         yield _block(raw.log_time_ns[:stop], stamps[:stop], values[:stop], roles[:stop],
                      width - 1, errors)

@@ -168,7 +168,9 @@ class FieldErrors:
     such field, not a number) is ignored and counted by its type. A stream of which no
     message could be read raises its first error (a wrong path): at the end of the replay
     (:meth:`check`), or at once after :data:`WRONG_PATH_MESSAGES` messages of types without
-    the path.
+    the path. It also counts the messages whose ``header.stamp`` is unset (zero), filed
+    under their log time, as the node counts ``zero_stamps``: their dead time then includes
+    the delay to the recorder.
 
     Parameters
     ----------
@@ -182,6 +184,7 @@ class FieldErrors:
         self.read = dict.fromkeys(ROLES, 0)
         self.failed = dict.fromkeys(ROLES, 0)
         self.first: Dict[str, ConfigError] = {}
+        self.unstamped = dict.fromkeys(ROLES, 0)
         # Messages of a type without the path, and its error, by role and type.
         self.misfits: Dict[Tuple[str, str], Tuple[int, ConfigError]] = {}
 
@@ -189,6 +192,7 @@ class FieldErrors:
         """Count one message of type ``kind`` carrying ``roles``."""
         failed = dict(sample.errors)
         for role in roles:
+            self.unstamped[role] += sample.zero_stamp
             if role in failed:
                 self.fail(role, failed[role], kind)
             else:
@@ -220,6 +224,7 @@ class FieldErrors:
         """Add the counts of ``other`` (the errors of a later block of messages)."""
         for role in ROLES:
             self.read[role] += other.read[role]
+            self.unstamped[role] += other.unstamped[role]
             if other.failed[role]:
                 self.fail(role, other.first[role], '', other.failed[role])
         for (role, kind), (count, error) in other.misfits.items():
@@ -237,13 +242,17 @@ class FieldErrors:
                 raise errors[0]
 
     def warnings(self) -> List[str]:
-        """Say for each stream how many of its messages were skipped or ignored, and why."""
+        """Say for each stream how many messages were skipped, ignored or unstamped, and why."""
         notes = [f'{self.names[role]}: {self.failed[role]} of '
                  f'{self.failed[role] + self.read[role]} messages skipped, as the live node skips '
                  f'them: {self.first[role]}' for role in ROLES if self.failed[role]]
         notes += [f'{self.names[role]}: {count} messages of {kind} ignored, as the live node '
                   f'ignores a type without the field: {error}'
                   for (role, kind), (count, error) in self.misfits.items()]
+        notes += [f'{self.names[role]}: header.stamp unset (zero) in {self.unstamped[role]} '
+                  'messages, filed under their log time (when the recorder received them), as '
+                  'the live node files them under the receive time; a dead time then includes '
+                  'the delay to the recorder' for role in ROLES if self.unstamped[role]]
         return notes
 
 

@@ -261,3 +261,28 @@ def test_blocks_of_a_long_bag_stay_small(tmp_path):
                  for block in sample_columns(bag, config, ('/plant/u', '/plant/y'))]
     assert sum(sizes) == 2 * u.size and max(sizes) < 2000
     assert Path(path).exists()
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_unset_header_stamps_are_counted_by_both_paths(tmp_path, kind):
+    """
+    A driver that leaves header.stamp zero now and then: filed under the log time, and said.
+
+    The live node counts them (zero_stamps on /diagnostics); the replay said nothing.
+    """
+    u, y = simulate(OPEN_LOOP, 6.0)
+    records = joint_state_records(u, y, latency_ns=2_000_000)
+    for record in records[3::10]:
+        record.fields['header']['stamp'] = {'sec': 0, 'nanosec': 0}
+    path = write_bag(tmp_path, records, kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[0]',
+                         output_field='position[0]')
+    streaming, columnar = both(path, params, False)
+    assert_same(streaming, columnar)
+    unset = len(records[3::10])
+    assert streaming.warnings == columnar.warnings == [
+        f'{role} /joint_states ({field}): header.stamp unset (zero) in {unset} messages, filed '
+        'under their log time (when the recorder received them), as the live node files them '
+        'under the receive time; a dead time then includes the delay to the recorder'
+        for role, field in (('input', 'effort[0]'), ('output', 'position[0]'))]
