@@ -119,6 +119,8 @@ def run(arguments: argparse.Namespace) -> int:
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
         selected = sorted(set(topics))
         if writer is None:
+            # A type that cannot be decoded is no damage: said at once, not as a cut bag.
+            bag.raw_streams(selected)
             # The columnar path: the same numbers, without per-message Python.
             blocks = progress(_readable(sample_columns(bag, config, topics, start_ns, end_ns),
                                         sys.stderr), start_ns or bag.start_time_ns,

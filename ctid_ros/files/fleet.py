@@ -398,8 +398,8 @@ def analyse_bag(task: BagTask) -> BagResult:
             if bag.truncated:     # said with an error too: it explains one from a short part
                 damage.extend(bag.warnings)
             topics = tuple(bag.topic_name(topic) or topic for topic in topics)
-            for topic in sorted(set(topics)):
-                bag.topic_schema(topic)     # a missing topic is no damage: said at once
+            # A missing topic or a type that cannot be decoded is no damage: said at once.
+            bag.raw_streams(sorted(set(topics)))
             # A damaged chunk ends the bag there: estimated on what came before, as replayed.
             samples = readable_part(sample_columns(bag, config, topics, task.span_start_ns,
                                                    task.span_end_ns), damage.append)

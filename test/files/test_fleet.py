@@ -7,6 +7,8 @@ which generated it, a drive whose torque drops to 80 % halfway through shows it 
 after the change, and a span in which nothing was recorded is an error row of its own.
 """
 
+from pathlib import Path
+
 from ctid_ros.files.fleet import (analyse_bag, bag_time_range, BagTask, IDENTITY, make_task,
                                   span_bounds, split_task)
 from fleet_fixtures import TRUTH, write_joint_state_bag, write_params
@@ -132,3 +134,19 @@ def test_a_bag_with_a_damaged_chunk_is_estimated_on_the_messages_before_it(tmp_p
     assert 25 * S < row['end'] - T0_NS <= index.message_start_time - T0_NS
     for name in ('K', 'T', 'tau'):
         assert row[name] == pytest.approx(DELAY['truth'][name], rel=0.01)
+
+
+@pytest.mark.parametrize('name', ['service_events_sqlite3', 'service_events_mcap'])
+def test_a_topic_that_cannot_be_read_is_said_as_such_not_as_damage(tmp_path, name):
+    # rosbag2's own bags: a service-event topic as the output. Read like a damaged chunk, the
+    # row said "no messages of the input ... in the selected span" first.
+    bag = Path(__file__).parents[1] / 'data' / 'bags' / name
+    params = params_file(tmp_path, DELAY, input_topic='/test_topic1',
+                         input_field='int32_value', output_topic='/test_service1/_service_event',
+                         output_field='info.event_type').read_text()
+    row = analyse_bag(make_task(bag, bag.parent, None, params, 'ctid_node', False)).bag
+    assert row['status'] == 'error'
+    where, _, reason = row['error'].partition(': ')
+    assert where.startswith(str(bag)), row['error']
+    assert reason.startswith('/test_service1/_service_event carries service events'), \
+        row['error']
