@@ -10,7 +10,7 @@ Every bag holds the same deterministic recording: ``std_msgs/msg/Float64`` on ``
 from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 from mcap.exceptions import McapError
 from mcap.records import Message
@@ -18,7 +18,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
 T0_NS = 1_700_000_000_000_000_000
@@ -96,11 +96,20 @@ def _typestore():
     return typestore
 
 
-def write_rosbag2(path: Path, records: Sequence[Record], storage: str) -> None:
-    """Write a rosbag2 directory with rosbags in ``sqlite3`` or ``mcap`` storage."""
+def write_rosbag2(path: Path, records: Sequence[Record], storage: str,
+                  compression: Optional[str] = None) -> None:
+    """
+    Write a rosbag2 directory with rosbags in ``sqlite3`` or ``mcap`` storage.
+
+    ``compression`` ``'file'`` or ``'message'`` compresses with zstd as ``ros2 bag record
+    --compression-mode`` does.
+    """
     typestore = _typestore()
     plugin = StoragePlugin.SQLITE3 if storage == 'sqlite3' else StoragePlugin.MCAP
-    with Writer(path, version=9, storage_plugin=plugin) as writer:
+    writer = Writer(path, version=9, storage_plugin=plugin)
+    if compression is not None:
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with writer:
         connections = {topic: writer.add_connection(topic, msgtype, typestore=typestore)
                        for topic, msgtype in TOPICS.items()}
         for record in records:

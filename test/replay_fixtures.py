@@ -9,6 +9,8 @@ standard deviation (40 dB SNR, seeded).
 from bag_fixtures import build_message, MSGDEFS, Record
 from ctid_ros import Model
 from ctid_ros.core.excitation import prbs
+from mcap.reader import make_reader
+from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as McapRos2Writer
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -109,9 +111,10 @@ def write_rosbag2(path, records, storage):
     return path
 
 
-def write_mcap(path, records, chunk_size=16384):
-    """Write a standalone .mcap with mcap_ros2."""
-    with open(path, 'wb') as stream, McapRos2Writer(stream, chunk_size=chunk_size) as writer:
+def write_mcap(path, records, chunk_size=16384, compression=CompressionType.ZSTD):
+    """Write a standalone .mcap with mcap_ros2 (chunks compressed with ``compression``)."""
+    with open(path, 'wb') as stream, McapRos2Writer(stream, chunk_size=chunk_size,
+                                                    compression=compression) as writer:
         schemas = {msgtype: writer.register_msgdef(msgtype, MSGDEFS[msgtype])
                    for msgtype in set(types_of(records).values())}
         types = types_of(records)
@@ -119,6 +122,18 @@ def write_mcap(path, records, chunk_size=16384):
             writer.write_message(record.topic, schemas[types[record.topic]], record.fields,
                                  log_time=record.time_ns, publish_time=record.time_ns)
     return path
+
+
+def damage_chunk(path, fraction):
+    """Overwrite 64 bytes in the middle of the chunk at ``fraction`` of the file's chunks."""
+    with open(path, 'rb') as stream:
+        indexes = make_reader(stream).get_summary().chunk_indexes
+    index = indexes[int(fraction * len(indexes))]
+    data = bytearray(path.read_bytes())
+    middle = index.chunk_start_offset + index.chunk_length // 2
+    data[middle:middle + 64] = bytes(range(64))
+    path.write_bytes(bytes(data))
+    return index
 
 
 def write_bag(tmp_path, records, kind):

@@ -37,13 +37,13 @@ import json
 import operator
 from pathlib import Path
 import sys
-from typing import (Any, Callable, Iterable, Iterator, Optional, Sequence, TextIO, Tuple,
-                    TYPE_CHECKING)
+from typing import (Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence, TextIO,
+                    Tuple, TYPE_CHECKING)
 
 from ctid_ros.cli.arguments import DEFAULT_PLOT
 from ctid_ros.cli.report import format_series, format_stats, format_update, json_default
 from ctid_ros.errors import BagError, ConfigError
-from ctid_ros.files.bag_reader import BagReader, open_bag
+from ctid_ros.files.bag_reader import BagReader, open_bag, readable_part
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.files.mcap_source import BagRecord, PathLike
 from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
@@ -53,6 +53,7 @@ from ctid_ros.streaming.contract import ERROR, NANOSECONDS, resolve_topic
 from ctid_ros.streaming.params_file import load_params_file, load_units
 from ctid_ros.streaming.replay import (Replay, replay_columns, replay_messages, SampleColumns,
                                        SkippedTick)
+from ctid_ros.streaming.sampler import message_type, normalized_type
 from ctid_ros.streaming.session import buffer_capacity
 
 if TYPE_CHECKING:   # for annotations only: the writer loads with --output (run time below)
@@ -118,6 +119,8 @@ def run(arguments: argparse.Namespace) -> int:
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
         selected = sorted(set(topics))
         if writer is None:
+            # A type that cannot be decoded is no damage: said at once, not as a cut bag.
+            bag.raw_streams(selected)
             # The columnar path: the same numbers, without per-message Python.
             blocks = progress(_readable(sample_columns(bag, config, topics, start_ns, end_ns),
                                         sys.stderr), start_ns or bag.start_time_ns,
@@ -128,10 +131,13 @@ def run(arguments: argparse.Namespace) -> int:
         else:
             records = _readable(bag.records(selected, start_ns=start_ns, end_ns=end_ns),
                                 sys.stderr)
-            types = bag.topics()
-            for topic in selected:
-                writer.add_topic(topic, types[topic], bag.topic_schema(topic))
-            messages = progress(_copied(records, writer), start_ns or bag.start_time_ns,
+            schemas = {topic: bag.topic_schema(topic) for topic in selected}
+            for topic, schema in schemas.items():
+                writer.add_topic(topic, schema.msgtype, schema)
+            declared = {topic: normalized_type(schema.msgtype)
+                        for topic, schema in schemas.items()}
+            messages = progress(_copied(records, writer, declared),
+                                start_ns or bag.start_time_ns,
                                 end_ns or bag.end_time_ns, sys.stderr)
             replay = replay_messages(messages, config, sliding=arguments.sliding,
                                      topics=topics, capacity=_capacity(bag, config, selected),
@@ -192,26 +198,23 @@ def _last_time(block: SampleColumns) -> int:
     return int(block.log_time_ns[-1]) if block.log_time_ns.size else 0
 
 
-def _readable(records: Iterable[Any], warn: TextIO) -> Iterator[Any]:
+def _readable(records: Iterable[Any], stream: TextIO) -> Iterator[Any]:
     """Yield records (or blocks) until the bag turns out damaged, then warn and stop."""
-    iterator = iter(records)
-    while True:
-        try:
-            record = next(iterator)
-        except StopIteration:
-            return
-        except BagError as error:
-            print(f'ctid replay: warning: {error}; estimating from the messages before it',
-                  file=warn)
-            return
-        yield record
+    return readable_part(records, lambda text: print(f'ctid replay: warning: {text}',
+                                                     file=stream))
 
 
-def _copied(records: Iterable[BagRecord], writer: Optional['EstimateWriter']
-            ) -> Iterator[Message]:
-    """Yield ``(topic, log_time_ns, msg)``, first copying each record into ``writer``."""
+def _copied(records: Iterable[BagRecord], writer: Optional['EstimateWriter'],
+            declared: Mapping[str, str]) -> Iterator[Message]:
+    """
+    Yield ``(topic, log_time_ns, msg)``, first copying each record into ``writer``.
+
+    Only a record of the type its topic is declared with in ``writer`` is copied: a topic
+    recorded with several types (a ``std_msgs/String`` publisher beside the ``Float64`` one)
+    has one channel, whose schema the others' bytes do not fit; the replay ignores them too.
+    """
     for record in records:
-        if writer is not None:
+        if writer is not None and message_type(record.msg) == declared[record.topic]:
             writer.write(record.topic, record.log_time_ns, record.data)
         yield record.topic, record.log_time_ns, record.msg
 
@@ -306,6 +309,8 @@ def _capacity(bag: BagReader, config: IdentificationConfig, topics: Sequence[str
 
 def _report(arguments: argparse.Namespace, replay: Replay, topics: Tuple[str, str],
             origin_ns: int) -> None:
+    for warning in replay.warnings:
+        print(f'ctid replay: warning: {warning}', file=sys.stderr)
     for skipped in replay.skipped:
         print(f'ctid replay: no estimate at t={(skipped.time_ns - origin_ns) / NANOSECONDS:.2f} '
               f's: {skipped.reason}', file=sys.stderr)

@@ -18,13 +18,17 @@ message of the bag.
 """
 
 import bz2
+import contextlib
 import functools
 import math
 import os
 from pathlib import Path
 import re
+import shutil
+import sqlite3
+import tempfile
 from typing import (Any, Callable, Dict, Iterable, Iterator, List, Mapping, NamedTuple,
-                    Optional, Sequence, Tuple, Union)
+                    Optional, Sequence, Tuple, TypeVar, Union)
 
 from ctid_ros.core.limits import (MAX_COMPRESSION_RATIO, MAX_METADATA_BYTES, MIB, read_limited,
                                   size_text)
@@ -44,7 +48,7 @@ from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
 import zstandard
 
-__all__ = ['BagReader', 'open_bag']
+__all__ = ['BagReader', 'open_bag', 'readable_part']
 
 _VERSION = re.compile(rb'^\s*version:\s*(\d+)', re.MULTILINE)
 _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
@@ -71,6 +75,10 @@ _METADATA_NODES = 1_000_000
 _QUOTE_LIMIT = 300
 # Messages per block of a rosbags-read bag handed to a columnar reader.
 _RAW_BLOCK = 1 << 15
+# Bytes decompressed at a time when a compressed storage file is measured.
+_DECOMPRESSION_PIECE = 1 << 20
+# The files SQLite keeps beside a database in WAL mode.
+_SQLITE_SIDE_FILES = ('.db3-wal', '.db3-shm')
 
 
 def _quoted(error: BaseException) -> str:
@@ -269,8 +277,13 @@ class _RosbagsSource:
         self.path = path
         self.truncated = False
         self.warnings: List[str] = []
-        reader = _open_reader([path], path)
-        storage = _storage(reader) if path.is_dir() else None
+        opened, self._merged = _merged_logs(path, self.warnings)
+        try:
+            reader = _open_reader([opened], path)
+        except BagError:
+            self._remove_merged()
+            raise
+        storage = _storage(reader) if opened.is_dir() else None
         # One uncompressed MCAP storage file: its blocks are read without rosbags' per-message
         # Python (raw_blocks); rosbags reads the same messages from it.
         self._mcap_file = storage.files[0] if (
@@ -463,6 +476,64 @@ class _RosbagsSource:
         self._reader.close()
         if self._mcap is not None:
             self._mcap.close()
+        self._remove_merged()
+
+    def _remove_merged(self) -> None:
+        if self._merged is not None:
+            self._merged.cleanup()
+            self._merged = None
+
+
+def _merged_logs(path: Path, warnings: List[str]
+                 ) -> Tuple[Path, Optional[tempfile.TemporaryDirectory]]:
+    """
+    Return what rosbags is to open for ``path``, with the messages of unmerged SQLite logs.
+
+    rosbags opens a ``.db3`` file as immutable, which ignores its write-ahead log: the
+    messages a recorder wrote last (``--storage-preset-profile resilient`` keeps the database
+    in WAL mode) are left out without a word when it did not close the database (a crash, a
+    power cut, a copy taken while it was written). Such a database is copied with its log into
+    a temporary directory and the log merged there (beside links to the bag's other files); the
+    bag is left as it is, and ``warnings`` says so. Returns ``(path, None)`` when no database
+    has a log that holds anything.
+    """
+    databases = [path] if path.suffix == '.db3' else sorted(path.glob('*.db3')) \
+        if path.is_dir() else []
+    pending = [database for database in databases if _log_size(database)]
+    if not pending:
+        return path, None
+    temporary = tempfile.TemporaryDirectory(prefix='ctid-bag-')
+    root = Path(temporary.name)
+    try:
+        if path.is_dir():
+            for item in path.iterdir():
+                if item.is_file() and item not in pending and \
+                        not item.name.endswith(_SQLITE_SIDE_FILES):
+                    (root / item.name).symlink_to(item.resolve())
+        for database in pending:
+            copy = root / database.name
+            shutil.copyfile(database, copy)
+            shutil.copyfile(f'{database}-wal', f'{copy}-wal')
+            with contextlib.closing(sqlite3.connect(copy)) as connection:
+                connection.execute('PRAGMA wal_checkpoint(TRUNCATE)')
+                connection.execute('PRAGMA journal_mode=DELETE')
+            warnings.append(f'{database}-wal holds messages not merged into {database.name} '
+                            '(the recorder did not close the database: a crash, or a copy '
+                            'taken while it was written); they are read from a merged copy, '
+                            'the bag is left as it is')
+    except (OSError, sqlite3.Error) as error:
+        temporary.cleanup()
+        warnings.append(f'the write-ahead log of {pending[0]} cannot be merged ({error}): the '
+                        'messages it holds are left out')
+        return path, None
+    return (root if path.is_dir() else root / path.name), temporary
+
+
+def _log_size(database: Path) -> int:
+    try:
+        return os.stat(f'{database}-wal').st_size
+    except OSError:
+        return 0
 
 
 _Source = Union[_RosbagsSource, McapSource]
@@ -565,24 +636,52 @@ def _open_directory(path: Path) -> _Source:
 
 
 def _check_compressed_file(path: Path) -> None:
-    """Refuse a zstd-compressed storage file whose stated size is absurd for its own size."""
+    """
+    Refuse a zstd-compressed storage file that expands beyond the ratio limit.
+
+    rosbag2 compresses a storage file as a stream (``ZSTD_compressStream2`` over pieces of
+    128 KiB), so the frame of any file larger than that does not state its decompressed size,
+    and a file may hold several frames: the size is measured by decompressing the file once, a
+    piece at a time with nothing kept, and the measurement stops at the limit.
+    """
     try:
         with open(path, 'rb') as stream:
             head = stream.read(32)
             size = os.fstat(stream.fileno()).st_size
+            try:
+                zstandard.frame_content_size(head)
+            except zstandard.ZstdError:
+                raise BagError(f'metadata.yaml says the storage files are zstd-compressed '
+                               f'(compression_mode: file) but {path} is not: fix '
+                               'compression_mode and compression_format in metadata.yaml'
+                               ) from None
+            limit = MAX_COMPRESSION_RATIO * max(size, MIB)
+            stream.seek(0)
+            expanded = _expanded_size(stream, limit, path)
     except OSError as error:
         raise BagError(f'cannot read {path}: {error.strerror or error}') from None
+    if expanded > limit:
+        raise BagError(f'{path} decompresses to more than {limit // MIB} MiB from '
+                       f'{size_text(size)} (the ratio limit is {MAX_COMPRESSION_RATIO}, at least '
+                       f'{MAX_COMPRESSION_RATIO} MiB): a decompression bomb, or decompress the '
+                       'bag yourself (zstd -d) and fix metadata.yaml')
+
+
+def _expanded_size(stream: Any, limit: int, path: Path) -> int:
+    """Return the bytes the zstd frames of ``stream`` decompress to, or ``limit + 1`` if more."""
+    reader = zstandard.ZstdDecompressor().stream_reader(stream, read_across_frames=True,
+                                                        closefd=False)
+    expanded = 0
     try:
-        stated = zstandard.frame_content_size(head)
-    except zstandard.ZstdError:
-        raise BagError(f'metadata.yaml says the storage files are zstd-compressed '
-                       f'(compression_mode: file) but {path} is not: fix compression_mode and '
-                       'compression_format in metadata.yaml') from None
-    if stated < 0 or stated > MAX_COMPRESSION_RATIO * max(size, MIB):
-        amount = 'an unknown size' if stated < 0 else size_text(stated)
-        raise BagError(f'{path} decompresses to {amount} from {size_text(size)} (the ratio '
-                       f'limit is {MAX_COMPRESSION_RATIO}): a decompression bomb, or decompress '
-                       'the bag yourself (zstd -d) and fix metadata.yaml')
+        while expanded <= limit:
+            piece = reader.read(_DECOMPRESSION_PIECE)
+            if not piece:
+                break
+            expanded += len(piece)
+    except zstandard.ZstdError as error:
+        raise BagError(f'{path} is damaged: its zstd data cannot be decompressed ({error}); '
+                       'the storage file cannot be read') from None
+    return expanded
 
 
 class BagReader:
@@ -843,6 +942,29 @@ class BagReader:
             raise BagError(f'topic(s) {", ".join(missing)} not in {self.path}; it has: '
                            f'{listing}')
         return selected
+
+
+_Item = TypeVar('_Item')
+
+
+def readable_part(items: Iterable[_Item], warn: Callable[[str], None]) -> Iterator[_Item]:
+    """
+    Yield the records (or blocks) of a bag until one cannot be read, then warn and stop.
+
+    A damaged chunk or message ends the readable part of a bag, not its use: the estimate is
+    made on the messages before it, as from a truncated file, and ``warn`` gets the error with
+    what was done about it.
+    """
+    iterator = iter(items)
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except BagError as error:
+            warn(f'{error}; estimating from the messages before it')
+            return
+        yield item
 
 
 def open_bag(path: PathLike) -> BagReader:

@@ -13,9 +13,10 @@ applies the sampler's stamp rule to the arrays
 Messages the columnar decoder does not take (a type outside its layouts, damaged bytes, a
 path that does not reach a number in them) go one by one through the streaming reader's own
 decoder and :class:`~ctid_ros.streaming.sampler.MessageSampler`, in arrival order, so a wrong
-field path raises the same :class:`~ctid_ros.errors.ConfigError` at the same message and a
-damaged message ends the blocks where the streaming reader stops, with the same
-:class:`~ctid_ros.errors.BagError`.
+field path raises the same :class:`~ctid_ros.errors.ConfigError` at the same message, a
+message without the selected joint or index is skipped and counted as there
+(:class:`~ctid_ros.streaming.sampler.FieldErrors`), and a damaged message ends the blocks
+where the streaming reader stops, with the same :class:`~ctid_ros.errors.BagError`.
 """
 
 from typing import Any, Dict, Iterator, List, Optional, Tuple
@@ -28,7 +29,7 @@ from ctid_ros.streaming.buffer import INPUT, OUTPUT
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.message_fields import parse_field_path, sample_stamps
 from ctid_ros.streaming.replay import SampleColumns
-from ctid_ros.streaming.sampler import MessageSampler
+from ctid_ros.streaming.sampler import FieldErrors, MessageSampler
 import numpy as np
 
 __all__ = ['sample_columns']
@@ -73,7 +74,9 @@ def sample_columns(bag: BagReader, config: IdentificationConfig, topics: Tuple[s
         For a topic that cannot be decoded (at once), or a damaged message or chunk (after the
         samples of every message before it were yielded).
     ConfigError
-        At the first message whose field path does not lead to a number.
+        At the first message whose field path does not lead to a number; after the last
+        block if no message of a stream has the selected joint or index (messages without it
+        are skipped and counted in :attr:`SampleColumns.field_errors`).
 
     """
     sampler = MessageSampler(config, topics)
@@ -91,8 +94,12 @@ def sample_columns(bag: BagReader, config: IdentificationConfig, topics: Tuple[s
                                  stamp=config.stamp_source == 'header')
             decoder = decoder if decoder.supported else None
         streams[key] = _Stream(stream, roles, inputs, decoder)
+    errors = FieldErrors(sampler.names)
     for raw in bag.raw_blocks(raw_streams, start_ns=start_ns, end_ns=end_ns):
-        yield from _samples(raw, streams, sampler, config.stamp_source)
+        for block in _samples(raw, streams, sampler, config.stamp_source):
+            block.count_into(errors)
+            yield block
+    errors.check()
 
 
 def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler,
@@ -104,6 +111,8 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
     values = np.zeros((count, width))
     roles = np.zeros((count, 2), dtype=bool)
     one_by_one: List[np.ndarray] = []
+    unstamped: List[Tuple[Tuple[str, ...], np.ndarray]] = []
+    errors = FieldErrors(sampler.names)
     for key, stream in streams.items():
         rows = np.flatnonzero(raw.topic == key)
         if not rows.size:
@@ -117,6 +126,9 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
         stamps[rows] = sample_stamps(decoded.stamp_ns, raw.log_time_ns[rows], stamp_source)
         _place(values, rows, decoded.values, stream)
         one_by_one.append(rows[decoded.fallback])
+        if stamp_source == 'header' and decoded.stamp_ns is not None:
+            # Those the streaming decoder takes count theirs through the sampler.
+            unstamped.append((stream.roles, rows[(decoded.stamp_ns == 0) & ~decoded.fallback]))
     rows = np.sort(np.concatenate(one_by_one)) if one_by_one else np.zeros(0, dtype=np.int64)
     stop = count
     damage: Optional[BagError] = None
@@ -129,13 +141,21 @@ def _samples(raw: RawBlock, streams: Dict[int, _Stream], sampler: MessageSampler
             stop, damage = row, error
             break
         sample = sampler(stream.stream.topic, log_time_ns, msg)
-        sample.check()
+        errors.add(sample, stream.roles, stream.stream.msgtype)
         stamps[row] = sample.stamp_ns
-        decoded = [np.atleast_1d(value) for value in (sample.u, sample.y) if value is not None]
-        _place(values, np.array([row]), np.concatenate(decoded)[None, :], stream)
+        # A field the message lacks gives no sample; the message's other field still does.
+        roles[row] &= (sample.u is not None, sample.y is not None)
+        if INPUT in stream.roles and sample.u is not None:
+            values[row, :stream.inputs] = sample.u
+        if OUTPUT in stream.roles and sample.y is not None:
+            values[row, -1] = sample.y
+    errors.read.update(zip((INPUT, OUTPUT), roles[:stop].sum(axis=0).tolist()))
+    for carried, rows in unstamped:
+        for role in carried:
+            errors.unstamped[role] += int(np.count_nonzero(rows < stop))
     if stop:
         yield _block(raw.log_time_ns[:stop], stamps[:stop], values[:stop], roles[:stop],
-                     width - 1)
+                     width - 1, errors)
     if damage is not None:
         raise damage
 
@@ -151,11 +171,12 @@ def _place(values: np.ndarray, rows: np.ndarray, decoded: np.ndarray, stream: _S
 
 
 def _block(times: np.ndarray, stamps: np.ndarray, values: np.ndarray, roles: np.ndarray,
-           inputs: int) -> SampleColumns:
+           inputs: int, errors: FieldErrors) -> SampleColumns:
     input_rows = np.flatnonzero(roles[:, 0])
     output_rows = np.flatnonzero(roles[:, 1])
     input_values: Any = values[input_rows, :inputs]
     if inputs == 1:
         input_values = input_values[:, 0]
     return SampleColumns(times, input_rows, stamps[input_rows], np.ascontiguousarray(
-        input_values), output_rows, stamps[output_rows], values[output_rows, -1].copy())
+        input_values), output_rows, stamps[output_rows], values[output_rows, -1].copy(),
+        errors)

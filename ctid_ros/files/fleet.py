@@ -28,7 +28,7 @@ import re
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from ctid_ros.errors import CtidError
-from ctid_ros.files.bag_reader import open_bag
+from ctid_ros.files.bag_reader import open_bag, readable_part
 from ctid_ros.files.columns import sample_columns
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import NANOSECONDS, resolve_topic
@@ -383,21 +383,30 @@ def analyse_bag(task: BagTask) -> BagResult:
     window's, every window in :attr:`BagResult.windows`); ``start``/``end`` are the first and
     last grid instants estimated on (ns since the epoch). A span is replayed on its own: its
     messages only, a fresh buffer and session, the transient at its start not fitted as for a
-    window of the live node. A bag or span that cannot be read, misses a topic or cannot be
-    estimated gives a row with ``status`` ``'error'`` and the one-line reason.
+    window of the live node. A chunk or message that cannot be read ends the data there: the
+    estimate is made on the messages before it, with the damage in ``warnings``, as ``ctid
+    replay`` does. A bag or span that cannot be read, misses a topic or cannot be estimated
+    gives a row with ``status`` ``'error'`` and the one-line reason.
     """
     identity = task.identity()
+    damage: List[str] = []
     try:
         config = load_params_text(task.params, task.node_name)
         topics = (resolve_topic(config.input_topic, task.node_name),
                   resolve_topic(config.output_topic, task.node_name))
         with open_bag(task.path) as bag:
+            if bag.truncated:     # said with an error too: it explains one from a short part
+                damage.extend(bag.warnings)
             topics = tuple(bag.topic_name(topic) or topic for topic in topics)
-            samples = sample_columns(bag, config, topics, task.span_start_ns, task.span_end_ns)
+            # A missing topic or a type that cannot be decoded is no damage: said at once.
+            bag.raw_streams(sorted(set(topics)))
+            # A damaged chunk ends the bag there: estimated on what came before, as replayed.
+            samples = readable_part(sample_columns(bag, config, topics, task.span_start_ns,
+                                                   task.span_end_ns), damage.append)
             replay = replay_columns(samples, config, sliding=task.sliding, topics=topics)
-            warnings = list(bag.warnings)
+            warnings = list(dict.fromkeys(bag.warnings + damage)) + replay.warnings
     except CtidError as error:
-        return BagResult(_error_row(task, identity, str(error)))
+        return BagResult(_error_row(task, identity, '; '.join([str(error), *damage])))
     except Exception as error:   # a bug or a library failing on odd bytes: still one row
         return BagResult(_error_row(task, identity, f'{type(error).__name__}: {error}'))
     windows = [{**_update_row(task, update), **identity} for update in replay.updates]

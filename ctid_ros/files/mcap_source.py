@@ -531,7 +531,11 @@ def chunk_records(chunk: Chunk) -> List[Any]:
         does not decompress to its declared size, fails its CRC or holds an invalid record.
 
     """
-    data = chunk_bytes(chunk)
+    return _records(chunk_bytes(chunk))
+
+
+def _records(data: bytes) -> List[Any]:
+    """Return the schema, channel and message records of a chunk's decompressed records."""
     records: List[Any] = []
     position = 0
     while position < len(data):
@@ -553,6 +557,63 @@ def chunk_records(chunk: Chunk) -> List[Any]:
                 records.append(Message.read(stream, length))
         position = end
     return records
+
+
+def _cut_chunk(body: bytes) -> bytes:
+    """
+    Return the whole records at the start of a chunk that the end of the file cuts short.
+
+    ``body`` is what the file holds of the chunk record after its opcode and length. Its
+    records are decompressed as far as the bytes go (a zstd or lz4 stream yields its blocks
+    before the cut), within the size the chunk declares and the limits of
+    :func:`chunk_bytes`; the record the cut splits is left out. The CRC covers the whole
+    chunk and cannot be checked. ``b''`` if nothing of the records is there.
+    """
+    head = _CHUNK_FIELDS.size + _LENGTH.size
+    if len(body) < head:
+        return b''
+    declared = _CHUNK_FIELDS.unpack_from(body)[2]
+    (name_length,) = _LENGTH.unpack_from(body, _CHUNK_FIELDS.size)
+    start = head + name_length + _RECORDS_LENGTH.size
+    if name_length > 64 or len(body) < start:
+        return b''
+    compression = body[head:head + name_length].decode('utf-8', 'replace')
+    (compressed,) = _RECORDS_LENGTH.unpack_from(body, head + name_length)
+    data = body[start:start + compressed]
+    problem = (chunk_size_problem(declared, compressed, compression)
+               or _frame_problem(declared, compression, data[:_FRAME_HEADER_BYTES]))
+    if problem:
+        raise _ChunkRefused(f'chunk {problem}')
+    if not compression:
+        records = data[:declared]
+    elif compression == 'zstd':
+        reader = zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True)
+        pieces, total = [], 0
+        try:
+            while total < declared:
+                piece = reader.read(min(_READ_PIECE, declared - total))
+                if not piece:
+                    break
+                pieces.append(piece)
+                total += len(piece)
+        except zstandard.ZstdError:
+            pass
+        records = b''.join(pieces)
+    elif compression == 'lz4':
+        try:
+            records = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=declared)
+        except RuntimeError:
+            records = b''
+    else:
+        return b''
+    position = 0
+    while len(records) - position >= _RECORD_HEADER.size:
+        opcode, length = _RECORD_HEADER.unpack_from(records, position)
+        end = position + _RECORD_HEADER.size + length
+        if opcode == 0 or end > len(records):
+            break
+        position = end
+    return records[:position]
 
 
 def check_chunk_sizes(path: Path) -> None:
@@ -635,7 +696,10 @@ class McapSource:
     A complete file is read through its summary (chunk index and statistics). A file without a
     usable summary (cut short by a crash or power loss, or written without one) is scanned once
     when opened, a chunk at a time, to index the readable chunks; the scan stops at the first
-    incomplete or damaged record and the messages before it remain available.
+    incomplete or damaged record and the messages before it remain available, those of a chunk
+    the end of the file cuts short included (its whole records before the cut, as ``mcap
+    recover`` reads them: every record of an uncompressed chunk, the whole compressed blocks of
+    a zstd or lz4 one).
 
     """
 
@@ -647,6 +711,8 @@ class McapSource:
         self._channels: Dict[int, Channel] = {}
         self._counts: Dict[int, int] = {}
         self._blocks: List[_Block] = []
+        # The readable records of a chunk cut short by the end of the file, by its offset.
+        self._cut: Dict[int, bytes] = {}
         self.start_ns: Optional[int] = None
         self.end_ns: Optional[int] = None
         try:
@@ -730,7 +796,10 @@ class McapSource:
                 break
             end = offset + _RECORD_HEADER.size + length
             if end > size:
-                self._stop(offset, size, 'the file ends in the middle of a record')
+                recovered = self._recover(offset, size) if opcode == Opcode.CHUNK else 0
+                self._stop(offset, size, f'the file ends in the middle of a chunk, of which '
+                           f'{recovered} messages are read up to the cut' if recovered else
+                           'the file ends in the middle of a record')
                 return
             try:
                 with reading_errors(f'damaged record at byte {offset}'):
@@ -756,11 +825,28 @@ class McapSource:
             self.warnings.append(f'{self.path} is truncated after its data section (the index '
                                  'is missing); all its messages were read by scanning')
 
+    def _recover(self, offset: int, size: int) -> int:
+        """Index the whole records of the chunk at ``offset`` the end of the file cuts: count."""
+        try:
+            with reading_errors(f'damaged record at byte {offset}'):
+                records = _cut_chunk(self._stream.read(size - offset - _RECORD_HEADER.size))
+                parsed = _records(records)
+        except _ChunkRefused as error:
+            raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read '
+                           'the file') from None
+        except BagError:
+            return 0
+        messages = sum(isinstance(record, Message) for record in parsed)
+        if messages:
+            self._cut[offset] = records
+        self._add_block(offset, parsed)
+        return messages
+
     def _stop(self, offset: int, size: int, reason: str) -> None:
         self.truncated = True
         count = sum(self._counts.values())
         self.warnings.append(f'{self.path} is truncated or corrupted: {reason} (byte {offset} '
-                             f'of {size}); replaying the {count} messages before that point')
+                             f'of {size}); replaying the {count} messages readable before the cut')
 
     def _add_block(self, offset: int, records: List[Any]) -> None:
         times = []
@@ -885,6 +971,8 @@ class McapSource:
 
     def _read_raw(self, offset: int) -> bytes:
         """Return the records of the chunk (or the one message record) at ``offset``."""
+        if offset in self._cut:
+            return self._cut[offset]
         try:
             with reading_errors(f'{self.path} is corrupted at byte {offset} and cannot be read '
                                 'further'):
@@ -900,6 +988,8 @@ class McapSource:
         except _ChunkRefused as error:
             raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
                            ) from None
+        except BagError as error:
+            raise self._damaged(offset, error) from None
 
     def _iterate(self, decoders: Mapping[int, Any], start_ns: Optional[int],
                  end_ns: Optional[int]) -> Iterator[BagRecord]:
@@ -926,6 +1016,8 @@ class McapSource:
             yield BagRecord(channel.topic, log_time_ns, msg, item.data)
 
     def _read_block(self, offset: int) -> List[Any]:
+        if offset in self._cut:
+            return _records(self._cut[offset])
         try:
             with reading_errors(f'{self.path} is corrupted at byte {offset} and cannot be read '
                                 'further'):
@@ -938,6 +1030,16 @@ class McapSource:
         except _ChunkRefused as error:
             raise BagError(f'{self.path}: the {error} (at byte {offset}); refusing to read it'
                            ) from None
+        except BagError as error:
+            raise self._damaged(offset, error) from None
+
+    def _damaged(self, offset: int, error: BagError) -> BagError:
+        """Name the file and the place of a chunk that cannot be read (a CRC mismatch)."""
+        text = str(error)
+        if text.startswith(str(self.path)):
+            return error
+        return BagError(f'{self.path} is corrupted at byte {offset} and cannot be read '
+                        f'further: {text}')
 
     def first_message(self) -> Optional[bytes]:
         """Return the serialised first message of the file (any channel), None if it has none."""

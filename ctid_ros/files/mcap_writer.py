@@ -75,7 +75,8 @@ def special_file(path: Path) -> Optional[str]:
 
 def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> None:
     if path.suffix != '.mcap':
-        raise BagError(f'estimate output {path} must end in .mcap')
+        raise BagError(f'cannot write {path}: the name must end in .mcap (an MCAP file is '
+                       'written)')
     kind = special_file(path)
     if kind is not None:
         raise BagError(f'cannot write {path}: it is {kind}, not a regular file; give a file '
@@ -85,8 +86,8 @@ def _check_output(path: Path, inputs: Iterable[PathLike], overwrite: bool) -> No
         source = Path(source).resolve()
         if target == source or source in target.parents or (
                 target.exists() and source.exists() and os.path.samefile(target, source)):
-            raise BagError(f'refusing to write estimates to {path}: it is (inside) the input bag '
-                           f'{source}; choose another output file')
+            raise BagError(f'refusing to write {path}: it is (inside) the input bag {source}; '
+                           'choose another output file')
     if not target.parent.is_dir():
         raise BagError(f'cannot write {path}: directory {target.parent} does not exist')
     if target.is_dir():

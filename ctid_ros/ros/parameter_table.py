@@ -18,8 +18,8 @@ what this table says cannot drift apart:
 import textwrap
 from typing import Any, NamedTuple, Optional, Sequence, Tuple
 
-from ctid_ros.streaming.parameter_specs import (DEFAULT_NODE_NAME, PARAMETERS, PER_PARAMETER,
-                                                per_parameter_name)
+from ctid_ros.streaming.parameter_specs import (CONFIGURE_ONLY_CONSTRAINT, DEFAULT_NODE_NAME,
+                                                PARAMETERS, PER_PARAMETER, per_parameter_name)
 
 __all__ = ['DeclaredParameter', 'MODEL_NAME_PLACEHOLDER', 'declared_parameters', 'node_usage',
            'per_parameter_description', 'wrap_text']
@@ -137,7 +137,9 @@ def node_usage() -> str:
     table = declared_parameters()
     for entry in table:
         if entry.origin == 'config':
-            flags = ', read-only' if entry.read_only else ''
+            flags = ', read-only' if entry.read_only else (
+                ', set while unconfigured' if CONFIGURE_ONLY_CONSTRAINT in entry.constraints
+                else '')
             lines.append(f'  {entry.name} ({entry.kind}{flags}, default {entry.default!r})')
             lines.append(wrap_text(entry.description, '      '))
     lines.append('per model parameter <name> (a mapping in a params file, e.g. baseline: {J: '

@@ -10,12 +10,14 @@ A parameter update is validated by :class:`~ctid_ros.streaming.config.Identifica
 whose resource limits are checked before anything is allocated, in a helper thread with a time
 bound (:data:`VALIDATION_TIMEOUT`, :func:`bounded`), so a model text that takes long to analyse
 cannot block the executor; the parameter callback never waits for an estimate. Unconfigured,
-an update is accepted as it is and validated on configure, as nav2 does.
+an update is accepted as it is and validated on configure, as nav2 does; the parameters read
+at configure (topics, stamp source, QoS: ``configure_only``) change only then.
 
 :class:`ParameterHandling` is the part of the identification node that does this; it reads
 and replaces the node's configuration, sampler and buffer (``_config``, ``_sampler``,
 ``_buffer`` under ``_lock``) and asks the node to follow a new configuration through the
-methods :meth:`_follow_topics` and :meth:`_follow_outputs`.
+methods :meth:`_follow_topics` and :meth:`_follow_outputs`; new field paths are checked
+against the types published on the topics (:meth:`_unreadable_fields`).
 """
 
 import math
@@ -45,6 +47,8 @@ VALIDATION_TIMEOUT = 5.0
 BUFFER_PARAMETERS = ('window', 'sample_time', 'max_gap', 'reorder_horizon', 'transient',
                      'max_message_rate')
 _INT64_MAX = 2 ** 63 - 1
+# Parameters read at configure, fixed while the node is configured.
+_CONFIGURE_ONLY = frozenset(spec.name for spec in PARAMETERS if spec.configure_only)
 _ARRAY_TYPES = {'string_array': Parameter.Type.STRING_ARRAY}
 
 
@@ -145,6 +149,22 @@ def changed_parameters(old: IdentificationConfig, new: IdentificationConfig) -> 
                           if before.get(name) != after.get(name))
 
 
+def _refuse_configure_only(config: IdentificationConfig, changes: Mapping[str, Any]) -> None:
+    """
+    Refuse a change of a parameter read at configure while the node is configured.
+
+    The topics, the stamp source and the QoS make the subscriptions and the streams' labels; a
+    managed node takes new values between cleanup and configure (as nav2 nodes read theirs at
+    configure), a plain node at start-up. The same value again is no change.
+    """
+    fixed = sorted(name for name, value in changes.items()
+                   if name in _CONFIGURE_ONLY and value != config.value(name))
+    if fixed:
+        raise ConfigError(f'{", ".join(fixed)}: read-only while the node is configured; a '
+                          'managed node (lifecycle: true) takes a new value between cleanup '
+                          'and configure, a plain node at start-up')
+
+
 class ParameterHandling:
     """
     Reading the parameters at configure and following their runtime changes.
@@ -177,8 +197,10 @@ class ParameterHandling:
             changes = {name: defaults.get(name, math.nan) if value is None else value
                        for name, value in changes.items()}
             current = self._config
+            _refuse_configure_only(current, changes)
             config = bounded(lambda: current.updated(changes), VALIDATION_TIMEOUT,
                              self._validating)
+            self._check_fields(current, config)
             baseline = self._changed_baseline(current, config, changes)
             if changed_parameters(current, config):
                 # The same values again (the declaration of baseline.<name> for a new model, a
@@ -196,6 +218,21 @@ class ParameterHandling:
             self._internal_error('parameter update', error)
             return SetParametersResult(successful=False, reason=f'internal error: {error!r}')
         return SetParametersResult(successful=True)
+
+    def _check_fields(self, old: IdentificationConfig, new: IdentificationConfig) -> None:
+        """
+        Refuse new field paths that no published type has, where the old ones are read.
+
+        Such a change would stop the estimates while the publishers go on; where the old
+        paths fit no published type either (or a topic has no publisher yet), it is accepted
+        and followed as the types come.
+        """
+        if (new.input_fields, new.output_field) == (old.input_fields, old.output_field):
+            return
+        unreadable = self._unreadable_fields(new)
+        if unreadable is not None and self._unreadable_fields(old) is None:
+            raise ConfigError(f'{unreadable}; the node keeps reading '
+                              f'{", ".join(old.input_fields)} and {old.output_field}')
 
     def _changed_baseline(self, old: IdentificationConfig, new: IdentificationConfig,
                           changes: Mapping[str, Any]) -> Optional[Tuple[Optional[Baseline], str]]:

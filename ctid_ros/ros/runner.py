@@ -20,6 +20,7 @@ interpreter's final garbage collection is skipped (``gc.freeze``): it was most o
 """
 
 import gc
+import re
 import signal
 import sys
 import threading
@@ -30,14 +31,18 @@ from ctid_ros.ros.command_line import command_line
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-__all__ = ['SIGNAL_LATENCY', 'run_node']
+__all__ = ['SIGNAL_LATENCY', 'init_problem', 'run_node']
 
 # Longest wait of the executor between two looks at the stop flag (seconds).
 SIGNAL_LATENCY = 0.1
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# Where in rcl's sources an error arose, as rcl appends it to its messages.
+_RCL_LOCATION = re.compile(r',? at /\S+:\d+')
+_MIXED_LIST = re.compile(r'Sequence should be of same type\..*?line_num (\d+)')
 
 
 def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] = None,
@@ -49,7 +54,8 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
     any other argument outside ``--ros-args`` is an error (status 2), and so are an
     environment ROS cannot start in (:func:`~ctid_ros.ros.command_line.command_line`) and a
     configuration the node refuses to start with (any of the library's errors, a model text
-    that does not parse among them: one message, no traceback). A signal returns 0 within
+    that does not parse among them: one message, no traceback), and so are ROS arguments rcl
+    refuses (a params file it cannot parse: :func:`init_problem`). A signal returns 0 within
     :data:`SIGNAL_LATENCY` plus the callback in progress and the node's own
     ``destroy_node``; the handlers of both signals are restored on return.
     """
@@ -57,6 +63,11 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
     status = command_line(arguments, name, usage)
     if status is not None:
         return status
+    try:
+        rclpy.init(args=arguments, signal_handler_options=SignalHandlerOptions.NO)
+    except rclpy_implementation.RCLError as error:
+        print(f'{name}: error: {init_problem(str(error))}', file=sys.stderr)
+        return 2
     stop = threading.Event()
     previous = {number: signal.signal(number, lambda number, frame: stop.set())
                 for number in _SIGNALS}
@@ -71,9 +82,26 @@ def run_node(factory: Callable[[], Node], name: str, args: Optional[List[str]] =
         gc.freeze()
 
 
+def init_problem(text: str) -> str:
+    """
+    Say in one line why rcl refused the ROS arguments (a params file it cannot parse).
+
+    rcl types a YAML list by its elements and refuses one that mixes integers and doubles
+    (``lower: [0.001, 0, 0]``), which the node itself would accept as doubles: that case
+    gets what to write instead.
+    """
+    text = _RCL_LOCATION.sub('', text).strip()
+    text = text.replace('failed to initialize rcl: ', '', 1)
+    mixed = _MIXED_LIST.search(text)
+    if mixed is not None:
+        text += (f' (line {mixed.group(1)}: a list mixes integers and doubles, which ROS 2 '
+                 'refuses; write every number of a list of doubles with a decimal point, '
+                 '0.0 and not 0)')
+    return f'ROS cannot start with these arguments: {text}'
+
+
 def _spin(factory: Callable[[], Node], name: str, arguments: List[str],
           stop: threading.Event) -> int:
-    rclpy.init(args=arguments, signal_handler_options=SignalHandlerOptions.NO)
     context = rclpy.get_default_context()
     executor = SingleThreadedExecutor()
     node: Optional[Node] = None

@@ -26,6 +26,7 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple
 from ctid_ros.errors import ConfigError
 from ctid_ros.ros.messages import field_problem, import_message
 from ctid_ros.streaming.buffer import INPUT
+from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import count_change
 from ctid_ros.streaming.message_fields import parse_field_path
 from ctid_ros.streaming.sampler import ROLES
@@ -38,6 +39,14 @@ __all__ = ['Counters', 'RELIABILITY', 'TOPIC_CHECK_PERIOD', 'TopicIntake']
 TOPIC_CHECK_PERIOD = 0.5
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE,
                'best_effort': ReliabilityPolicy.BEST_EFFORT}
+
+
+def _importable(type_name: str) -> bool:
+    try:
+        import_message(type_name)
+    except ConfigError:
+        return False
+    return True
 
 
 class Counters:
@@ -57,18 +66,44 @@ class TopicIntake:
     A part of :class:`~ctid_ros.ros.node.IdentificationNode`, not usable alone.
     """
 
-    def _paths(self, topic: str) -> List[Any]:
-        config, sampler = self._config, self._sampler
+    def _paths(self, topic: str, config: Optional[IdentificationConfig] = None) -> List[Any]:
+        """Return the parsed field paths of ``topic`` (of ``config``, default the node's)."""
+        config = config or self._config
         paths = []
-        for role in sampler.roles(topic):
+        for role in self._sampler.roles(topic):
             fields = config.input_fields if role == INPUT else (config.output_field,)
             paths.extend(parse_field_path(path) for path in fields)
         return paths
 
-    def _choose_type(self, topic: str, types: List[str], current: Optional[str]
+    def _published_types(self, topic: str) -> List[str]:
+        return list(dict.fromkeys(info.topic_type for info in
+                                  self.get_publishers_info_by_topic(topic)))
+
+    def _unreadable_fields(self, config: IdentificationConfig) -> Optional[str]:
+        """
+        Say why no type published on one of the topics holds the fields of ``config``.
+
+        None if every topic has a fitting type, or has no publisher yet, or a type this
+        process cannot import: those are learnt, and the fields checked, when they are read.
+        A runtime change to fields that no publisher's type has would stop the estimates
+        while the publishers go on; it is refused instead.
+        """
+        for topic in dict.fromkeys(self._sampler.topics):
+            types = self._published_types(topic)
+            if not types or not all(map(_importable, types)):
+                continue
+            choice, _, problems = self._choose_type(topic, types, None, config)
+            if choice is None:
+                misfits = '; '.join(f'{name}: {problem}' for name, problem in problems.items())
+                return (f'no type published on {topic} has the field(s) '
+                        f'{", ".join(map(str, self._paths(topic, config)))}: {misfits}')
+        return None
+
+    def _choose_type(self, topic: str, types: List[str], current: Optional[str],
+                     config: Optional[IdentificationConfig] = None
                      ) -> Tuple[Optional[str], Optional[type], Dict[str, str]]:
         """Return the type to read ``topic`` as (None if none fits), its class, the misfits."""
-        paths = self._paths(topic)
+        paths = self._paths(topic, config)
         fitting: Dict[str, type] = {}
         problems: Dict[str, str] = {}
         for name in types:
@@ -101,8 +136,7 @@ class TopicIntake:
             return
         for topic in dict.fromkeys(self._sampler.topics):
             roles = self._sampler.roles(topic)
-            types = list(dict.fromkeys(info.topic_type for info in
-                                       self.get_publishers_info_by_topic(topic)))
+            types = self._published_types(topic)
             subscribed = self._topic_subscriptions.get(topic)
             current = subscribed[1] if subscribed else None
             if not types:

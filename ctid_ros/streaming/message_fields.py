@@ -40,9 +40,9 @@ from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.contract import NANOSECONDS
 import numpy as np
 
-__all__ = ['FieldPath', 'NAME_FIELDS', 'Step', 'Key', 'extract', 'extract_values',
-           'has_header_stamp', 'message_fields', 'message_stamp', 'parse_field_path',
-           'sample_stamp', 'sample_stamps']
+__all__ = ['FieldPath', 'MissingElementError', 'NAME_FIELDS', 'Step', 'Key', 'extract',
+           'extract_values', 'has_header_stamp', 'message_fields', 'message_stamp',
+           'parse_field_path', 'sample_stamp', 'sample_stamps']
 
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
 _KEY = r'[A-Za-z0-9_./:-]*[A-Za-z_][A-Za-z0-9_./:-]*'
@@ -194,6 +194,18 @@ def _listed(names: Sequence[str]) -> str:
     return (shown + (f' and {more} more' if more > 0 else '')) if names else 'none (empty)'
 
 
+class MissingElementError(ConfigError):
+    """
+    A message lacks the element a field path selects (a joint, an index).
+
+    The joint is not in its names, or the index is past the end of its array. Another
+    message of the same topic may have it (``/joint_states`` of several drivers, an ``effort``
+    array a driver leaves empty at times), so the replay skips and counts such a message, as
+    the live node does, where a path the message type cannot have raises its
+    :class:`ConfigError` at once.
+    """
+
+
 def _named_index(path: FieldPath, depth: int, parent, key: Key) -> int:
     """Return the index of ``key`` in the name list next to the array at ``depth``."""
     where = _location(path, depth)
@@ -210,8 +222,8 @@ def _named_index(path: FieldPath, depth: int, parent, key: Key) -> int:
     try:
         return names.index(key.name)
     except ValueError:
-        raise ConfigError(f'field {path}: no joint {key.name!r} in {field}; names seen: '
-                          f'{_listed(names)}') from None
+        raise MissingElementError(f'field {path}: no joint {key.name!r} in {field}; names '
+                                  f'seen: {_listed(names)}') from None
 
 
 def extract(message, path: Union[FieldPath, str]) -> float:
@@ -235,8 +247,10 @@ def extract(message, path: Union[FieldPath, str]) -> float:
     ------
     ConfigError
         If a field does not exist (the message lists the fields available at that level), an
-        index is out of range (the message gives the array length), an index is applied to a
-        non-array, or the value reached is not a number.
+        index is applied to a non-array, or the value reached is not a number.
+    MissingElementError
+        If an index is out of range (the message gives the array length) or a joint is not in
+        the message's names (the message lists them).
 
     """
     if not isinstance(path, FieldPath):
@@ -258,8 +272,8 @@ def extract(message, path: Union[FieldPath, str]) -> float:
         index = step if isinstance(step, int) else _named_index(path, depth, parent, step)
         if index >= len(value):
             named = '' if isinstance(step, int) else f' (of {str(step)!r})'
-            raise ConfigError(f'field {path}: index {index}{named} out of range for {where}, '
-                              f'an array of length {len(value)}')
+            raise MissingElementError(f'field {path}: index {index}{named} out of range for '
+                                      f'{where}, an array of length {len(value)}')
         parent, value = None, value[index]
     # numpy's bool is no numbers.Real: the elements of a bool[] that rosbags decodes.
     if isinstance(value, (numbers.Real, np.bool_)):

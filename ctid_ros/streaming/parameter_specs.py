@@ -24,8 +24,9 @@ from typing import Any, Optional, Tuple
 
 from ctid_ros.core.limits import MAX_SAMPLES
 
-__all__ = ['DEFAULT_NODE_NAME', 'ESTIMATION_METHODS', 'INITIAL_STATES', 'INTERSAMPLE',
-           'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES', 'MAX_DURATION',
+__all__ = ['CONFIGURE_ONLY_CONSTRAINT', 'DEFAULT_NODE_NAME', 'ESTIMATION_METHODS',
+           'INITIAL_STATES', 'INTERSAMPLE', 'MAX_BASELINE_WINDOWS', 'MAX_BUFFER_BYTES',
+           'MAX_DURATION',
            'MAX_FALSE_ALARM_PER_HOUR', 'MAX_ITERATIONS', 'MAX_MESSAGE_RATE', 'MAX_QOS_DEPTH',
            'MAX_COMPARE_EVERY', 'MAX_RELATIVE_CHANGE', 'MAX_TUNE_DRAWS',
            'MIN_FALSE_ALARM_PER_HOUR', 'MIN_MAX_GAP',
@@ -34,6 +35,9 @@ __all__ = ['DEFAULT_NODE_NAME', 'ESTIMATION_METHODS', 'INITIAL_STATES', 'INTERSA
            'TUNE_CONTROLLERS', 'TUNE_METHODS', 'field_name', 'per_parameter_name']
 
 DEFAULT_NODE_NAME = 'ctid_node'
+# The constraint of a parameter read at configure, as ros2 param describe shows it.
+CONFIGURE_ONLY_CONSTRAINT = ('changes only while unconfigured (a managed node: cleanup, set, '
+                             'configure)')
 STAMP_SOURCES = ('header', 'receive')
 RELIABILITIES = ('best_effort', 'reliable')
 ESTIMATION_METHODS = ('iv', 'ls', 'gn')
@@ -101,7 +105,11 @@ class ParameterSpec:
     choices : tuple of str
         Allowed values of a string parameter (empty: any).
     read_only : bool
-        True for parameters that only take effect at start-up (topics, QoS).
+        True for a parameter that never changes once the node runs (``lifecycle``).
+    configure_only : bool
+        True for a parameter read when the node is configured and fixed while it is (topics,
+        stamp source, QoS): a managed node takes a new value between cleanup and configure,
+        a plain node only at start-up.
 
     """
 
@@ -112,6 +120,7 @@ class ParameterSpec:
     minimum: Optional[float] = None
     choices: Tuple[str, ...] = ()
     read_only: bool = False
+    configure_only: bool = False
 
     @property
     def type_name(self) -> str:
@@ -122,23 +131,28 @@ class ParameterSpec:
     def constraints(self) -> str:
         """Return the constraints in words, for ``ParameterDescriptor.additional_constraints``."""
         if self.choices:
-            return 'one of: ' + ', '.join(choice or "''" for choice in self.choices)
-        if self.minimum is not None:
-            return f'value >= {self.minimum}'
-        return ''
+            text = 'one of: ' + ', '.join(choice or "''" for choice in self.choices)
+        elif self.minimum is not None:
+            text = f'value >= {self.minimum}'
+        else:
+            text = ''
+        if self.configure_only:
+            text += ('; ' if text else '') + CONFIGURE_ONLY_CONSTRAINT
+        return text
 
 
 def _spec(name: str, default: Any, kind: str, description: str, *,
           minimum: Optional[float] = None, choices: Tuple[str, ...] = (),
-          read_only: bool = False) -> ParameterSpec:
-    return ParameterSpec(name, kind, default, description, minimum, choices, read_only)
+          read_only: bool = False, configure_only: bool = False) -> ParameterSpec:
+    return ParameterSpec(name, kind, default, description, minimum, choices, read_only,
+                         configure_only)
 
 
 PARAMETERS: Tuple[ParameterSpec, ...] = (
     _spec(
         'input_topic',
         'u', 'string', 'Topic of the input u (the reference r in closed loop); relative names '
-        'follow the node namespace.', read_only=True),
+        'follow the node namespace.', configure_only=True),
     _spec(
         'input_field',
         'data', 'string', "Field of the input message holding the value, e.g. 'data', "
@@ -146,7 +160,7 @@ PARAMETERS: Tuple[ParameterSpec, ...] = (
     _spec(
         'output_topic',
         'y', 'string', 'Topic of the measured output y; may equal input_topic when one '
-        'message carries both (e.g. /joint_states).', read_only=True),
+        'message carries both (e.g. /joint_states).', configure_only=True),
     _spec(
         'output_field',
         'data', 'string', "Field of the output message holding the value, e.g. 'position[0]'."),
@@ -217,15 +231,15 @@ PARAMETERS: Tuple[ParameterSpec, ...] = (
         'stamp_source',
         'header', 'string', "'header': use header.stamp when the message has a non-zero one, "
         "else the receive time; 'receive': always the receive time.", choices=STAMP_SOURCES,
-        read_only=True),
+        configure_only=True),
     _spec(
         'qos_reliability',
         'best_effort', 'string', 'Subscription reliability; best_effort also matches reliable '
-        'publishers.', choices=RELIABILITIES, read_only=True),
+        'publishers.', choices=RELIABILITIES, configure_only=True),
     _spec(
         'qos_depth',
         500, 'integer', f'Subscription queue depth (keep last, at most {MAX_QOS_DEPTH}); deep, so '
-        'bursts are not lost.', minimum=1, read_only=True),
+        'bursts are not lost.', minimum=1, configure_only=True),
     _spec(
         'max_message_rate',
         1000.0, 'double', 'Highest message rate (Hz) per topic the live sample buffer is sized '

@@ -29,10 +29,10 @@ from typing import Any, Callable, Iterable, Iterator, List, NamedTuple, Optional
 from ctid_ros.errors import DataError, EstimationError
 from ctid_ros.streaming.alarm import AlarmStatus, ChangeDetector
 from ctid_ros.streaming.baseline import configured_baseline
-from ctid_ros.streaming.buffer import BufferStats, resample
+from ctid_ros.streaming.buffer import BufferStats, INPUT, OUTPUT, resample
 from ctid_ros.streaming.config import IdentificationConfig
 from ctid_ros.streaming.contract import failure_status, NANOSECONDS, resolve_topic
-from ctid_ros.streaming.sampler import MessageSampler
+from ctid_ros.streaming.sampler import FieldErrors, message_type, MessageSampler
 from ctid_ros.streaming.session import buffer_capacity, IdentificationSession, Update
 import numpy as np
 
@@ -79,6 +79,9 @@ class Replay:
     alarms : list of AlarmStatus
         Sliding mode: the change alarm after each update (same length as ``updates``);
         empty in the default mode.
+    warnings : list of str
+        What the replay skipped: messages that lack the selected element, per stream
+        (:meth:`~ctid_ros.streaming.sampler.FieldErrors.warnings`).
 
     """
 
@@ -87,6 +90,7 @@ class Replay:
     messages: int
     skipped: List[SkippedTick]
     alarms: List[AlarmStatus] = field(default_factory=list)
+    warnings: List[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -109,6 +113,9 @@ class SampleColumns:
         Input values: one per sample, or a row per sample for several inputs.
     output_values : ndarray
         Output values.
+    field_errors : FieldErrors, optional
+        The block's messages read and skipped per stream; None: every message of the block
+        on a stream's topic gave its sample.
 
     """
 
@@ -119,6 +126,15 @@ class SampleColumns:
     output_index: np.ndarray
     output_stamps: np.ndarray
     output_values: np.ndarray
+    field_errors: Optional[FieldErrors] = None
+
+    def count_into(self, errors: FieldErrors) -> None:
+        """Add the block's messages read and skipped to ``errors``."""
+        if self.field_errors is not None:
+            errors.merge(self.field_errors)
+        else:
+            errors.read[INPUT] += self.input_index.size
+            errors.read[OUTPUT] += self.output_index.size
 
 
 def replay_columns(blocks: Iterable[SampleColumns], config: IdentificationConfig, *,
@@ -160,9 +176,12 @@ def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
                   sampler: MessageSampler) -> Replay:
     parts: List[SampleColumns] = []
     count = 0
+    errors = FieldErrors(sampler.names)
     for block in blocks:
         count += block.log_time_ns.size
+        block.count_into(errors)
         parts.append(block)
+    errors.check()
     inputs = len(config.input_fields)
     u_stamps = np.concatenate([np.zeros(0, np.int64)] + [part.input_stamps for part in parts])
     y_stamps = np.concatenate([np.zeros(0, np.int64)] + [part.output_stamps for part in parts])
@@ -176,7 +195,7 @@ def _columns_span(blocks: Iterable[SampleColumns], config: IdentificationConfig,
                              max_gap=config.max_gap, reorder_horizon=config.reorder_horizon,
                              names=sampler.names)
     update = IdentificationSession(config).update(window)
-    return Replay([update], stats, count, [])
+    return Replay([update], stats, count, [], warnings=errors.warnings())
 
 
 def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConfig,
@@ -189,6 +208,7 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
     newest: Optional[int] = None
     last: Optional[int] = None
     count = 0
+    errors = FieldErrors(sampler.names)
 
     def add(block: SampleColumns, first: int, stop: int) -> None:
         """Admit the samples of messages ``first`` to ``stop - 1`` of the block."""
@@ -199,6 +219,7 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
 
     for block in blocks:
         times = block.log_time_ns
+        block.count_into(errors)
         if not times.size:
             continue
         count += times.size
@@ -220,7 +241,8 @@ def _columns_sliding(blocks: Iterable[SampleColumns], config: IdentificationConf
         newest, last = int(reached[-1]), int(times[-1])
     if tick is not None and tick <= last:
         ticks.fire(tick)
-    return ticks.result(count)
+    errors.check()
+    return ticks.result(count, errors.warnings())
 
 
 class _Ticks:
@@ -242,13 +264,14 @@ class _Ticks:
             return
         self.alarms.append(self.detector.update(self.updates[-1]))
 
-    def result(self, count: int) -> Replay:
+    def result(self, count: int, warnings: List[str]) -> Replay:
         """Return the replay of ``count`` messages; no estimate at all is an error."""
         if not self.updates:
             reason = self.skipped[-1].reason if self.skipped else (
                 f'the span is shorter than update_period ({self.config.update_period:g} s)')
             raise DataError(f'no estimate in the whole replay: {reason}')
-        return Replay(self.updates, self.buffer.stats(), count, self.skipped, self.alarms)
+        return Replay(self.updates, self.buffer.stats(), count, self.skipped, self.alarms,
+                      warnings)
 
 
 def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: IdentificationConfig, *,
@@ -297,6 +320,8 @@ def replay_messages(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     ------
     ConfigError
         On the first message whose field path does not exist (the message lists its fields),
+        at the end if no message of a stream has the selected element (a joint, an index;
+        messages without it are otherwise skipped and counted in :attr:`Replay.warnings`),
         or a ``baseline_file`` that exists but cannot be read.
     DataError
         If a stream has no sample, or no window could be estimated.
@@ -318,15 +343,17 @@ def _replay_span(messages: Iterable[Tuple[str, int, Any]], config: Identificatio
     # Compact typed arrays: the span is kept whole, the messages are not.
     streams = ((array('q'), array('d')), (array('q'), array('d')))
     count = 0
+    errors = FieldErrors(sampler.names)
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         count += 1
         sample = sampler(topic, log_time_ns, msg)
-        sample.check()
+        errors.add(sample, sampler.roles(topic), message_type(msg))
         for (stamps, samples), value in zip(streams, (sample.u, sample.y)):
             if value is not None:
                 stamps.append(sample.stamp_ns)
                 samples.extend(np.atleast_1d(value))
     names = sampler.names
+    errors.check()
     _require_samples(streams, names)
     (u_stamps, u), (y_stamps, y) = streams
     inputs = len(config.input_fields)
@@ -337,7 +364,7 @@ def _replay_span(messages: Iterable[Tuple[str, int, Any]], config: Identificatio
                              max_gap=config.max_gap, reorder_horizon=config.reorder_horizon,
                              names=names)
     update = IdentificationSession(config).update(window)
-    return Replay([update], stats, count, [])
+    return Replay([update], stats, count, [], warnings=errors.warnings())
 
 
 def _require_samples(streams: Sequence[Tuple[array, array]], names: Sequence[str]) -> None:
@@ -354,6 +381,7 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
     period_ns = round(config.update_period * NANOSECONDS)
     tick: Optional[int] = None
     count = 0
+    errors = FieldErrors(sampler.names)
     for topic, log_time_ns, msg in _relevant(messages, sampler.topics):
         if tick is None:
             tick = log_time_ns + period_ns
@@ -363,8 +391,9 @@ def _replay_sliding(messages: Iterable[Tuple[str, int, Any]], config: Identifica
             tick += period_ns
         count += 1
         sample = sampler(topic, log_time_ns, msg)
-        sample.check()
+        errors.add(sample, sampler.roles(topic), message_type(msg))
         sample.add_to(buffer)
     if tick is not None and tick <= log_time_ns:
         ticks.fire(tick)
-    return ticks.result(count)
+    errors.check()
+    return ticks.result(count, errors.warnings())

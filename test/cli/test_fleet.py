@@ -10,6 +10,7 @@ change, the empty span an error row, a resumed run skipping every span without o
 """
 
 from pathlib import Path
+import re
 
 from ctid_ros.cli.fleet import run_fleet
 from ctid_ros.cli.fleet_report import combine, flag_robots
@@ -284,6 +285,8 @@ def test_a_byte_identical_copy_counts_once_and_a_cut_bag_says_so(tmp_path, capsy
     cut = bags / 'r3' / 'cut.mcap'
     cut.parent.mkdir()
     cut.write_bytes((directory / 'run.mcap').read_bytes()[:2000])  # inside its first chunk
+    nothing = bags / 'r3' / 'nothing.mcap'
+    nothing.write_bytes((directory / 'run.mcap').read_bytes()[:60])  # inside its header
     params = params_file(tmp_path, DELAY, input_topic='/plant/cmd', input_field='effort')
     code = main(['fleet', str(bags), '--params-file', str(params), '--results',
                  str(tmp_path / 'results'), '--threads', '--workers', '1', '--no-plots'])
@@ -291,12 +294,18 @@ def test_a_byte_identical_copy_counts_once_and_a_cut_bag_says_so(tmp_path, capsy
     assert code == 0, captured.err
     assert f'{bags}/r1/run.bag is a byte-identical copy of {bags}/r0/run.bag' in captured.err
     assert f'{bags}/r2/run_copy is a byte-identical copy of {bags}/r2/run' in captured.err
-    assert 'ctid fleet: 4 bags (2 copies counted once): 4 analysed' in captured.out
+    assert 'ctid fleet: 5 bags (2 copies counted once): 5 analysed' in captured.out
     rows = {row['bag']: row for row in pq.read_table(tmp_path / 'results' / 'bags.parquet')
             .to_pylist()}
-    assert set(rows) == {'r0/run.bag', 'r1/other.bag', 'r2/run', 'r3/cut.mcap'}
+    assert set(rows) == {'r0/run.bag', 'r1/other.bag', 'r2/run', 'r3/cut.mcap',
+                         'r3/nothing.mcap'}
+    # The messages before the cut are read, too few for an estimate: the row says both.
     assert rows['r3/cut.mcap']['status'] == 'error'
-    assert 'is truncated or damaged, and nothing is readable' in rows['r3/cut.mcap']['error']
+    assert re.search(r'is truncated or corrupted: the file ends in the middle of a chunk, of '
+                     r'which \d+ messages are read up to the cut', rows['r3/cut.mcap']['error'])
+    assert rows['r3/nothing.mcap']['status'] == 'error'
+    assert 'is truncated or damaged, and nothing is readable' in \
+        rows['r3/nothing.mcap']['error']
 
 
 def _converted(bag, tmp_path):

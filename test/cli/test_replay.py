@@ -25,8 +25,9 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
-from replay_fixtures import (CLOSED_LOOP, DELAY, float_records, joint_state_records, OPEN_LOOP,
-                             params_file, simulate, STEP_NS, T0_NS, TS, write_bag, write_mcap)
+from replay_fixtures import (CLOSED_LOOP, DELAY, FLOAT64, float_records, joint_state_records,
+                             name_joints, OPEN_LOOP, params_file, simulate, STEP_NS, T0_NS, TS,
+                             write_bag, write_mcap)
 
 
 def replay(capsys, *arguments):
@@ -593,3 +594,75 @@ def test_a_full_disk_under_output_is_one_line_and_leaves_nothing(tmp_path, capsy
         assert code == 2 and out == '' and err.count('\n') == 1, err
         assert f'error: cannot write {output}: No space left on device' in err
         assert list(disk.iterdir()) == []
+
+
+@pytest.mark.parametrize('output', [False, True])
+def test_a_joint_state_topic_of_two_drivers_replays_with_a_warning(tmp_path, capsys,
+                                                                   output):
+    """Every third JointState comes from another driver (no 'joint'): skipped, as live."""
+    u, y = simulate(OPEN_LOOP, 10.0)
+    records = name_joints(joint_state_records(u, y, latency_ns=1_000_000),
+                          [['joint', 'arm'], ['arm', 'joint'], ['wheel_right']])
+    bag = write_bag(tmp_path, records, 'mcap-file')
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]')
+    arguments = ['replay', str(bag), '--params-file', str(params), '--json']
+    arguments += ['--output', str(tmp_path / 'out.mcap')] if output else []
+    code = main(arguments)
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert json.loads(out)['params'] == pytest.approx(OPEN_LOOP['truth'], rel=0.03)
+    assert (f'ctid replay: warning: output /joint_states (position[joint]): '
+            f'{len(records) // 3} of {len(records)} messages skipped, as the live node skips '
+            "them: field position[joint]: no joint 'joint' in name; names seen: "
+            'wheel_right') in err
+
+
+@pytest.mark.parametrize('kind', ['sqlite3', 'mcap'])
+@pytest.mark.parametrize('output', [False, True])
+def test_a_string_publisher_recorded_on_the_output_topic_is_ignored(tmp_path, capsys, kind,
+                                                                    output):
+    """
+    Every tenth instant a std_msgs/String on /plant/y too: ignored, as the live node does.
+
+    The replay stopped at the first String: "field data is not a number: it is a str".
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_typestore, Stores
+
+    u, y = simulate(DELAY, 30.0)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    bag = tmp_path / 'run'
+    plugin = StoragePlugin.SQLITE3 if kind == 'sqlite3' else StoragePlugin.MCAP
+    strings = 0
+    with Writer(bag, version=9, storage_plugin=plugin) as writer:
+        float64 = {topic: writer.add_connection(topic, FLOAT64, typestore=typestore)
+                   for topic in ('/plant/u', '/plant/y')}
+        text = writer.add_connection('/plant/y', 'std_msgs/msg/String', typestore=typestore)
+        for k, record in enumerate(float_records(u, y)):
+            writer.write(float64[record.topic], record.time_ns, typestore.serialize_cdr(
+                typestore.types[FLOAT64](data=record.fields['data']), FLOAT64))
+            if k % 20 == 1:
+                strings += 1
+                writer.write(text, record.time_ns + 1000, typestore.serialize_cdr(
+                    typestore.types['std_msgs/msg/String'](data='calibrating'),
+                    'std_msgs/msg/String'))
+    params = params_file(tmp_path, DELAY)
+    out = tmp_path / 'out.mcap'
+    arguments = ['replay', str(bag), '--params-file', str(params), '--json']
+    code = main(arguments + (['--output', str(out)] if output else []))
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert json.loads(captured.out)['params'] == pytest.approx(DELAY['truth'], rel=0.01)
+    assert (f'ctid replay: warning: output /plant/y (data): {strings} messages of '
+            'std_msgs/msg/String ignored, as the live node ignores a type without the field: '
+            'field data is not a number: it is a str') in captured.err
+    if output:
+        # The copy of /plant/y holds its Float64 messages only: the String bytes do not fit
+        # the channel's schema.
+        with open(out, 'rb') as stream:
+            summary = make_reader(stream).get_summary()
+        counts = {channel.topic: summary.statistics.channel_message_counts[channel.id]
+                  for channel in summary.channels.values()}
+        assert counts['/plant/y'] == counts['/plant/u'] == len(u)

@@ -14,6 +14,7 @@ import hostile_corpus
 import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+import zstandard
 
 RECORDS = make_records(seed=0)
 KINDS = ['sqlite3', 'mcap_dir', 'mcap_file']
@@ -323,11 +324,34 @@ def test_compressed_storage_files_are_checked_before_rosbags_decompresses_them(b
                        r'\(compression_mode: file\) but .*sqlite3.db3 is not'):
         BagReader(bag)
     database = bag / 'sqlite3.db3'
-    # A frame that does not state its size could expand without bound in rosbags.
-    database.write_bytes(hostile_corpus.zeros_zstd(8 << 20, content_size=False))
-    with pytest.raises(BagError, match='decompresses to an unknown size from .* .the ratio '
-                       'limit is 1000.: a decompression bomb'):
+    # A frame that does not state its size is measured, up to the limit (1000 MiB here).
+    database.write_bytes(hostile_corpus.zeros_zstd(1 << 30, content_size=False))
+    with pytest.raises(BagError, match='decompresses to more than 1000 MiB from 32 KiB .the '
+                       'ratio limit is 1000, at least 1000 MiB.: a decompression bomb'):
         BagReader(bag)
+    # Damaged zstd data is named as such.
+    database.write_bytes(hostile_corpus.zeros_zstd(1 << 20)[:-40] + bytes(40))
+    with pytest.raises(BagError, match='is damaged: its zstd data cannot be decompressed'):
+        BagReader(bag)
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_file_compressed_bags_are_read_although_their_frames_state_no_size(tmp_path, storage):
+    """
+    rosbag2 (and rosbags) compress a storage file as a stream: its size is not in the frame.
+
+    Such bags (``ros2 bag record --compression-mode file``) were refused as decompression
+    bombs; they are read whole, and left as they were.
+    """
+    path = tmp_path / 'bag'
+    write_rosbag2(path, RECORDS, storage, compression='file')
+    (stored,) = path.glob('*.zstd')
+    assert zstandard.frame_content_size(stored.read_bytes()[:32]) == -1
+    digest = hashlib.sha256(stored.read_bytes()).hexdigest()
+    with BagReader(path) as bag:
+        assert_records(list(bag.messages()), RECORDS)
+        assert bag.warnings == []
+    assert hashlib.sha256(stored.read_bytes()).hexdigest() == digest
 
 
 def _ros1_bag(tmp_path, seconds=1.0):
@@ -479,3 +503,48 @@ def test_a_bag_without_stored_definitions_is_decoded_with_the_standard_types(bag
             assert_fields(message.msg, record.fields)
         with pytest.raises(BagError, match='not a standard ROS 2 Jazzy type'):
             bag.messages('/plant/sample')
+
+
+def test_messages_in_an_unmerged_sqlite_log_are_read_and_the_bag_left_alone(bags, tmp_path):
+    """
+    A database in WAL mode copied while its recorder wrote (or left by a crash).
+
+    rosbags opens it as immutable, which ignores the log: the last half of the recording was
+    left out without a word.
+    """
+    live = tmp_path / 'live'
+    shutil.copytree(bags['sqlite3'], live)
+    database = live / 'sqlite3.db3'
+    half = RECORDS[len(RECORDS) // 2].time_ns
+    connection = sqlite3.connect(database)
+    try:
+        connection.execute('PRAGMA journal_mode=WAL')
+        rows = connection.execute('SELECT topic_id, timestamp, data FROM messages WHERE '
+                                  'timestamp >= ? ORDER BY id', (half,)).fetchall()
+        connection.execute('DELETE FROM messages WHERE timestamp >= ?', (half,))
+        connection.commit()
+        connection.execute('PRAGMA wal_checkpoint(TRUNCATE)')
+        connection.executemany('INSERT INTO messages (topic_id, timestamp, data) VALUES '
+                               '(?, ?, ?)', rows)
+        connection.commit()
+        bag = tmp_path / 'bag'
+        bag.mkdir()
+        for name in ('metadata.yaml', 'sqlite3.db3', 'sqlite3.db3-wal'):
+            shutil.copyfile(live / name, bag / name)
+    finally:
+        connection.close()
+    assert (bag / 'sqlite3.db3-wal').stat().st_size > 0
+    digests = {path.name: hashlib.sha256(path.read_bytes()).hexdigest()
+               for path in bag.iterdir()}
+    with BagReader(bag) as reader:
+        assert_records(list(reader.messages()), RECORDS)
+        assert reader.warnings[0] == (
+            f'{bag}/sqlite3.db3-wal holds messages not merged into sqlite3.db3 (the recorder '
+            'did not close the database: a crash, or a copy taken while it was written); they '
+            'are read from a merged copy, the bag is left as it is')
+        assert reader.message_count() == len(RECORDS)
+    assert {path.name: hashlib.sha256(path.read_bytes()).hexdigest()
+            for path in bag.iterdir()} == digests
+    # The .db3 file alone, too.
+    with BagReader(bag / 'sqlite3.db3') as reader:
+        assert reader.message_count() == len(RECORDS)

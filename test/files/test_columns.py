@@ -132,12 +132,48 @@ def test_two_inputs_from_one_message(tmp_path, monkeypatch, named):
 
 
 @pytest.mark.parametrize('kind', KINDS)
-def test_a_joint_missing_from_a_message_raises_the_same_error_there(tmp_path, monkeypatch,
-                                                                    kind):
-    """Columnar up to the message without the joint, which the streaming decoder reports."""
-    u, y = simulate(OPEN_LOOP, 6.0)
-    orders = [['joint', 'arm', 'wheel_right']] * 350 + [['arm', 'wheel_right']] + [['arm']] * 9
+@pytest.mark.parametrize('sliding', [False, True])
+def test_messages_without_the_joint_are_skipped_by_both_paths_as_the_node_skips_them(
+        tmp_path, monkeypatch, kind, sliding):
+    """
+    A /joint_states of several drivers: some messages lack the joint, others its effort.
+
+    Both paths skip those messages (the live node counts them as field errors and goes on),
+    estimate the same on the rest and say how many they skipped; before, the replay stopped at
+    the first such message with no estimate at all.
+    """
+    u, y = simulate(OPEN_LOOP, 12.0)
+    orders = [['joint', 'arm', 'wheel_right']] * 7 + [['arm', 'wheel_right']]
     records = name_joints(joint_state_records(u, y, latency_ns=0), orders)
+    for record in records[5::50]:       # and a driver that leaves effort empty at times
+        record.fields['effort'] = []
+    path = write_bag(tmp_path, records, kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]', window=8.0, update_period=4.0)
+    handed = one_by_one(monkeypatch)
+    streaming, columnar = both(path, params, sliding)
+    assert_same(streaming, columnar)
+    missing = {k for k in range(len(records)) if k % 8 == 7}
+    failed = missing | set(range(5, len(records), 50))
+    assert streaming.warnings == columnar.warnings == [
+        f'input /joint_states (effort[joint]): {len(failed)} of {len(records)} messages '
+        "skipped, as the live node skips them: field effort[joint]: index 0 (of 'joint') out "
+        'of range for effort, an array of length 0',
+        f'output /joint_states (position[joint]): {len(missing)} of {len(records)} messages '
+        "skipped, as the live node skips them: field position[joint]: no joint 'joint' in "
+        'name; names seen: arm, wheel_right']
+    assert sorted(handed) == [records[k].time_ns for k in sorted(failed)]
+    assert streaming.stats.u.received == len(records) - len(failed)
+    assert streaming.stats.y.received == len(records) - len(missing)
+    assert streaming.updates[-1].values == pytest.approx(
+        [OPEN_LOOP['truth'][name] for name in streaming.updates[-1].names], rel=0.03)
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_a_joint_no_message_has_raises_the_same_error_at_the_end(tmp_path, kind):
+    u, y = simulate(OPEN_LOOP, 3.0)
+    records = name_joints(joint_state_records(u, y, latency_ns=0), [['arm', 'wheel_right']])
     path = write_bag(tmp_path, records, kind)
     params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
                          output_topic='/joint_states', input_field='effort[joint]',
@@ -145,16 +181,17 @@ def test_a_joint_missing_from_a_message_raises_the_same_error_there(tmp_path, mo
     config = load_params_file(params, 'ctid_node')
     topics = ('/joint_states', '/joint_states')
     errors = []
-    with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
-        replay_messages(bag.messages(['/joint_states']), config, topics=topics)
-    errors.append(str(raised.value))
-    handed = one_by_one(monkeypatch)
-    with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
-        replay_columns(sample_columns(bag, config, topics), config, topics=topics)
-    errors.append(str(raised.value))
+    for sliding in (False, True):
+        with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
+            replay_messages(bag.messages(['/joint_states']), config, topics=topics,
+                            sliding=sliding)
+        errors.append(str(raised.value))
+        with open_bag(path) as bag, pytest.raises(ConfigError) as raised:
+            replay_columns(sample_columns(bag, config, topics), config, topics=topics,
+                           sliding=sliding)
+        errors.append(str(raised.value))
     assert errors == ["field effort[joint]: no joint 'joint' in name; names seen: arm, "
-                      'wheel_right'] * 2
-    assert handed == [records[350].time_ns]
+                      'wheel_right'] * 4
 
 
 def test_a_wrong_field_path_raises_the_same_error(tmp_path):
@@ -224,3 +261,28 @@ def test_blocks_of_a_long_bag_stay_small(tmp_path):
                  for block in sample_columns(bag, config, ('/plant/u', '/plant/y'))]
     assert sum(sizes) == 2 * u.size and max(sizes) < 2000
     assert Path(path).exists()
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_unset_header_stamps_are_counted_by_both_paths(tmp_path, kind):
+    """
+    A driver that leaves header.stamp zero now and then: filed under the log time, and said.
+
+    The live node counts them (zero_stamps on /diagnostics); the replay said nothing.
+    """
+    u, y = simulate(OPEN_LOOP, 6.0)
+    records = joint_state_records(u, y, latency_ns=2_000_000)
+    for record in records[3::10]:
+        record.fields['header']['stamp'] = {'sec': 0, 'nanosec': 0}
+    path = write_bag(tmp_path, records, kind)
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[0]',
+                         output_field='position[0]')
+    streaming, columnar = both(path, params, False)
+    assert_same(streaming, columnar)
+    unset = len(records[3::10])
+    assert streaming.warnings == columnar.warnings == [
+        f'{role} /joint_states ({field}): header.stamp unset (zero) in {unset} messages, filed '
+        'under their log time (when the recorder received them), as the live node files them '
+        'under the receive time; a dead time then includes the delay to the recorder'
+        for role, field in (('input', 'effort[0]'), ('output', 'position[0]'))]

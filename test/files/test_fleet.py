@@ -7,10 +7,14 @@ which generated it, a drive whose torque drops to 80 % halfway through shows it 
 after the change, and a span in which nothing was recorded is an error row of its own.
 """
 
+from pathlib import Path
+
 from ctid_ros.files.fleet import (analyse_bag, bag_time_range, BagTask, IDENTITY, make_task,
                                   span_bounds, split_task)
 from fleet_fixtures import TRUTH, write_joint_state_bag, write_params
 import pytest
+from replay_fixtures import (damage_chunk, DELAY, float_records, params_file, simulate,
+                             T0_NS, write_mcap)
 
 S = 10 ** 9
 # Every span's J and b within this fraction of the truth, tau within TAU_TOLERANCE seconds:
@@ -109,3 +113,40 @@ def test_the_key_holds_the_span_and_rows_of_whole_bags_read_as_before(bags):
     # A row of a run without spans has no span columns: missing, they are the whole bag's key.
     row = analyse_bag(task).bag
     assert 'span' not in row and tuple(row.get(name) for name in IDENTITY) == task.key
+
+
+def test_a_bag_with_a_damaged_chunk_is_estimated_on_the_messages_before_it(tmp_path):
+    """
+    As ``ctid replay`` does: the damage is a warning of the row, not an error row.
+
+    The fleet lost such a bag ("chunk CRC mismatch: damaged") that the replay estimates.
+    """
+    u, y = simulate(DELAY, 40.0)
+    path = write_mcap(tmp_path / 'run.mcap', float_records(u, y))
+    index = damage_chunk(path, 0.8)
+    params = params_file(tmp_path, DELAY).read_text()
+    row = analyse_bag(make_task(path, tmp_path, None, params, 'ctid_node', False)).bag
+    assert row['status'] == 'ok', row['error']
+    assert f'{path} is corrupted at byte {index.chunk_start_offset} and cannot be read ' \
+        'further' in row['warnings']
+    assert 'estimating from the messages before it' in row['warnings']
+    # The data end before the damaged chunk, which starts at about 80 % of the 40 s.
+    assert 25 * S < row['end'] - T0_NS <= index.message_start_time - T0_NS
+    for name in ('K', 'T', 'tau'):
+        assert row[name] == pytest.approx(DELAY['truth'][name], rel=0.01)
+
+
+@pytest.mark.parametrize('name', ['service_events_sqlite3', 'service_events_mcap'])
+def test_a_topic_that_cannot_be_read_is_said_as_such_not_as_damage(tmp_path, name):
+    # rosbag2's own bags: a service-event topic as the output. Read like a damaged chunk, the
+    # row said "no messages of the input ... in the selected span" first.
+    bag = Path(__file__).parents[1] / 'data' / 'bags' / name
+    params = params_file(tmp_path, DELAY, input_topic='/test_topic1',
+                         input_field='int32_value', output_topic='/test_service1/_service_event',
+                         output_field='info.event_type').read_text()
+    row = analyse_bag(make_task(bag, bag.parent, None, params, 'ctid_node', False)).bag
+    assert row['status'] == 'error'
+    where, _, reason = row['error'].partition(': ')
+    assert where.startswith(str(bag)), row['error']
+    assert reason.startswith('/test_service1/_service_event carries service events'), \
+        row['error']

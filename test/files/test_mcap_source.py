@@ -17,8 +17,10 @@ import hostile_corpus
 import lz4.frame
 from mcap.reader import make_reader
 from mcap.records import Chunk
-from mcap.writer import Writer as McapWriter
+from mcap.writer import CompressionType, Writer as McapWriter
 import pytest
+from replay_fixtures import damage_chunk, DELAY, float_records, simulate
+from replay_fixtures import write_mcap as write_replay_mcap
 import zstandard
 
 RECORDS = make_records(seed=0)
@@ -279,3 +281,46 @@ def test_a_chunk_of_more_messages_than_one_gather_is_located_exactly(tmp_path, m
     assert indexed == _raw_messages(damaged, ['/u', '/y'], *window) and len(walks) == 1
     assert [(topic, struct.unpack_from('<d', data, 4)[0]) for topic, _, data in indexed] == [
         (('/u', '/y')[k % 2], k) for k in range(3, 60_000)]
+
+
+def test_a_chunk_failing_its_crc_is_named_with_the_file_and_its_place(tmp_path):
+    # The CRC mismatch of an uncompressed chunk said only "chunk CRC mismatch: damaged".
+    u, y = simulate(DELAY, 10.0)
+    path = write_replay_mcap(tmp_path / 'run.mcap', float_records(u, y),
+                             compression=CompressionType.NONE)
+    index = damage_chunk(path, 0.5)
+    with BagReader(path) as bag, pytest.raises(BagError) as raised:
+        for _ in bag.messages():
+            pass
+    assert str(raised.value) == (f'{path} is corrupted at byte {index.chunk_start_offset} and '
+                                 'cannot be read further: chunk CRC mismatch: damaged')
+
+
+@pytest.mark.parametrize('compression, share', [(CompressionType.NONE, 0.55),
+                                                (CompressionType.ZSTD, 0.2),
+                                                (CompressionType.LZ4, 0.2)])
+def test_a_chunk_cut_short_yields_its_whole_records_before_the_cut(tmp_path, compression,
+                                                                   share):
+    """
+    A recording in one chunk (as rosbags writes a small bag), its file cut at 70 %.
+
+    Nothing was read ("cut before its first complete chunk"); now every whole record of an
+    uncompressed chunk before the cut, and the whole blocks of a zstd or lz4 one.
+    """
+    u, y = simulate(DELAY, 40.0)
+    records = float_records(u, y)
+    path = write_replay_mcap(tmp_path / 'run.mcap', records, chunk_size=1 << 24,
+                             compression=compression)
+    with open(path, 'rb') as stream:
+        (index,) = make_reader(stream).get_summary().chunk_indexes
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(path.read_bytes()[:index.chunk_start_offset + int(0.7 * index.chunk_length)])
+    with BagReader(cut) as bag:
+        messages = list(bag.messages())
+        assert bag.truncated
+        assert f'the file ends in the middle of a chunk, of which {len(messages)} messages are ' \
+            'read up to the cut' in bag.warnings[0]
+    assert share * len(records) < len(messages) < 0.75 * len(records)
+    assert [(m.topic, m.log_time_ns) for m in messages] == \
+        [(r.topic, r.time_ns) for r in records[:len(messages)]]
+    assert [m.msg.data for m in messages] == [r.fields['data'] for r in records[:len(messages)]]

@@ -299,6 +299,15 @@ def test_no_writing_into_pipes_or_devices(tmp_path):
         RecordingWriter(full, overwrite=True)
 
 
+def test_a_recording_named_otherwise_than_mcap_is_refused_as_such(tmp_path):
+    # `ctid record run /u` said "estimate output run must end in .mcap": no estimate there.
+    with pytest.raises(BagError) as raised:
+        RecordingWriter(tmp_path / 'run', overwrite=True)
+    assert str(raised.value) == (f'cannot write {tmp_path / "run"}: the name must end in .mcap '
+                                 '(an MCAP file is written)')
+    assert not (tmp_path / 'run').exists()
+
+
 def test_an_atomic_file_is_complete_or_absent(tmp_path):
     path = tmp_path / 'est.mcap'
     partial = tmp_path / 'est.partial.mcap'

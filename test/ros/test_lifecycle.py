@@ -168,3 +168,49 @@ def test_a_transition_invalid_in_the_state_is_refused_and_the_node_runs_on(ros):
     assert running and status == 0, log
     assert 'Traceback' not in log and 'RCLError' not in log, log
     assert log.count('is not available in state') == 4, log
+
+
+@pytest.mark.ros
+def test_cleanup_then_configure_reads_new_topics(ros):
+    """
+    A lifecycle manager moves the node to other topics: cleanup, set them, configure.
+
+    The topics were read-only, so rclpy refused them in every state and only a restart with
+    another params file could move the node; now they change while unconfigured, and a
+    configured node refuses them with the way to do it.
+    """
+    ros.plant(model='K/(T*s + 1)', parameter_names=['K', 'T'], parameter_values=[2.0, 0.5],
+              message_type='point_stamped')
+    ros.plant(model='K/(T*s + 1)', parameter_names=['K', 'T'], parameter_values=[3.0, 0.25],
+              message_type='point_stamped', input_topic='u2', output_topic='y2')
+    node = ros.identifier(**parameters())
+    manager = Manager(ros)
+    client = AsyncParameterClient(ros.observer, manager.node)
+    assert client.wait_for_services(timeout_sec=30.0)
+
+    def set_topics(input_topic, output_topic):
+        future = client.set_parameters([Parameter('input_topic', value=input_topic),
+                                        Parameter('output_topic', value=output_topic)])
+        wait_for(future.done, 30.0, 'set topics')
+        return future.result().results
+
+    assert manager.change(Transition.TRANSITION_CONFIGURE)
+    assert manager.change(Transition.TRANSITION_ACTIVATE)
+    converge(ros, TRUTH, TOLERANCE, timeout=60.0)
+    refused = set_topics('u2', 'y2')[0]
+    assert not refused.successful
+    assert refused.reason == ('input_topic: read-only while the node is configured; a managed '
+                              'node (lifecycle: true) takes a new value between cleanup and '
+                              'configure, a plain node at start-up'), refused.reason
+    assert node.config.input_topic == 'u'
+
+    assert manager.change(Transition.TRANSITION_DEACTIVATE)
+    assert manager.change(Transition.TRANSITION_CLEANUP)
+    assert all(result.successful for result in set_topics('u2', 'y2'))
+    assert manager.change(Transition.TRANSITION_CONFIGURE)
+    assert (node.config.input_topic, node.config.output_topic) == ('u2', 'y2')
+    assert manager.change(Transition.TRANSITION_ACTIVATE)
+    wait_for(lambda: manager.subscribers('u2') == manager.subscribers('y2') == 1
+             and manager.subscribers('u') == manager.subscribers('y') == 0, 60.0,
+             'subscribed to the new topics only')
+    converge(ros, {'K': 3.0, 'T': 0.25}, {'K': 0.03, 'T': 0.005}, timeout=60.0)

@@ -330,3 +330,40 @@ def test_help_prints_usage_instead_of_starting():
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert 'ROS arguments go after --ros-args' in done.stderr
+
+
+@pytest.mark.ros
+def test_a_field_no_published_type_has_is_refused_and_the_estimates_go_on(ros):
+    """
+    ``output_field: point.w`` at run time, with PointStamped published: refused, kept.
+
+    Accepted, it left the node subscribed to nothing (no type fits) and estimating nothing,
+    while the publishers went on; a path the type has (``point.y``) is still accepted.
+    """
+    ros.plant(model='K/(T*s + 1)', parameter_names=['K', 'T'], parameter_values=[2.0, 0.5],
+              message_type='point_stamped')
+    node = ros.identifier(input_topic='u', output_topic='y', input_field='point.x',
+                          output_field='point.x', model='K/(T*s + 1)', parameter_names=['K', 'T'],
+                          sample_time=0.005, window=4.0, update_period=1.0,
+                          qos_reliability='reliable')
+    wait_for(lambda: len(ros.estimates) >= 1, 60.0, 'a first estimate')
+    client = AsyncParameterClient(ros.observer, f'{ros.namespace}/ctid_node')
+    assert client.wait_for_services(timeout_sec=30.0)
+
+    def set_parameter(name, value):
+        future = client.set_parameters([Parameter(name, value=value)])
+        wait_for(future.done, 30.0, 'set_parameters')
+        return future.result().results[0]
+
+    result = set_parameter('output_field', 'point.w')
+    assert not result.successful
+    assert result.reason == (
+        f'no type published on {ros.namespace}/y has the field(s) point.w: '
+        "geometry_msgs/msg/PointStamped: Point has no field 'w'; its fields: x, y, z; the node "
+        'keeps reading point.x and point.x'), result.reason
+    assert node.config.output_field == 'point.x'
+    count = len(ros.estimates)
+    wait_for(lambda: len(ros.estimates) >= count + 2, 60.0, 'estimates after the refusal')
+    assert keys(ros.latest(ros.statuses))['rejected_parameters'] == '1'
+    assert set_parameter('output_field', 'point.y').successful
+    assert node.config.output_field == 'point.y'

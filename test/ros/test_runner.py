@@ -102,3 +102,24 @@ def test_a_plant_that_refuses_its_configuration_says_why_and_ends(name, value, c
     assert run_node(factory, 'ctid_plant', ['ctid_plant']) == 2
     assert capsys.readouterr().err.startswith('ctid_plant: error: ')
     assert dds_threads() <= participants
+
+
+@pytest.mark.parametrize('text, reason', [
+    ('ctid_node:\n  ros__parameters:\n    lower: [0.001, 0, 0]\n',
+     "Value type 'integer' do not belong at line_num 3 (line 3: a list mixes integers and "
+     'doubles, which ROS 2 refuses; write every number of a list of doubles with a decimal '
+     'point, 0.0 and not 0)'),
+    ('ctid_node:\n  ros__parameters:\n    model: [a\n', 'Error parsing a event near line 3')],
+    ids=['mixed list', 'broken YAML'])
+def test_a_params_file_rcl_cannot_parse_is_one_line_and_status_2(tmp_path, capsys, text,
+                                                                 reason):
+    # rclpy.init raised RCLError through run_node: a traceback and status 1 (`ctid node`:
+    # "internal error ... a bug in ctid_ros") for a list as natural as [0.001, 0, 0].
+    path = tmp_path / 'params.yaml'
+    path.write_text(text)
+    arguments = ['ctid_node', '--ros-args', '--params-file', str(path)]
+    assert run_node(IdentificationNode, 'ctid_node', arguments) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ctid_node: error: ROS cannot start with these arguments: Couldn't "
+                          f"parse params file: '--params-file {path}'. Error: ")
+    assert err.rstrip().endswith(reason) and err.count('\n') == 1, err

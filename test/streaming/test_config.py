@@ -52,8 +52,10 @@ def test_parameter_specs_follow_the_contract():
     assert by_name['window'].type_name == 'PARAMETER_DOUBLE'
     assert by_name['initial'].type_name == 'PARAMETER_DOUBLE_ARRAY'
     assert by_name['method'].constraints == 'one of: iv, ls, gn'
-    assert by_name['qos_depth'].constraints == 'value >= 1'
-    assert by_name['input_topic'].read_only and not by_name['model'].read_only
+    assert by_name['input_topic'].configure_only and not by_name['input_topic'].read_only
+    assert by_name['qos_depth'].constraints == 'value >= 1; changes only while unconfigured ' \
+        '(a managed node: cleanup, set, configure)'
+    assert not by_name['model'].read_only and not by_name['model'].configure_only
     assert by_name['lifecycle'].read_only and by_name['hardware_id'].default == ''
 
 

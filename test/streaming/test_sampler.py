@@ -4,7 +4,8 @@ from types import SimpleNamespace
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.config import IdentificationConfig
-from ctid_ros.streaming.sampler import MessageSampler, Sample
+from ctid_ros.streaming.sampler import (FieldErrors, message_type, MessageSampler, Sample,
+                                        WRONG_PATH_MESSAGES)
 import numpy as np
 import pytest
 
@@ -34,14 +35,63 @@ def test_one_topic_carrying_input_and_output():
     sample.add_to(buffer)
     stats = buffer.stats()
     assert (stats.u.accepted, stats.y.accepted) == (1, 1)
-    # A missing entry: counted by the node, raised by the replay; the output still comes.
+    # A missing entry: counted by the node and the replay; the output still comes.
     broken = sampler('/joint_states', T0_NS + 7, joint_state(0, [1.0], [4.0]))
     assert broken.stamp_ns == T0_NS + 7                 # unset header: the receive time
     assert broken.zero_stamp and not sample.zero_stamp  # ... counted as a zero stamp
     assert broken.u is None and broken.y == 4.0
     assert [role for role, _ in broken.errors] == ['input']
-    with pytest.raises(ConfigError, match=r'index 1 out of range'):
-        broken.check()
+    errors = FieldErrors(sampler.names)
+    errors.add(sample, sampler.roles('/joint_states'), 'sensor_msgs/msg/JointState')
+    errors.add(broken, sampler.roles('/joint_states'), 'sensor_msgs/msg/JointState')
+    errors.check()
+    assert errors.warnings()[0] == ('input /joint_states (effort[0], effort[1]): 1 of 2 '
+                                    'messages skipped, as the live node skips them: field '
+                                    'effort[1]: index 1 out of range for effort, an array of '
+                                    'length 1')
+    # Its unset stamp is counted for both streams of the topic, as the node counts it.
+    assert errors.unstamped == {'input': 1, 'output': 1}
+
+
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+
+
+def test_field_errors_skip_missing_elements_and_raise_wrong_paths():
+    """A message without the joint is skipped; a path no message can have stops the replay."""
+    config = IdentificationConfig(model='K/(T*s + 1)', input_topic='/joint_states',
+                                  output_topic='/joint_states', input_field='effort[wheel]',
+                                  output_field='position[wheel]')
+    sampler = MessageSampler(config, ('/joint_states', '/joint_states'))
+    roles = sampler.roles('/joint_states')
+
+    def named(names):
+        message = joint_state(T0_NS, [1.0] * len(names), [2.0] * len(names))
+        message.name = names
+        return sampler('/joint_states', T0_NS, message)
+
+    errors = FieldErrors(sampler.names)
+    errors.add(named(['arm']), roles, JOINT_STATE)
+    # No message had the joint yet: the first error is the reason.
+    with pytest.raises(ConfigError, match="no joint 'wheel' in name; names seen: arm"):
+        errors.check()
+    errors.add(named(['arm', 'wheel']), roles, JOINT_STATE)
+    errors.check()
+    assert (errors.read, errors.failed) == ({'input': 1, 'output': 1},
+                                            {'input': 1, 'output': 1})
+    # A type without the field is ignored, by its name, while another type gives samples.
+    string = sampler('/joint_states', T0_NS, SimpleNamespace(data='text'))
+    errors.add(string, roles, 'std_msgs/msg/String')
+    errors.check()
+    assert errors.warnings()[-1] == (
+        'output /joint_states (position[wheel]): 1 messages of std_msgs/msg/String ignored, as '
+        'the live node ignores a type without the field: field position[wheel]: the message '
+        "(SimpleNamespace) has no field 'position'; available fields: data")
+    # A path no type has: raised once WRONG_PATH_MESSAGES messages gave nothing.
+    wrong = FieldErrors(sampler.names)
+    for _ in range(WRONG_PATH_MESSAGES - 1):
+        wrong.add(string, roles, 'std_msgs/msg/String')
+    with pytest.raises(ConfigError, match="has no field 'effort'"):
+        wrong.add(string, roles, 'std_msgs/msg/String')
 
 
 def test_separate_topics_and_receive_stamps():
@@ -52,3 +102,12 @@ def test_separate_topics_and_receive_stamps():
     assert sampler('/u', 11, SimpleNamespace(data=2.0)) == Sample(11, 2.0, None)
     assert sampler('/y', 12, SimpleNamespace(data=3.0)) == Sample(12, None, 3.0)
     assert sampler('/z', 13, SimpleNamespace(data=3.0)) == Sample(13, None, None)
+
+
+def test_message_type_is_the_full_name_for_both_decoders():
+    class Decoded:      # as mcap_ros2 names its classes
+        _type = 'std_msgs/Float64'
+
+    assert message_type(Decoded()) == 'std_msgs/msg/Float64'
+    assert message_type(SimpleNamespace(__msgtype__='geometry_msgs/msg/Twist')) == \
+        'geometry_msgs/msg/Twist'
