@@ -51,7 +51,7 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
                                          settling_time, State, with_fitted_nuisance)
 from ctid_ros.estimation.projected_noise import (filtered_twice, low_frequency_level,
                                                  restored_covariance)
-from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
+from ctid_ros.estimation.residual_analysis import (amplitude_note, analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
                                         automatic_start, final_iteration, look_elsewhere,
@@ -498,6 +498,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         final, history, profile = fit.result, list(fit.history), list(start.profile)
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
+        _test_amplitude(problem, residuals)
         uncertainty = covariance(problem, final.state, residuals.long_autocorrelation,
                                  sensitivities)
     residuals.noise_order = uncertainty.noise.order
@@ -575,12 +576,25 @@ def _residual_analysis(problem: Problem, state: State) -> ResidualAnalysis:
     data = problem.data
     horizon = max(state.coefficients.delay, 0.0) + 0.4 * settling_time(state.coefficients)
     lags = int(min(max(DEFAULT_LAGS, np.ceil(horizon / data.ts)), _MAX_RESIDUAL_LAGS))
-    residual = problem.measured - problem.prediction(state.coefficients)
+    prediction = problem.prediction(state.coefficients)
+    residual = problem.measured - prediction
     inputs = data.u.reshape(len(data), -1)[problem.skip:]
     analysis = analyse_residual(residual, inputs, problem.model.inputs, lags)
     analysis.measured_every = measured_every(problem.measured)
     analysis.state = state
+    analysis.prediction = prediction
     return analysis
+
+
+def _test_amplitude(problem: Problem, analysis: ResidualAnalysis) -> None:
+    """
+    Test the final residual against the amplitude of the inputs and of the model output.
+
+    Once per estimate, on the analysis the user sees (the stages before only ask whether the
+    residual is white and independent of the input): ``docs/algorithm.md`` section 11.
+    """
+    inputs = problem.data.u.reshape(len(problem.data), -1)[problem.skip:]
+    analysis.test_amplitude(problem.measured - analysis.prediction, inputs, analysis.prediction)
 
 
 def _combination(weights: np.ndarray, names: Sequence[str]) -> str:
@@ -661,6 +675,8 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
                          f'{std[index]:.3g} exceeds its value {state.theta[index]:.3g}')
     if residuals.input_correlated:
         notes.append(f'residual {residuals.verdict}')
+    elif residuals.amplitude_dependent:
+        notes.append(amplitude_note(residuals.amplitude_terms))
     if residuals.measured_every > 1:
         notes.append(f'the output changes only every {residuals.measured_every} samples (held '
                      'or interpolated from a slower measurement): the sample time is finer '
