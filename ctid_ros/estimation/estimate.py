@@ -121,8 +121,10 @@ class Estimate:
     residuals : ResidualAnalysis or None
         Autocorrelation of the residual and its cross-correlation with every input, their 99 %
         bounds and a one-line ``verdict`` (``white`` / ``input_correlated`` / ``feedback``), as
-        MATLAB's ``resid``; also the order of the residual's noise model behind the
-        covariance and how many samples apart the output was measured.
+        MATLAB's ``resid``, and whether the residual depends on the amplitude of an input or
+        of the model output (``amplitude_dependent``: a static nonlinearity); also the order
+        of the residual's noise model behind the covariance and how many samples apart the
+        output was measured.
     consistency : Consistency or None
         Whether one parameter vector holds over the whole record (the halves' and quarters'
         estimates against the whole, :mod:`~ctid_ros.estimation.consistency`). If not, ``std``
@@ -641,7 +643,8 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
 
     Active bounds (and lags the data would drop), no convergence, a weakly determined
     combination, a negative fit, standard deviations above the value, a residual correlated
-    with the input, an output interpolated from a slower measurement (section 15).
+    with the input or dependent on its amplitude (section 11), an output interpolated from a
+    slower measurement (section 15).
     """
     state = result.state
     names = problem.model.parameters
