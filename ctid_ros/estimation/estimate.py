@@ -597,6 +597,8 @@ def _test_amplitude(problem: Problem, analysis: ResidualAnalysis) -> None:
     """
     inputs = problem.data.u.reshape(len(problem.data), -1)[problem.skip:]
     analysis.test_amplitude(problem.measured - analysis.prediction, inputs, analysis.prediction)
+    # The estimate keeps no copy of the record's length it does not need.
+    analysis.prediction = None
 
 
 def _combination(weights: np.ndarray, names: Sequence[str]) -> str:
