@@ -40,6 +40,7 @@ STAGES = [
     ('symmetry', stages, 'symmetry_restarts'),
     ('look elsewhere', stages, 'look_elsewhere'),
     ('residual test', estimate, '_residual_analysis'),
+    ('amplitude test', estimate, '_test_amplitude'),
     ('covariance', estimate, 'covariance'),
     ('consistency', consistency, 'with_consistency'),
 ]

@@ -51,7 +51,7 @@ from ctid_ros.estimation.problem import (bound_vectors, Bounds, delay_parameter,
                                          settling_time, State, with_fitted_nuisance)
 from ctid_ros.estimation.projected_noise import (filtered_twice, low_frequency_level,
                                                  restored_covariance)
-from ctid_ros.estimation.residual_analysis import (analyse_residual, DEFAULT_LAGS,
+from ctid_ros.estimation.residual_analysis import (amplitude_note, analyse_residual, DEFAULT_LAGS,
                                                    ResidualAnalysis)
 from ctid_ros.estimation.stages import (against_the_data_basin, against_the_data_guess,
                                         automatic_start, final_iteration, look_elsewhere,
@@ -121,8 +121,10 @@ class Estimate:
     residuals : ResidualAnalysis or None
         Autocorrelation of the residual and its cross-correlation with every input, their 99 %
         bounds and a one-line ``verdict`` (``white`` / ``input_correlated`` / ``feedback``), as
-        MATLAB's ``resid``; also the order of the residual's noise model behind the
-        covariance and how many samples apart the output was measured.
+        MATLAB's ``resid``, and whether the residual depends on the amplitude of an input or
+        of the model output (``amplitude_dependent``: a static nonlinearity); also the order
+        of the residual's noise model behind the covariance and how many samples apart the
+        output was measured.
     consistency : Consistency or None
         Whether one parameter vector holds over the whole record (the halves' and quarters'
         estimates against the whole, :mod:`~ctid_ros.estimation.consistency`). If not, ``std``
@@ -498,6 +500,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
         final, history, profile = fit.result, list(fit.history), list(start.profile)
         residuals = analysis if analysis.state is final.state else \
             _residual_analysis(problem, final.state)
+        _test_amplitude(problem, residuals)
         uncertainty = covariance(problem, final.state, residuals.long_autocorrelation,
                                  sensitivities)
     residuals.noise_order = uncertainty.noise.order
@@ -575,12 +578,27 @@ def _residual_analysis(problem: Problem, state: State) -> ResidualAnalysis:
     data = problem.data
     horizon = max(state.coefficients.delay, 0.0) + 0.4 * settling_time(state.coefficients)
     lags = int(min(max(DEFAULT_LAGS, np.ceil(horizon / data.ts)), _MAX_RESIDUAL_LAGS))
-    residual = problem.measured - problem.prediction(state.coefficients)
+    prediction = problem.prediction(state.coefficients)
+    residual = problem.measured - prediction
     inputs = data.u.reshape(len(data), -1)[problem.skip:]
     analysis = analyse_residual(residual, inputs, problem.model.inputs, lags)
     analysis.measured_every = measured_every(problem.measured)
     analysis.state = state
+    analysis.prediction = prediction
     return analysis
+
+
+def _test_amplitude(problem: Problem, analysis: ResidualAnalysis) -> None:
+    """
+    Test the final residual against the amplitude of the inputs and of the model output.
+
+    Once per estimate, on the analysis the user sees (the stages before only ask whether the
+    residual is white and independent of the input): ``docs/algorithm.md`` section 11.
+    """
+    inputs = problem.data.u.reshape(len(problem.data), -1)[problem.skip:]
+    analysis.test_amplitude(problem.measured - analysis.prediction, inputs, analysis.prediction)
+    # The estimate keeps no copy of the record's length it does not need.
+    analysis.prediction = None
 
 
 def _combination(weights: np.ndarray, names: Sequence[str]) -> str:
@@ -627,7 +645,8 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
 
     Active bounds (and lags the data would drop), no convergence, a weakly determined
     combination, a negative fit, standard deviations above the value, a residual correlated
-    with the input, an output interpolated from a slower measurement (section 15).
+    with the input or dependent on its amplitude (section 11), an output interpolated from a
+    slower measurement (section 15).
     """
     state = result.state
     names = problem.model.parameters
@@ -661,6 +680,8 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
                          f'{std[index]:.3g} exceeds its value {state.theta[index]:.3g}')
     if residuals.input_correlated:
         notes.append(f'residual {residuals.verdict}')
+    elif residuals.amplitude_dependent:
+        notes.append(amplitude_note(residuals.amplitude_terms))
     if residuals.measured_every > 1:
         notes.append(f'the output changes only every {residuals.measured_every} samples (held '
                      'or interpolated from a slower measurement): the sample time is finer '

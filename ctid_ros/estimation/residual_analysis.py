@@ -15,21 +15,39 @@ the noise is also white, the residual is white. The analysis computes
 and states a verdict. The verdict tests all lags at once at about 1 % false alarms
 (Bonferroni over the lags tested), so the per-lag 99 % bounds that plots show are exceeded by
 chance more often than the verdict says so (``docs/algorithm.md`` section 11).
+
+A static nonlinearity (actuator saturation, a dead zone, friction, a valve's curve) leaves a
+residual uncorrelated with the input itself but not with its amplitude: the analysis also
+tests the residual against the square and cube of every input and of the model's output, less
+what the lower powers and the input's lags explain, prewhitened, at about 1 % false alarms of
+its own (``amplitude_dependent``).
 """
 
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Sequence, Tuple
 
 from ctid_ros.estimation.correlation import (bartlett_span, bonferroni_quantile, chance_spread,
-                                             fft_size)
+                                             fft_size, whitening_filter)
 import numpy as np
-from scipy import special
+from scipy import linalg, special
 
-__all__ = ['DEFAULT_LAGS', 'ResidualAnalysis', 'analyse_residual', 'cross_correlation']
+__all__ = ['DEFAULT_LAGS', 'ResidualAnalysis', 'amplitude_dependence', 'amplitude_note',
+           'analyse_residual', 'cross_correlation']
 
 DEFAULT_LAGS = 25
 _PER_LAG = 0.99
 _FAMILY = 0.99
+# A power of an input whose remainder keeps less than this share of its energy is not tested
+# (a two-level input's square and cube: rounding).
+_AMPLITUDE_ENERGY = 1e-6
+# Nor one whose remainder lives on fewer effective samples than this ((sum g^2)^2 / sum g^4).
+_AMPLITUDE_SAMPLES = 5.0
+# Order of the residual's autoregressive whitening filter before the amplitude test.
+_WHITENING_ORDER = 4
+# The name of the model output's powers in the verdict.
+_MODEL_OUTPUT = 'model output'
+# Relative ridge on the inputs' lag-0 autocorrelation in the amplitude test's normal equations.
+_RIDGE = 1e-6
 # The per-lag bound's normal quantile.
 _Z_LAG = float(special.ndtri(0.5 + _PER_LAG / 2.0))
 
@@ -105,6 +123,21 @@ class ResidualAnalysis:
         Inputs correlated with the residual at lags ``0..M``.
     worst_lags : list of (str, int, float)
         For each correlated input: name, lag and value of its largest correlation.
+    amplitude_dependent : bool
+        The prewhitened residual correlates with the square or cube of an input or of the
+        model output beyond the all-lags bound (:func:`amplitude_dependence`): a static
+        nonlinearity the linear model cannot describe (``docs/algorithm.md`` section 11).
+        Set by :meth:`test_amplitude` (``estimate`` runs it on the final residual).
+    amplitude_terms : list of (str, int, int, float)
+        For each power found: input name (``'model output'``), power, lag and value of its
+        largest correlation.
+    powers_tested : list of str
+        The powers tested, as ``'u^2'``, ``'model output^3'`` (an input's none if it has two
+        levels).
+    amplitude_score : float
+        The largest correlation with a power in standard deviations under independence.
+    amplitude_bound : float
+        The all-lags bound it is tested against (infinite where no power is tested).
     noise_order : int
         Order of the residual's autoregressive model behind the covariance (0: white).
     noise_power_ratio : float
@@ -128,6 +161,11 @@ class ResidualAnalysis:
     cross_bounds: np.ndarray
     correlated_inputs: List[str] = field(default_factory=list)
     worst_lags: List[Tuple[str, int, float]] = field(default_factory=list)
+    amplitude_dependent: bool = False
+    amplitude_terms: List[Tuple[str, int, int, float]] = field(default_factory=list)
+    powers_tested: List[str] = field(default_factory=list)
+    amplitude_score: float = 0.0
+    amplitude_bound: float = float('inf')
     noise_order: int = 0
     noise_power_ratio: float = 1.0
     measured_every: int = 1
@@ -140,6 +178,8 @@ class ResidualAnalysis:
     # The residual's autocorrelation over the longer range of Bartlett's sum (lags 0, 1, ...).
     long_autocorrelation: Optional[np.ndarray] = field(default=None, repr=False,
                                                        compare=False)
+    # The model output the residual was taken from (not part of the summary).
+    prediction: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
 
     def mark_inconsistent(self) -> None:
         """
@@ -150,7 +190,25 @@ class ResidualAnalysis:
         """
         self.consistent = False
         self.verdict = _verdict(self.white, self.correlated_inputs, self.worst_lags,
-                                self.feedback, consistent=False)
+                                self.feedback, consistent=False,
+                                amplitude=self.amplitude_terms)
+
+    def test_amplitude(self, residual: np.ndarray, inputs: np.ndarray,
+                       output: Optional[np.ndarray] = None) -> None:
+        """
+        Test whether the residual depends on the inputs' or the model output's amplitude.
+
+        :func:`amplitude_dependence` on the residual this analysis is of (the inputs and the
+        model's output on the same samples); sets the ``amplitude_*`` fields and says what it
+        found in the verdict.
+        """
+        self.amplitude_terms, self.powers_tested, self.amplitude_score, \
+            self.amplitude_bound = amplitude_dependence(residual, inputs, self.inputs,
+                                                        self.lags, output)
+        self.amplitude_dependent = bool(self.amplitude_terms)
+        self.verdict = _verdict(self.white, self.correlated_inputs, self.worst_lags,
+                                self.feedback, consistent=self.consistent,
+                                amplitude=self.amplitude_terms)
 
     def to_dict(self) -> dict:
         """Return the summary as JSON-serialisable types (the ``--json`` ``residual`` object)."""
@@ -169,6 +227,13 @@ class ResidualAnalysis:
                 for j, name in enumerate(self.inputs)},
             'cross_bounds': {name: float(bound)
                              for name, bound in zip(self.inputs, self.cross_bounds)},
+            'amplitude_dependent': bool(self.amplitude_dependent),
+            'amplitude_terms': [{'input': name, 'power': int(power), 'lag': int(lag),
+                                 'correlation': float(value)}
+                                for name, power, lag, value in self.amplitude_terms],
+            'powers_tested': list(self.powers_tested),
+            'amplitude_score': float(self.amplitude_score),
+            'amplitude_bound': float(self.amplitude_bound) if self.powers_tested else None,
             'noise_order': int(self.noise_order),
             'noise_power_ratio': float(self.noise_power_ratio),
             'noise_shaped_by_loop': bool(self.noise_shaped),
@@ -241,13 +306,259 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
                             worst, long_autocorrelation=rho_e[span:])
 
 
+def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequence[str],
+                         lags: int = DEFAULT_LAGS, output: Optional[np.ndarray] = None
+                         ) -> Tuple[List[Tuple[str, int, int, float]], List[str], float, float]:
+    """
+    Test whether ``residual`` depends on the amplitude of the inputs or of the model output.
+
+    Under a linear model the residual is independent of the inputs, so of any function of
+    them; a static nonlinearity (actuator saturation, a dead zone, friction, a valve's curve)
+    leaves a residual uncorrelated with the input itself (Bussgang) but correlated with its
+    square or cube. Each input's and the model output's square and cube, less what the lower
+    powers explain at lag 0 (:func:`_amplitude_terms`) and what the inputs explain at lags
+    ``-K..K`` (``K = M + 5``: a linear model error, a missing lag or a wrong dead time, then
+    correlates with none of them), and the residual are filtered by the residual's own
+    autoregressive whitening filter (order :data:`_WHITENING_ORDER`, Box-Jenkins
+    prewhitening: in closed loop the coloured noise fed back correlates with the input at
+    positive lags too, its unpredictable part does not). Their cross-correlations at lags from
+    1 (an input's: a controller acting on the latest output makes the input depend on the
+    residual at lag 0) or 0 (the model output's, which past inputs make) to ``M`` are compared
+    with Bartlett's standard deviation under independence, all together at about 1 % false
+    alarms (Bonferroni). A power counts only where it correlates both before and after the
+    inputs' lags are taken out of it (``docs/algorithm.md`` section 11).
+
+    Parameters
+    ----------
+    residual : array_like, shape (N,)
+        Output minus model output on the fitted samples.
+    inputs : array_like, shape (N,) or (N, m)
+        The inputs on the same samples.
+    names : sequence of str
+        Input names.
+    lags : int
+        ``M``, at most a quarter of the samples.
+    output : array_like, shape (N,), optional
+        The model's simulated output on the same samples (an output-side nonlinearity).
+
+    Returns
+    -------
+    found : list of (str, int, int, float)
+        Each power the residual depends on: name (``'model output'`` for the model's
+        output), power, lag and value of its largest correlation.
+    tested : list of str
+        The powers tested (``'u^3'``): none of a two-level input, whose square is constant
+        and cube proportional to it (a saturation of it is a gain).
+    score : float
+        The largest correlation in standard deviations under independence.
+    bound : float
+        The all-lags bound it is tested against (infinite where nothing is tested).
+
+    """
+    residual = np.asarray(residual, dtype=float)
+    count = residual.size
+    inputs = np.asarray(inputs, dtype=float).reshape(count, -1)
+    lags = int(max(1, min(lags, count // 4)))
+    series = [(name, column, 1) for name, column in zip(names, inputs.T)]
+    if output is not None:
+        series.append((_MODEL_OUTPUT, np.asarray(output, dtype=float), 0))
+    powers, terms = _amplitude_terms(series, count)
+    tested = [f'{name}^{power}' for name, power, _ in terms]
+    if not terms:
+        return [], tested, 0.0, float('inf')
+    window = int(min(lags + _WHITENING_ORDER + 1, count // 4))
+    # Long enough that no correlation used wraps around: the powers less their fit by the
+    # inputs reach ``window`` samples (plus the filter's order) beyond both ends of the record.
+    size = fft_size(count + lags + 2 * window + _WHITENING_ORDER + 2)
+    error = np.fft.rfft(residual - np.add.reduce(residual) / count, size)
+    powers = np.fft.rfft(powers, size)
+    # The whitening filter's power response: the residual and the powers both filtered by it.
+    shaping = np.abs(np.fft.rfft(whitening_filter(residual, _WHITENING_ORDER), size)) ** 2
+    threshold = bonferroni_quantile(_FAMILY, sum(lags + 1 - start for _, _, start in terms))
+    scores = _amplitude_scores(error, powers, shaping, terms, count, lags, size)
+    # Only a power that correlates as it is is tested again less its fit by the inputs (in
+    # open-loop records the more common alarm, a linear model error, correlates with the
+    # inputs' lags and drops out there).
+    suspects = [index for index, (score, _, _) in enumerate(scores) if score > threshold]
+    if suspects:
+        stripped = _less_input_lags(powers[suspects], inputs, size, window)
+        if stripped is None:
+            return [], [], 0.0, float('inf')
+        again = _amplitude_scores(error, stripped, shaping, [terms[index] for index in suspects],
+                                  count, lags, size)
+        for index, score in zip(suspects, again):
+            if score[0] < scores[index][0]:
+                scores[index] = score
+    found = [(name, power, lag, value) for (name, power, _), (score, lag, value)
+             in zip(terms, scores) if score > threshold]
+    return found, tested, max(score for score, _, _ in scores), threshold
+
+
+def _amplitude_scores(error: np.ndarray, powers: np.ndarray, shaping: np.ndarray,
+                      terms: Sequence[Tuple[str, int, int]], count: int, lags: int,
+                      size: int) -> List[Tuple[float, int, float]]:
+    """
+    Return each power's largest correlation with the residual: in standard deviations, lag, value.
+
+    ``error``, ``powers``: the residual's and the powers' spectra (zero-padded to ``size``),
+    both filtered by the whitening filter of power response ``shaping``. Lags from each
+    term's first to ``M``; energies and Bartlett's sums over all lags from the spectra
+    (Parseval: the one-sided spectrum counts every bin but the first and, for an even length,
+    the last twice).
+    """
+    counted = np.full(shaping.size, 2.0 / size)
+    counted[0] = 1.0 / size
+    if size % 2 == 0:
+        counted[-1] = 1.0 / size
+    correlations = np.fft.irfft(error * shaping * np.conj(powers), size)
+    error_power = shaping * (error.real ** 2 + error.imag ** 2)
+    powers_power = shaping * (powers.real ** 2 + powers.imag ** 2)
+    error_energy = float(counted @ error_power)
+    energies = powers_power @ counted
+    scores = []
+    for row, (energy, (_, _, start)) in enumerate(zip(energies, terms)):
+        if not (energy > 0.0 and error_energy > 0.0):
+            scores.append((0.0, start, 0.0))
+            continue
+        values = correlations[row, start:lags + 1] / np.sqrt(error_energy * energy)
+        spread = chance_spread(counted * error_power / error_energy,
+                               powers_power[row] / energy, count)
+        lag = int(np.abs(values).argmax())
+        scores.append((float(abs(values[lag]) / spread), start + lag, float(values[lag])))
+    return scores
+
+
+def _less_input_lags(powers: np.ndarray, inputs: np.ndarray, size: int, window: int
+                     ) -> Optional[np.ndarray]:
+    """
+    Return the powers' spectra less their least-squares fit by every input at lags ``-K..K``.
+
+    ``powers``: spectra zero-padded to ``size``; ``inputs``: ``(N, m)``; ``K = window``. One
+    input at a time, by the Toeplitz normal equations of its autocorrelation (exact for
+    inputs uncorrelated with each other); what is left is uncorrelated with the inputs at
+    those lags, so a linear model error cannot correlate with it. None where the equations
+    cannot be solved.
+    """
+    count = inputs.shape[0]
+    signals = np.fft.rfft(inputs.T - np.add.reduce(inputs, axis=0)[:, None] / count, size)
+    # Lag k at index k (negative lags at the end): each power's correlation with each input,
+    # each input's autocorrelation.
+    full = np.fft.irfft(np.concatenate([
+        (powers[:, None] * np.conj(signals)).reshape(-1, signals.shape[1]),
+        signals * np.conj(signals)]), size)
+    products = full[:-signals.shape[0]].reshape(powers.shape[0], signals.shape[0], size)
+    for index, autocorrelation in enumerate(full[-signals.shape[0]:]):
+        column = autocorrelation[:2 * window + 1].copy()
+        if not column[0] > 0.0:
+            continue
+        # A ridge for inputs (nearly) without the highest frequencies.
+        column[0] *= 1.0 + _RIDGE
+        sums = np.concatenate([products[:, index, size - window:],
+                               products[:, index, :window + 1]], axis=1)
+        try:
+            weights = linalg.solve_toeplitz(column, sums.T).T
+        except (linalg.LinAlgError, ValueError):
+            return None
+        if not np.isfinite(weights).all():
+            return None
+        placed = np.zeros((powers.shape[0], size))
+        placed[:, :window + 1] = weights[:, window:]
+        placed[:, size - window:] = weights[:, :window]
+        powers = powers - np.fft.rfft(placed) * signals[index]
+    return powers
+
+
+def _amplitude_terms(series: Sequence[Tuple[str, np.ndarray, int]], count: int
+                     ) -> Tuple[np.ndarray, List[Tuple[str, int, int]]]:
+    """
+    Return each series' square and cube less what its lower powers explain, and their labels.
+
+    ``series``: ``(name, values, first lag tested)``. Every series is centred and scaled to
+    unit mean square (``x``); ``x^2`` and ``x^3`` are orthogonalised at lag 0 against the
+    constant, ``x`` and (for the cube) ``x^2``'s remainder, from the moments of ``x``
+    (Hermite-like): a static nonlinearity leaves the odd (saturation, dead zone, friction) or
+    even (a quadratic valve) remainder. A power left with (nearly) no energy is not tested: a
+    two-level input makes ``x^2`` constant and ``x^3`` proportional to ``x`` (a saturation of
+    a binary input is a gain, which the data cannot tell from a linear model), and neither is
+    one carried by a few samples only (fewer than :data:`_AMPLITUDE_SAMPLES` effective ones: a
+    spike is not an amplitude range). Returns rows ``(p, N)`` and ``(name, power, first
+    lag)`` per row.
+    """
+    rows, terms = [], []
+    for name, column, first in series:
+        centred = column - column.mean()
+        energy = float(centred @ centred)
+        if not energy > 0.0 or not np.isfinite(energy):
+            continue
+        unit = centred * np.sqrt(count / energy)
+        square = unit * unit
+        cube = square * unit
+        # Moments of the unit series: E[x^3], E[x^4], E[x^5], E[x^6].
+        third, fourth = float(np.add.reduce(cube)) / count, float(square @ square) / count
+        quadratic = square - 1.0 - third * unit
+        energy = float(quadratic @ quadratic)
+        cubic = cube - third - fourth * unit
+        candidates = []
+        if energy > _AMPLITUDE_ENERGY * fourth * count:
+            candidates.append((2, quadratic, energy))
+            cubic = cubic - (float(cubic @ quadratic) / energy) * quadratic
+        candidates.append((3, cubic, float(cubic @ cubic)))
+        for power, remainder, left in candidates:
+            if power == 3 and not left > _AMPLITUDE_ENERGY * float(cube @ cube):
+                continue
+            squares = remainder * remainder
+            if left * left < _AMPLITUDE_SAMPLES * float(squares @ squares):
+                continue
+            rows.append(remainder)
+            terms.append((name, power, first))
+    return np.array(rows).reshape(len(rows), count), terms
+
+
+def amplitude_note(terms: Sequence[Tuple[str, int, int, float]]) -> str:
+    """
+    Return what a residual that depends on the input's amplitude means, in words.
+
+    ``terms``: :attr:`ResidualAnalysis.amplitude_terms` (the model output's powers named
+    ``'model output'``).
+    """
+    where = ', '.join(f'{name}^{power} at lag {lag}: {value:+.2f}'
+                      for name, power, lag, value in terms)
+    on_input = any(name != _MODEL_OUTPUT for name, _, _, _ in terms)
+    on_output = any(name == _MODEL_OUTPUT for name, _, _, _ in terms)
+    if on_input and on_output:
+        source, examples = ("the amplitude of the input and of the model's output",
+                            "actuator saturation, a dead zone, friction or a valve's curve")
+    elif on_input:
+        source, examples = ("the input's amplitude",
+                            'actuator saturation, a dead zone or friction')
+    else:
+        source, examples = ("the model output's amplitude",
+                            "friction, a valve's or sensor's curve or an outflow that grows "
+                            'with the level')
+    return (f'the residual depends on {source} ({where}): a static nonlinearity such as '
+            f'{examples} that the linear model cannot describe; the standard deviations do '
+            'not cover it')
+
+
 def _verdict(white: bool, correlated: List[str], worst: List[Tuple[str, int, float]],
-             feedback: bool, consistent: bool = True) -> str:
-    """Return the verdict line (``consistent``: one parameter vector holds over the record)."""
+             feedback: bool, consistent: bool = True,
+             amplitude: Sequence[Tuple[str, int, int, float]] = ()) -> str:
+    """
+    Return the verdict line (``consistent``: one parameter vector holds over the record).
+
+    ``amplitude``: the powers of the inputs the residual depends on (:func:`_amplitude_test`).
+    """
     if correlated:
         where = ', '.join(f'{name} (lag {lag}: {value:+.2f})' for name, lag, value in worst)
         text = (f'correlated with input {where}: missing dynamics or a wrong dead time; the '
                 'standard deviations do not cover this model error')
+        if amplitude:
+            text += f'; also {amplitude_note(amplitude)}'
+    elif amplitude:
+        text = (f'{"white" if white else "coloured"} and uncorrelated with the input, but '
+                f'{amplitude_note(amplitude)[len("the residual "):]}')
+        if not consistent:
+            text += '; the parameters also move across the record'
     elif not white and not consistent:
         text = ('coloured but independent of the input, and the parameters move across the '
                 'record: the model does not hold over it (time-varying, nonlinear, or a '

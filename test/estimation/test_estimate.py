@@ -488,3 +488,23 @@ def test_a_dead_time_that_leaves_the_search_range_is_said_to():
                for note in outside.warnings)
     inside = estimate(model, data, bounds={'T': (1e-3, None)}, delay_range=(0.2, 0.5))
     assert not any('search range' in note for note in inside.warnings)
+
+
+def test_a_dead_zone_warns_and_linear_reference_systems_do_not():
+    # An actuator dead zone of 0.2 (the commanded input recorded) biases the gain low and
+    # the estimate says why; the seven linear reference systems leave no such warning.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = np.repeat(np.random.default_rng(6).uniform(-1.0, 1.0, 512), 6)
+    applied = np.sign(u) * np.maximum(np.abs(u) - 0.2, 0.0)
+    clean = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.33}, applied, 0.05)
+    y = clean + 0.05 * clean.std() * np.random.default_rng(7).standard_normal(u.size)
+    result = estimate(model, Data(u, y, 0.05), 'auto',
+                      bounds={'T': (1e-3, None), 'tau': (0.0, 3.0)})
+    assert result.params['K'] < 1.8
+    assert any(text.startswith("the residual depends on the input's amplitude (u^3 at lag")
+               and 'a dead zone' in text for text in result.warnings)
+    for make in systems.ALL:
+        system = make()
+        result = estimate(system.model, system.data(seed=0), 'auto', bounds=system.bounds)
+        assert not result.residuals.amplitude_dependent, system.name
+        assert not any('amplitude' in text for text in result.warnings), system.name

@@ -5,7 +5,8 @@ import json
 from ctid_ros import Data, estimate, Model
 from ctid_ros.core import reference_systems as systems
 from ctid_ros.core.excitation import prbs
-from ctid_ros.estimation.residual_analysis import analyse_residual, cross_correlation
+from ctid_ros.estimation.residual_analysis import (amplitude_dependence, analyse_residual,
+                                                   cross_correlation)
 import numpy as np
 import pytest
 from scipy import signal
@@ -101,3 +102,137 @@ def test_two_inputs_are_analysed_separately():
     assert result.residuals.inputs == ['u1', 'u2']
     assert result.residuals.cross_correlation.shape == (2 * result.residuals.lags + 1, 2)
     assert not result.residuals.input_correlated
+
+
+FOPDT = Model('K*exp(-tau*s)/(T*s + 1)')
+FOPDT_TRUTH = {'K': 2.0, 'T': 1.5, 'tau': 0.33}
+FOPDT_BOUNDS = {'T': (1e-3, None), 'tau': (0.0, 3.0)}
+
+
+def multilevel(seed, size=3066, hold=6):
+    """Return random steps uniform in -1..1, each held ``hold`` samples."""
+    levels = np.random.default_rng(seed).uniform(-1.0, 1.0, size // hold + 1)
+    return np.repeat(levels, hold)[:size]
+
+
+def fopdt_record(commanded, applied, seed, level=0.05):
+    """Return the commanded input and the output the applied one drives, in white noise."""
+    clean = FOPDT.simulate(FOPDT_TRUTH, applied, 0.05)
+    noise = np.random.default_rng(1000 + seed).standard_normal(clean.size)
+    return Data(commanded, clean + level * clean.std() * noise, 0.05)
+
+
+def test_a_saturated_actuator_is_found_in_the_inputs_amplitude():
+    # The commanded input recorded, the actuator clipping at +-0.5 (half the samples): the fit
+    # is good and its residual uncorrelated with the input, but K comes out a third low.
+    u = multilevel(1)
+    result = estimate(FOPDT, fopdt_record(u, np.clip(u, -0.5, 0.5), 1), 'auto',
+                      bounds=FOPDT_BOUNDS)
+    assert result.params['K'] < 0.8 * FOPDT_TRUTH['K']
+    assert not result.residuals.input_correlated
+    assert result.residuals.amplitude_dependent
+    assert ('u', 3) in [term[:2] for term in result.residuals.amplitude_terms]
+    assert "depends on the input's amplitude (u^3 at lag" in result.residuals.verdict
+    assert 'the standard deviations account for it' not in result.residuals.verdict
+    note = [text for text in result.warnings if 'amplitude' in text]
+    assert len(note) == 1 and 'actuator saturation' in note[0]
+    assert 'the standard deviations do not cover it' in note[0]
+    summary = json.loads(json.dumps(result.to_dict(), allow_nan=False))['residual']
+    assert summary['amplitude_dependent'] is True
+    assert summary['powers_tested'] == ['u^2', 'u^3', 'model output^2', 'model output^3']
+    assert summary['amplitude_score'] > summary['amplitude_bound']
+    assert any(term['input'] == 'u' and term['power'] == 3
+               for term in summary['amplitude_terms'])
+
+
+def test_a_linear_multilevel_record_does_not_warn():
+    # The same input and plant without the saturation, in white and in AR(0.9) noise.
+    alarms = 0
+    for seed in range(12):
+        u = multilevel(seed)
+        data = fopdt_record(u, u, seed)
+        if seed % 2:
+            clean = FOPDT.simulate(FOPDT_TRUTH, u, 0.05)
+            noise = signal.lfilter([1.0], [1.0, -0.9],
+                                   np.random.default_rng(seed).standard_normal(u.size))
+            data = Data(u, clean + 0.05 * clean.std() * noise / noise.std(), 0.05)
+        result = estimate(FOPDT, data, 'auto', bounds=FOPDT_BOUNDS)
+        assert result.residuals.powers_tested[:2] == ['u^2', 'u^3']
+        alarms += result.residuals.amplitude_dependent
+        assert not any('amplitude' in text for text in result.warnings)
+    assert alarms == 0
+
+
+def test_a_saturated_binary_input_is_only_a_gain():
+    # A PRBS clipped at half its level is a linear record of half the gain: its square and
+    # cube are not tested (nothing distinguishes the two), and nothing is found.
+    u = prbs(9, 6)
+    result = estimate(FOPDT, fopdt_record(u, np.clip(u, -0.5, 0.5), 2), 'auto',
+                      bounds=FOPDT_BOUNDS)
+    assert result.params['K'] == pytest.approx(1.0, rel=0.01)
+    assert 'u^2' not in result.residuals.powers_tested
+    assert 'u^3' not in result.residuals.powers_tested
+    assert not result.residuals.amplitude_dependent
+
+
+def test_an_output_nonlinearity_is_found_in_the_model_outputs_amplitude():
+    # y = z + 0.1 z^2 with z the linear output: the model output's square carries it.
+    u = multilevel(3)
+    clean = FOPDT.simulate(FOPDT_TRUTH, u, 0.05)
+    noise = np.random.default_rng(3).standard_normal(u.size)
+    data = Data(u, clean + 0.1 * clean ** 2 + 0.05 * clean.std() * noise, 0.05)
+    result = estimate(FOPDT, data, 'auto', bounds=FOPDT_BOUNDS)
+    assert ('model output', 2) in [term[:2] for term in result.residuals.amplitude_terms]
+    assert any(text.startswith("the residual depends on the model output's amplitude")
+               for text in result.warnings)
+
+
+def test_a_linear_model_error_is_not_blamed_on_a_nonlinearity():
+    # A second-order plant fitted by a first order: the residual correlates with the input,
+    # and with its powers through the input's lags, which the test takes out first.
+    model = Model('K*exp(-tau*s)/((T1*s + 1)*(T2*s + 1))')
+    u = multilevel(4)
+    clean = model.simulate({'K': 2.0, 'T1': 1.5, 'T2': 0.4, 'tau': 0.33}, u, 0.05)
+    noise = np.random.default_rng(4).standard_normal(u.size)
+    result = estimate(FOPDT, Data(u, clean + 0.05 * clean.std() * noise, 0.05), 'auto',
+                      bounds=FOPDT_BOUNDS)
+    assert result.residuals.input_correlated
+    assert not result.residuals.amplitude_dependent
+
+
+def test_coloured_noise_fed_back_is_not_an_amplitude_dependence():
+    # A PI loop around a first order with a dead time, AR(0.9) noise fed back: the input
+    # depends on past noise, whose colour correlates it with the residual at positive lags.
+    # The whitened residual is independent of the past: no alarm in 20 loops.
+    ts, count = 0.05, 4000
+    a, b = np.exp(-ts / 1.5), 2.0 * (1.0 - np.exp(-ts / 1.5))
+    alarms = 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        reference = np.repeat(rng.uniform(-1.0, 1.0, count // 40 + 1), 40)[:count]
+        noise = signal.lfilter([1.0], [1.0, -0.9], rng.standard_normal(count))
+        noise *= 0.2 / noise.std()
+        state, integral = 0.0, 0.0
+        u, y = np.zeros(count), np.zeros(count)
+        for k in range(count):
+            y[k] = state + noise[k]
+            integral += 1.5 * ts * (reference[k] - y[k])
+            u[k] = 0.4 * (reference[k] - y[k]) + integral
+            state = a * state + b * (u[k - 7] if k >= 7 else 0.0)
+        result = estimate(FOPDT, Data(u, y, ts), 'auto', bounds=FOPDT_BOUNDS)
+        alarms += result.residuals.amplitude_dependent
+    assert alarms == 0
+
+
+def test_amplitude_dependence_on_a_residual_alone():
+    # The residual a cubic function of a Gaussian input at lag 3, which is uncorrelated with
+    # the input itself; white noise alone is not flagged.
+    rng = np.random.default_rng(5)
+    u = rng.standard_normal(2000)
+    cubic = u ** 3 - 3.0 * u
+    residual = 0.1 * np.roll(cubic, 3) + rng.standard_normal(2000)
+    found, tested, score, bound = amplitude_dependence(residual, u, ['u'], 25)
+    assert tested == ['u^2', 'u^3']
+    assert [term[:3] for term in found] == [('u', 3, 3)] and score > bound
+    found, _, score, bound = amplitude_dependence(rng.standard_normal(2000), u, ['u'], 25)
+    assert not found and score < bound
