@@ -220,6 +220,9 @@ def model_check(update: Update, window: float, transient: float = -1.0,
     it in most windows). The second test looks further back than the verdict's lags: a new
     lightly damped mode rings longer than they reach, and in closed loop the verdict may call
     it coloured noise. Integrating models (fitted on a high-passed output) get the verdict only.
+    A residual that depends on the input's amplitude (a static nonlinearity, the verdict's
+    ``amplitude_dependent``) does not fail it: friction or saturation present from the start is
+    no change, and one that appears moves the parameters, which the detector watches.
     """
     residuals = update.result.residuals
     if residuals is not None and residuals.input_correlated:

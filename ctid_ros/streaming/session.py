@@ -118,6 +118,9 @@ class Update:
             'residual': residual.verdict if residual else '',
             'residual_white': bool(residual.white) if residual else False,
             'residual_input_correlated': bool(residual.input_correlated) if residual else False,
+            # A static nonlinearity: the residual depends on the input's or output's amplitude.
+            'residual_amplitude_dependent':
+                bool(residual.amplitude_dependent) if residual else False,
             # One parameter vector across the window's halves and quarters (issue 24 a).
             'consistent': bool(consistency.consistent) if consistency else True,
             'consistency': consistency.verdict if consistency else 'not checked',

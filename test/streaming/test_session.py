@@ -44,6 +44,8 @@ def test_successive_windows_recover_the_parameters_in_published_order():
         # The plant is the model: one parameter vector holds over each window.
         assert update.diagnostics()['consistent'] is True
         assert update.diagnostics()['consistency_max_z'] > 0.0
+        # A linear plant: the residual does not depend on the signals' amplitude.
+        assert update.diagnostics()['residual_amplitude_dependent'] is False
         summary = update.to_dict()
         assert summary['consistency']['consistent'] is True
         assert list(summary['params']) == ['tau', 'K', 'T']
