@@ -46,7 +46,7 @@ def _bag_data(arguments: argparse.Namespace) -> Data:
     from ctid_ros.streaming.buffer import resample
     from ctid_ros.streaming.contract import resolve_topic
     from ctid_ros.streaming.params_file import load_params_file
-    from ctid_ros.streaming.sampler import stream_names
+    from ctid_ros.streaming.sampler import FieldErrors, stream_names
 
     if arguments.params_file is None:
         raise ConfigError(f'{arguments.path} is a bag: give --params-file (its input and output '
@@ -60,6 +60,13 @@ def _bag_data(arguments: argparse.Namespace) -> Data:
         topics = tuple(bag.topic_name(topic) or topic for topic in topics)
         start_ns, end_ns = bag.time_range_ns(arguments.start, arguments.end)
         blocks = list(sample_columns(bag, config, topics, start_ns, end_ns))
+    # Messages skipped (no such joint), ignored (a type without the field) or unstamped, as the
+    # live node and ctid replay report them.
+    skipped = FieldErrors(stream_names(config, topics))
+    for block in blocks:
+        block.count_into(skipped)
+    for warning in skipped.warnings():
+        print(f'ctid: warning: {warning}', file=sys.stderr)
     inputs = len(config.input_fields)
     pieces = {name: [getattr(block, name) for block in blocks] for name in
               ('input_stamps', 'input_values', 'output_stamps', 'output_values')}
