@@ -49,6 +49,9 @@ BUFFER_PARAMETERS = ('window', 'sample_time', 'max_gap', 'reorder_horizon', 'tra
 _INT64_MAX = 2 ** 63 - 1
 # Parameters read at configure, fixed while the node is configured.
 _CONFIGURE_ONLY = frozenset(spec.name for spec in PARAMETERS if spec.configure_only)
+# The parameters given per model parameter, in parameter_names' order: a new model with other
+# parameters needs them changed in the same update.
+_PER_MODEL_PARAMETER = ('parameter_names', 'initial', 'lower', 'upper')
 _ARRAY_TYPES = {'string_array': Parameter.Type.STRING_ARRAY}
 
 
@@ -165,6 +168,23 @@ def _refuse_configure_only(config: IdentificationConfig, changes: Mapping[str, A
                           'and configure, a plain node at start-up')
 
 
+def _together_hint(changes: Mapping[str, Any], error: str) -> str:
+    """
+    Return how to change a model with the values given per parameter, where that was refused.
+
+    ``ros2 param set`` and the SetParameters service change one parameter at a time: a model
+    with other parameters then fails against the old parameter_names or vectors, and those
+    fail against the old model. Only an atomic update changes them together.
+    """
+    missing = [name for name in _PER_MODEL_PARAMETER if name not in changes]
+    if 'model' not in changes or not missing or \
+            not any(error.startswith(name) for name in _PER_MODEL_PARAMETER):
+        return ''
+    return (f'; set model with {", ".join(missing)} in one atomic update (the '
+            'set_parameters_atomically service of the node, as AsyncParameterClient.'
+            'set_parameters_atomically of rclpy calls it), or clear them first')
+
+
 class ParameterHandling:
     """
     Reading the parameters at configure and following their runtime changes.
@@ -210,10 +230,11 @@ class ParameterHandling:
                 with self._lock:
                     self._pending_baseline = baseline
         except ConfigError as error:
+            reason = str(error) + _together_hint(changes, str(error))
             self._rejected_parameters += 1
-            self._last_rejected_parameter = str(error)[:500]
-            self.get_logger().warning(f'parameter update refused: {error}')
-            return SetParametersResult(successful=False, reason=str(error))
+            self._last_rejected_parameter = reason[:500]
+            self.get_logger().warning(f'parameter update refused: {reason}')
+            return SetParametersResult(successful=False, reason=reason)
         except Exception as error:  # noqa: B902 - MemoryError, bugs: refuse, keep running
             self._internal_error('parameter update', error)
             return SetParametersResult(successful=False, reason=f'internal error: {error!r}')

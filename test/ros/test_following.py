@@ -163,3 +163,40 @@ def test_a_window_change_keeps_the_data_that_fit(ros):
 def span(node):
     first, last = node.buffer.coverage()
     return (last - first) / 1e9
+
+
+def test_a_model_with_other_parameters_changes_in_one_atomic_update(ros):
+    """
+    A single ``model`` set fails against the old parameter_names and says how; atomic works.
+
+    ``ros2 param set`` changes one parameter at a time: with parameter_names, initial, lower
+    and upper given per parameter (as every shipped params file does), a new model's names
+    fail against the old ones.
+    """
+    ros.identifier(**parameters(model='K/(J*s + 1)', parameter_names=['K', 'J']))
+    publisher = Publisher(ros, Float64, seed=5).start()
+    client = AsyncParameterClient(ros.observer, f'{ros.namespace}/ctid_node')
+    try:
+        assert client.wait_for_services(timeout_sec=30.0)
+        future = client.set_parameters([Parameter('model', value='K/(T*s + 1)')])
+        wait_for(future.done, 30.0, 'set model alone')
+        alone = future.result().results[0]
+        assert not alone.successful
+        assert alone.reason.startswith('parameter_names must be a permutation')
+        assert 'set model with parameter_names, initial, lower, upper in one atomic update' in \
+            alone.reason, alone.reason
+        future = client.set_parameters_atomically(
+            [Parameter('model', value='K/(T*s + 1)'),
+             Parameter('parameter_names', value=['T', 'K']),
+             Parameter('initial', value=[1.0, 1.0]),
+             Parameter('lower', value=[0.01, 0.001]),
+             Parameter('upper', value=[100.0, 100.0])])
+        wait_for(future.done, 30.0, 'set model atomically')
+        together = future.result().result
+        assert together.successful, together.reason
+        wait_for(lambda: ros.latest(ros.estimates) is not None and
+                 list(named(ros.latest(ros.estimates))) == ['T', 'K'], 60.0,
+                 'estimates of T, K in the new order')
+        converge(ros, TRUTH, {'K': 0.1, 'T': 0.05}, timeout=60.0)
+    finally:
+        publisher.stop()
