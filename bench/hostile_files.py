@@ -46,7 +46,11 @@ def _corpus(root: Path) -> List[Tuple[str, str, Callable[[], object]]]:
     (root / 'bag').mkdir()
     good_bag = write_bag(root / 'bag', records, 'sqlite3')
     good_mcap = write_bag(root, records, 'mcap-file')
-    good_params = params_file(root, DELAY).read_bytes()
+    good_params_path = params_file(root, DELAY)
+    good_params = good_params_path.read_bytes()
+    # The readers' one-time costs (sympy's import and the model's derivation on the first
+    # valid configuration, the bag plugins) are paid here, not by whichever case comes first.
+    load_params_file(good_params_path)
 
     def read_bag(path: Path) -> int:
         with BagReader(path) as bag:

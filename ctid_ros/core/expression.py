@@ -40,6 +40,7 @@ import math
 import re
 from typing import List, Optional, Tuple
 
+from ctid_ros.core.limits import check_model_text_length, MAX_MODEL_TEXT
 from ctid_ros.errors import ModelError
 import sympy as sp
 
@@ -54,7 +55,7 @@ LAPLACE = sp.Symbol('s')
 # Limits of the model language, stated in the README (section "The model language", Limits).
 # Each is far above what a grey-box model needs (tens of parameters, degree 10-20) and low
 # enough that no text within all of them stalls the caller (bench/model_text.py measures it).
-MAX_LENGTH = 2000        # characters of one text
+MAX_LENGTH = MAX_MODEL_TEXT  # characters of one text
 MAX_NAME_LENGTH = 64     # characters of one name
 MAX_DEPTH = 40           # nesting of parentheses, signs and powers
 MAX_NUMBER_DIGITS = 32   # characters of one number as written
@@ -274,9 +275,7 @@ def tokenize(text: str) -> List[Token]:
     """Split ``text`` into tokens, rejecting any character outside the model grammar."""
     if not isinstance(text, str):
         raise ModelError(f'model expression must be a string, got {type(text).__name__}')
-    if len(text) > MAX_LENGTH:
-        raise ModelError(f'model expression is {len(text)} characters long; the limit is '
-                         f'{MAX_LENGTH}')
+    check_model_text_length(text)
     tokens = []
     position = 0
     stripped_end = len(text.rstrip(_ASCII_SPACE))

@@ -13,12 +13,13 @@ from pathlib import Path
 import stat
 from typing import Optional, Type
 
-from ctid_ros.errors import CtidError
+from ctid_ros.errors import CtidError, ModelError
 
 __all__ = [
     'MAX_BLANK_LINES', 'MAX_CHUNK_BYTES', 'MAX_COMPRESSION_RATIO', 'MAX_CSV_BYTES',
-    'MAX_LINE_BYTES', 'MAX_METADATA_BYTES', 'MAX_PARAMS_BYTES', 'MAX_SAMPLES', 'MAX_YAML_DEPTH',
-    'MAX_YAML_NODES', 'MIB', 'MIN_SAMPLE_TIME', 'check_readable', 'read_limited', 'size_text',
+    'MAX_LINE_BYTES', 'MAX_METADATA_BYTES', 'MAX_MODEL_TEXT', 'MAX_PARAMS_BYTES', 'MAX_SAMPLES',
+    'MAX_YAML_DEPTH', 'MAX_YAML_NODES', 'MIB', 'MIN_SAMPLE_TIME', 'check_model_text_length',
+    'check_readable', 'read_limited', 'size_text',
 ]
 
 MIB = 1 << 20
@@ -45,6 +46,16 @@ MAX_METADATA_BYTES = 4 * MIB
 MAX_CHUNK_BYTES = 256 * MIB
 # Uncompressed over compressed size of a chunk above 1 MiB (real data: 2-50).
 MAX_COMPRESSION_RATIO = 1000
+# Characters of one model or controller text (the model language's first limit, checked here
+# without sympy: a text refused for its length costs no import).
+MAX_MODEL_TEXT = 2000
+
+
+def check_model_text_length(text: object) -> None:
+    """Raise :class:`~ctid_ros.errors.ModelError` for a text over :data:`MAX_MODEL_TEXT`."""
+    if isinstance(text, str) and len(text) > MAX_MODEL_TEXT:
+        raise ModelError(f'model expression is {len(text)} characters long; the limit is '
+                         f'{MAX_MODEL_TEXT}')
 
 
 def size_text(count: int) -> str:

@@ -23,6 +23,7 @@ from typing import Callable, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 from ctid_ros.core import model_cache
 from ctid_ros.core.data import as_inputs
+from ctid_ros.core.limits import check_model_text_length
 from ctid_ros.core.simulation import (all_finite, ContinuousFilter, INTERSAMPLE, skew_delay,
                                       skew_extended)
 from ctid_ros.errors import ModelError
@@ -130,7 +131,15 @@ class Model:
     def _derive(self, expression: str, controller: Optional[str], *,
                 inputs: Optional[Sequence[str]], output: str) -> None:
         """Parse the texts, derive the coefficients and their Jacobian and compile them."""
-        # Imported here: sympy (a third of a second) loads only for a model not yet derived.
+        # A text too long for the parser is refused before sympy's import (a third of a second,
+        # 34 MiB): a hostile parameter costs nothing. The controller's first, as derive says it.
+        if controller is not None:
+            try:
+                check_model_text_length(controller)
+            except ModelError as error:
+                raise ModelError(f'controller: {error}') from None
+        check_model_text_length(expression)
+        # Imported here: sympy loads only for a model not yet derived.
         from ctid_ros.core.derivation import derive
 
         self.__dict__.update(derive(expression, controller, inputs=inputs, output=output))

@@ -192,3 +192,23 @@ def test_no_home_directory_means_no_store(monkeypatch):
 def test_program_refuses_arithmetic_that_fails_on_numbers(operations):
     with pytest.raises(ValueError, match='arithmetic on numbers fails'):
         CoefficientProgram(1, operations, [len(operations)])
+
+
+def test_a_text_over_the_length_limit_is_refused_without_sympy(store):
+    """A hostile parameter (a 200 000-character controller) costs no sympy import."""
+    script = ('import sys\n'
+              'from ctid_ros.core.model import Model\n'
+              'from ctid_ros.errors import ModelError\n'
+              'for model, controller in (("K/(T*s + 1)", "1+" * 100000 + "1"),\n'
+              '                          ("K/(T*s + 1)" + " + 0" * 1000, None)):\n'
+              '    try:\n'
+              '        Model(model, controller)\n'
+              '    except ModelError as error:\n'
+              '        print(error)\n'
+              'print("sympy" in sys.modules)\n')
+    environment = dict(os.environ, PYTHONPATH=str(REPOSITORY),
+                       **{model_cache.CACHE_VARIABLE: str(store)})
+    lines = subprocess.run([sys.executable, '-c', script], env=environment, check=True,
+                           capture_output=True, text=True).stdout.splitlines()
+    assert lines == ['controller: model expression is 200001 characters long; the limit is 2000',
+                     'model expression is 4011 characters long; the limit is 2000', 'False']
