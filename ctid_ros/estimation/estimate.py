@@ -433,8 +433,9 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     transient : float or 'auto'
         Seconds at the start of the record that are simulated but not fitted, for data that do
         not start at rest (e.g. a window cut from a running plant). ``'auto'``: five times the
-        slowest time constant of the starting model plus its dead time (at most half of the
-        record). Default 0: the data start at rest.
+        slowest time constant of the starting model plus its dead time. At most half of the
+        record is left out (a longer given one is cut, with a warning). Default 0: the data
+        start at rest.
     initial_state : {'zero', 'estimate'}
         ``'estimate'``: fit the response of an unknown initial state (the free responses of
         ``1/D``) along with the parameters, for records that do not start at rest.
@@ -512,6 +513,7 @@ def estimate(model: Model, data: Data, initial: Initial = 'auto', *,
     notes = _warnings(problem, final, uncertainty, std, fit, residuals)
     if delay_index is not None and delay_range is not None:
         notes.extend(_outside_the_search(problem, final.state, delay_index, delay_range))
+    notes.extend(_transient_cut(problem, transient))
     result = Estimate(
         model=model, params=model.as_dict(final.state.theta), std=model.as_dict(std),
         covariance=parameter_covariance, fit=fit, converged=final.converged,
@@ -617,6 +619,24 @@ def _fit_note(fit: float) -> Optional[str]:
                 'input and output are the right signals (not swapped), the dead time and the '
                 'structure, or that the input excites the output above its noise')
     return None
+
+
+def _transient_cut(problem: Problem, transient: Union[float, str]) -> List[str]:
+    """
+    Say so where a given transient was cut to half the record.
+
+    At most half the record is left out of the fit (:meth:`Problem.exclude_transient`). A
+    window of the live node may ask for more while its buffer fills, but a user who gave more
+    than half a record (seconds typed as milliseconds) should know which samples were fitted.
+    """
+    if transient == 'auto' or not transient:
+        return []
+    ts = problem.data.ts
+    if problem.skip >= math.ceil(float(transient) / ts - 1e-9):
+        return []
+    return [f'transient {float(transient):g} s is more than half the record: only its first '
+            f'{problem.skip * ts:g} s ({problem.skip} samples) were left out of the fit, the '
+            'second half fitted']
 
 
 def _outside_the_search(problem: Problem, state: State, delay_index: int,

@@ -379,6 +379,11 @@ class IdentificationSession:
             # otherwise be fitted from an unsettled state). Without a previous estimate the
             # estimator's 'auto' transient settles the starting model instead.
             options['transient'] = max(record - config.window, self._settling)
+        if options.get('transient', 'auto') != 'auto':
+            # The estimator leaves out at most half a record; a window still filling asks for
+            # more. Cut here, where that is expected, and not warned about as a user's value.
+            options['transient'] = min(options['transient'],
+                                       (len(window.data) // 2) * window.data.ts)
         uncertain = window.uncertain_inputs.size
         if uncertain > MAX_UNCERTAIN_INPUTS:
             window = dataclasses.replace(window, notes=window.notes + (

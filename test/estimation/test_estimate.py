@@ -490,6 +490,22 @@ def test_a_dead_time_that_leaves_the_search_range_is_said_to():
     assert not any('search range' in note for note in inside.warnings)
 
 
+def test_a_transient_over_half_the_record_is_cut_and_said_to():
+    # At most half the record is left out; a transient of 200 s on a 153.3 s record (seconds
+    # typed for tenths) was cut to 76.65 s without a word.
+    model = Model('K*exp(-tau*s)/(T*s + 1)')
+    u = prbs(9, 6)
+    y = model.simulate({'K': 2.0, 'T': 1.5, 'tau': 0.33}, u, 0.05)
+    data = Data(u, y + 0.05 * np.random.default_rng(5).standard_normal(u.size), 0.05)
+    cut = estimate(model, data, bounds={'T': (1e-3, None)}, transient=200.0)
+    assert cut.params['K'] == pytest.approx(2.0, rel=0.02)
+    assert ('transient 200 s is more than half the record: only its first 76.65 s (1533 '
+            'samples) were left out of the fit, the second half fitted') in cut.warnings
+    for transient in (0.0, 10.0, 76.65, 'auto'):
+        kept = estimate(model, data, bounds={'T': (1e-3, None)}, transient=transient)
+        assert not any(note.startswith('transient') for note in kept.warnings), transient
+
+
 def test_a_dead_zone_warns_and_linear_reference_systems_do_not():
     # An actuator dead zone of 0.2 (the commanded input recorded) biases the gain low and
     # the estimate says why; the seven linear reference systems leave no such warning.
