@@ -617,7 +617,9 @@ def _fit_note(fit: float) -> Optional[str]:
     if fit < LOW_FIT:
         return (f'fit {fit:.1f} %: the model explains almost none of the output; check that '
                 'input and output are the right signals (not swapped), the dead time and the '
-                'structure, or that the input excites the output above its noise')
+                'structure, or that the input excites the output above its noise; if they are '
+                'right, the estimate may sit in a local minimum: start it near the values '
+                'expected')
     return None
 
 
@@ -680,9 +682,13 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
             continue
         bound = problem.lower[index] if side == 'lower' else problem.upper[index]
         if problem.reductions.get(index) == bound:
+            # Only a model that explains the data says what the data prefer: at a low fit the
+            # limit is more likely the edge of a wrong basin than a lag the data do not need.
+            verdict = 'the data prefer the model without it' if fit >= LOW_FIT else \
+                'with a fit this low, more likely a local minimum than a lag the data do not need'
             notes.append(f'{name} went to {bound:.3g}, where the pole it adds is 1000 times '
-                         f'faster than the Nyquist frequency: the data prefer the model without '
-                         f'it ({name} = 0, one order lower){held}')
+                         f'faster than the Nyquist frequency: {verdict} ({name} = 0, one order '
+                         f'lower){held}')
         else:
             notes.append(f'{name} is at its {side} bound {bound:g}{held}')
     if not result.converged:
