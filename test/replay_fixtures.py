@@ -154,6 +154,23 @@ def params_file(tmp_path, case, node='ctid_node', **overrides):
     return path
 
 
+def two_driver_joint_states(tmp_path):
+    """
+    Write a JointState MCAP of OPEN_LOOP whose every third message lacks ``joint``.
+
+    As ``/joint_states`` fed by two drivers (an arm's and a wheel's). Returns the bag, its
+    params file (``effort[joint]`` to ``position[joint]``) and the records.
+    """
+    u, y = simulate(OPEN_LOOP, 10.0)
+    records = name_joints(joint_state_records(u, y, latency_ns=1_000_000),
+                          [['joint', 'arm'], ['arm', 'joint'], ['wheel_right']])
+    bag = write_bag(tmp_path, records, 'mcap-file')
+    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
+                         output_topic='/joint_states', input_field='effort[joint]',
+                         output_field='position[joint]')
+    return bag, params, records
+
+
 # A ROS 1 command type of a package installed nowhere: known only from the bag's definitions.
 COMMAND_TYPE = 'plant_msgs/msg/Command'
 COMMAND_MSG = 'Header header\nfloat64 effort\nstring source\n'

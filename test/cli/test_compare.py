@@ -6,8 +6,8 @@ from ctid_ros.cli.main import main
 from ctid_ros.core.reference_systems import first_order_dead_time, two_lags_dead_time
 import pytest
 from record_fixtures import write_csv
-from replay_fixtures import (DELAY, float_records, joint_state_records, name_joints, OPEN_LOOP,
-                             params_file, simulate, write_bag)
+from replay_fixtures import (DELAY, float_records, OPEN_LOOP, params_file, simulate,
+                             two_driver_joint_states, write_bag)
 
 FOPDT = 'K*exp(-tau*s)/(T*s+1)'
 SOPDT = 'K*exp(-tau*s)/((T1*s+1)*(T2*s+1))'
@@ -53,13 +53,7 @@ def test_compare_from_a_bag(tmp_path, capsys):
 
 def test_compare_from_a_bag_says_which_messages_it_skipped(tmp_path, capsys):
     """Every third JointState lacks the joint (another driver): skipped and said, as replay."""
-    u, y = simulate(OPEN_LOOP, 10.0)
-    records = name_joints(joint_state_records(u, y, latency_ns=1_000_000),
-                          [['joint', 'arm'], ['arm', 'joint'], ['wheel_right']])
-    bag = write_bag(tmp_path, records, 'mcap-file')
-    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
-                         output_topic='/joint_states', input_field='effort[joint]',
-                         output_field='position[joint]')
+    bag, params, records = two_driver_joint_states(tmp_path)
     assert main(['compare', str(bag), '--params-file', str(params), '--model',
                  OPEN_LOOP['model'], '--model', '1/(d*s + k)', '--json']) == 0
     captured = capsys.readouterr()

@@ -26,8 +26,8 @@ from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
 from replay_fixtures import (CLOSED_LOOP, DELAY, FLOAT64, float_records, joint_state_records,
-                             name_joints, OPEN_LOOP, params_file, simulate, STEP_NS, T0_NS, TS,
-                             write_bag, write_mcap)
+                             OPEN_LOOP, params_file, simulate, STEP_NS, T0_NS, TS,
+                             two_driver_joint_states, write_bag, write_mcap)
 
 
 def replay(capsys, *arguments):
@@ -600,13 +600,7 @@ def test_a_full_disk_under_output_is_one_line_and_leaves_nothing(tmp_path, capsy
 def test_a_joint_state_topic_of_two_drivers_replays_with_a_warning(tmp_path, capsys,
                                                                    output):
     """Every third JointState comes from another driver (no 'joint'): skipped, as live."""
-    u, y = simulate(OPEN_LOOP, 10.0)
-    records = name_joints(joint_state_records(u, y, latency_ns=1_000_000),
-                          [['joint', 'arm'], ['arm', 'joint'], ['wheel_right']])
-    bag = write_bag(tmp_path, records, 'mcap-file')
-    params = params_file(tmp_path, OPEN_LOOP, input_topic='/joint_states',
-                         output_topic='/joint_states', input_field='effort[joint]',
-                         output_field='position[joint]')
+    bag, params, records = two_driver_joint_states(tmp_path)
     arguments = ['replay', str(bag), '--params-file', str(params), '--json']
     arguments += ['--output', str(tmp_path / 'out.mcap')] if output else []
     code = main(arguments)
