@@ -73,7 +73,9 @@ _GRAM_CONDITION = 1e3
 # sample time (a node's windows, a benchmark's records, a record's halves) use the same ones.
 _SHARED_FILTERS = 64
 # An equation-error fit whose coefficients all shrank by more than this from its start has
-# slid towards the trivial zero of R [den; num] (fits found there: 1e-34 to 1e-162).
+# slid towards the trivial zero of R [den; num] (fits found there: 1e-34 to 1e-162); one
+# whose coefficients grew by more than its inverse has run off to a limit of the structure
+# (a mass to infinity: fits found there at 1e147 to 1e153).
 _COLLAPSE = 1e-12
 # Per fitted model, per mask of free parameters: whether a coefficient no free parameter moves
 # is nonzero (:meth:`_EquationError.anchored`): a property of the structure, asked once.
@@ -680,9 +682,15 @@ def _fits_by_filter(problem: Problem, starts: Sequence[np.ndarray], free: np.nda
     by_filter = []
     equation = _EquationError(model, free)
     solution = equation.linear_solution if model.is_affine else equation.local_solution
-    # Only a local fit of a structure with no fixed coefficient can collapse (an affine one is
-    # solved exactly): the others skip the check.
+    # A non-affine structure with no fixed coefficient is fitted scale-free; only its fits can
+    # collapse or run off (:meth:`_EquationError.collapsed`): the others skip the check. An
+    # affine one keeps its exact solve: with no fixed coefficient its coefficients are (but
+    # for contrived structures) linear and homogeneous in the parameters, c = G theta, every
+    # multiple of theta is the same model, and the estimate says the parameters are not
+    # identifiable whatever the start.
     anchored = model.is_affine or not starts or equation.anchored(starts[0])
+    if not anchored:
+        solution = equation.scale_free_solution
     for factor in filters.factors(tau):
         fits = []
         for start in starts:
@@ -755,18 +763,21 @@ class _EquationError:
 
     def collapsed(self, start: np.ndarray, fit: np.ndarray) -> bool:
         """
-        Return True if the fit from ``start`` shrank every coefficient towards zero.
+        Return True if the fit from ``start`` shrank or grew its coefficients without bound.
 
         Where no coefficient is fixed (:meth:`anchored`: a two-mass drive, ``(J2 s^2 + c s +
-        k)/(J1 J2 s^3 + (J1 + J2) c s^2 + ...)``) a local fit can slide towards the trivial
-        zero of ``R [den; num]`` instead of fitting the data: ``J2, c, k -> 0`` with every
-        coefficient below 1e-34 of its start's, a model that is no model.
+        k)/(J1 J2 s^3 + (J1 + J2) c s^2 + ...)``) a fit of ``|R [den; num]|`` could slide
+        towards its trivial zero instead of fitting the data: ``J2, c, k -> 0`` with every
+        coefficient below 1e-34 of its start's, a model that is no model. The scale-free fit
+        (:meth:`scale_free_solution`) cannot, but it can run off to a limit of the structure
+        (``J2 -> 1e148``: the load's inertia infinite), a model no simulation can use.
         """
         if self.anchored(start):
             return False
         coefficients = self._at(start)[1]
         fitted = self._at(fit)[1]
-        return float(fitted @ fitted) < _COLLAPSE ** 2 * float(coefficients @ coefficients)
+        size, start_size = float(fitted @ fitted), float(coefficients @ coefficients)
+        return not _COLLAPSE ** 2 * start_size <= size <= start_size / _COLLAPSE ** 2
 
     def _stabilized_array(self, theta: np.ndarray) -> np.ndarray:
         """Return ``[den; num]`` and then each one's derivatives by the parameters, flat."""
@@ -775,10 +786,26 @@ class _EquationError:
                                coefficients.num_jacobian.reshape(self._free.size, -1)])
         return np.concatenate([coefficients.den, coefficients.num.ravel(), gradients.T.ravel()])
 
+    def scale_free_solution(self, factor: np.ndarray, start: np.ndarray, lower: np.ndarray,
+                            upper: np.ndarray) -> np.ndarray:
+        """
+        Return a local minimiser of ``|R c| / |c|`` from ``start``, ``c = [den; num]``.
+
+        The fit of a structure with no fixed coefficient (:meth:`anchored`): the ratio is the
+        same at every scale of ``c``, so it cannot reward sliding towards ``c = 0``, the
+        trivial zero of ``|R c|``, whatever the bounds (the bounds stopped that slide with a
+        parameter on its bound, a wrong basin, not the trivial zero :meth:`collapsed` drops).
+        """
+        return self.local_solution(factor, start, lower, upper, scale_free=True)
+
     def local_solution(self, factor: np.ndarray, start: np.ndarray, lower: np.ndarray,
-                       upper: np.ndarray) -> np.ndarray:
+                       upper: np.ndarray, scale_free: bool = False) -> np.ndarray:
         """
         Return a local minimiser from ``start``: Levenberg-Marquardt projected onto the box.
+
+        It minimises ``|R c|`` of the coefficients ``c = [den; num]``, or with ``scale_free``
+        ``|R c| / |c|`` (:meth:`scale_free_solution`): residual ``R c / |c|``, Jacobian
+        ``(R G - (R c / |c|) (c^T G / |c|)) / |c|`` with ``G = dc/dtheta``.
 
         The problem has a handful of rows and parameters, so scipy's general solvers would spend
         most of their time on their own bookkeeping; a start needs no more digits than the
@@ -799,7 +826,13 @@ class _EquationError:
         point = start.copy()
         point[positions] = values
         evaluated = self._at(point)[0]
-        residual = factor @ evaluated[order]
+        coefficients = evaluated[order]
+        residual = factor @ coefficients
+        if scale_free:
+            size = math.sqrt(coefficients.dot(coefficients))
+            if not size > 0.0:
+                return values               # no model at the start: nothing to scale by
+            residual = residual / size
         # The products of the fit's own arrays (the Gram matrix, gradient and cost) by
         # ndarray.dot: the same numbers as the matmul operator's, without its ufunc machinery's
         # per-call work. The filter's factor keeps the operator: it may come in any memory
@@ -811,7 +844,11 @@ class _EquationError:
         # values are written over it for each damping, the rest stays.
         every_diagonal = slice(None, None, values.size + 1)
         for _ in range(_START_ITERATIONS):
-            jacobian = factor @ evaluated[rows].T
+            gradients = evaluated[rows].T
+            jacobian = factor @ gradients
+            if scale_free:
+                jacobian = (jacobian - np.outer(residual, coefficients.dot(gradients) / size)
+                            ) / size
             transposed = jacobian.T
             gram = transposed.dot(jacobian)
             gradient = transposed.dot(residual)
@@ -858,9 +895,14 @@ class _EquationError:
                     point[positions] = trial
                     try:
                         trial_evaluated = evaluate(point)
-                        trial_residual = factor @ trial_evaluated[order]
+                        trial_coefficients = trial_evaluated[order]
+                        trial_residual = factor @ trial_coefficients
                     except ModelError:
                         trial_residual = None
+                    if scale_free and trial_residual is not None:
+                        trial_size = math.sqrt(trial_coefficients.dot(trial_coefficients))
+                        trial_residual = trial_residual / trial_size if trial_size > 0.0 \
+                            else None
                     if trial_residual is not None:
                         trial_cost = trial_residual.dot(trial_residual)
                         if trial_cost < cost:
@@ -880,7 +922,9 @@ class _EquationError:
                     break
             decrease = 1.0 - trial_cost / cost
             values, current, residual, evaluated = trial, moved, trial_residual, trial_evaluated
-            cost = trial_cost
+            coefficients, cost = trial_coefficients, trial_cost
+            if scale_free:
+                size = trial_size
             damping /= 3.0
             if damping < 1e-9:          # max(damping, 1e-9) without the call
                 damping = 1e-9
