@@ -34,9 +34,11 @@ Bounds = Mapping[str, Tuple[Optional[float], Optional[float]]]
 DelayRange = Optional[Tuple[float, float]]
 # What the estimation fits: the user's model, or its stable reformulation if it integrates.
 FittedModel = Union[Model, StabilizedModel]
-# The magnitude of an admissible denominator's leading coefficient lies between these: its
-# square (the regressors filter through 1/D^2, scaled by it) is then a normal float.
-_REALISABLE = (1e-150, 1e150)
+# The magnitude of an admissible denominator's leading coefficient lies between these, and no
+# coefficient is larger: D^2 (the regressors filter through 1/D^2) and its scaling by the
+# roots' time scale then stay normal floats. At 1e150 the square's coefficients reached 1e301
+# and overflowed there (a two-mass drive's restart, noise-free data).
+_REALISABLE = (1e-100, 1e100)
 
 
 @dataclass
@@ -399,9 +401,11 @@ class Problem:
         # pole, every coefficient shrinking together) can reach coefficients whose squares
         # underflow: the filters of 1/D could not be built there. Comparisons only: every
         # candidate is checked.
-        leading = coefficients.den[0]
+        den = coefficients.den
+        leading = den[0]
         small, large = _REALISABLE
-        if not (small < leading < large or -large < leading < -small):
+        if not (small < leading < large or -large < leading < -small) or \
+                not float(np.abs(den).max()) < large:
             return None
         sign = np.sign(coefficients.den[0])
         if self._leading_sign is not None and sign != self._leading_sign:

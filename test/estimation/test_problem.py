@@ -85,6 +85,18 @@ def test_coefficients_whose_squares_underflow_are_not_admissible():
     assert problem.admissible(np.array([1e-40, 1e-40, 2e-40])) is not None
 
 
+def test_coefficients_whose_squares_overflow_are_not_admissible():
+    # A two-mass drive's restart reached D = [5e149, 8e150, 3e153, ...]: its leading
+    # coefficient within range, D^2's coefficients at 1e301, whose scaling overflowed and
+    # raised ModelError out of estimate on noise-free data. No coefficient may pass 1e100.
+    model = Model('K/(a*s + b)')
+    u = prbs(7, 4)
+    problem = problem_for(model, Data(u, model.simulate([1.0, 1.0, 2.0], u, 0.1), 0.1))
+    assert problem.admissible(np.array([1e99, 1e99, 2e99])) is not None
+    assert problem.admissible(np.array([1e99, 1e99, 2e101])) is None
+    assert problem.admissible(np.array([1e99, 1e101, 2e101])) is None
+
+
 def test_transient_exclusion_drops_the_settling_time_at_most_half_the_record():
     system = systems.first_order_dead_time()               # N = 2550, ts = 0.1
     problem = problem_for(system.model, system.data(seed=1), system.bounds)
