@@ -122,9 +122,9 @@ class ResidualAnalysis:
         against Bartlett's standard deviation, or for an input in ``prewhitened`` the
         prewhitened one at lags ``1..M`` (the module's docstring).
     feedback : bool
-        The input test finds nothing, but the input depends on past outputs: a raw
-        cross-correlation at negative lags, or a prewhitened one at lags ``-M..0``, exceeds the
-        all-lags bound.
+        The input test (and the amplitude test) finds nothing, but the input depends on past
+        outputs: a raw cross-correlation at negative lags, or a prewhitened one at lags
+        ``-M..0``, exceeds the all-lags bound.
     lags : int
         ``M``.
     samples : int
@@ -227,12 +227,16 @@ class ResidualAnalysis:
 
         :func:`amplitude_dependence` on the residual this analysis is of (the inputs and the
         model's output on the same samples); sets the ``amplitude_*`` fields and says what it
-        found in the verdict.
+        found in the verdict (and drops ``feedback`` where it finds something: the residual is
+        then not one the inputs explain nothing of).
         """
         self.amplitude_terms, self.powers_tested, self.amplitude_score, \
             self.amplitude_bound = amplitude_dependence(residual, inputs, self.inputs,
                                                         self.lags, output)
         self.amplitude_dependent = bool(self.amplitude_terms)
+        # A residual the inputs' amplitude explains is a model error, which correlates with a
+        # coloured input at lags <= 0 too: not evidence of feedback (the cascaded tanks).
+        self.feedback = self.feedback and not self.amplitude_dependent
         self.verdict = _verdict(self.white, self.correlated_inputs, self.worst_lags,
                                 self.feedback, consistent=self.consistent,
                                 amplitude=self.amplitude_terms)
