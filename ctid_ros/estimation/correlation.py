@@ -199,10 +199,13 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     the residual's, counted; ``1/sqrt(N)`` for white series). A held input and coloured noise
     then correlate no more than white ones by chance, while a model error that rings in the
     residual and in a closed-loop input alike (a new resonance) still shows: Bartlett's bound on
-    the raw series would call that chance. Filtering the residual, not the input, also keeps
-    the correlation that noise fed back through a controller leaves at lag 0 from spreading to
-    later lags. ``sensitivities``: the model output's derivatives by its parameters (rows as
-    the residual's), filtered alike and projected out of the filtered residual: an output-error
+    the raw series would call that chance. The filtered residual approximates the innovation,
+    independent of the inputs before it even in closed loop, but not of the input at the same
+    sample, which a controller's direct term makes react to it: lags from 1 are tested (the
+    residual analysis's verdict covers lag 0 where the data show no feedback). Filtering the
+    residual, not the input, also keeps that lag-0 correlation from spreading to later lags.
+    ``sensitivities``: the model output's derivatives by its parameters (rows as the
+    residual's), filtered alike and projected out of the filtered residual: an output-error
     estimate is the optimum of the unfiltered residual, and its (noise-sized) parameter error
     would otherwise show against the whitened input as a model error (a dead time a fraction of
     its standard deviation off correlates at its lag). The test then asks whether any
@@ -253,11 +256,11 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
     whitened = np.column_stack([np.convolve(column - column.mean(), polynomial)[start:count]
                                 for column in inputs[first:].T])
     if filtered[0] != 0.0:
-        return _within_spread(filtered, whitened, lags, span, confidence)
+        return _within_spread(filtered, whitened, lags, span, confidence, first_lag=1)
     # Leading zeros, which input_correlation leaves out of the residual's mean.
     rho_e = None
     for column in whitened.T:
-        largest = np.abs(input_correlation(filtered, column, lags)[:, 0]).max()
+        largest = np.abs(input_correlation(filtered, column, lags)[1:, 0]).max()
         if largest <= confidence * _white_spread(filtered.size):
             continue
         if rho_e is None:
@@ -269,12 +272,12 @@ def independent_of_input(residual: np.ndarray, inputs: np.ndarray, max_lag: int,
 
 
 def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: int,
-                   confidence: float) -> bool:
+                   confidence: float, first_lag: int = 0) -> bool:
     """
     Return True if every input's correlation with ``residual`` stays within Bartlett's bound.
 
-    The correlations of :func:`input_correlation` at lags ``0..lags`` within ``confidence``
-    times :func:`chance_spread` of the autocorrelations at ``-span..span``
+    The correlations of :func:`input_correlation` at lags ``first_lag..lags`` within
+    ``confidence`` times :func:`chance_spread` of the autocorrelations at ``-span..span``
     (:func:`autocorrelations`), for a residual without leading zeros (``inputs``: shape
     ``(N, m)``). The three come from one zero-padded FFT of each series: ``span >= lags``.
     Correlations within the white bound ``confidence/sqrt(N)``, which no spread goes below,
@@ -289,8 +292,8 @@ def _within_spread(residual: np.ndarray, inputs: np.ndarray, lags: int, span: in
     energy = (error ** 2).sum()
     energies = (centred ** 2).sum(axis=0)
     scale = np.sqrt(energy * energies)
-    correlation = np.fft.irfft(spectrum[:, None] * np.conj(spectra), size, axis=0)[:lags + 1] \
-        / np.where(scale > 0.0, scale, 1.0)
+    correlation = np.fft.irfft(spectrum[:, None] * np.conj(spectra), size,
+                               axis=0)[first_lag:lags + 1] / np.where(scale > 0.0, scale, 1.0)
     largest = np.abs(correlation).max(axis=0)
     # A model that explains the data passes here.
     if (largest <= confidence * _white_spread(count)).all():

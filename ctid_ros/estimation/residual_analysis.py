@@ -16,6 +16,23 @@ and states a verdict. The verdict tests all lags at once at about 1 % false alar
 (Bonferroni over the lags tested), so the per-lag 99 % bounds that plots show are exceeded by
 chance more often than the verdict says so (``docs/algorithm.md`` section 11).
 
+The raw correlations and their bounds are what a plot shows (as ``resid`` does); the verdict's
+test of the input is calibrated for open loop, where the input is independent of the noise. In
+closed loop the noise fed back through the controller is in the input, so a coloured residual
+correlates with the raw input at lag 0 (a controller's direct term) and at positive lags
+although the model is right, and Bartlett's bound, which assumes the two independent, calls
+that a model error. So the residual and every input are also filtered by the residual's own
+autoregressive whitening filter (order :data:`_WHITENING_ORDER`, as for the amplitude test
+below; Box-Jenkins prewhitening): the whitened residual approximates the innovation,
+independent of ``u(t - k)`` for ``k >= 1`` even in closed loop, since the input then depends on
+the noise up to ``t - k`` only, but not of ``u(t + k)``, ``k >= 0``, which react to it. Where
+their correlation at lags ``-M..0`` exceeds the all-lags bound for Bartlett's standard
+deviation of the filtered pair, the data show feedback (the input reacts to the noise within a
+sample), and the correlations at lags ``1..M`` decide for that input (``prewhitened``);
+elsewhere the raw test at lags ``0..M`` does, as before: it keeps its power on a model error
+that rings (the whitening filter models much of a resonance's ringing) and its calibration at
+an output-error optimum (``docs/algorithm.md`` section 11).
+
 A static nonlinearity (actuator saturation, a dead zone, friction, a valve's curve) leaves a
 residual uncorrelated with the input itself but not with its amplitude: the analysis also
 tests the residual against the square and cube of every input and of the model's output, less
@@ -101,10 +118,13 @@ class ResidualAnalysis:
     white : bool
         No autocorrelation at lags ``1..M`` exceeds the all-lags bound.
     input_correlated : bool
-        A cross-correlation at lags ``0..M`` exceeds the all-lags bound for some input.
+        For some input, a correlation at lags ``0..M`` exceeds the all-lags bound: the raw one
+        against Bartlett's standard deviation, or for an input in ``prewhitened`` the
+        prewhitened one at lags ``1..M`` (the module's docstring).
     feedback : bool
-        A cross-correlation at negative lags exceeds it while none at lags ``0..M`` does (the
-        input depends on past outputs).
+        The input test (and the amplitude test) finds nothing, but the input depends on past
+        outputs: a raw cross-correlation at negative lags, or a prewhitened one at lags
+        ``-M..0``, exceeds the all-lags bound.
     lags : int
         ``M``.
     samples : int
@@ -112,17 +132,23 @@ class ResidualAnalysis:
     autocorrelation : ndarray, shape (M + 1,)
         Lags ``0..M``.
     cross_correlation : ndarray, shape (2 M + 1, inputs)
-        Lags ``-M..M``, one column per input.
+        Lags ``-M..M``, one column per input: the raw correlations (what ``resid`` plots; in
+        closed loop they are not a test of the model).
     inputs : list of str
         Input names, in column order.
     auto_bound : float
         99 % bound of one autocorrelation value.
     cross_bounds : ndarray, shape (inputs,)
-        99 % bound of one cross-correlation value, per input.
+        99 % bound of one raw cross-correlation value, per input, under independence of the
+        residual and the input (Bartlett).
     correlated_inputs : list of str
-        Inputs correlated with the residual at lags ``0..M``.
+        Inputs the residual correlates with (``input_correlated``).
     worst_lags : list of (str, int, float)
-        For each correlated input: name, lag and value of its largest correlation.
+        For each correlated input: name, lag and value of its largest correlation (the
+        prewhitened one for an input in ``prewhitened``).
+    prewhitened : list of str
+        Inputs the prewhitened residual correlates with at lags ``-M..0`` beyond the all-lags
+        bound: feedback, so the prewhitened test at lags ``1..M`` decided for them.
     amplitude_dependent : bool
         The prewhitened residual correlates with the square or cube of an input or of the
         model output beyond the all-lags bound (:func:`amplitude_dependence`): a static
@@ -161,6 +187,7 @@ class ResidualAnalysis:
     cross_bounds: np.ndarray
     correlated_inputs: List[str] = field(default_factory=list)
     worst_lags: List[Tuple[str, int, float]] = field(default_factory=list)
+    prewhitened: List[str] = field(default_factory=list)
     amplitude_dependent: bool = False
     amplitude_terms: List[Tuple[str, int, int, float]] = field(default_factory=list)
     powers_tested: List[str] = field(default_factory=list)
@@ -200,12 +227,16 @@ class ResidualAnalysis:
 
         :func:`amplitude_dependence` on the residual this analysis is of (the inputs and the
         model's output on the same samples); sets the ``amplitude_*`` fields and says what it
-        found in the verdict.
+        found in the verdict (and drops ``feedback`` where it finds something: the residual is
+        then not one the inputs explain nothing of).
         """
         self.amplitude_terms, self.powers_tested, self.amplitude_score, \
             self.amplitude_bound = amplitude_dependence(residual, inputs, self.inputs,
                                                         self.lags, output)
         self.amplitude_dependent = bool(self.amplitude_terms)
+        # A residual the inputs' amplitude explains is a model error, which correlates with a
+        # coloured input at lags <= 0 too: not evidence of feedback (the cascaded tanks).
+        self.feedback = self.feedback and not self.amplitude_dependent
         self.verdict = _verdict(self.white, self.correlated_inputs, self.worst_lags,
                                 self.feedback, consistent=self.consistent,
                                 amplitude=self.amplitude_terms)
@@ -227,6 +258,7 @@ class ResidualAnalysis:
                 for j, name in enumerate(self.inputs)},
             'cross_bounds': {name: float(bound)
                              for name, bound in zip(self.inputs, self.cross_bounds)},
+            'prewhitened': list(self.prewhitened),
             'amplitude_dependent': bool(self.amplitude_dependent),
             'amplitude_terms': [{'input': name, 'power': int(power), 'lag': int(lag),
                                  'correlation': float(value)}
@@ -245,6 +277,11 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
                      lags: int = DEFAULT_LAGS) -> ResidualAnalysis:
     """
     Analyse ``residual`` against ``inputs`` (one column each, named ``names``).
+
+    The raw correlations and their per-lag bounds are for plots; the verdict's
+    ``input_correlated`` comes from the raw test where the data show no feedback and from the
+    prewhitened test at lags ``1..M`` where they do (the module's docstring,
+    ``docs/algorithm.md`` section 11).
 
     Parameters
     ----------
@@ -265,11 +302,13 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     span = bartlett_span(count, lags)
     # The residual and every input transformed together; the residual's autocorrelation, its
     # cross-correlation with each input and each input's autocorrelation (rows 0, 1..m and
-    # m + 1..2m) back in one inverse transform.
+    # m + 1..2m) back in one inverse transform. Padded for the prewhitened test's lags too
+    # (the span covers them but in records of a few hundred samples).
     # Row-major whatever the inputs' layout: each row's mean is then summed as for that
     # series alone (a column-major stack sums in another order, a few ulps apart).
     spectra, energies, size = _centred_spectra(
-        np.ascontiguousarray(np.concatenate([residual[None], inputs.T])), span)
+        np.ascontiguousarray(np.concatenate([residual[None], inputs.T])),
+        max(span, lags + _WHITENING_ORDER))
     error, signals = spectra[:1], spectra[1:]
     scales = np.sqrt([energies[0] * energy for energy in energies] +
                      [energy * energy for energy in energies[1:]])[:, None]
@@ -287,23 +326,52 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     z_all = bonferroni_quantile(_FAMILY, lags * (1 + 2 * inputs.shape[1]) + inputs.shape[1])
     # No lag above the bound (a NaN is not white): the largest against it, in one reduction.
     white = bool(np.maximum.reduce(np.abs(auto[1:]), initial=0.0) <= z_all / np.sqrt(count))
-    correlated, worst = [], []
+    # The prewhitened correlations (lags -M..M): where they show feedback, the raw test's null
+    # does not hold and they decide (see the module's docstring).
+    if np.isfinite(energies[0]):
+        whitened, whitened_spreads = _prewhitened_correlations(
+            error[0], signals, _shaping(residual, size), count, lags, size)
+    else:
+        whitened, whitened_spreads = np.zeros((inputs_count, 2 * lags + 1)), \
+            np.zeros(inputs_count)
+    correlated, worst, prewhitened = [], [], []
     feedback = False
     for j, name in enumerate(names):
-        positive = cross[lags:, j]
-        if (np.abs(positive) > z_all * spreads[j]).any():
-            lag = int(np.abs(positive).argmax())
-            correlated.append(name)
-            worst.append((name, lag, float(positive[lag])))
-        if (np.abs(cross[:lags, j]) > z_all * spreads[j]).any():
-            feedback = True
+        if whitened_spreads[j] > 0.0 and \
+                np.abs(whitened[j, :lags + 1]).max() > z_all * whitened_spreads[j]:
+            prewhitened.append(name)
+            later = np.abs(whitened[j, lags + 1:])
+            lag = int(later.argmax())
+            if later[lag] > z_all * whitened_spreads[j]:
+                correlated.append(name)
+                worst.append((name, lag + 1, float(whitened[j, lags + 1 + lag])))
+        else:
+            positive = cross[lags:, j]
+            if (np.abs(positive) > z_all * spreads[j]).any():
+                lag = int(np.abs(positive).argmax())
+                correlated.append(name)
+                worst.append((name, lag, float(positive[lag])))
+            if (np.abs(cross[:lags, j]) > z_all * spreads[j]).any():
+                feedback = True
     # A model error driven by a coloured input correlates with it at negative lags too: only a
     # residual the inputs explain nothing of shows feedback there.
-    feedback = feedback and not correlated
+    feedback = (feedback or bool(prewhitened)) and not correlated
     verdict = _verdict(white, correlated, worst, feedback)
     return ResidualAnalysis(verdict, white, bool(correlated), feedback, lags, count, auto,
                             cross, list(names), float(auto_bound), cross_bounds, correlated,
-                            worst, long_autocorrelation=rho_e[span:])
+                            worst, prewhitened=prewhitened, long_autocorrelation=rho_e[span:])
+
+
+def _shaping(residual: np.ndarray, size: int) -> np.ndarray:
+    """
+    Return the power response, on ``size``-point FFT bins, of the residual's whitening filter.
+
+    The least-squares autoregressive filter of order :data:`_WHITENING_ORDER`
+    (:func:`~ctid_ros.estimation.correlation.whitening_filter`): the residual and the series
+    it is tested against are both filtered by it (Box-Jenkins prewhitening), by multiplying
+    their cross-spectrum and power spectra by this.
+    """
+    return np.abs(np.fft.rfft(whitening_filter(residual, _WHITENING_ORDER), size)) ** 2
 
 
 def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequence[str],
@@ -373,9 +441,10 @@ def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequen
     error = np.fft.rfft(residual - np.add.reduce(residual) / count, size)
     powers = np.fft.rfft(powers, size)
     # The whitening filter's power response: the residual and the powers both filtered by it.
-    shaping = np.abs(np.fft.rfft(whitening_filter(residual, _WHITENING_ORDER), size)) ** 2
+    shaping = _shaping(residual, size)
     threshold = bonferroni_quantile(_FAMILY, sum(lags + 1 - start for _, _, start in terms))
-    scores = _amplitude_scores(error, powers, shaping, terms, count, lags, size)
+    scores = _prewhitened_scores(error, powers, shaping, [start for _, _, start in terms],
+                                 count, lags, size)
     # Only a power that correlates as it is is tested again less its fit by the inputs (in
     # open-loop records the more common alarm, a linear model error, correlates with the
     # inputs' lags and drops out there).
@@ -384,8 +453,8 @@ def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequen
         stripped = _less_input_lags(powers[suspects], inputs, size, window)
         if stripped is None:
             return [], [], 0.0, float('inf')
-        again = _amplitude_scores(error, stripped, shaping, [terms[index] for index in suspects],
-                                  count, lags, size)
+        again = _prewhitened_scores(error, stripped, shaping,
+                                    [terms[index][2] for index in suspects], count, lags, size)
         for index, score in zip(suspects, again):
             if score[0] < scores[index][0]:
                 scores[index] = score
@@ -394,37 +463,57 @@ def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequen
     return found, tested, max(score for score, _, _ in scores), threshold
 
 
-def _amplitude_scores(error: np.ndarray, powers: np.ndarray, shaping: np.ndarray,
-                      terms: Sequence[Tuple[str, int, int]], count: int, lags: int,
-                      size: int) -> List[Tuple[float, int, float]]:
+def _prewhitened_correlations(error: np.ndarray, series: np.ndarray, shaping: np.ndarray,
+                              count: int, lags: int, size: int
+                              ) -> Tuple[np.ndarray, np.ndarray]:
     """
-    Return each power's largest correlation with the residual: in standard deviations, lag, value.
+    Return each series' correlations with the residual at lags ``-M..M`` and their spreads.
 
-    ``error``, ``powers``: the residual's and the powers' spectra (zero-padded to ``size``),
-    both filtered by the whitening filter of power response ``shaping``. Lags from each
-    term's first to ``M``; energies and Bartlett's sums over all lags from the spectra
-    (Parseval: the one-sided spectrum counts every bin but the first and, for an even length,
-    the last twice).
+    ``error``, ``series``: the residual's and the series' spectra (zero-padded to ``size``),
+    both filtered by the whitening filter of power response ``shaping`` (an input, or one of
+    its powers). Energies and Bartlett's standard deviation under independence
+    (:func:`~ctid_ros.estimation.correlation.chance_spread`, summed over all lags) from the
+    spectra (Parseval: the one-sided spectrum counts every bin but the first and, for an even
+    length, the last twice). Rows ``(p, 2 M + 1)`` and ``(p,)``; a spread of 0 where either
+    filtered series has no energy.
     """
     counted = np.full(shaping.size, 2.0 / size)
     counted[0] = 1.0 / size
     if size % 2 == 0:
         counted[-1] = 1.0 / size
-    correlations = np.fft.irfft(error * shaping * np.conj(powers), size)
+    correlations = np.fft.irfft(error * shaping * np.conj(series), size)
     error_power = shaping * (error.real ** 2 + error.imag ** 2)
-    powers_power = shaping * (powers.real ** 2 + powers.imag ** 2)
+    series_power = shaping * (series.real ** 2 + series.imag ** 2)
     error_energy = float(counted @ error_power)
-    energies = powers_power @ counted
-    scores = []
-    for row, (energy, (_, _, start)) in enumerate(zip(energies, terms)):
+    energies = series_power @ counted
+    values = np.zeros((series.shape[0], 2 * lags + 1))
+    spreads = np.zeros(series.shape[0])
+    for row, energy in enumerate(energies):
         if not (energy > 0.0 and error_energy > 0.0):
+            continue
+        values[row] = _normalised(correlations[row], size, lags, np.sqrt(error_energy * energy))
+        spreads[row] = chance_spread(counted * error_power / error_energy,
+                                     series_power[row] / energy, count)
+    return values, spreads
+
+
+def _prewhitened_scores(error: np.ndarray, series: np.ndarray, shaping: np.ndarray,
+                        starts: Sequence[int], count: int, lags: int,
+                        size: int) -> List[Tuple[float, int, float]]:
+    """
+    Return each series' largest correlation with the residual: in standard deviations, lag, value.
+
+    :func:`_prewhitened_correlations` at lags from each series' first (``starts``) to ``M``.
+    """
+    values, spreads = _prewhitened_correlations(error, series, shaping, count, lags, size)
+    scores = []
+    for row, start in enumerate(starts):
+        if not spreads[row] > 0.0:
             scores.append((0.0, start, 0.0))
             continue
-        values = correlations[row, start:lags + 1] / np.sqrt(error_energy * energy)
-        spread = chance_spread(counted * error_power / error_energy,
-                               powers_power[row] / energy, count)
-        lag = int(np.abs(values).argmax())
-        scores.append((float(abs(values[lag]) / spread), start + lag, float(values[lag])))
+        tested = values[row, lags + start:]
+        lag = int(np.abs(tested).argmax())
+        scores.append((float(abs(tested[lag]) / spreads[row]), start + lag, float(tested[lag])))
     return scores
 
 

@@ -143,3 +143,20 @@ def test_fft_size_is_the_least_five_smooth_length_reaching_the_count():
         while not smooth(expected):
             expected += 1
         assert fft_size(count) == expected
+
+
+def test_noise_fed_back_at_lag_0_passes_the_prewhitened_test():
+    # A controller's direct term puts the (coloured) noise into the input at the same sample:
+    # the prewhitened residual correlates with u_t, not with earlier inputs.
+    failures = 0
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        noise = signal.lfilter([1.0], [1.0, -0.8], rng.standard_normal(4000))
+        u = np.repeat(rng.uniform(-1.0, 1.0, 100), 40) - 0.6 * noise
+        failures += not independent_of_input(noise, u, 100)
+    assert failures <= 1
+    # An effect of the input two samples later still fails it.
+    rng = np.random.default_rng(10)
+    noise = signal.lfilter([1.0], [1.0, -0.8], rng.standard_normal(4000))
+    u = rng.standard_normal(4000) - 0.6 * noise
+    assert not independent_of_input(noise + 0.2 * np.roll(u, 2), u, 100)
