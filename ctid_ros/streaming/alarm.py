@@ -212,7 +212,8 @@ def model_check(update: Update, window: float, transient: float = -1.0,
     with the input, or else when the residual test of docs/algorithm.md section 11 does, on the
     fitted samples (after ``transient`` seconds, or for an automatic one after the settling time
     of the estimate, and at most the last ``window`` seconds, as the session fits them): their
-    correlation with the input at lags up to :data:`_CHECK_LAGS` (and a quarter of them),
+    correlation with the input at lags 1 to :data:`_CHECK_LAGS` (and a quarter of them; not
+    at lag 0, where a controller's direct term puts the noise into the input),
     prewhitened by the residual's own AR model, the estimate's sensitivities
     (:func:`output_sensitivities`) projected out, within four of Bartlett's standard
     deviations for the colour of both (``4/sqrt(N)`` for white ones; ``coloured=False`` keeps
