@@ -683,9 +683,10 @@ def _warnings(problem: Problem, result: IterationResult, uncertainty: Uncertaint
         bound = problem.lower[index] if side == 'lower' else problem.upper[index]
         if problem.reductions.get(index) == bound:
             # Only a model that explains the data says what the data prefer: at a low fit the
-            # limit is more likely the edge of a wrong basin than a lag the data do not need.
+            # limit may be the edge of a wrong basin, or the output hardly depends on the input.
             verdict = 'the data prefer the model without it' if fit >= LOW_FIT else \
-                'with a fit this low, more likely a local minimum than a lag the data do not need'
+                ('at a fit this low that does not show the data need no such lag (a wrong '
+                 'basin, or an output the input hardly moves)')
             notes.append(f'{name} went to {bound:.3g}, where the pole it adds is 1000 times '
                          f'faster than the Nyquist frequency: {verdict} ({name} = 0, one order '
                          f'lower){held}')

@@ -490,6 +490,21 @@ def test_a_dead_time_that_leaves_the_search_range_is_said_to():
     assert not any('search range' in note for note in inside.warnings)
 
 
+def test_a_lag_on_its_limit_at_a_low_fit_is_not_said_to_be_what_the_data_prefer():
+    # An output the input hardly moves (SNR about 0.05): T1 ends on its order-reduction limit
+    # at a fit of 0.1 %, where nothing shows the data prefer the model without it.
+    model = Model('K/((T1*s + 1)*(T2*s + 1))')
+    u = prbs(8, 4)
+    y = 0.05 * model.simulate({'K': 1.0, 'T1': 2.0, 'T2': 0.01}, u, 0.05) + \
+        np.random.default_rng(4).standard_normal(u.size)
+    result = estimate(model, Data(u, y, 0.05), {'K': 1.0, 'T1': 2.0, 'T2': 0.5})
+    assert result.fit < 10.0
+    limit = [note for note in result.warnings if 'times faster than the Nyquist' in note]
+    assert limit and 'the data prefer' not in limit[0]
+    assert 'does not show the data need no such lag' in limit[0]
+    assert any('may sit in a local minimum' in note for note in result.warnings)
+
+
 def test_a_transient_over_half_the_record_is_cut_and_said_to():
     # At most half the record is left out; a transient of 200 s on a 153.3 s record (seconds
     # typed for tenths) was cut to 76.65 s without a word.
