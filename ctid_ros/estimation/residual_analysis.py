@@ -207,6 +207,9 @@ class ResidualAnalysis:
                                                        compare=False)
     # The model output the residual was taken from (not part of the summary).
     prediction: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
+    # The residual's whitening filter (None where it has no finite energy): the amplitude test
+    # of the same residual filters by it too.
+    whitening: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
 
     def mark_inconsistent(self) -> None:
         """
@@ -232,7 +235,7 @@ class ResidualAnalysis:
         """
         self.amplitude_terms, self.powers_tested, self.amplitude_score, \
             self.amplitude_bound = amplitude_dependence(residual, inputs, self.inputs,
-                                                        self.lags, output)
+                                                        self.lags, output, self.whitening)
         self.amplitude_dependent = bool(self.amplitude_terms)
         # A residual the inputs' amplitude explains is a model error, which correlates with a
         # coloured input at lags <= 0 too: not evidence of feedback (the cascaded tanks).
@@ -328,9 +331,11 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     white = bool(np.maximum.reduce(np.abs(auto[1:]), initial=0.0) <= z_all / np.sqrt(count))
     # The prewhitened correlations (lags -M..M): where they show feedback, the raw test's null
     # does not hold and they decide (see the module's docstring).
+    whitening = None
     if np.isfinite(energies[0]):
+        whitening = whitening_filter(residual, _WHITENING_ORDER)
         whitened, whitened_spreads = _prewhitened_correlations(
-            error[0], signals, _shaping(residual, size), count, lags, size)
+            error[0], signals, _shaping(whitening, size), count, lags, size)
     else:
         whitened, whitened_spreads = np.zeros((inputs_count, 2 * lags + 1)), \
             np.zeros(inputs_count)
@@ -359,23 +364,25 @@ def analyse_residual(residual: np.ndarray, inputs: np.ndarray, names: Sequence[s
     verdict = _verdict(white, correlated, worst, feedback)
     return ResidualAnalysis(verdict, white, bool(correlated), feedback, lags, count, auto,
                             cross, list(names), float(auto_bound), cross_bounds, correlated,
-                            worst, prewhitened=prewhitened, long_autocorrelation=rho_e[span:])
+                            worst, prewhitened=prewhitened, long_autocorrelation=rho_e[span:],
+                            whitening=whitening)
 
 
-def _shaping(residual: np.ndarray, size: int) -> np.ndarray:
+def _shaping(whitening: np.ndarray, size: int) -> np.ndarray:
     """
     Return the power response, on ``size``-point FFT bins, of the residual's whitening filter.
 
-    The least-squares autoregressive filter of order :data:`_WHITENING_ORDER`
-    (:func:`~ctid_ros.estimation.correlation.whitening_filter`): the residual and the series
-    it is tested against are both filtered by it (Box-Jenkins prewhitening), by multiplying
-    their cross-spectrum and power spectra by this.
+    ``whitening``: the least-squares autoregressive filter of order :data:`_WHITENING_ORDER`
+    (:func:`~ctid_ros.estimation.correlation.whitening_filter` of the residual): the residual
+    and the series it is tested against are both filtered by it (Box-Jenkins prewhitening), by
+    multiplying their cross-spectrum and power spectra by this.
     """
-    return np.abs(np.fft.rfft(whitening_filter(residual, _WHITENING_ORDER), size)) ** 2
+    return np.abs(np.fft.rfft(whitening, size)) ** 2
 
 
 def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequence[str],
-                         lags: int = DEFAULT_LAGS, output: Optional[np.ndarray] = None
+                         lags: int = DEFAULT_LAGS, output: Optional[np.ndarray] = None,
+                         whitening: Optional[np.ndarray] = None
                          ) -> Tuple[List[Tuple[str, int, int, float]], List[str], float, float]:
     """
     Test whether ``residual`` depends on the amplitude of the inputs or of the model output.
@@ -408,6 +415,9 @@ def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequen
         ``M``, at most a quarter of the samples.
     output : array_like, shape (N,), optional
         The model's simulated output on the same samples (an output-side nonlinearity).
+    whitening : array_like, optional
+        The residual's whitening filter where it is known already
+        (:attr:`ResidualAnalysis.whitening`); else fitted here.
 
     Returns
     -------
@@ -441,7 +451,9 @@ def amplitude_dependence(residual: np.ndarray, inputs: np.ndarray, names: Sequen
     error = np.fft.rfft(residual - np.add.reduce(residual) / count, size)
     powers = np.fft.rfft(powers, size)
     # The whitening filter's power response: the residual and the powers both filtered by it.
-    shaping = _shaping(residual, size)
+    if whitening is None:
+        whitening = whitening_filter(residual, _WHITENING_ORDER)
+    shaping = _shaping(whitening, size)
     threshold = bonferroni_quantile(_FAMILY, sum(lags + 1 - start for _, _, start in terms))
     scores = _prewhitened_scores(error, powers, shaping, [start for _, _, start in terms],
                                  count, lags, size)
@@ -610,6 +622,11 @@ def amplitude_note(terms: Sequence[Tuple[str, int, int, float]]) -> str:
     ``terms``: :attr:`ResidualAnalysis.amplitude_terms` (the model output's powers named
     ``'model output'``).
     """
+    return f'the residual {_amplitude_clause(terms)}'
+
+
+def _amplitude_clause(terms: Sequence[Tuple[str, int, int, float]]) -> str:
+    """Return :func:`amplitude_note` without its subject: ``'depends on ...'``."""
     where = ', '.join(f'{name}^{power} at lag {lag}: {value:+.2f}'
                       for name, power, lag, value in terms)
     on_input = any(name != _MODEL_OUTPUT for name, _, _, _ in terms)
@@ -624,9 +641,8 @@ def amplitude_note(terms: Sequence[Tuple[str, int, int, float]]) -> str:
         source, examples = ("the model output's amplitude",
                             "friction, a valve's or sensor's curve or an outflow that grows "
                             'with the level')
-    return (f'the residual depends on {source} ({where}): a static nonlinearity such as '
-            f'{examples} that the linear model cannot describe; the standard deviations do '
-            'not cover it')
+    return (f'depends on {source} ({where}): a static nonlinearity such as {examples} that '
+            'the linear model cannot describe; the standard deviations do not cover it')
 
 
 def _verdict(white: bool, correlated: List[str], worst: List[Tuple[str, int, float]],
@@ -635,7 +651,7 @@ def _verdict(white: bool, correlated: List[str], worst: List[Tuple[str, int, flo
     """
     Return the verdict line (``consistent``: one parameter vector holds over the record).
 
-    ``amplitude``: the powers of the inputs the residual depends on (:func:`_amplitude_test`).
+    ``amplitude``: the powers the residual depends on (:func:`amplitude_dependence`).
     """
     if correlated:
         where = ', '.join(f'{name} (lag {lag}: {value:+.2f})' for name, lag, value in worst)
@@ -645,7 +661,7 @@ def _verdict(white: bool, correlated: List[str], worst: List[Tuple[str, int, flo
             text += f'; also {amplitude_note(amplitude)}'
     elif amplitude:
         text = (f'{"white" if white else "coloured"} and uncorrelated with the input, but '
-                f'{amplitude_note(amplitude)[len("the residual "):]}')
+                f'{_amplitude_clause(amplitude)}')
         if not consistent:
             text += '; the parameters also move across the record'
     elif not white and not consistent:
