@@ -733,8 +733,6 @@ class _EquationError:
         # The latest start evaluated, and its [den; num] and their gradients: every filter
         # fits from the same starts.
         self._latest: Tuple[Optional[bytes], Optional[Tuple[np.ndarray, ...]]] = (None, None)
-        # Whether a coefficient no free parameter moves is nonzero (:meth:`anchored`).
-        self._anchored: Optional[bool] = None
 
     def _at(self, point: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return the evaluation at ``point``, its ``[den; num]`` and their gradients' rows."""
@@ -751,15 +749,13 @@ class _EquationError:
         ``R [den; num]`` vanishes at ``den = num = 0``. Such a coefficient (the 1 of ``T s +
         1``, a known numerator) keeps every fit away from there; see :meth:`collapsed`.
         """
-        if self._anchored is None:
-            known = _ANCHORED.setdefault(self._model, {})
-            key = self._free.tobytes()
-            if key not in known:
-                _, coefficients, gradients = self._at(point)
-                moved = np.abs(gradients).sum(axis=1) > 0.0
-                known[key] = bool(((coefficients != 0.0) & ~moved).any())
-            self._anchored = known[key]
-        return self._anchored
+        known = _ANCHORED.setdefault(self._model, {})
+        key = self._free.tobytes()
+        if key not in known:
+            _, coefficients, gradients = self._at(point)
+            moved = np.abs(gradients).sum(axis=1) > 0.0
+            known[key] = bool(((coefficients != 0.0) & ~moved).any())
+        return known[key]
 
     def collapsed(self, start: np.ndarray, fit: np.ndarray) -> bool:
         """
