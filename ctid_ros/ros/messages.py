@@ -14,6 +14,7 @@ from typing import Any, Mapping, Optional, Union
 
 from ctid_ros.errors import ConfigError
 from ctid_ros.streaming.message_fields import FieldPath, Key, NAME_FIELDS, parse_field_path
+from ctid_ros.streaming.sampler import normalized_type
 
 __all__ = ['field_problem', 'import_message', 'to_message']
 
@@ -39,9 +40,7 @@ def import_message(type_name: str) -> type:
         If the name is malformed or the package is not installed.
 
     """
-    package, _, name = type_name.rpartition('/')
-    if '/' not in package:
-        package += '/msg'
+    package, _, name = normalized_type(type_name).rpartition('/')
     try:
         return getattr(importlib.import_module(package.replace('/', '.')), name)
     except (ImportError, AttributeError, ValueError):
