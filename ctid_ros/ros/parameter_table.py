@@ -18,8 +18,8 @@ what this table says cannot drift apart:
 import textwrap
 from typing import Any, NamedTuple, Optional, Sequence, Tuple
 
-from ctid_ros.streaming.parameter_specs import (CONFIGURE_ONLY_CONSTRAINT, DEFAULT_NODE_NAME,
-                                                PARAMETERS, PER_PARAMETER, per_parameter_name)
+from ctid_ros.streaming.parameter_specs import (DEFAULT_NODE_NAME, PARAMETERS, PER_PARAMETER,
+                                                per_parameter_name)
 
 __all__ = ['DeclaredParameter', 'MODEL_NAME_PLACEHOLDER', 'declared_parameters', 'node_usage',
            'per_parameter_description', 'wrap_text']
@@ -50,6 +50,8 @@ class DeclaredParameter(NamedTuple):
     origin : str
         ``config`` (the identification's configuration), ``per_parameter`` (the change alarm,
         one per model parameter) or ``rclpy`` (declared by every rclpy node).
+    configure_only : bool
+        True if it is read at configure and set only while the node is unconfigured.
 
     """
 
@@ -60,6 +62,7 @@ class DeclaredParameter(NamedTuple):
     constraints: str
     read_only: bool
     origin: str
+    configure_only: bool = False
 
 
 # Declared by rclpy itself in every node (rclpy.node.Node.__init__).
@@ -99,7 +102,8 @@ def declared_parameters(model_names: Optional[Sequence[str]] = None
     table = [DeclaredParameter(spec.name, spec.kind,
                                list(spec.default) if isinstance(spec.default, tuple)
                                else spec.default,
-                               spec.description, spec.constraints, spec.read_only, 'config')
+                               spec.description, spec.constraints, spec.read_only, 'config',
+                               spec.configure_only)
              for spec in PARAMETERS]
     names = (MODEL_NAME_PLACEHOLDER,) if model_names is None else tuple(model_names)
     table += [DeclaredParameter(per_parameter_name(prefix, name), 'double', None,
@@ -138,8 +142,7 @@ def node_usage() -> str:
     for entry in table:
         if entry.origin == 'config':
             flags = ', read-only' if entry.read_only else (
-                ', set while unconfigured' if CONFIGURE_ONLY_CONSTRAINT in entry.constraints
-                else '')
+                ', set while unconfigured' if entry.configure_only else '')
             lines.append(f'  {entry.name} ({entry.kind}{flags}, default {entry.default!r})')
             lines.append(wrap_text(entry.description, '      '))
     lines.append('per model parameter <name> (a mapping in a params file, e.g. baseline: {J: '
